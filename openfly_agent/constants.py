@@ -1,0 +1,97 @@
+"""Keys, ids and file names shared by every part of the package (one meaning everywhere, DESIGN.md)."""
+
+from __future__ import annotations
+
+# --- Action codebook (OpenFly ids; the executed motion lives in sim/dynamics.py) -------------------
+ACTION_STOP = 0
+ACTION_FORWARD = 1
+ACTION_TURN_LEFT = 2
+ACTION_TURN_RIGHT = 3
+ACTION_ASCEND = 4
+ACTION_DESCEND = 5
+ACTION_MOVE_LEFT = 6
+ACTION_MOVE_RIGHT = 7
+ACTION_FORWARD_6 = 8
+ACTION_FORWARD_9 = 9
+# Released annotations also hold these two phases; the model never emits them.
+ACTION_TAKEOFF = -1  # 3 m climb before the navigation segment
+ACTION_LANDING = -2  # 3 m descent after STOP
+
+NUM_ACTIONS = 10  # ids 0..9, what the model predicts
+MODEL_ACTION_IDS = tuple(range(NUM_ACTIONS))
+ALL_ACTION_IDS = (ACTION_LANDING, ACTION_TAKEOFF, *MODEL_ACTION_IDS)
+
+ACTION_NAMES: dict[int, str] = {
+    ACTION_LANDING: "landing",
+    ACTION_TAKEOFF: "takeoff",
+    ACTION_STOP: "stop",
+    ACTION_FORWARD: "forward",
+    ACTION_TURN_LEFT: "turn left",
+    ACTION_TURN_RIGHT: "turn right",
+    ACTION_ASCEND: "ascend",
+    ACTION_DESCEND: "descend",
+    ACTION_MOVE_LEFT: "move left",
+    ACTION_MOVE_RIGHT: "move right",
+    ACTION_FORWARD_6: "forward 6",
+    ACTION_FORWARD_9: "forward 9",
+}
+
+STEP_METERS = 3.0  # forward / vertical / lateral primitive
+TURN_DEGREES = 30.0  # one turn primitive
+
+# --- Episodes and metrics --------------------------------------------------------------------------
+SUCCESS_RADIUS_M = 20.0
+MAX_EPISODE_STEPS = 100
+CAMERA_HFOV_DEG = 90.0
+HIGH_CATEGORY_PITCH_DEG = -45.0  # camera pitch for trajectories of the `high_*` categories
+
+SPLIT_TRAIN = "train"
+SPLIT_TEST_SEEN = "test_seen"
+SPLIT_TEST_UNSEEN = "test_unseen"
+SPLITS = (SPLIT_TRAIN, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)
+# The released OpenFly annotation files per split.
+ANNOTATION_FILES = {SPLIT_TRAIN: "train.json", SPLIT_TEST_SEEN: "seen.json", SPLIT_TEST_UNSEEN: "unseen.json"}
+
+# --- Training batch keys (the contract between data/ collator and model/ agent) -------------------
+# Pixel tensors are uint8 RGB at the model's input size; the model normalises them itself.
+INPUT_IDS = "input_ids"  # (B, L) long: [BOS] prompt tokens, then the action token(s); right padded
+ATTENTION_MASK = "attention_mask"  # (B, L) long
+LABELS = "labels"  # (B, L) long, -100 everywhere but the action token(s)
+PIXEL_VALUES = "pixel_values"  # (B, 3, H, W) uint8, current frame
+MEMORY_PIXEL_VALUES = "memory_pixel_values"  # (B, K, S, 3, H, W) uint8, keyframe sets oldest first
+MEMORY_FRAME_MASK = "memory_frame_mask"  # (B, K, S) bool, frame s of set k is real
+MEMORY_BOXES = "memory_boxes"  # (B, K, S, 4) float, (cx, cy, w, h) in [0, 1]
+MEMORY_BOX_VISIBLE = "memory_box_visible"  # (B, K, S) bool
+BOX = "box"  # (B, 4) float, current frame landmark box (cx, cy, w, h)
+BOX_VISIBLE = "box_visible"  # (B,) bool; False = no landmark visible (mask, never a fake box)
+ACTION = "action"  # (B,) long, action id 0..9
+ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
+EPISODE_ID = "episode_id"  # list[str]
+STEP_INDEX = "step_index"  # (B,) long
+
+IGNORE_INDEX = -100
+
+# --- Observation keys (simulator -> agent) ---------------------------------------------------------
+OBS_RGB = "rgb"  # (H, W, 3) uint8
+OBS_POSE = "pose"  # (4,) float (x, y, z, yaw)
+OBS_BOXES = "boxes"  # dict landmark_id -> (cx, cy, w, h)
+OBS_DEPTH = "depth"  # (H, W) float metres
+OBS_INSTRUCTION = "instruction"
+
+# --- File names -------------------------------------------------------------------------------------
+CONFIG_NAME = "config.json"
+WEIGHTS_NAME = "model.safetensors"
+WEIGHTS_INDEX_NAME = "model.safetensors.index.json"
+ACTION_TOKENIZER_NAME = "action_tokenizer.json"
+NORM_STATS_NAME = "dataset_statistics.json"
+TRAIN_CONFIG_NAME = "train_config.json"
+MODEL_CARD_NAME = "README.md"
+ADAPTER_DIR_NAME = "adapter"
+
+EPISODES_JSONL = "episodes.jsonl"
+RESULTS_JSON = "results.json"
+RESULTS_MD = "results.md"
+DATASET_INFO_JSON = "meta/info.json"
+DATASET_STATS_JSON = "meta/stats.json"
+
+MODEL_TYPE = "openfly_agent"

@@ -1,0 +1,1 @@
+"""Level-1 data: episode schema, OpenFly readers, parquet writer, torch dataset and collator."""

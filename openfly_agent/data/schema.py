@@ -1,0 +1,63 @@
+"""The in-memory episode: one trajectory with its instruction, in the OpenFly annotation's terms.
+
+Readers (released OpenFly JSON / parquet) and the toolchain's writer both go through `Episode`, so
+training and evaluation see one schema whatever the source. Frames are referenced, not held: a
+`FrameSource` (data/frames.py) resolves `frame_ids` to RGB arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class SchemaError(ValueError):
+    """A record that breaks the schema; the message names the file, the record and the field."""
+
+    def __init__(self, file: str, record: int | str, field_name: str, problem: str):
+        self.file, self.record, self.field_name, self.problem = str(file), record, field_name, problem
+        super().__init__(f"{file}: record {record}: field '{field_name}': {problem}")
+
+
+@dataclass
+class Episode:
+    """One trajectory. Arrays are indexed by kept frame t = 0..T-1; `actions[t]` is taken at frame t.
+
+    Attributes mirror the OpenFly annotation record (reference/openfly.md section 1.2) plus our extras.
+    """
+
+    episode_id: str  # OpenFly `image_path`, e.g. "env_airsim_16/astar_data/medium_average/<folder>"
+    scene_id: str  # first path component, e.g. "env_airsim_16" or "embedded-17"
+    instruction: str  # `gpt_instruction`
+    actions: np.ndarray  # (T,) int64, ids -2..9
+    positions: np.ndarray  # (T, 3) float64 metres
+    yaws: np.ndarray  # (T,) float64 radians, CCW from +x, NOT wrapped (as released)
+    frame_ids: list[str]  # `index_list`, image stems
+    split: str | None = None  # train / test_seen / test_unseen
+    category: str = ""  # e.g. "high_short", "medium_average_updown"
+    pitch_deg: float = 0.0  # camera pitch; -45 for `high_*` categories
+    # Our extra columns (generated data; None for released data)
+    boxes: np.ndarray | None = None  # (T, 4) (cx, cy, w, h) in [0, 1] of the target landmark
+    box_visible: np.ndarray | None = None  # (T,) bool
+    landmark_ids: list[str] = field(default_factory=list)  # target landmark(s), in route order
+    goal: np.ndarray | None = None  # (3,) metres; default the last position (official evaluation)
+
+    def __post_init__(self) -> None:
+        self.actions = np.asarray(self.actions, dtype=np.int64)
+        self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
+        self.yaws = np.asarray(self.yaws, dtype=np.float64)
+        n = len(self.actions)
+        for name, value in (("positions", self.positions), ("yaws", self.yaws), ("frame_ids", self.frame_ids)):
+            if len(value) != n:
+                raise SchemaError(self.episode_id, self.episode_id, name, f"length {len(value)} != {n} actions")
+        if self.goal is None and n:
+            self.goal = self.positions[-1].copy()
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(T, 4) (x, y, z, yaw)."""
+        return np.concatenate([self.positions, self.yaws[:, None]], axis=1)

@@ -1,0 +1,1 @@
+"""Level-1 simulators: the Simulator protocol, flight dynamics, the embedded city, engine bridges."""

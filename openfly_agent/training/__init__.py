@@ -1,0 +1,1 @@
+"""Level-2 training: loop, optimizer and schedule, checkpoints."""

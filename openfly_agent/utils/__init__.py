@@ -1,0 +1,1 @@
+"""Level-0 helpers: geometry, logging, imports, hub I/O."""
