@@ -95,3 +95,20 @@ DATASET_INFO_JSON = "meta/info.json"
 DATASET_STATS_JSON = "meta/stats.json"
 
 MODEL_TYPE = "openfly_agent"
+
+# --- The official 8-dim action vectors of the released OpenFly-Agent (reference/openfly.md section 2) ----
+# dims: 0 stop, 1 forward metres (3/6/9), 2 turn left, 3 turn right, 4 up, 5 down, 6 move left, 7 move right.
+# The magnitudes (15, 2, 5) are codes inherited from AerialVLN, not the executed motion (30 deg, 3 m, 3 m).
+OPENVLA_ACTION_DIM = 8
+OPENVLA_ACTION_VECTORS: dict[int, tuple[float, ...]] = {
+    ACTION_STOP: (1, 0, 0, 0, 0, 0, 0, 0),
+    ACTION_FORWARD: (0, 3, 0, 0, 0, 0, 0, 0),
+    ACTION_TURN_LEFT: (0, 0, 15, 0, 0, 0, 0, 0),
+    ACTION_TURN_RIGHT: (0, 0, 0, 15, 0, 0, 0, 0),
+    ACTION_ASCEND: (0, 0, 0, 0, 2, 0, 0, 0),
+    ACTION_DESCEND: (0, 0, 0, 0, 0, 2, 0, 0),
+    ACTION_MOVE_LEFT: (0, 0, 0, 0, 0, 0, 5, 0),
+    ACTION_MOVE_RIGHT: (0, 0, 0, 0, 0, 0, 0, 5),
+    ACTION_FORWARD_6: (0, 6, 0, 0, 0, 0, 0, 0),
+    ACTION_FORWARD_9: (0, 9, 0, 0, 0, 0, 0, 0),
+}
