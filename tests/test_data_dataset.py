@@ -7,7 +7,7 @@ import pytest
 from data_factories import make_episode, make_frames
 
 from openfly_agent import constants as C
-from openfly_agent.data.dataset import UNKNOWN_BOX_AREA, NavigationStepDataset
+from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 
@@ -19,7 +19,7 @@ class ScriptedSelector:
         self.sets_for_t, self.calls = sets_for_t, []
 
     def select(self, actions, box_areas, t):
-        self.calls.append((actions.copy(), box_areas.copy(), t))
+        self.calls.append((actions.copy(), None if box_areas is None else list(box_areas), t))
         return self.sets_for_t(t)
 
 
@@ -108,12 +108,13 @@ def test_keyframe_history_with_scripted_selector(store):
     actions, areas, t = selector.calls[-1]
     assert t == 4 and actions.tolist() == [-1, 9, 2, 9]  # only the past: the label at t is not shown
     boxes = episodes[0].boxes
-    np.testing.assert_allclose(areas, [boxes[0, 2] * boxes[0, 3], 0.0, boxes[2, 2] * boxes[2, 3], 0.0])
+    assert areas[1] is None and areas[3] is None  # frames where the landmark is not visible
+    np.testing.assert_allclose([areas[0], areas[2]], [boxes[0, 2] * boxes[0, 3], boxes[2, 2] * boxes[2, 3]])
     sample = dataset[3]
     assert [len(s) for s in sample[C.MEMORY]] == [3, 1]
     np.testing.assert_array_equal(sample[C.MEMORY][0][1][0], images[episodes[0].episode_id][2])
-    dataset.memory_indices(7)  # episode b (no boxes), t = 1: areas fall back to 1.0
-    assert selector.calls[-1][1].tolist() == [UNKNOWN_BOX_AREA] and selector.calls[-1][2] == 1
+    dataset.memory_indices(7)  # episode b (no boxes), t = 1: areas unknown
+    assert selector.calls[-1][1] is None and selector.calls[-1][2] == 1
 
 
 def test_keyframe_history_keeps_the_last_capacity_sets(store):

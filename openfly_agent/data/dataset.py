@@ -21,22 +21,25 @@ from openfly_agent.data.schema import Episode
 
 logger = logging.getLogger(__name__)
 
-UNKNOWN_BOX_AREA = 1.0  # box area reported for every frame of an episode without boxes (area test passes)
-
 
 class KeyframeSelector(Protocol):
     """What the dataset needs from model/keyframes.py."""
 
-    def select(self, actions: np.ndarray, box_areas: np.ndarray, t: int) -> list[list[int]]:
-        """Keyframe sets for step t: lists of frame indices < t, oldest set first."""
+    def select(self, actions: np.ndarray, box_areas: list[float | None] | None, t: int) -> list[list[int]]:
+        """Keyframe sets for step t: lists of frame indices < t, oldest set first.
+
+        `box_areas[j]` is frame j's box area (w * h), None where the landmark is not visible; the whole
+        argument is None when boxes are unknown (area test skipped).
+        """
         ...
 
 
-def box_areas(episode: Episode) -> np.ndarray:
-    """(T,) box area w * h per frame, 0 where not visible; UNKNOWN_BOX_AREA everywhere without boxes."""
+def box_areas(episode: Episode) -> list[float | None] | None:
+    """Box area w * h per frame (None where not visible), or None for an episode without boxes."""
     if episode.boxes is None:
-        return np.full(len(episode), UNKNOWN_BOX_AREA)
-    return np.where(episode.box_visible, episode.boxes[:, 2] * episode.boxes[:, 3], 0.0)
+        return None
+    areas = episode.boxes[:, 2] * episode.boxes[:, 3]  # (T,)
+    return [float(a) if v else None for a, v in zip(areas, episode.box_visible)]
 
 
 class NavigationStepDataset(torch.utils.data.Dataset):
@@ -49,9 +52,10 @@ class NavigationStepDataset(torch.utils.data.Dataset):
 
     History modes:
         "keyframes": `keyframe_selector.select(actions[:t], box_areas[:t], t)` (only the past is shown, so
-            the label at t cannot leak); the last K sets are kept, each cut to its last S frames. Without
-            boxes (released OpenFly data) every area is reported as UNKNOWN_BOX_AREA = 1.0, so an area
-            test `area >= theta` always passes and the sets come from action change points alone.
+            the label at t cannot leak); areas are w * h, None where the landmark is not visible. Without
+            boxes (released OpenFly data) `box_areas` is None: the selector skips its area test and the
+            sets come from motion change points alone. The last K sets are kept, each cut to its last S
+            frames.
         "uniform": K single-frame sets at frames `round(linspace(0, t - 1, min(K, t)))`.
         "random": K distinct random earlier frames (sorted), drawn from a generator seeded with
             (seed, epoch, sample index): reproducible across workers and runs; `set_epoch` varies it.
@@ -120,8 +124,10 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         if mode == "random":
             rng = np.random.default_rng([self.seed, self.epoch, index])
             return [[int(j)] for j in np.sort(rng.choice(t, size=min(k, t), replace=False))]
-        e = int(self._index[index][0])
-        sets = self.keyframe_selector.select(episode.actions[:t].copy(), self._areas[e][:t].copy(), t)
+        areas = self._areas[int(self._index[index][0])]
+        sets = self.keyframe_selector.select(
+            episode.actions[:t].copy(), None if areas is None else areas[:t], t
+        )
         return self._clean_sets(sets, episode, t)
 
     def _clean_sets(self, sets, episode: Episode, t: int) -> list[list[int]]:
