@@ -349,6 +349,12 @@ class OpenFlyAgent(PreTrainedModel):
         """Apply a named freeze stage (`full`, `frozen_vision`, `heads_only`, `lora`); see model/freeze.py."""
         return freeze(self, stage)
 
+    def _set_gradient_checkpointing(self, enable: bool = True, **kwargs) -> None:
+        """transformers' activation checkpointing on the Llama layers, plus timm's on both ViTs."""
+        super()._set_gradient_checkpointing(enable=enable, **kwargs)
+        self.vision_backbone.featurizer.set_grad_checkpointing(enable)
+        self.vision_backbone.fused_featurizer.set_grad_checkpointing(enable)
+
     def get_optim_params(self, weight_decay: float = 0.0) -> list[dict]:
         """Trainable parameters in two AdamW groups: decay on matrices, none on biases / norms / tokens."""
         decay, no_decay = [], []
