@@ -142,6 +142,7 @@ def run(presets: list[str], batches: list[int], steps: int, warmup: int) -> None
                 if agent is not None:
                     median, mean = time_steps(agent, batch, steps, warmup)
                     row.update(ms_per_step=round(median, 2), ms_mean=round(mean, 2), steps=steps)
+                    row["load_avg_1m"] = round(os.getloadavg()[0], 2)  # other processes sharing the CPU
                 else:
                     row["skipped"] = "needs CUDA (7B in bf16)"
                 print(json.dumps(row), flush=True)
