@@ -368,6 +368,9 @@ class OpenFlyAgent(PreTrainedModel):
                 "LoRA is attached: merge it first (model.lora.merge_lora) or save the adapter "
                 "(model.lora.save_lora_adapter); the merged agent saves in the plain key layout"
             )
+        # transformers would upload before the extra files exist: push the finished folder afterwards instead
+        push = kwargs.pop("push_to_hub", False)
+        hub = {k: kwargs.pop(k) for k in ("repo_id", "commit_message", "create_pr", "private") if k in kwargs}
         super().save_pretrained(save_directory, *args, **kwargs)
         if not kwargs.get("is_main_process", True):
             return
@@ -377,6 +380,9 @@ class OpenFlyAgent(PreTrainedModel):
             (folder / NORM_STATS_NAME).write_text(json.dumps(self.config.norm_stats, indent=2) + "\n")
         if self.tokenizer is not None:
             self.tokenizer.save_pretrained(str(folder))
+        if push:
+            hub.update({k: kwargs[k] for k in ("token", "max_shard_size") if k in kwargs})
+            self.push_to_hub(hub.pop("repo_id", folder.name), **hub)
 
     @classmethod
     def from_pretrained(cls, pretrained_model_name_or_path, *args, tokenizer=None, **kwargs):
