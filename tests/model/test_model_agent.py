@@ -165,3 +165,17 @@ def test_bfloat16_forward(make_agent, make_batch):
     agent = make_agent().to(torch.bfloat16)
     loss, logs = agent(make_batch(agent))
     assert loss.dtype == torch.float32 and torch.isfinite(loss)
+
+
+def test_tiny_preset_forward(tiny_tokenizer, make_batch):
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import tiny_config
+
+    agent = OpenFlyAgent.from_model_config(tiny_config(), tokenizer=tiny_tokenizer)
+    assert agent.model_cfg.llm.vocab_size == len(tiny_tokenizer) + 256
+    assert agent.action_tokenizer.discrete_token_ids[0] == len(tiny_tokenizer)  # first reserved id
+    batch = make_batch(agent, batch_size=2)
+    visual, _ = agent.encode_visual(batch)
+    assert visual.shape == (2, 64 + 2, 128)  # 8x8 patches + K = 2 sets of (8 / 8)^2 tokens
+    loss, _ = agent(batch)
+    assert torch.isfinite(loss)
