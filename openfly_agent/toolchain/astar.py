@@ -44,7 +44,7 @@ class PlanResult:
 
 
 def turns_between(heading: int, new_heading: int) -> int:
-    """Signed number of 30 deg turn primitives from `heading` to `new_heading` (+ = left; 180 deg = 6 left)."""
+    """Signed count of 30 deg turns from `heading` to `new_heading` (+ = left; 180 deg = 6 left)."""
     d = (new_heading - heading) % NUM_HEADINGS
     return d if d <= NUM_HEADINGS // 2 else d - NUM_HEADINGS
 
@@ -92,7 +92,10 @@ class ActionSpaceAStar:
             raise PlanningFailed("goal_blocked", f"goal {(gx, gy, gz)} is in an obstacle or outside the map")
         yaws = [start.yaw + math.radians(C.TURN_DEGREES) * h for h in range(NUM_HEADINGS)]
         dxy = [(step * math.cos(a), step * math.sin(a)) for a in yaws]
-        turn_cost = [[cfg.turn_penalty * abs(turns_between(h, h2)) for h2 in range(NUM_HEADINGS)] for h in range(NUM_HEADINGS)]
+        turn_cost = [
+            [cfg.turn_penalty * abs(turns_between(h, h2)) for h2 in range(NUM_HEADINGS)]
+            for h in range(NUM_HEADINGS)
+        ]
         vertical_cost = step + cfg.vertical_penalty
         res, w, tol, blocked = cfg.key_resolution_m, cfg.heuristic_weight, cfg.goal_tolerance_m, self.blocked
 
@@ -113,7 +116,9 @@ class ActionSpaceAStar:
                 return self._result(node, xs, ys, zs, hs, parents, moves, expansions, g)
             expansions += 1
             if expansions > cfg.max_expansions:
-                raise PlanningFailed("max_expansions", f"{cfg.max_expansions} expansions without reaching the goal")
+                raise PlanningFailed(
+                    "max_expansions", f"{cfg.max_expansions} expansions without reaching the goal"
+                )
             for move in range(NUM_HEADINGS + 2):
                 if move < NUM_HEADINGS:
                     nx_, ny_, nz_ = x + dxy[move][0], y + dxy[move][1], z

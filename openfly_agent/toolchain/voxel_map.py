@@ -109,7 +109,9 @@ def _dilate_2d(mask: np.ndarray, radius_vox: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), kernel).astype(bool)
 
 
-def build_planning_map(points: np.ndarray, cfg: MapConfig, scene_bounds: SceneBounds, ground_z: float) -> PlanningMap:
+def build_planning_map(
+    points: np.ndarray, cfg: MapConfig, scene_bounds: SceneBounds, ground_z: float
+) -> PlanningMap:
     """Build the planner's maps from a scene point cloud (N, 3) in point cloud units.
 
     Args:
