@@ -219,3 +219,14 @@ def test_sampling_fails_clearly_when_no_landmark_is_tall_enough(scene):
     cfg = RouteConfig(height_min_m=80, height_max_m=90, min_dist_m=60, max_dist_m=90)
     with pytest.raises(RouteSamplingFailed, match="no landmark reaches"):
         RouteSampler(pmap, landmarks, cfg).sample(np.random.default_rng(0))
+
+
+def test_heuristic_counts_the_turns_any_path_still_needs():
+    astar = ActionSpaceAStar(_open_map(), PlannerConfig(heuristic_weight=1.0, turn_penalty=2.0))
+    yaws = [math.radians(30 * h) for h in range(12)]
+    h = astar._heuristic(yaws, (0.0, 60.0, 20.0))  # goal 90 deg to the left of heading 0
+    assert h(0.0, 0.0, 20.0, 0) == pytest.approx(60.0 + 2.0 * 3)  # ceil((90 - asin(3.1 / 60)) / 30) = 3
+    assert h(0.0, 0.0, 20.0, 3) == pytest.approx(60.0)  # already facing it
+    assert h(0.0, -60.0, 20.0, 9) == pytest.approx(120.0 + 2.0 * 6)  # heading away from it: a U-turn
+    assert h(0.0, 0.0, 20.0 + 80.0, 0) == pytest.approx(math.hypot(60.0, 80.0) + 6.0)
+    assert h(0.0, 58.0, 20.0, 7) == pytest.approx(2.0)  # within tolerance horizontally: no turn needed
