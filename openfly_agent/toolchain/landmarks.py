@@ -7,6 +7,7 @@ height the highest point within +- 5 m of the centroid.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -99,3 +100,33 @@ def segment_landmarks(
             )
         )
     return landmarks
+
+
+def fill_landmark_heights(landmarks: list[Landmark], pmap, window_m: float = 5.0) -> list[Landmark]:
+    """Give landmarks without a height (list z at or below the ground, e.g. UE / 3DGS lists) the highest
+    map point within +- `window_m` of their x-y position, as the official segmentation measures it.
+
+    Args:
+        landmarks: landmarks in metres.
+        pmap: a `PlanningMap` (its column height map).
+        window_m: half size of the square searched around each landmark.
+    """
+    filled = []
+    r = max(0, int(math.ceil(window_m / pmap.voxel_size)))
+    for lm in landmarks:
+        if landmark_top(lm) > pmap.elevation:
+            filled.append(lm)
+            continue
+        idx, inside = pmap.column_of(np.array(lm.position[:2]))
+        i, j = (int(v) for v in idx[0])
+        patch = pmap.height[max(0, i - r) : i + r + 1, max(0, j - r) : j + r + 1] if inside[0] else None
+        if patch is None or not np.isfinite(patch).any():
+            filled.append(lm)
+            continue
+        top = float(patch.max())
+        filled.append(
+            dataclasses.replace(
+                lm, position=(lm.position[0], lm.position[1], top), extent=(*lm.extent[:2], 0.0)
+            )
+        )
+    return filled
