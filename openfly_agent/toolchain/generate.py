@@ -26,7 +26,7 @@ from openfly_agent.sim.city import scene_id_of
 from openfly_agent.toolchain.config import GenerateConfig, parse_shard
 from openfly_agent.toolchain.instructions import make_instruction_backend
 from openfly_agent.toolchain.ledger import STATUS_OK, STATUS_REJECTED, UnitLedger
-from openfly_agent.toolchain.pipeline import KIND_ASTAR, KIND_DAGGER, UnitResult, WorkUnit
+from openfly_agent.toolchain.pipeline import KIND_ASTAR, KIND_DAGGER, KIND_DAGGER_POLICY, UnitResult, WorkUnit
 from openfly_agent.toolchain.summary import write_summary
 from openfly_agent.toolchain.worker import SceneWorker, default_simulator
 from openfly_agent.utils.config import save_config
@@ -43,23 +43,29 @@ def shard_scenes(cfg: GenerateConfig) -> list[tuple[int, bool]]:
     return [scene for position, scene in enumerate(scenes) if position % count == index]
 
 
-def scene_units(seed: int, unseen: bool, cfg: GenerateConfig) -> list[WorkUnit]:
-    """All units of a scene; train-scene units go to test_seen with probability `test_seen_fraction`."""
+def scene_units(
+    seed: int, unseen: bool, cfg: GenerateConfig, kinds: tuple[str, ...] = (KIND_ASTAR, KIND_DAGGER)
+) -> list[WorkUnit]:
+    """The units of a scene; train-scene A* units go to test_seen with probability `test_seen_fraction`.
+
+    DAgger units (`dagger.episodes_per_scene` of each requested dagger kind) exist in train scenes only.
+    """
     units = []
-    for index in range(cfg.scenes.trajectories_per_scene):
+    for index in range(cfg.scenes.trajectories_per_scene if KIND_ASTAR in kinds else 0):
         if unseen:
             split = C.SPLIT_TEST_UNSEEN
         else:
             draw = np.random.default_rng([cfg.seed, seed, index, _SPLIT_STREAM]).random()
             split = C.SPLIT_TEST_SEEN if draw < cfg.scenes.test_seen_fraction else C.SPLIT_TRAIN
         units.append(WorkUnit(seed, index, split, KIND_ASTAR))
-    if not unseen:
-        units += [WorkUnit(seed, i, C.SPLIT_TRAIN, KIND_DAGGER) for i in range(cfg.dagger.episodes_per_scene)]
+    for kind in (KIND_DAGGER, KIND_DAGGER_POLICY):
+        if kind in kinds and not unseen:
+            units += [WorkUnit(seed, i, C.SPLIT_TRAIN, kind) for i in range(cfg.dagger.episodes_per_scene)]
     return units
 
 
 def pending_units(
-    cfg: GenerateConfig, ledger: UnitLedger, writer: OpenFlyDatasetWriter
+    cfg: GenerateConfig, ledger: UnitLedger, writer: OpenFlyDatasetWriter, kinds: tuple[str, ...]
 ) -> dict[int, list[WorkUnit]]:
     """Units per scene seed that are not finished yet (a ledger line, and the episode exists if it was ok)."""
     todo = {}
@@ -68,7 +74,7 @@ def pending_units(
         for record in ledger.read(scene_id_of(seed)):
             if record["status"] == STATUS_REJECTED or writer.has_episode(record["episode_id"]):
                 done.add((record["index"], record["kind"]))
-        todo[seed] = [u for u in scene_units(seed, unseen, cfg) if (u.index, u.kind) not in done]
+        todo[seed] = [u for u in scene_units(seed, unseen, cfg, kinds) if (u.index, u.kind) not in done]
     return todo
 
 
@@ -97,8 +103,8 @@ def _worker_main(cfg, sim_factory, seeds, units, results) -> None:
         results.put(("error", traceback.format_exc()))
 
 
-def _results_in_process(cfg, sim_factory, todo) -> Iterator[UnitResult]:
-    worker = SceneWorker(cfg, sim_factory)
+def _results_in_process(cfg, sim_factory, todo, policy=None) -> Iterator[UnitResult]:
+    worker = SceneWorker(cfg, sim_factory, policy)
     try:
         for units in todo.values():
             for unit in units:
@@ -194,6 +200,8 @@ def generate(
     cfg: GenerateConfig,
     sim_factory: Callable[[GenerateConfig], Simulator] = default_simulator,
     progress: bool = True,
+    policy=None,
+    kinds: tuple[str, ...] = (KIND_ASTAR, KIND_DAGGER),
 ) -> dict:
     """Generate (or resume) this shard of the dataset under `cfg.output_dir`; returns the summary.
 
@@ -202,20 +210,25 @@ def generate(
         sim_factory: builds one simulator per worker from the config (a module-level function, so it
             pickles for spawn). Default: the embedded simulator at `cfg.render` size.
         progress: show a tqdm bar.
+        policy: a `dagger.Policy` for `dagger_policy` units; runs in this process (one model copy).
+        kinds: which unit kinds to generate (A* routes, noisy-expert and / or policy DAgger episodes).
     """
     root = Path(cfg.output_dir)
     root.mkdir(parents=True, exist_ok=True)
     (root / C.TOOLCHAIN_CONFIG_JSON).parent.mkdir(parents=True, exist_ok=True)
     save_config(cfg, root / C.TOOLCHAIN_CONFIG_JSON)
     writer, ledger = OpenFlyDatasetWriter(root), UnitLedger(root)
-    todo = {seed: units for seed, units in pending_units(cfg, ledger, writer).items() if units}
+    todo = {seed: units for seed, units in pending_units(cfg, ledger, writer, kinds).items() if units}
     total = sum(len(units) for units in todo.values())
     logger.info("generate %s (shard %s): %d units to do in %d scenes", root, cfg.shard, total, len(todo))
     sink = _Sink(cfg, writer, ledger)
     if total:
-        stream = _results_from_workers if cfg.workers > 0 else _results_in_process
+        if cfg.workers > 0 and policy is None:
+            stream = _results_from_workers(cfg, sim_factory, todo)
+        else:
+            stream = _results_in_process(cfg, sim_factory, todo, policy)
         bar = tqdm(total=total, desc="trajectories", unit="traj", disable=not progress)
-        for result in stream(cfg, sim_factory, todo):
+        for result in stream:
             sink.add(result)
             bar.update(1)
             bar.set_postfix(written=sink.written, refresh=False)

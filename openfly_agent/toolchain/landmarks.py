@@ -8,7 +8,9 @@ height the highest point within +- 5 m of the centroid.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -130,3 +132,20 @@ def fill_landmark_heights(landmarks: list[Landmark], pmap, window_m: float = 5.0
             )
         )
     return filled
+
+
+def write_landmark_list(path, landmarks: list[Landmark], pcd_scale_ratio: float = 1.0) -> None:
+    """Write landmarks as an official `seg_map` JSONL (AirSim / 3DGS convention: point cloud units).
+
+    Each line: {"type", "color", "size", "shape", "feature", "filename": "X=<x>Y=<y>Z=<z>.png"} with the
+    position divided by `pcd_scale_ratio`, so `sim.real_scene.read_landmark_list` reads it back.
+    """
+    lines = []
+    for lm in landmarks:
+        x, y, z = (v / pcd_scale_ratio for v in lm.position)
+        record = {k: getattr(lm, k) or "test" for k in ("type", "color", "size", "shape", "feature")}
+        record["filename"] = f"X={x!r}Y={y!r}Z={z!r}.png"
+        lines.append(json.dumps(record))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + ("\n" if lines else ""), encoding="utf-8")

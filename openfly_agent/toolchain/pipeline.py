@@ -34,8 +34,11 @@ from openfly_agent.toolchain.scenes import ToolchainScene
 from openfly_agent.toolchain.voxel_map import PlanningMap, build_planning_map
 from openfly_agent.utils.geometry import Pose, path_length
 
-KIND_ASTAR, KIND_DAGGER = "astar", "dagger"
-_KIND_CODE = {KIND_ASTAR: 0, KIND_DAGGER: 1}
+KIND_ASTAR = "astar"  # an A* trajectory
+KIND_DAGGER = "dagger"  # a recovery episode of the noisy expert
+KIND_DAGGER_POLICY = "dagger_policy"  # a recovery episode of a trained policy (`dagger` command)
+DAGGER_KINDS = (KIND_DAGGER, KIND_DAGGER_POLICY)
+_KIND_CODE = {KIND_ASTAR: 0, KIND_DAGGER: 1, KIND_DAGGER_POLICY: 2}
 _EPOCH = dt.datetime(2026, 1, 1)
 _TAKEOFF_CLEARANCE_M = 1.0  # take-off starts / landing ends this far above the ground (at least)
 
@@ -69,7 +72,7 @@ class WorkUnit:
         """Release-style folder name `Y-M-D_h-m-s_<number>` (+ `_dagger` for recovery episodes)."""
         s = self.stamp()
         name = f"{s.year}-{s.month}-{s.day}_{s.hour}-{s.minute}-{s.second}_{self.seed(base_seed) % 10**9}"
-        return name + ("_dagger" if self.kind == KIND_DAGGER else "")
+        return name + ("_dagger" if self.kind in DAGGER_KINDS else "")
 
 
 @dataclass

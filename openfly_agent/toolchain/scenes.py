@@ -17,7 +17,13 @@ from openfly_agent.sim.city import CityConfig, generate_city, scene_id_of
 from openfly_agent.sim.pointcloud import read_points
 from openfly_agent.sim.real_scene import RealSceneConfig, ThreadParams, read_landmark_list, read_scene_config
 from openfly_agent.sim.scene import Landmark, SceneBounds
-from openfly_agent.toolchain.config import MapConfig, RouteConfig, SceneConfig
+from openfly_agent.toolchain.config import (
+    GenerateConfig,
+    MapConfig,
+    RouteConfig,
+    SceneConfig,
+    SegmentationConfig,
+)
 
 
 @dataclass
@@ -100,4 +106,18 @@ def route_config_for(thread: ThreadParams, base: RouteConfig | None = None) -> R
         with_turn_prob=1.0 if thread.with_turn else 0.0,
         chain_prob=1.0 if thread.aimlandmark_nums >= 2 else 0.0,
         takeoff_landing_prob=1.0 if thread.add_takeoff_land else 0.0,
+    )
+
+
+def generate_config_for_real_scene(
+    env_yaml: str | Path, segment: bool = False, thread: int = 0
+) -> GenerateConfig:
+    """A GenerateConfig whose map / route / segmentation settings come from an official env yaml."""
+    scene_cfg = read_scene_config(env_yaml)
+    if not scene_cfg.thread_params:
+        raise ValueError(f"{env_yaml}: no thread_params entry to take the route settings from")
+    return GenerateConfig(
+        map=map_config_for(scene_cfg),
+        route=route_config_for(scene_cfg.thread_params[thread]),
+        segmentation=SegmentationConfig(source="segment" if segment else "scene"),
     )

@@ -9,7 +9,8 @@ from collections.abc import Callable
 from openfly_agent.sim.base import Simulator
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.toolchain.pipeline import (
-    KIND_DAGGER,
+    DAGGER_KINDS,
+    KIND_DAGGER_POLICY,
     PreparedScene,
     UnitResult,
     WorkUnit,
@@ -57,10 +58,13 @@ class SceneWorker:
 
     def run(self, unit: WorkUnit) -> UnitResult:
         prepared = self.scene(unit.scene_seed)
-        if unit.kind == KIND_DAGGER:
+        if unit.kind in DAGGER_KINDS:
             from openfly_agent.toolchain.dagger import generate_dagger_unit
 
-            return generate_dagger_unit(prepared, self.sim, unit, self.cfg)
+            if unit.kind == KIND_DAGGER_POLICY and self.policy is None:
+                raise ValueError("dagger_policy units need a policy (the `dagger` command loads one)")
+            policy = self.policy if unit.kind == KIND_DAGGER_POLICY else None
+            return generate_dagger_unit(prepared, self.sim, unit, self.cfg, policy)
         return generate_unit(prepared, self.sim, unit, self.cfg)
 
     def close(self) -> None:
