@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from toolchain_scene import BUILDINGS, box_surface_points
 
 from openfly_agent import constants as C
 from openfly_agent.sim import dynamics
@@ -43,7 +44,6 @@ from openfly_agent.toolchain.scenes import (
 )
 from openfly_agent.toolchain.summary import summarize_records
 from openfly_agent.toolchain.voxel_map import dilate_grid
-from toolchain_scene import BUILDINGS, box_surface_points
 
 TINY = SceneConfig(
     city_size_m=300, city_buildings=30, train_seeds=[0, 2], unseen_seeds=[1], trajectories_per_scene=10
@@ -178,8 +178,8 @@ def test_summary_counts(tmp_path):
         {"status": "ok", "split": "train", "scene_id": "embedded-0", "category": "low_short", "kind": "astar",
          "instruction": "Fly forward to the red tower and stop near it.", "actions": [9, 2, 1, 0],
          "flight_height_m": 12.0, "path_length_m": 15.0},
-        {"status": "ok", "split": "test_unseen", "scene_id": "embedded-1", "category": "high_long", "kind": "dagger",
-         "instruction": "Turn left, then stop at the blue house.", "actions": [2, 9, 9, 0],
+        {"status": "ok", "split": "test_unseen", "scene_id": "embedded-1", "category": "high_long",
+         "kind": "dagger", "instruction": "Turn left, then stop at the blue house.", "actions": [2, 9, 9, 0],
          "flight_height_m": 31.0, "path_length_m": 18.0},
         {"status": "rejected", "reason": "no_route"},
         {"status": "rejected", "reason": "no_route"},
@@ -187,7 +187,8 @@ def test_summary_counts(tmp_path):
     s = summarize_records(records)
     assert s["trajectories"] == 2 and s["attempts"] == 4 and s["rejected"] == {"no_route": 2}
     assert s["per_split"] == {"test_unseen": 1, "train": 1} and s["dagger_episodes"] == 1
-    words = set("fly forward to the red tower and stop near it turn left then at blue house".split())
+    words = {"fly", "forward", "to", "the", "red", "tower", "and", "stop", "near", "it"}
+    words |= {"turn", "left", "then", "at", "blue", "house"}
     assert s["vocabulary_size"] == len(words)
     assert s["instruction_words"]["mean"] == pytest.approx((10 + 8) / 2)
     assert s["action_histogram"] == {"stop": 2, "forward": 1, "turn left": 2, "forward 9": 3}
