@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from toolchain_scene import BUILDINGS, box_surface_points
@@ -221,15 +222,19 @@ def test_official_env_yaml_becomes_map_and_route_settings(openfly_fixtures):
 
 
 def _small_env_yaml(path, name="env_airsim_77", ratio=1.0):
-    path.write_text(
-        "datagen:\n  env: \"%s\"\n  data_type: \"low_short\"\n  freq: 2\n"
-        "traj_map:\n  DilateRadius: 3\n  VoxelWidth: 2\n  MapBound: [-150, 150, -150, 150, -10, 100]\n"
-        "  LidarDelta: [50, 50, 50]\n  pcd_scale_ratio: %s\n  traj_scale_ratio: 1\n  map_elevation: 0\n"
-        "  min_height_thresh: 6\nseg_map:\n  bev_voxel_size: 2\nthread_params:\n  - name: t\n    nums: 5\n"
-        "    min_dis: 60\n    max_dis: 90\n    height_min: 5\n    height_max: 20\n    aim_port: 1\n"
-        "    listen_port: 2\n    sim_ip: \"127.0.0.1\"\n    sim_port: 3\n    aimlandmark_nums: 1\n"
-        "    add_takeoff_land: false\n    with_turn: false\n" % (name, ratio)
-    )  # fmt: skip
+    """An env yaml in the official layout with a 300 m planning volume (the fixtures' are kilometres)."""
+    thread = {"name": "t", "nums": 5, "min_dis": 60, "max_dis": 90, "height_min": 5, "height_max": 20,
+              "aim_port": 1, "listen_port": 2, "sim_ip": "127.0.0.1", "sim_port": 3, "aimlandmark_nums": 1,
+              "add_takeoff_land": False, "with_turn": False}  # fmt: skip
+    data = {
+        "datagen": {"env": name, "data_type": "low_short", "freq": 2},
+        "traj_map": {"DilateRadius": 3, "VoxelWidth": 2, "MapBound": [-150, 150, -150, 150, -10, 100],
+                     "LidarDelta": [50, 50, 50], "pcd_scale_ratio": ratio, "traj_scale_ratio": 1,
+                     "map_elevation": 0, "min_height_thresh": 6},
+        "seg_map": {"bev_voxel_size": 2},
+        "thread_params": [thread],
+    }  # fmt: skip
+    path.write_text(yaml.safe_dump(data))
     return path
 
 
