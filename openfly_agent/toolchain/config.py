@@ -75,7 +75,7 @@ class RouteConfig:
     chain_prob: float = 0.0  # probability of a 2-landmark route (aimlandmark_nums = 2)
     chain_bearing_deg: list[float] = field(default_factory=lambda: [30.0, 150.0])  # 2nd leg bearing change
     takeoff_landing_prob: float = 0.0  # add_takeoff_land: probability of -1 / -2 phases
-    start_yaw_jitter_deg: float = 90.0  # start yaw = bearing to the goal +- U(jitter)
+    start_yaw_jitter_deg: float = 45.0  # start yaw = bearing to the goal +- U(jitter)
 
     def __post_init__(self) -> None:
         _check(0 <= self.height_min_m <= self.height_max_m, "route.height_min_m must be in [0, height_max_m]")
@@ -172,8 +172,12 @@ class InstructionConfig:
     vlm: VLMConfig = field(default_factory=VLMConfig)
     min_box_area: float = 0.002  # a landmark is 'seen' in a frame when its box covers this image fraction
     mention_distance: bool = True  # template: say distances of long straight legs ("about 60 meters")
+    # jogs (a forward run shorter than this between two turns) fold into one net turn; 0 = a clause per
+    # action transition, exactly as the paper splits
+    merge_short_m: float = 9.0
 
     def __post_init__(self) -> None:
+        _check(self.merge_short_m >= 0, "instructions.merge_short_m must be >= 0")
         _check(
             self.backend in ("template", "vlm"),
             f"instructions.backend must be 'template' or 'vlm', got {self.backend!r}",

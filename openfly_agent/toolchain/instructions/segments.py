@@ -65,6 +65,7 @@ class InstructionRequest:
     seed: int = 0
     frames: list[np.ndarray] | None = None  # (H, W, 3) uint8, used by the VLM backend
     min_box_area: float = 0.002
+    merge_short_m: float = 9.0  # see merge_short_segments; 0 = one clause per action transition
     extra: dict = field(default_factory=dict)
 
 
@@ -88,6 +89,50 @@ def split_at_transitions(actions: np.ndarray) -> list[Segment]:
         else:
             segments.append(Segment(kind, t, t + 1, units))
     return segments
+
+
+def _signed_turns(seg: Segment) -> int:
+    return seg.primitives if seg.kind == LEFT else -seg.primitives
+
+
+def _turn(start: int, end: int, net: int) -> list[Segment]:
+    return [Segment(LEFT if net > 0 else RIGHT, start, end, abs(net))] if net else []
+
+
+def _fuse_neighbours(segments: list[Segment]) -> list[Segment]:
+    """Join consecutive forward runs, and consecutive turns into their net turn (none if it cancels)."""
+    out: list[Segment] = []
+    for seg in segments:
+        last = out[-1] if out else None
+        if last is not None and last.kind == seg.kind == FORWARD:
+            out[-1] = Segment(FORWARD, last.start, seg.end, last.primitives + seg.primitives)
+        elif last is not None and last.kind in (LEFT, RIGHT) and seg.kind in (LEFT, RIGHT):
+            out[-1:] = _turn(last.start, seg.end, _signed_turns(last) + _signed_turns(seg))
+        else:
+            out.append(seg)
+    return out
+
+
+def merge_short_segments(segments: list[Segment], min_forward_m: float) -> list[Segment]:
+    """Fold jogs into the legs around them: a forward run shorter than `min_forward_m` between two turns
+    is dropped and the turns become their net turn (straight on when they cancel), so each remaining
+    sub-trajectory is a maneuver worth a clause. `min_forward_m` = 0 keeps every transition (the paper).
+
+    >>> segs = split_at_transitions([9, 9, 2, 1, 3, 9, 9, 3, 8, 3, 9, 0])
+    >>> [(s.kind, s.primitives) for s in merge_short_segments(segs, 9.0)]
+    [('forward', 12), ('right', 2), ('forward', 3)]
+    """
+    out = _fuse_neighbours(list(segments))
+    i = 1
+    while i < len(out) - 1:
+        prev, mid, nxt = out[i - 1], out[i], out[i + 1]
+        turns = (LEFT, RIGHT)
+        if mid.kind == FORWARD and mid.metres < min_forward_m and prev.kind in turns and nxt.kind in turns:
+            out[i - 1 : i + 2] = _turn(prev.start, nxt.end, _signed_turns(prev) + _signed_turns(nxt))
+            out, i = _fuse_neighbours(out), 1
+        else:
+            i += 1
+    return out
 
 
 def box_area(box) -> float:
