@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import queue
 import traceback
 from collections.abc import Callable, Iterator
@@ -90,6 +91,8 @@ def _assign_scenes(todo: dict[int, list[WorkUnit]], workers: int) -> list[list[i
 
 def _worker_main(cfg, sim_factory, seeds, units, results) -> None:
     """Worker process: one simulator, scenes in turn, one result per unit; ('error', text) on a crash."""
+    # Mesa llvmpipe rasterises with one thread per core by default; share the cores between workers.
+    os.environ.setdefault("LP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // max(1, cfg.workers))))
     try:
         worker = SceneWorker(cfg, sim_factory)
         try:
