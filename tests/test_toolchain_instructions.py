@@ -124,6 +124,8 @@ def test_jogs_fold_into_net_turns():
         ("forward", 10, 11, 3),
     ]
     assert merge_short_segments(segs, 0.0) == segs  # 0 keeps every transition, as the paper splits
+    climbs = split_at_transitions([4, 4, 1, 4, 1, 5, 9, 9, 0])  # up 6, 3 m, up 3, 3 m, down 3, fly on
+    assert [(s.kind, s.primitives) for s in merge_short_segments(climbs, 9.0)] == [("up", 2), ("forward", 6)]
     long_jog = split_at_transitions([2, 9, 3, 0])  # a 9 m leg is not a jog
     assert merge_short_segments(long_jog, 9.0) == long_jog
 

@@ -68,6 +68,9 @@ class RouteConfig:
     height_max_m: float = 10.0  # height_max
     min_dist_m: float = 150.0  # min_dis: start ring inner radius around the landmark
     max_dist_m: float = 180.0  # max_dis: start ring outer radius
+    min_goal_dist_m: float = (
+        30.0  # straight start -> goal distance at least this (big footprints eat the ring)
+    )
     landmark_top_slack_m: float = 15.0  # a landmark qualifies when its top is above flight height - this
     max_landmark_tries: int = 200  # landmarks tried per route before giving up
     max_start_tries: int = 20  # start candidates on the ring per landmark (official: 20)
@@ -80,6 +83,9 @@ class RouteConfig:
     def __post_init__(self) -> None:
         _check(0 <= self.height_min_m <= self.height_max_m, "route.height_min_m must be in [0, height_max_m]")
         _check(0 < self.min_dist_m <= self.max_dist_m, "route.min_dist_m must be in (0, max_dist_m]")
+        _check(
+            0 <= self.min_goal_dist_m < self.max_dist_m, "route.min_goal_dist_m must be in [0, max_dist_m)"
+        )
         for name in ("with_turn_prob", "chain_prob", "takeoff_landing_prob"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"route.{name} must be a probability in [0, 1], got {value}")
