@@ -274,3 +274,14 @@ def test_landmarks_without_height_take_it_from_the_point_cloud(tmp_path):
     prepared = prepare_scene(real_scene(yaml_path, pcd, listing), generate_config_for_real_scene(yaml_path))
     tops = sorted(lm.position[2] for lm in prepared.landmarks.values())
     assert tops == pytest.approx(sorted(hi[2] for _, _, hi, *_ in BUILDINGS))
+
+
+def test_ledger_appends_after_a_torn_line_stay_readable(tmp_path):
+    ledger = UnitLedger(tmp_path)
+    ledger.append("s", {"index": 0})
+    with ledger.path("s").open("a") as f:
+        f.write('{"index": 1, "ki')  # the process died here
+    ledger.append("s", {"index": 2})
+    ledger.append("s", {"index": 3})
+    assert [r["index"] for r in ledger.read("s")] == [0, 2, 3]
+    assert ledger.path("s").read_text().count("\n") == 4
