@@ -69,7 +69,7 @@ def _random_episode(rng: np.random.Generator, scene_id: str, half: float, k: int
 
 
 def bench_step(sim: EmbeddedSimulator, scene_id: str, rng: np.random.Generator, n_steps: int, envs: int):
-    """(steps per second, collisions per step): random actions, episodes of at most 40 steps, `envs` in lockstep."""
+    """(steps/s, collisions per step): random actions, episodes of <= 40 steps, `envs` in lockstep."""
     half = sim.city(scene_id).bounds.xmax * 0.9
     vec = VectorSimulator(sims=[sim] + [sim.sibling() for _ in range(envs - 1)])
     steps = collisions = 0
