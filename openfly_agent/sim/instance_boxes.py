@@ -13,9 +13,13 @@ import numpy as np
 
 @lru_cache(maxsize=8)
 def _pixel_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Column and row index of every pixel in row-major order: (H * W,), (H * W,) int64, read-only."""
-    cols = np.tile(np.arange(width, dtype=np.int64), height)
-    rows = np.repeat(np.arange(height, dtype=np.int64), width)
+    """Column of every pixel in row-major order and row of every pixel in column-major order (read-only).
+
+    Both vary fastest along their traversal, so consecutive pixels of one instance fall in different
+    histogram bins (a run of equal bins would serialise bincount's increments).
+    """
+    cols = np.tile(np.arange(width, dtype=np.int64), height)  # (H * W,)
+    rows = np.tile(np.arange(height, dtype=np.int64), width)  # (W * H,)
     cols.setflags(write=False)
     rows.setflags(write=False)
     return cols, rows
@@ -27,23 +31,24 @@ def instance_boxes(
     """Boxes of the ids 1..num_ids with at least `min_pixels` pixels in `ids` (H, W) int; 0 = background.
 
     Returns: visible ids (K,) int64 ascending, boxes (K, 4) float64 (cx, cy, w, h) in [0, 1] and
-    pixel counts (K,).
-    Cost: two bincounts over (num_ids + 1) * W and (num_ids + 1) * H bins, no Python loop over ids.
+    pixel counts (K,). Cost: one (id, column) and one (id, row) histogram, no Python loop over ids.
     """
     height, width = ids.shape
-    flat = ids.reshape(-1).astype(np.int64)
-    if flat.size and (flat.min() < 0 or flat.max() > num_ids):
-        raise ValueError(f"instance ids must lie in [0, {num_ids}], got [{flat.min()}, {flat.max()}]")
-    counts = np.bincount(flat, minlength=num_ids + 1)
+    by_rows = ids.reshape(-1).astype(np.int64)  # (H * W,) row-major
+    if by_rows.size and (by_rows.min() < 0 or by_rows.max() > num_ids):
+        raise ValueError(f"instance ids must lie in [0, {num_ids}], got [{by_rows.min()}, {by_rows.max()}]")
+    by_cols = ids.T.reshape(-1).astype(np.int64)  # (W * H,) column-major
+    cols, rows = _pixel_grid(height, width)
+    per_col = np.bincount(by_rows * width + cols, minlength=(num_ids + 1) * width).reshape(
+        -1, width
+    )  # (N+1, W)
+    counts = per_col.sum(axis=1)  # (N + 1,)
     visible = np.flatnonzero(counts >= max(1, min_pixels))
     visible = visible[visible > 0]
     if len(visible) == 0:
         return visible, np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
-    cols, rows = _pixel_grid(height, width)  # (H * W,) each
-    in_col = np.bincount(flat * width + cols, minlength=(num_ids + 1) * width).reshape(-1, width)[visible] > 0
-    in_row = (
-        np.bincount(flat * height + rows, minlength=(num_ids + 1) * height).reshape(-1, height)[visible] > 0
-    )
+    per_row = np.bincount(by_cols * height + rows, minlength=(num_ids + 1) * height).reshape(-1, height)
+    in_col, in_row = per_col[visible] > 0, per_row[visible] > 0  # (K, W), (K, H)
     i0 = in_col.argmax(axis=1)
     i1 = width - 1 - in_col[:, ::-1].argmax(axis=1)
     j0 = in_row.argmax(axis=1)

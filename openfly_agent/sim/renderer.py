@@ -81,7 +81,9 @@ class _SceneGPU:
         for key in ("lo", "hi", "color", "material", "instance"):
             inst[key] = table[key]
         self.instances = inst
-        self.centres = ((table["lo"] + table["hi"]) / 2).astype(np.float64)  # (P, 3)
+        centres = ((table["lo"] + table["hi"]) / 2).astype(np.float64)  # (P, 3)
+        self.centres = centres
+        self.centres_h = np.concatenate([centres, np.ones((len(centres), 1))], axis=1)  # (P, 4) homogeneous
         self.radii = (np.linalg.norm(table["hi"] - table["lo"], axis=1) / 2).astype(np.float64)  # (P,)
         self.landmark_ids = [b.landmark_id for b in city.buildings]
         self.ground_z = float(city.ground_z)
@@ -277,11 +279,11 @@ class CityRenderer:
 
     def _visible_instances(self, scene: _SceneGPU, view_proj: np.ndarray, eye: np.ndarray) -> np.ndarray:
         """Instances whose bounding sphere meets the frustum and spans >= cull_px pixels (radius)."""
-        planes = frustum_planes(view_proj)  # (6, 4)
-        signed = scene.centres @ planes[:, :3].T + planes[:, 3]  # (P, 6)
-        inside = (signed >= -scene.radii[:, None]).all(axis=1)
-        distance = np.linalg.norm(scene.centres - eye, axis=1)
-        large = scene.radii * self.camera.focal_px >= self.cull_px * distance
+        signed = scene.centres_h @ frustum_planes(view_proj).T  # (P, 6) signed distances to the planes
+        inside = signed.min(axis=1) >= -scene.radii
+        offset = scene.centres - eye  # (P, 3)
+        distance_sq = np.einsum("ij,ij->i", offset, offset)
+        large = (scene.radii * self.camera.focal_px) ** 2 >= self.cull_px**2 * distance_sq
         return scene.instances[inside & large]
 
     def _draw(self, scene: _SceneGPU, targets: _Targets, views: list[tuple[Pose, float]]) -> None:
