@@ -9,6 +9,8 @@ Prints one JSON line per (mode, resolution) with `resolution`, `fps` (median ove
 -45 deg); `render_batch`: the same poses through `render_many` (16 tiles per framebuffer flush);
 `step`: episodes of random actions through `EmbeddedSimulator.step` (dynamics + collision + render);
 `vector`: 16 such episodes in lockstep through `VectorSimulator.embedded` (frames rendered together).
+`cpu_ms_per_frame` is the CPU time of all threads of the process (llvmpipe rasterises on worker threads);
+`load_avg_1m` tells how busy the machine was.
 """
 
 from __future__ import annotations
@@ -107,8 +109,9 @@ def main() -> None:
         with EmbeddedSimulator(cfg) as sim:
             city = sim.city(scene_id)
             for mode in args.modes:
-                runs, extra = [], 0.0
+                runs, cpu_ms, extra = [], [], 0.0
                 for repeat in range(args.repeats):
+                    cpu_start = time.process_time()
                     rng = np.random.default_rng(repeat)
                     if mode in ("render", "render_batch"):
                         poses = _random_poses(rng, args.size_m / 2, args.frames)
@@ -118,12 +121,14 @@ def main() -> None:
                     else:
                         fps, extra = bench_step(sim, scene_id, rng, args.frames, 1 if mode == "step" else 16)
                     runs.append(fps)
+                    cpu_ms.append(1000.0 * (time.process_time() - cpu_start) / args.frames)
                 record = {
                     "bench": "sim_fps",
                     "mode": mode,
                     "resolution": f"{width}x{height}",
                     "fps": round(statistics.median(runs), 1),
                     "fps_runs": [round(r, 1) for r in runs],
+                    "cpu_ms_per_frame": round(statistics.median(cpu_ms), 2),  # all threads of this process
                     "scene": scene_id,
                     "scene_size_m": args.size_m,
                     "buildings": len(city.buildings),
