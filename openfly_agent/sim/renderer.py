@@ -156,7 +156,7 @@ class CityRenderer:
         far_m: float = 4000.0,
         fog_m: float = 2500.0,
         min_box_pixels: int = 16,
-        cull_px: float = 0.5,
+        cull_px: float = 1.0,
         max_batch: int = 16,
         max_cached_scenes: int = 4,
         egl_device: int | None = None,
