@@ -231,7 +231,6 @@ class SceneConfig:
     city_size_m: float = 1000.0  # embedded city size
     city_buildings: int | None = None  # None = the city generator's default
     point_spacing_m: float = 2.0  # point cloud sampling of the embedded city
-    collision_voxel_m: float = 2.0  # simulator occupancy voxel (what tests check collisions against)
 
     def __post_init__(self) -> None:
         overlap = set(self.train_seeds) & set(self.unseen_seeds)
