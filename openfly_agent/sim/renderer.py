@@ -143,7 +143,7 @@ class CityRenderer:
     """Renders `City` objects from drone poses. Not thread-safe; one per process (or per worker).
 
     Up to `max_batch` views render into tiles of one framebuffer and are read back together
-    (`render_batch`), which amortises llvmpipe's per-flush cost; `render` is a batch of one.
+    (`render_batch`: one GL flush per batch); `render` is a batch of one on a single-tile target.
     """
 
     def __init__(
