@@ -19,8 +19,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_dataclass_arguments(model, ModelReleaseConfig)
     dataset = commands.add_parser("release-dataset", help="release a generated dataset as a Hub dataset repo")
     add_dataclass_arguments(dataset, DatasetReleaseConfig)
-    fake = commands.add_parser("fake-hub", help="serve a loopback stand-in for the Hub upload API (rehearsal)")
-    fake.add_argument("--token", required=True, help="the token clients must send (use the value of HF_TOKEN)")
+    fake = commands.add_parser(
+        "fake-hub", help="serve a loopback stand-in for the Hub upload API (rehearsal)"
+    )
+    fake.add_argument(
+        "--token", required=True, help="the token clients must send (use the value of HF_TOKEN)"
+    )
     return parser
 
 
@@ -34,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "release-dataset":
             return _release_dataset(build_dataclass(DatasetReleaseConfig, args))
         return _serve_fake_hub(args.token)
-    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as err:
+    except (ValueError, OSError, RuntimeError) as err:  # OSError covers missing files and Hub HTTP errors
         print(f"error: {err}", file=sys.stderr)
         return 2
 
@@ -83,5 +87,6 @@ def _serve_fake_hub(token: str) -> int:
         except KeyboardInterrupt:
             for (repo_type, repo_id), repo in hub.repos.items():
                 for branch, files in repo.branches.items():
-                    print(f"{repo_type} {repo_id}@{branch}: {len(files)} files, {sum(map(len, files.values()))} bytes")
+                    size = sum(map(len, files.values()))
+                    print(f"{repo_type} {repo_id}@{branch}: {len(files)} files, {size} bytes")
     return 0

@@ -50,11 +50,15 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: 
         help_text = docs.get(field.name, "")
         base, is_list = _base_type(hint)
         if base is bool:
-            parser.add_argument(flag, dest=dest, action=argparse.BooleanOptionalAction, default=None, help=help_text)
+            parser.add_argument(
+                flag, dest=dest, action=argparse.BooleanOptionalAction, default=None, help=help_text
+            )
             continue
         metavar = field.name.upper()
         nargs = "*" if is_list else None
-        parser.add_argument(flag, dest=dest, type=base, nargs=nargs, default=None, metavar=metavar, help=help_text)
+        parser.add_argument(
+            flag, dest=dest, type=base, nargs=nargs, default=None, metavar=metavar, help=help_text
+        )
 
 
 def build_dataclass(cls: type[T], namespace: argparse.Namespace, prefix: str = "") -> T:

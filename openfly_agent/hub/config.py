@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-# Hub repo ids: "namespace/name", letters, digits, '-', '_', '.'; no '--' or '..', no leading/trailing '-' '.'.
+# Hub repo ids: "namespace/name" of letters, digits, '-', '_', '.'; no '--' or '..', no trailing '-' or '.'.
 _REPO_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,95}/[A-Za-z0-9][A-Za-z0-9_.-]{0,95}$")
 LORA_MODES = ("merged", "adapter")
 DEFAULT_MAX_SHARD_SIZE = "5GB"
@@ -32,10 +32,10 @@ class CardConfig:
     """Metadata of the model card (YAML front matter). Defaults describe the tiny embedded release.
 
     Attributes:
-        license: SPDX-like Hub licence id; `other` needs `license_name` and `license_link` (e.g. Llama 2 weights).
+        license: Hub licence id (e.g. `mit`); `other` needs `license_name` and `license_link` (Llama 2).
         license_name: Name of a custom licence (only with `license: other`).
         license_link: URL or in-repo path of the custom licence text (only with `license: other`).
-        base_model: Hub id the weights were fine-tuned from (e.g. `openvla/openvla-7b`); None for a scratch model.
+        base_model: Hub id the weights were fine-tuned from (`openvla/openvla-7b`); None for a scratch model.
         datasets: Hub dataset ids the model was trained / evaluated on.
         eval_dataset: Hub dataset id (or name) the card's `model-index` results refer to.
         eval_dataset_name: Human name of that dataset, shown next to each result.
@@ -57,7 +57,9 @@ class CardConfig:
 
     def __post_init__(self) -> None:
         if not self.license:
-            raise ValueError("card.license is empty: set an id such as 'mit' or 'other' (+ license_name/link)")
+            raise ValueError(
+                "card.license is empty: set an id such as 'mit' or 'other' (+ license_name/link)"
+            )
         if self.license == "other" and not (self.license_name and self.license_link):
             raise ValueError("card.license 'other' needs card.license_name and card.license_link")
         if self.base_model is not None:
@@ -106,7 +108,9 @@ class ModelReleaseConfig:
         if self.lora not in LORA_MODES:
             raise ValueError(f"--lora {self.lora!r}: choose one of {LORA_MODES}")
         if not _SIZE.match(self.max_shard_size.strip()):
-            raise ValueError(f"--max-shard-size {self.max_shard_size!r}: write a size such as '5GB' or '200MB'")
+            raise ValueError(
+                f"--max-shard-size {self.max_shard_size!r}: write a size such as '5GB' or '200MB'"
+            )
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Dataset release: a generated dataset root -> a Hub dataset folder (parquet + annotations + card with configs)."""
+"""Dataset release: a generated dataset root -> a Hub dataset folder (parquet, annotations, card)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,6 @@ logger = logging.getLogger(__name__)
 TRAJ_DIR = "traj"
 ANNOTATION_DIR = "Annotation"
 TRAJECTORY_CONFIG = "trajectories"
-ANNOTATION_CONFIG = "annotations"
 # count of frames -> the Hub's size_categories label
 _SIZE_CATEGORIES = ((1_000, "n<1K"), (10_000, "1K<n<10K"), (100_000, "10K<n<100K"), (1_000_000, "100K<n<1M"))
 
@@ -31,16 +30,19 @@ _SIZE_CATEGORIES = ((1_000, "n<1K"), (10_000, "1K<n<10K"), (100_000, "10K<n<100K
 def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
     """Write the dataset release folder and return it.
 
-    Copies (hard-links when possible) `traj/**.parquet`, `Annotation/{train,seen,unseen}.json` and `meta/`, and
-    writes `README.md` from `cfg.card` with YAML `configs` so `datasets.load_dataset(<repo>)` gives one split per
-    annotation file: config `trajectories` (per-trajectory parquet, the default) and `annotations` (the JSON).
+    Copies (hard-links when possible) `traj/**.parquet`, `Annotation/{train,seen,unseen}.json` and `meta/`,
+    and writes `README.md` from `cfg.card` with YAML `configs` so `datasets.load_dataset(<repo>)` gives the
+    frames of one split per annotation file. The annotation JSON files travel as they are, for the OpenFly
+    reader (`datasets` infers one file format per repository, so they get no config of their own).
 
     Raises:
-        FileNotFoundError: the dataset root, its annotations / meta, a trajectory parquet or the card is missing.
+        FileNotFoundError: the root, its annotations or meta, a trajectory parquet or the card is missing.
     """
     root = Path(cfg.dataset_root)
     splits = _split_trajectories(root)
-    out = prepare_output_dir(cfg.output_dir or root.parent / f"release-{cfg.repo_id.split('/')[1]}", cfg.overwrite)
+    out = prepare_output_dir(
+        cfg.output_dir or root.parent / f"release-{cfg.repo_id.split('/')[1]}", cfg.overwrite
+    )
     for files in splits.values():
         for rel in files:
             link_or_copy(root / rel, out / rel)
@@ -50,7 +52,9 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
     for rel in (DATASET_INFO_JSON, DATASET_STATS_JSON):
         if (root / rel).is_file():
             link_or_copy(root / rel, out / rel)
-    card = render_dataset_card(Path(cfg.card), splits, num_frames=_count_frames(root, splits), repo_id=cfg.repo_id)
+    card = render_dataset_card(
+        Path(cfg.card), splits, num_frames=_count_frames(root, splits), repo_id=cfg.repo_id
+    )
     (out / MODEL_CARD_NAME).write_text(card)
     logger.info("dataset release folder %s: %d trajectories", out, sum(len(f) for f in splits.values()))
     return out
@@ -73,13 +77,19 @@ def _split_trajectories(root: Path) -> dict[str, list[str]]:
                 raise ValueError(f"{path}: record {index}: field 'image_path' is missing or not a string")
             rel = f"{TRAJ_DIR}/{episode_id}.parquet"
             if not (root / rel).is_file():
-                raise FileNotFoundError(f"{path}: record {index}: trajectory file {root / rel} does not exist")
+                raise FileNotFoundError(
+                    f"{path}: record {index}: trajectory file {root / rel} does not exist"
+                )
             files.append(rel)
         splits[split] = sorted(set(files))
     if not splits:
-        raise FileNotFoundError(f"{root / ANNOTATION_DIR}: no annotation file ({', '.join(ANNOTATION_FILES.values())})")
+        raise FileNotFoundError(
+            f"{root / ANNOTATION_DIR}: no annotation file ({', '.join(ANNOTATION_FILES.values())})"
+        )
     if not (root / DATASET_INFO_JSON).is_file():
-        raise FileNotFoundError(f"{root / DATASET_INFO_JSON} is missing: finalize the dataset before releasing it")
+        raise FileNotFoundError(
+            f"{root / DATASET_INFO_JSON} is missing: finalize the dataset before releasing it"
+        )
     return splits
 
 
@@ -90,23 +100,21 @@ def _count_frames(root: Path, splits: dict[str, list[str]]) -> int:
 
 
 def dataset_configs(splits: dict[str, list[str]]) -> list[dict[str, Any]]:
-    """The card's `configs`: the parquet config (default) and the annotation config, one split per file."""
+    """The card's `configs`: one parquet config; each split lists the trajectory files of its annotations."""
     order = [split for split in ANNOTATION_FILES if split in splits]
-    trajectories = [{"split": split, "path": splits[split]} for split in order]
-    annotations = [{"split": split, "path": f"{ANNOTATION_DIR}/{ANNOTATION_FILES[split]}"} for split in order]
-    return [
-        {"config_name": TRAJECTORY_CONFIG, "data_files": trajectories, "default": True},
-        {"config_name": ANNOTATION_CONFIG, "data_files": annotations},
-    ]
+    data_files = [{"split": split, "path": splits[split]} for split in order]
+    return [{"config_name": TRAJECTORY_CONFIG, "data_files": data_files, "default": True}]
 
 
 def render_dataset_card(card_path: Path, splits: dict[str, list[str]], num_frames: int, repo_id: str) -> str:
-    """The card template with `configs` and `size_categories` filled in (YAML re-dumped, so it always parses)."""
+    """The card template with `configs` and `size_categories` filled in (YAML re-dumped: it always parses)."""
     if not card_path.is_file():
         raise FileNotFoundError(f"dataset card template {card_path} does not exist (see data_cards/)")
     meta, body = split_front_matter(card_path.read_text())
     meta["configs"] = dataset_configs(splits)
-    meta["size_categories"] = [next((label for limit, label in _SIZE_CATEGORIES if num_frames < limit), "1M<n<10M")]
+    meta["size_categories"] = [
+        next((label for limit, label in _SIZE_CATEGORIES if num_frames < limit), "1M<n<10M")
+    ]
     text = f"---\n{yaml.safe_dump(meta, sort_keys=False, allow_unicode=True, width=1000)}---\n{body}"
     text = text.replace("{{repo_id}}", repo_id).replace("{{ repo_id }}", repo_id)
     _validate_dataset_card(text)

@@ -1,4 +1,4 @@
-"""A loopback stand-in for the Hub endpoints that `huggingface_hub` calls to create a repo and upload a folder.
+"""A loopback stand-in for the Hub endpoints `huggingface_hub` calls to create a repo and upload a folder.
 
 Used by the tests (and for rehearsing a release offline): point `HF_ENDPOINT` at `FakeHub.url`. It implements
 repo creation, branch creation, YAML validation, `preupload` (always answering "regular", so files travel
@@ -80,7 +80,11 @@ class FakeHub:
             if headers.get("authorization") != f"Bearer {self.token}":
                 return HTTPStatus.UNAUTHORIZED, {"error": "Invalid credentials in Authorization header"}
             if method == "GET" and route == "/api/whoami-v2":
-                return HTTPStatus.OK, {"type": "user", "name": self.user, "auth": {"accessToken": {"role": "write"}}}
+                return HTTPStatus.OK, {
+                    "type": "user",
+                    "name": self.user,
+                    "auth": {"accessToken": {"role": "write"}},
+                }
             if method == "POST" and route == "/api/repos/create":
                 return self._create_repo(json.loads(body or b"{}"))
             if method == "POST" and route == "/api/validate-yaml":
@@ -140,11 +144,15 @@ class FakeHub:
         for item in lines[1:]:
             value = item["value"]
             if item["key"] != "file" or value.get("encoding") != "base64":
-                return HTTPStatus.BAD_REQUEST, {"error": f"fake hub accepts inline base64 files only, got {item['key']}"}
+                return HTTPStatus.BAD_REQUEST, {
+                    "error": f"fake hub accepts inline base64 files only, got {item['key']}"
+                }
             added[value["path"]] = base64.b64decode(value["content"])
         repo.branches[branch].update(added)
         oid = hashlib.sha1(body).hexdigest()
-        repo.commits.append({"oid": oid, "branch": branch, "summary": lines[0]["value"]["summary"], "files": added})
+        repo.commits.append(
+            {"oid": oid, "branch": branch, "summary": lines[0]["value"]["summary"], "files": added}
+        )
         url = f"{self._repo_url(repo.repo_type, repo.repo_id)}/commit/{oid}"
         return HTTPStatus.OK, {"commitUrl": url, "commitOid": oid, "pullRequestUrl": None}
 

@@ -14,7 +14,9 @@ def prepare_output_dir(path: str | Path, overwrite: bool) -> Path:
     path = Path(path)
     if path.exists() and any(path.iterdir()):
         if not overwrite:
-            raise FileExistsError(f"release folder {path} is not empty: pass --overwrite or choose --output-dir")
+            raise FileExistsError(
+                f"release folder {path} is not empty: pass --overwrite or choose --output-dir"
+            )
         shutil.rmtree(path)
     path.mkdir(parents=True, exist_ok=True)
     return path

@@ -12,20 +12,33 @@ from openfly_agent.hub.config import CardConfig
 from openfly_agent.hub.results import METRICS, ResultRow
 
 # Always present; the Hub adds `custom_code` itself for repos with `auto_map`, we state it explicitly.
-FIXED_TAGS = ("openfly", "openfly-agent", "vision-language-navigation", "aerial-vln", "uav", "vla", "custom_code")
+FIXED_TAGS = (
+    "openfly",
+    "openfly-agent",
+    "vision-language-navigation",
+    "aerial-vln",
+    "uav",
+    "vla",
+    "custom_code",
+)
 TASK_TYPE = "robotics"
 TASK_NAME = "Aerial vision-language navigation"
 # metric key -> (model-index `type`, pretty name with unit)
-METRIC_IDS = {"NE": ("ne", "NE (m)"), "SR": ("sr", "SR (%)"), "OSR": ("osr", "OSR (%)"), "SPL": ("spl", "SPL (%)")}
+METRIC_IDS = {
+    "NE": ("ne", "NE (m)"),
+    "SR": ("sr", "SR (%)"),
+    "OSR": ("osr", "OSR (%)"),
+    "SPL": ("spl", "SPL (%)"),
+}
 PROFILE_DEFINITIONS = {
     "openfly": (
-        "parity with the official OpenFly evaluation: 3-D distance to the goal, success within 20 m, no STOP "
-        "needed, at most 100 steps, SPL = straight-line start-goal distance / travelled length without clamp, "
-        "no collision check."
+        "parity with the official OpenFly evaluation: 3-D distance to the goal, success within 20 m, no "
+        "STOP needed, at most 100 steps, SPL = straight-line start-goal distance / travelled length without "
+        "clamp, no collision check."
     ),
     "standard": (
-        "VLN-CE style: the agent must STOP within 20 m, a collision ends the episode as a failure, at most 100 "
-        "steps, SPL = S * L / max(P, L) with L the reference path length and P the travelled length."
+        "VLN-CE style: the agent must STOP within 20 m, a collision ends the episode as a failure, at most "
+        "100 steps, SPL = S * L / max(P, L) with L the reference path length and P the travelled length."
     ),
 }
 TEMPLATE_NAME = "model_card.md.j2"
@@ -54,7 +67,12 @@ def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) 
     results = []
     for row in rows:
         metrics = [
-            {"type": METRIC_IDS[key][0], "name": METRIC_IDS[key][1], "value": row.metrics[key], "config": row.profile}
+            {
+                "type": METRIC_IDS[key][0],
+                "name": METRIC_IDS[key][1],
+                "value": row.metrics[key],
+                "config": row.profile,
+            }
             for key in METRICS
         ]
         results.append(
@@ -90,9 +108,7 @@ def build_metadata(card: CardConfig, model_name: str, rows: list[ResultRow] | No
     return meta
 
 
-def render_model_card(
-    card: CardConfig, repo_id: str, rows: list[ResultRow] | None, facts: ModelFacts
-) -> str:
+def render_model_card(card: CardConfig, repo_id: str, rows: list[ResultRow] | None, facts: ModelFacts) -> str:
     """Render README.md: YAML front matter (yaml.safe_dump, so it always parses) + the Jinja body."""
     import jinja2
 
@@ -117,7 +133,7 @@ def render_model_card(
 
 
 def split_front_matter(text: str) -> tuple[dict[str, Any], str]:
-    """Split a card into (YAML metadata, Markdown body); raises ValueError when the front matter is malformed."""
+    """Split a card into (YAML metadata, Markdown body); ValueError when the front matter is malformed."""
     if not text.startswith("---\n"):
         raise ValueError("card has no YAML front matter: it must start with a '---' line")
     end = text.find("\n---\n", 4)

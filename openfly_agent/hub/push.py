@@ -1,4 +1,4 @@
-"""Upload a release folder to a Hub model or dataset repository (token from the environment or login cache)."""
+"""Upload a release folder to a Hub model or dataset repo (token from the environment or the login cache)."""
 
 from __future__ import annotations
 

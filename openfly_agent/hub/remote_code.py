@@ -1,4 +1,4 @@
-"""`trust_remote_code` support: the two re-export files a release folder carries and the `auto_map` in config.json."""
+"""`trust_remote_code` support: the two re-export files of a release folder and `auto_map` in config.json."""
 
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ METRICS: dict[str, tuple[str, str]] = {
 
 
 class ResultsError(ValueError):
-    """The results JSON lacks a split, profile or metric the card needs; the message names the file and key."""
+    """The results JSON lacks a split, profile or metric the card needs; the message names file and key."""
 
 
 @dataclass(frozen=True)
@@ -40,8 +40,8 @@ def load_results(path: str | Path) -> list[ResultRow]:
 
     Expected shape (eval.py, docs/RELEASE.md)::
 
-        {"splits": {"test_seen": {"profiles": {"openfly": {"overall": {"NE": 31.2, "SR": 12.5, "OSR": 20.0,
-                                                                      "SPL": 11.0, "num_episodes": 40}}, ...}}}}
+        {"splits": {"test_seen": {"profiles": {"openfly": {"overall": {
+            "NE": 31.2, "SR": 12.5, "OSR": 20.0, "SPL": 11.0, "num_episodes": 40}}, ...}}}}
 
     Raises:
         ResultsError: the file is not JSON, or a split / profile / metric is missing or not a finite number.
@@ -63,7 +63,9 @@ def parse_results(data: dict[str, Any], source: str = "<results>") -> list[Resul
         profiles = _child(split_data, "profiles", source, f"splits.{split}")
         for profile in PROFILES:
             where = f"splits.{split}.profiles.{profile}"
-            overall = _child(_child(profiles, profile, source, where.rsplit(".", 1)[0]), "overall", source, where)
+            overall = _child(
+                _child(profiles, profile, source, where.rsplit(".", 1)[0]), "overall", source, where
+            )
             metrics = {name: _number(overall, name, source, f"{where}.overall") for name in METRICS}
             count = overall.get("num_episodes")
             rows.append(ResultRow(split, profile, metrics, int(count) if count is not None else None))

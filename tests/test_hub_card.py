@@ -1,0 +1,161 @@
+"""Model card: the YAML front matter parses, its model-index equals the eval JSON, bad results are named."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import yaml
+
+from openfly_agent.hub.config import CardConfig
+from openfly_agent.hub.model_card import ModelFacts, render_model_card, split_front_matter
+from openfly_agent.hub.results import ResultsError, load_results, parse_results
+
+# Distinct values everywhere, so a metric or profile swapped in the card cannot go unnoticed.
+RESULTS = {
+    "splits": {
+        split: {
+            "profiles": {
+                profile: {
+                    "overall": {
+                        "NE": 30.0 + 10 * s + p + 0.25,
+                        "SR": 12.5 + 10 * s + p,
+                        "OSR": 40.0 + 10 * s + p,
+                        "SPL": 11.0 + 10 * s + p + 0.0625,
+                        "num_episodes": 16 + s,
+                    },
+                    "per_scene": {},
+                }
+                for p, profile in enumerate(("openfly", "standard"))
+            }
+        }
+        for s, split in enumerate(("test_seen", "test_unseen"))
+    }
+}
+FACTS = ModelFacts(
+    package_version="0.1.0",
+    num_parameters="1.23 M",
+    action_head="discrete",
+    memory_capacity=2,
+    weights_summary="`model.safetensors`",
+    release_form="full weights",
+    files={"config.json": "model config"},
+)
+
+
+@pytest.fixture
+def results_path(tmp_path):
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(RESULTS))
+    return path
+
+
+def test_model_index_matches_eval_json(results_path):
+    text = render_model_card(
+        CardConfig(eval_dataset="me/openfly-embedded"), "me/tiny", load_results(results_path), FACTS
+    )
+    meta, body = split_front_matter(text)
+    assert yaml.safe_load(text.split("---\n")[1]) == meta  # plain YAML parser agrees
+    [index] = meta["model-index"]
+    assert index["name"] == "tiny"
+    blocks = index["results"]
+    assert len(blocks) == 4  # test_seen / test_unseen x openfly / standard
+    seen = set()
+    for block in blocks:
+        split = block["dataset"]["split"]
+        assert block["dataset"]["type"] == "me/openfly-embedded"
+        profiles = {m["config"] for m in block["metrics"]}
+        assert len(profiles) == 1
+        profile = profiles.pop()
+        assert profile in block["task"]["name"]
+        expected = RESULTS["splits"][split]["profiles"][profile]["overall"]
+        got = {m["type"]: m["value"] for m in block["metrics"]}
+        assert got == {
+            "ne": expected["NE"],
+            "sr": expected["SR"],
+            "osr": expected["OSR"],
+            "spl": expected["SPL"],
+        }
+        seen.add((split, profile))
+    assert seen == {(s, p) for s in ("test_seen", "test_unseen") for p in ("openfly", "standard")}
+    # the body's table states the profile of every number
+    assert "| test_unseen | `standard` | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
+
+
+def test_huggingface_hub_reads_the_card(results_path):
+    from huggingface_hub import ModelCard
+
+    text = render_model_card(
+        CardConfig(base_model="openvla/openvla-7b"), "me/tiny", load_results(results_path), FACTS
+    )
+    card = ModelCard(text, ignore_metadata_errors=False)
+    assert card.data.license == "mit"
+    assert card.data.library_name == "transformers"
+    assert card.data.pipeline_tag == "robotics"
+    assert card.data.base_model == "openvla/openvla-7b"
+    assert {"openfly", "vision-language-navigation", "custom_code"} <= set(card.data.tags)
+    assert len(card.data.eval_results) == 16
+    sr_unseen_standard = [
+        r.metric_value
+        for r in card.data.eval_results
+        if r.dataset_split == "test_unseen" and r.metric_config == "standard" and r.metric_type == "sr"
+    ]
+    assert sr_unseen_standard == [23.5]
+
+
+def test_card_without_results_has_no_model_index():
+    text = render_model_card(CardConfig(), "me/tiny", None, FACTS)
+    meta, body = split_front_matter(text)
+    assert "model-index" not in meta
+    assert "No evaluation results" in body
+
+
+def test_custom_licence_fields():
+    card = CardConfig(license="other", license_name="llama2", license_link="LICENSE")
+    meta, _ = split_front_matter(render_model_card(card, "me/tiny", None, FACTS))
+    assert (meta["license"], meta["license_name"], meta["license_link"]) == ("other", "llama2", "LICENSE")
+    with pytest.raises(ValueError, match="license_name"):
+        CardConfig(license="other")
+
+
+def test_odd_strings_stay_valid_yaml():
+    card = CardConfig(tags=["a: b", "- dash", "#hash", "quote'\""], eval_dataset_name="x: {y}")
+    meta, _ = split_front_matter(render_model_card(card, "me/tiny", parse_results(RESULTS), FACTS))
+    assert {"a: b", "- dash", "#hash", "quote'\""} <= set(meta["tags"])
+    assert meta["model-index"][0]["results"][0]["dataset"]["name"].startswith("x: {y}")
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda r: r.pop("splits"), r"missing key 'splits'"),
+        (lambda r: r["splits"].pop("test_unseen"), r"missing key 'splits.test_unseen'"),
+        (
+            lambda r: r["splits"]["test_seen"]["profiles"].pop("standard"),
+            r"'splits.test_seen.profiles.standard'",
+        ),
+        (
+            lambda r: r["splits"]["test_seen"]["profiles"]["openfly"]["overall"].update(SPL="n/a"),
+            r"'splits.test_seen.profiles.openfly.overall.SPL' = 'n/a' is not a finite number",
+        ),
+        (
+            lambda r: r["splits"]["test_seen"]["profiles"]["openfly"]["overall"].update(NE=float("nan")),
+            r"overall.NE' = nan",
+        ),
+    ],
+)
+def test_bad_results_name_file_and_key(tmp_path, mutate, message):
+    broken = json.loads(json.dumps(RESULTS))
+    mutate(broken)
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(broken))
+    with pytest.raises(ResultsError, match=message) as err:
+        load_results(path)
+    assert str(path) in str(err.value)
+
+
+def test_results_not_json(tmp_path):
+    path = tmp_path / "results.json"
+    path.write_text("{not json")
+    with pytest.raises(ResultsError, match="cannot read"):
+        load_results(path)
