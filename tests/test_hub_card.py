@@ -13,24 +13,28 @@ from openfly_agent.hub.results import ResultsError, load_results, parse_results
 
 # Distinct values everywhere, so a metric or profile swapped in the card cannot go unnoticed.
 RESULTS = {
+    "version": 1,
+    "policy": "agent",
+    "meta": {"checkpoint": "runs/tiny/checkpoints/last", "sim": "embedded"},
+    "profiles": {"openfly": {"name": "openfly", "stop_required": False}, "standard": {"name": "standard"}},
     "splits": {
         split: {
-            "profiles": {
-                profile: {
-                    "overall": {
-                        "NE": 30.0 + 10 * s + p + 0.25,
-                        "SR": 12.5 + 10 * s + p,
-                        "OSR": 40.0 + 10 * s + p,
-                        "SPL": 11.0 + 10 * s + p + 0.0625,
-                        "num_episodes": 16 + s,
-                    },
-                    "per_scene": {},
-                }
-                for p, profile in enumerate(("openfly", "standard"))
+            profile: {
+                "profile": profile,
+                "overall": {
+                    "episodes": 16 + s,
+                    "ne_m": 30.0 + 10 * s + p + 0.25,
+                    "sr_pct": 12.5 + 10 * s + p,
+                    "osr_pct": 40.0 + 10 * s + p,
+                    "spl_pct": 11.0 + 10 * s + p + 0.0625,
+                    "ndtw_pct": 1.0,
+                },
+                "per_scene": {},
             }
+            for p, profile in enumerate(("openfly", "standard"))
         }
         for s, split in enumerate(("test_seen", "test_unseen"))
-    }
+    },
 }
 FACTS = ModelFacts(
     package_version="0.1.0",
@@ -68,18 +72,19 @@ def test_model_index_matches_eval_json(results_path):
         assert len(profiles) == 1
         profile = profiles.pop()
         assert profile in block["task"]["name"]
-        expected = RESULTS["splits"][split]["profiles"][profile]["overall"]
+        expected = RESULTS["splits"][split][profile]["overall"]
         got = {m["type"]: m["value"] for m in block["metrics"]}
         assert got == {
-            "ne": expected["NE"],
-            "sr": expected["SR"],
-            "osr": expected["OSR"],
-            "spl": expected["SPL"],
+            "ne": expected["ne_m"],
+            "sr": expected["sr_pct"],
+            "osr": expected["osr_pct"],
+            "spl": expected["spl_pct"],
         }
         seen.add((split, profile))
     assert seen == {(s, p) for s in ("test_seen", "test_unseen") for p in ("openfly", "standard")}
-    # the body's table states the profile of every number
+    # the body's table states the profile of every number, and the profiles' recorded settings
     assert "| test_unseen | `standard` | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
+    assert "Settings used: stop_required=False." in body
 
 
 def test_huggingface_hub_reads_the_card(results_path):
@@ -130,18 +135,16 @@ def test_odd_strings_stay_valid_yaml():
     [
         (lambda r: r.pop("splits"), r"missing key 'splits'"),
         (lambda r: r["splits"].pop("test_unseen"), r"missing key 'splits.test_unseen'"),
+        (lambda r: r["splits"]["test_seen"].pop("standard"), r"missing key 'splits.test_seen.standard'"),
         (
-            lambda r: r["splits"]["test_seen"]["profiles"].pop("standard"),
-            r"'splits.test_seen.profiles.standard'",
+            lambda r: r["splits"]["test_seen"]["openfly"]["overall"].update(spl_pct="n/a"),
+            r"'splits.test_seen.openfly.overall.spl_pct' = 'n/a' is not a finite number",
         ),
         (
-            lambda r: r["splits"]["test_seen"]["profiles"]["openfly"]["overall"].update(SPL="n/a"),
-            r"'splits.test_seen.profiles.openfly.overall.SPL' = 'n/a' is not a finite number",
+            lambda r: r["splits"]["test_seen"]["openfly"]["overall"].update(ne_m=float("nan")),
+            r"overall.ne_m' = nan",
         ),
-        (
-            lambda r: r["splits"]["test_seen"]["profiles"]["openfly"]["overall"].update(NE=float("nan")),
-            r"overall.NE' = nan",
-        ),
+        (lambda r: r.update(policy="random"), r"policy 'random', not of the agent"),
     ],
 )
 def test_bad_results_name_file_and_key(tmp_path, mutate, message):
@@ -159,3 +162,11 @@ def test_results_not_json(tmp_path):
     path.write_text("{not json")
     with pytest.raises(ResultsError, match="cannot read"):
         load_results(path)
+
+
+def test_eval_output_folder_is_accepted(tmp_path):
+    (tmp_path / "agent").mkdir()
+    (tmp_path / "agent" / "results.json").write_text(json.dumps(RESULTS))
+    assert load_results(tmp_path).rows == load_results(tmp_path / "agent" / "results.json").rows
+    with pytest.raises(ResultsError, match="without agent/results.json"):
+        load_results(tmp_path / "agent")

@@ -9,7 +9,7 @@ from typing import Any
 import yaml
 
 from openfly_agent.hub.config import CardConfig
-from openfly_agent.hub.results import METRICS, ResultRow
+from openfly_agent.hub.results import EvalResults, ResultRow
 
 # Always present; the Hub adds `custom_code` itself for repos with `auto_map`, we state it explicitly.
 FIXED_TAGS = (
@@ -30,7 +30,7 @@ METRIC_IDS = {
     "OSR": ("osr", "OSR (%)"),
     "SPL": ("spl", "SPL (%)"),
 }
-PROFILE_DEFINITIONS = {
+PROFILE_SUMMARIES = {
     "openfly": (
         "parity with the official OpenFly evaluation: 3-D distance to the goal, success within 20 m, no "
         "STOP needed, at most 100 steps, SPL = straight-line start-goal distance / travelled length without "
@@ -73,7 +73,7 @@ def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) 
                 "value": row.metrics[key],
                 "config": row.profile,
             }
-            for key in METRICS
+            for key in METRIC_IDS
         ]
         results.append(
             {
@@ -108,12 +108,23 @@ def build_metadata(card: CardConfig, model_name: str, rows: list[ResultRow] | No
     return meta
 
 
-def render_model_card(card: CardConfig, repo_id: str, rows: list[ResultRow] | None, facts: ModelFacts) -> str:
+def describe_profile(name: str, settings: dict[str, Any] | None) -> str:
+    """One line per metric profile: what it is for, plus the exact settings eval.py recorded."""
+    text = PROFILE_SUMMARIES.get(name, "custom metric profile.")
+    if settings:
+        shown = ", ".join(f"{key}={value}" for key, value in settings.items() if key != "name")
+        text += f" Settings used: {shown}."
+    return text
+
+
+def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | None, facts: ModelFacts) -> str:
     """Render README.md: YAML front matter (yaml.safe_dump, so it always parses) + the Jinja body."""
     import jinja2
 
     model_name = repo_id.split("/", 1)[1]
+    rows = results.rows if results else []
     meta = build_metadata(card, model_name, rows)
+    profiles = {row.profile: describe_profile(row.profile, results.profiles.get(row.profile)) for row in rows}
     template_text = resources.files("openfly_agent.hub").joinpath("templates", TEMPLATE_NAME).read_text()
     env = jinja2.Environment(undefined=jinja2.StrictUndefined, keep_trailing_newline=True, autoescape=False)
     body = env.from_string(template_text).render(
@@ -122,8 +133,8 @@ def render_model_card(card: CardConfig, repo_id: str, rows: list[ResultRow] | No
         base_model=card.base_model,
         eval_dataset=card.eval_dataset,
         eval_dataset_name=card.eval_dataset_name,
-        results=rows or [],
-        profile_definitions=PROFILE_DEFINITIONS,
+        results=rows,
+        profile_definitions=profiles,
         **vars(facts),
     )
     front = yaml.safe_dump(meta, sort_keys=False, allow_unicode=True, width=1000)

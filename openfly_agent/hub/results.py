@@ -4,21 +4,17 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from openfly_agent.constants import SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
+from openfly_agent.constants import RESULTS_JSON, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
 
 PROFILES = ("openfly", "standard")
 RELEASE_SPLITS = (SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)
-# metric key in the results JSON -> (unit, pretty name)
-METRICS: dict[str, tuple[str, str]] = {
-    "NE": ("m", "Navigation error"),
-    "SR": ("%", "Success rate"),
-    "OSR": ("%", "Oracle success rate"),
-    "SPL": ("%", "Success weighted by path length"),
-}
+AGENT_POLICY = "agent"
+# card metric -> key of eval's overall summary (units in the key: metres, percent)
+METRIC_KEYS = {"NE": "ne_m", "SR": "sr_pct", "OSR": "osr_pct", "SPL": "spl_pct"}
 
 
 class ResultsError(ValueError):
@@ -35,18 +31,42 @@ class ResultRow:
     num_episodes: int | None = None
 
 
-def load_results(path: str | Path) -> list[ResultRow]:
-    """Read a results JSON and return one row per (split, profile) for test_seen / test_unseen.
+@dataclass(frozen=True)
+class EvalResults:
+    """The rows the card reports plus the run facts stored beside them."""
 
-    Expected shape (eval.py, docs/RELEASE.md)::
+    rows: list[ResultRow]
+    profiles: dict[str, dict[str, Any]] = field(default_factory=dict)  # profile name -> its settings
+    meta: dict[str, Any] = field(default_factory=dict)  # checkpoint, sim, dataset root, max steps, ...
+    source: str = ""
 
-        {"splits": {"test_seen": {"profiles": {"openfly": {"overall": {
-            "NE": 31.2, "SR": 12.5, "OSR": 20.0, "SPL": 11.0, "num_episodes": 40}}, ...}}}}
+
+def resolve_results_path(path: str | Path) -> Path:
+    """`path` itself, or `<path>/agent/results.json` when `path` is an eval output folder."""
+    path = Path(path)
+    if path.is_dir():
+        candidate = path / AGENT_POLICY / RESULTS_JSON
+        if not candidate.is_file():
+            raise ResultsError(
+                f"{path} is a folder without {AGENT_POLICY}/{RESULTS_JSON}: pass the results file"
+            )
+        return candidate
+    return path
+
+
+def load_results(path: str | Path) -> EvalResults:
+    """Read eval.py's `results.json` (file, or the eval output folder holding `agent/results.json`).
+
+    Shape (eval/report.py `policy_results`)::
+
+        {"version": 1, "policy": "agent", "meta": {...}, "profiles": {"openfly": {...}, ...},
+         "splits": {"test_seen": {"openfly": {"overall": {"episodes": 40, "ne_m": 31.2, "sr_pct": 12.5,
+                                                          "osr_pct": 20.0, "spl_pct": 11.0, ...}, ...}}}}
 
     Raises:
-        ResultsError: the file is not JSON, or a split / profile / metric is missing or not a finite number.
+        ResultsError: not JSON, results of a baseline, or a split / profile / metric missing or not finite.
     """
-    path = Path(path)
+    path = resolve_results_path(path)
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
@@ -54,22 +74,26 @@ def load_results(path: str | Path) -> list[ResultRow]:
     return parse_results(data, source=str(path))
 
 
-def parse_results(data: dict[str, Any], source: str = "<results>") -> list[ResultRow]:
+def parse_results(data: dict[str, Any], source: str = "<results>") -> EvalResults:
     """`load_results` on an already parsed dict; `source` names it in errors."""
+    policy = data.get("policy", AGENT_POLICY) if isinstance(data, dict) else AGENT_POLICY
+    if policy != AGENT_POLICY:
+        raise ResultsError(
+            f"{source}: holds results of policy {policy!r}, not of the agent ('{AGENT_POLICY}')"
+        )
     splits = _child(data, "splits", source, "")
     rows = []
     for split in RELEASE_SPLITS:
-        split_data = _child(splits, split, source, "splits")
-        profiles = _child(split_data, "profiles", source, f"splits.{split}")
+        by_profile = _child(splits, split, source, "splits")
         for profile in PROFILES:
-            where = f"splits.{split}.profiles.{profile}"
-            overall = _child(
-                _child(profiles, profile, source, where.rsplit(".", 1)[0]), "overall", source, where
-            )
-            metrics = {name: _number(overall, name, source, f"{where}.overall") for name in METRICS}
-            count = overall.get("num_episodes")
+            where = f"splits.{split}.{profile}"
+            overall = _child(_child(by_profile, profile, source, f"splits.{split}"), "overall", source, where)
+            metrics = {
+                name: _number(overall, key, source, f"{where}.overall") for name, key in METRIC_KEYS.items()
+            }
+            count = overall.get("episodes")
             rows.append(ResultRow(split, profile, metrics, int(count) if count is not None else None))
-    return rows
+    return EvalResults(rows, dict(data.get("profiles") or {}), dict(data.get("meta") or {}), source)
 
 
 def _child(node: Any, key: str, source: str, where: str) -> Any:
