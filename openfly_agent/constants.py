@@ -68,6 +68,9 @@ ACTION = "action"  # (B,) long, action id 0..9
 ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
 EPISODE_ID = "episode_id"  # list[str]
 STEP_INDEX = "step_index"  # (B,) long
+MEMORY = (
+    "memory"  # dataset sample only: K keyframe sets, each a list of (rgb, box, box_visible), oldest first
+)
 
 IGNORE_INDEX = -100
 
@@ -93,6 +96,11 @@ RESULTS_JSON = "results.json"
 RESULTS_MD = "results.md"
 DATASET_INFO_JSON = "meta/info.json"
 DATASET_STATS_JSON = "meta/stats.json"
+# Dataset root layout (mirrors the released OpenFly data; data/writer.py, data/openfly_reader.py)
+DATASET_TRAJ_DIR = "traj"  # traj/<scene>/astar_data/<category>/<folder>.parquet, one per trajectory
+DATASET_ANNOTATION_DIR = "Annotation"  # Annotation/{train,seen,unseen}.json
+DATASET_PARTS_DIR = "Annotation/parts"  # Annotation/parts/<split>/<scene>.json, merged by finalize()
+DATASET_SCHEMA_VERSION = 1
 
 MODEL_TYPE = "openfly_agent"
 
