@@ -2,98 +2,60 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import pyarrow as pa
-import pyarrow.parquet as pq
+import numpy as np
 import pytest
+from data_factories import make_episode, make_frames  # tests/ is on sys.path (pytest prepend mode)
 
+from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.hub.config import DatasetReleaseConfig
 from openfly_agent.hub.dataset_release import build_dataset_release
 from openfly_agent.hub.model_card import split_front_matter
 
-CARD = """---
-license: mit
-task_categories:
-- robotics
-pretty_name: OpenFly embedded city
----
-
-# OpenFly embedded city
-
-Load it with `datasets.load_dataset("{{ repo_id }}")`.
-"""
-# split -> (annotation file, [(episode id, number of frames)])
-EPISODES = {
-    "train": (
-        "train.json",
-        [("embedded-1/astar_data/low_short/t0", 3), ("embedded-1/astar_data/high_long/t1", 4)],
-    ),
-    "test_seen": ("seen.json", [("embedded-1/astar_data/low_short/t2", 2)]),
-    "test_unseen": ("unseen.json", [("embedded-9/astar_data/low_short/t3", 5)]),
-}
+CARD = Path(__file__).resolve().parents[1] / "data_cards" / "embedded.md"
+# (episode id, actions, split): 14 frames in all, 6 + 5 in train
+EPISODES = [
+    ("embedded-1/astar_data/high_short/t0", [9, 2, 9, 1, 1, 0], "train"),
+    ("embedded-1/astar_data/low_short/t1", [8, 3, 9, 4, 0], "train"),
+    ("embedded-1/astar_data/low_short/t2", [1, 0], "test_seen"),
+    ("embedded-9/astar_data/low_average/t3", [2, 0], "test_unseen"),
+]
+SPLIT_FILES = {"train": "train.json", "test_seen": "seen.json", "test_unseen": "unseen.json"}
 
 
-def make_dataset_root(root: Path) -> Path:
-    """A dataset root in the release layout: traj/**.parquet, Annotation/*.json (+ parts), meta/."""
-    for split, (name, episodes) in EPISODES.items():
-        records = []
-        for episode_id, frames in episodes:
-            table = pa.table(
-                {
-                    "frame_index": pa.array(range(frames), pa.int64()),
-                    "pos": [[float(i), 0.0, 10.0] for i in range(frames)],
-                    "yaw": [0.0] * frames,
-                    "action_type": ["forward"] * frames,
-                    "env_id": [episode_id.split("/")[0]] * frames,
-                    "traj_id": [episode_id.split("/", 1)[1]] * frames,
-                    "split": [split] * frames,
-                }
-            )
-            path = root / "traj" / f"{episode_id}.parquet"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            pq.write_table(table, path)
-            records.append(
-                {"image_path": episode_id, "gpt_instruction": f"fly to {episode_id}", "action": [1] * frames}
-            )
-        (root / "Annotation").mkdir(parents=True, exist_ok=True)
-        (root / "Annotation" / name).write_text(json.dumps(records))
-    (root / "Annotation" / "parts" / "train").mkdir(parents=True)
-    (root / "Annotation" / "parts" / "train" / "embedded-1.json").write_text("[]")
-    (root / "meta").mkdir()
-    (root / "meta" / "info.json").write_text(json.dumps({"num_episodes": 4}))
-    (root / "meta" / "stats.json").write_text(json.dumps({}))
-    return root
+def make_dataset_root(root: Path) -> tuple[Path, dict[str, list[np.ndarray]]]:
+    """A finalized dataset written by the data package's writer; returns (root, frames per episode)."""
+    writer = OpenFlyDatasetWriter(root)
+    frames = {}
+    for seed, (episode_id, actions, split) in enumerate(EPISODES):
+        frames[episode_id] = make_frames(len(actions), seed=seed)
+        writer.write_episode(make_episode(episode_id, actions, split, seed=seed), frames[episode_id])
+    writer.finalize()
+    return root, frames
 
 
-@pytest.fixture
-def release(tmp_path):
-    root = make_dataset_root(tmp_path / "data")
-    card = tmp_path / "card.md"
-    card.write_text(CARD)
-    cfg = DatasetReleaseConfig(
-        dataset_root=str(root),
-        repo_id="me/openfly-embedded",
-        card=str(card),
-        output_dir=str(tmp_path / "rel"),
-    )
-    return build_dataset_release(cfg)
+def release_config(root: Path, out: Path, **changes) -> DatasetReleaseConfig:
+    values = {"dataset_root": str(root), "repo_id": "me/openfly-embedded", "card": str(CARD)}
+    return DatasetReleaseConfig(**{**values, "output_dir": str(out), **changes})
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset_root(tmp_path_factory.mktemp("data") / "root")
+
+
+@pytest.fixture(scope="module")
+def release(dataset, tmp_path_factory):
+    return build_dataset_release(release_config(dataset[0], tmp_path_factory.mktemp("rel") / "out"))
 
 
 def test_release_folder_layout(release):
     files = sorted(str(p.relative_to(release)) for p in release.rglob("*") if p.is_file())
-    assert files == sorted(
-        [
-            "README.md",
-            "Annotation/train.json",
-            "Annotation/seen.json",
-            "Annotation/unseen.json",
-            "meta/info.json",
-            "meta/stats.json",
-            *(f"traj/{eid}.parquet" for _, episodes in EPISODES.values() for eid, _ in episodes),
-        ]
-    )  # no Annotation/parts/: resumability bookkeeping stays local
+    expected = ["README.md", "meta/info.json", "meta/stats.json", "meta/data_files.json"]
+    expected += [f"Annotation/{name}" for name in SPLIT_FILES.values()]
+    expected += [f"traj/{episode_id}.parquet" for episode_id, _, _ in EPISODES]
+    assert files == sorted(expected)  # no Annotation/parts/: resumability bookkeeping stays local
 
 
 def test_card_configs_and_size(release):
@@ -102,49 +64,53 @@ def test_card_configs_and_size(release):
     text = (release / "README.md").read_text()
     meta, body = split_front_matter(text)
     assert meta["license"] == "mit" and meta["task_categories"] == ["robotics"]  # template keys kept
-    assert meta["size_categories"] == ["n<1K"]  # 14 frames
+    assert meta["size_categories"] == ["n<1K"]
     [trajectories] = meta["configs"]
     assert trajectories["config_name"] == "trajectories" and trajectories["default"] is True
     assert {d["split"]: d["path"] for d in trajectories["data_files"]} == {
-        split: sorted(f"traj/{eid}.parquet" for eid, _ in episodes)
-        for split, (_, episodes) in EPISODES.items()
+        "train": [
+            "traj/embedded-1/astar_data/high_short/t0.parquet",
+            "traj/embedded-1/astar_data/low_short/t1.parquet",
+        ],
+        "test_seen": ["traj/embedded-1/astar_data/low_short/t2.parquet"],
+        "test_unseen": ["traj/embedded-9/astar_data/low_average/t3.parquet"],
     }
-    assert 'load_dataset("me/openfly-embedded")' in body
+    assert 'load_dataset("me/openfly-embedded", split="train"' in body and "{{repo_id}}" not in body
     DatasetCard(text, ignore_metadata_errors=False)
 
 
-def test_load_dataset_reads_each_split(release, tmp_path):
+def test_load_dataset_reads_each_split(release, dataset, tmp_path):
     import datasets
 
     frames = datasets.load_dataset(str(release), cache_dir=str(tmp_path / "cache"))
     assert {split: ds.num_rows for split, ds in frames.items()} == {
-        "train": 7,
+        "train": 11,
         "test_seen": 2,
-        "test_unseen": 5,
+        "test_unseen": 2,
     }
-    assert set(frames["test_unseen"]["split"]) == {"test_unseen"}
-    assert sorted(set(frames["train"]["traj_id"])) == ["astar_data/high_long/t1", "astar_data/low_short/t0"]
+    unseen = frames["test_unseen"]
+    assert set(unseen["split"]) == {"test_unseen"} and unseen["action"] == [2, 0]
+    first = np.asarray(unseen[0]["image"].convert("RGB"))
+    np.testing.assert_array_equal(first, dataset[1]["embedded-9/astar_data/low_average/t3"][0])  # pixel-exact
 
 
 def test_missing_trajectory_is_named(tmp_path):
-    root = make_dataset_root(tmp_path / "data")
-    (root / "traj" / "embedded-9/astar_data/low_short/t3.parquet").unlink()
-    card = tmp_path / "card.md"
-    card.write_text(CARD)
-    cfg = DatasetReleaseConfig(
-        dataset_root=str(root), repo_id="me/x", card=str(card), output_dir=str(tmp_path / "o")
-    )
+    root, _ = make_dataset_root(tmp_path / "data")
+    (root / "traj/embedded-9/astar_data/low_average/t3.parquet").unlink()
     with pytest.raises(FileNotFoundError, match=r"unseen.json: record 0: trajectory file .*t3.parquet"):
-        build_dataset_release(cfg)
+        build_dataset_release(release_config(root, tmp_path / "out"))
 
 
-def test_existing_output_is_kept_without_overwrite(tmp_path, release):
-    root = tmp_path / "data"
-    cfg = DatasetReleaseConfig(
-        dataset_root=str(root), repo_id="me/x", card=str(tmp_path / "card.md"), output_dir=str(release)
-    )
+def test_unfinalized_dataset_is_refused(tmp_path):
+    root, _ = make_dataset_root(tmp_path / "data")
+    (root / "meta/info.json").unlink()
+    with pytest.raises(FileNotFoundError, match="finalize the dataset"):
+        build_dataset_release(release_config(root, tmp_path / "out"))
+
+
+def test_existing_output_is_kept_without_overwrite(dataset, release):
     with pytest.raises(FileExistsError, match="--overwrite"):
-        build_dataset_release(cfg)
+        build_dataset_release(release_config(dataset[0], release))
     assert (release / "README.md").is_file()
 
 

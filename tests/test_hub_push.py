@@ -49,11 +49,9 @@ def files_containing(folder: Path, needle: str) -> list[Path]:
 
 
 def test_dataset_push_uploads_every_file(tmp_path):
-    root = make_dataset_root(tmp_path / "data")
-    card = tmp_path / "card.md"
-    card.write_text(CARD)
+    root, _ = make_dataset_root(tmp_path / "data")
     out = tmp_path / "release"
-    args = ["release-dataset", "--dataset-root", str(root), "--card", str(card), "--output-dir", str(out)]
+    args = ["release-dataset", "--dataset-root", str(root), "--card", str(CARD), "--output-dir", str(out)]
     args += ["--repo-id", "me/openfly-embedded", "--push", "--private", "--revision", "v0.1"]
     with FakeHub(token=TOKEN) as hub:
         result = run_cli(args, hub_env(hub, tmp_path / "hf_home"))
@@ -71,9 +69,8 @@ def test_dataset_push_uploads_every_file(tmp_path):
 
 
 def test_wrong_token_fails_cleanly(tmp_path):
-    root = make_dataset_root(tmp_path / "data")
-    card = tmp_path / "card.md"
-    card.write_text(CARD)
+    root, _ = make_dataset_root(tmp_path / "data")
+    card = CARD
     args = [
         "release-dataset",
         "--dataset-root",

@@ -1,4 +1,4 @@
-"""In-process Auto-class registration, so `AutoModel.from_pretrained(folder)` works without trust_remote_code."""
+"""In-process Auto-class registration: `AutoModel.from_pretrained(folder)` without trust_remote_code."""
 
 from __future__ import annotations
 

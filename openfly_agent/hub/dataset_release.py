@@ -10,18 +10,19 @@ import yaml
 
 from openfly_agent.constants import (
     ANNOTATION_FILES,
+    DATASET_ANNOTATION_DIR,
     DATASET_INFO_JSON,
     DATASET_STATS_JSON,
+    DATASET_TRAJ_DIR,
     MODEL_CARD_NAME,
 )
+from openfly_agent.data.writer import DATA_FILES_JSON
 from openfly_agent.hub.config import DatasetReleaseConfig
 from openfly_agent.hub.folder_utils import link_or_copy, prepare_output_dir, read_json
 from openfly_agent.hub.model_card import split_front_matter
 
 logger = logging.getLogger(__name__)
 
-TRAJ_DIR = "traj"
-ANNOTATION_DIR = "Annotation"
 TRAJECTORY_CONFIG = "trajectories"
 # count of frames -> the Hub's size_categories label
 _SIZE_CATEGORIES = ((1_000, "n<1K"), (10_000, "1K<n<10K"), (100_000, "10K<n<100K"), (1_000_000, "100K<n<1M"))
@@ -48,8 +49,8 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
             link_or_copy(root / rel, out / rel)
     for split, name in ANNOTATION_FILES.items():
         if split in splits:
-            link_or_copy(root / ANNOTATION_DIR / name, out / ANNOTATION_DIR / name)
-    for rel in (DATASET_INFO_JSON, DATASET_STATS_JSON):
+            link_or_copy(root / DATASET_ANNOTATION_DIR / name, out / DATASET_ANNOTATION_DIR / name)
+    for rel in (DATASET_INFO_JSON, DATASET_STATS_JSON, DATA_FILES_JSON):
         if (root / rel).is_file():
             link_or_copy(root / rel, out / rel)
     card = render_dataset_card(
@@ -66,7 +67,7 @@ def _split_trajectories(root: Path) -> dict[str, list[str]]:
         raise FileNotFoundError(f"dataset root {root} does not exist")
     splits: dict[str, list[str]] = {}
     for split, name in ANNOTATION_FILES.items():
-        path = root / ANNOTATION_DIR / name
+        path = root / DATASET_ANNOTATION_DIR / name
         if not path.is_file():
             continue
         records = read_json(path)
@@ -75,7 +76,7 @@ def _split_trajectories(root: Path) -> dict[str, list[str]]:
             episode_id = record.get("image_path") if isinstance(record, dict) else None
             if not isinstance(episode_id, str):
                 raise ValueError(f"{path}: record {index}: field 'image_path' is missing or not a string")
-            rel = f"{TRAJ_DIR}/{episode_id}.parquet"
+            rel = f"{DATASET_TRAJ_DIR}/{episode_id}.parquet"
             if not (root / rel).is_file():
                 raise FileNotFoundError(
                     f"{path}: record {index}: trajectory file {root / rel} does not exist"
@@ -84,7 +85,7 @@ def _split_trajectories(root: Path) -> dict[str, list[str]]:
         splits[split] = sorted(set(files))
     if not splits:
         raise FileNotFoundError(
-            f"{root / ANNOTATION_DIR}: no annotation file ({', '.join(ANNOTATION_FILES.values())})"
+            f"{root / DATASET_ANNOTATION_DIR}: no annotation file ({', '.join(ANNOTATION_FILES.values())})"
         )
     if not (root / DATASET_INFO_JSON).is_file():
         raise FileNotFoundError(
