@@ -13,7 +13,8 @@ def register_auto_classes() -> None:
     """
     from transformers import AutoConfig, AutoModel
 
-    from openfly_agent.model import OpenFlyAgent, OpenFlyAgentConfig
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.configuration import OpenFlyAgentConfig
 
     AutoConfig.register(MODEL_TYPE, OpenFlyAgentConfig, exist_ok=True)
     AutoModel.register(OpenFlyAgentConfig, OpenFlyAgent, exist_ok=True)

@@ -1,0 +1,166 @@
+"""Model release: a run checkpoint -> a Hub-ready folder (weights, config with auto_map, tokenizer, card)."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+from openfly_agent import __version__
+from openfly_agent.constants import (
+    ACTION_TOKENIZER_NAME,
+    CONFIG_NAME,
+    MODEL_CARD_NAME,
+    MODEL_TYPE,
+    NORM_STATS_NAME,
+    TRAIN_CONFIG_NAME,
+    WEIGHTS_INDEX_NAME,
+    WEIGHTS_NAME,
+)
+from openfly_agent.hub.config import ModelReleaseConfig
+from openfly_agent.hub.folder_utils import prepare_output_dir, read_json
+from openfly_agent.hub.model_card import ModelFacts, render_model_card
+from openfly_agent.hub.remote_code import CONFIGURATION_FILE, MODELING_FILE, add_auto_map, write_remote_code
+from openfly_agent.hub.results import load_results, resolve_results_path
+
+logger = logging.getLogger(__name__)
+
+EVAL_RESULTS_NAME = "eval_results.json"
+DEFAULT_RELEASE_ROOT = Path("outputs") / "releases"
+LAST_POINTER_NAME = "last"  # training's pointer file naming the newest checkpoint folder
+# Files of a checkpoint the release carries over when the agent's own save did not write them.
+CARRIED_FILES = (TRAIN_CONFIG_NAME, NORM_STATS_NAME, ACTION_TOKENIZER_NAME)
+# Pickle-based formats never enter a release (security: weights are safetensors only).
+FORBIDDEN_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The checkpoint folder: `path` itself, or the folder named by a training `last` pointer file.
+
+    Accepts a checkpoint folder (holding config.json), the pointer file `.../checkpoints/last`, or a folder
+    holding such a pointer (`<run>/checkpoints` or `<run>`).
+    """
+    path = Path(path)
+    if path.is_file() and path.name == LAST_POINTER_NAME:
+        return resolve_checkpoint(path.parent / path.read_text().strip())
+    if path.is_dir() and not (path / CONFIG_NAME).is_file():
+        for pointer in (path / LAST_POINTER_NAME, path / "checkpoints" / LAST_POINTER_NAME):
+            if pointer.is_file():
+                return resolve_checkpoint(pointer)
+    if not (path / CONFIG_NAME).is_file():
+        raise FileNotFoundError(
+            f"{path} is not a checkpoint folder (no {CONFIG_NAME}): pass e.g. <run>/checkpoints/step-000100 "
+            "or the <run>/checkpoints/last pointer"
+        )
+    model_type = read_json(path / CONFIG_NAME).get("model_type")
+    if model_type != MODEL_TYPE:
+        raise ValueError(f"{path / CONFIG_NAME}: model_type is {model_type!r}, expected {MODEL_TYPE!r}")
+    return path
+
+
+def build_model_release(cfg: ModelReleaseConfig) -> Path:
+    """Write the release folder for `cfg.checkpoint` and return it.
+
+    Steps: load the agent (merging or keeping a LoRA adapter as `cfg.lora` says), save it with
+    `max_shard_size`, carry over the training config / norm stats, write the two `trust_remote_code` files and
+    `auto_map`, copy the eval results, render README.md. Inputs are checked before anything is written.
+    """
+    checkpoint = resolve_checkpoint(cfg.checkpoint)
+    results = load_results(cfg.results) if cfg.results else None
+    name = cfg.repo_id.split("/", 1)[1]
+    out = prepare_output_dir(cfg.output_dir or DEFAULT_RELEASE_ROOT / name, cfg.overwrite)
+    logger.info("releasing %s -> %s", checkpoint, out)
+    agent = _load_agent(checkpoint)
+    agent.save_pretrained(out, max_shard_size=cfg.max_shard_size)
+    for file_name in CARRIED_FILES:
+        if (checkpoint / file_name).is_file() and not (out / file_name).exists():
+            shutil.copy2(checkpoint / file_name, out / file_name)
+    write_remote_code(out, __version__)
+    add_auto_map(out)
+    if results is not None:
+        shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
+    facts = model_facts(agent, out, release_form="full weights")
+    (out / MODEL_CARD_NAME).write_text(render_model_card(cfg.card, cfg.repo_id, results, facts))
+    check_release_folder(out)
+    logger.info("release folder ready: %s (%d files)", out, len(list(out.iterdir())))
+    return out
+
+
+def _load_agent(checkpoint: Path):
+    from openfly_agent.model.agent import OpenFlyAgent
+
+    agent = OpenFlyAgent.from_pretrained(checkpoint)
+    return agent.eval()
+
+
+def model_facts(agent, folder: Path, release_form: str) -> ModelFacts:
+    """What the card says about the weights in `folder`."""
+    cfg = agent.model_cfg
+    num_params = sum(p.numel() for p in agent.parameters())
+    return ModelFacts(
+        package_version=__version__,
+        num_parameters=_human_count(num_params),
+        action_head=cfg.action_head.type,
+        memory_capacity=cfg.memory.capacity,
+        weights_summary=_weights_summary(folder),
+        release_form=release_form,
+        files=describe_files(folder),
+    )
+
+
+def describe_files(folder: Path) -> dict[str, str]:
+    """A one-line description of every file of the release (README.md included)."""
+    known = {
+        CONFIG_NAME: "model config (`model_type: openfly_agent`, `auto_map`, model sections, norm stats)",
+        WEIGHTS_NAME: "weights (safetensors)",
+        WEIGHTS_INDEX_NAME: "tensor name -> shard file",
+        ACTION_TOKENIZER_NAME: "action head settings: action ids <-> token ids / bins",
+        NORM_STATS_NAME: "action normalisation statistics (OpenVLA `dataset_statistics` format)",
+        TRAIN_CONFIG_NAME: "the training configuration used",
+        EVAL_RESULTS_NAME: "the eval.py results the card's numbers come from",
+        CONFIGURATION_FILE: "`trust_remote_code` entry: imports the config class of `openfly-agent`",
+        MODELING_FILE: "`trust_remote_code` entry: imports the model class of `openfly-agent`",
+        "tokenizer.json": "text tokenizer",
+        "tokenizer_config.json": "text tokenizer settings",
+        "special_tokens_map.json": "text tokenizer special tokens",
+        MODEL_CARD_NAME: "this card",
+    }
+    names = sorted({p.name for p in folder.iterdir() if p.is_file()} | {MODEL_CARD_NAME})
+    shards = [n for n in names if n.startswith("model-") and n.endswith(".safetensors")]
+    described = {n: known.get(n, "") for n in names if n not in shards}
+    if shards:
+        described[f"model-000NN-of-{len(shards):05d}.safetensors"] = (
+            f"weights, {len(shards)} safetensors shards"
+        )
+    return described
+
+
+def check_release_folder(folder: Path) -> None:
+    """Fail if a pickle-based weight file slipped in, or config.json lacks `auto_map`."""
+    bad = sorted(p.name for p in folder.rglob("*") if p.suffix in FORBIDDEN_SUFFIXES)
+    if bad:
+        raise ValueError(f"{folder}: pickle-based files must not be released (safetensors only): {bad}")
+    if "auto_map" not in read_json(folder / CONFIG_NAME):
+        raise ValueError(f"{folder / CONFIG_NAME}: auto_map is missing")
+
+
+def _weights_summary(folder: Path) -> str:
+    files = sorted(folder.glob("*.safetensors"))
+    size = sum(p.stat().st_size for p in files)
+    if (folder / WEIGHTS_INDEX_NAME).is_file():
+        return f"{len(files)} safetensors shards + `{WEIGHTS_INDEX_NAME}`, {_human_bytes(size)}"
+    return f"`{WEIGHTS_NAME}`, {_human_bytes(size)}"
+
+
+def _human_count(n: int) -> str:
+    for unit, scale in (("B", 1e9), ("M", 1e6), ("K", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.2f} {unit}"
+    return str(n)
+
+
+def _human_bytes(n: int) -> str:
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"
