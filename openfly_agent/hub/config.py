@@ -75,7 +75,7 @@ class ModelReleaseConfig:
     Attributes:
         checkpoint: Run checkpoint folder (config.json + safetensors + tokenizer + action tokenizer ...).
         repo_id: Target Hub repo, `namespace/name`; also used in the card's usage code.
-        output_dir: Release folder to write; default `<checkpoint>/../release-<name>`.
+        output_dir: Release folder to write; default `outputs/releases/<name>`.
         results: Eval results JSON (eval.py's `results.json`) for the card's `model-index`; optional.
         lora: For LoRA checkpoints: `merged` (full weights) or `adapter` (adapter weights + base reference).
         max_shard_size: Weights above this size are split into shards + index (transformers notation, "5GB").
@@ -121,7 +121,7 @@ class DatasetReleaseConfig:
         dataset_root: Generated dataset root (traj/**.parquet, Annotation/*.json, meta/info.json).
         repo_id: Target Hub dataset repo, `namespace/name`.
         card: Card template (Markdown with YAML front matter), normally `data_cards/embedded.md`.
-        output_dir: Release folder to write; default `<dataset_root>/../release-<name>`.
+        output_dir: Release folder to write; default `outputs/releases/<name>`.
         push: Upload the folder after writing it.
         private: Create the repo private (only when it does not exist yet).
         revision: Branch to push to; default main.

@@ -18,7 +18,7 @@ from openfly_agent.constants import (
 )
 from openfly_agent.data.writer import DATA_FILES_JSON
 from openfly_agent.hub.config import DatasetReleaseConfig
-from openfly_agent.hub.folder_utils import link_or_copy, prepare_output_dir, read_json
+from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, link_or_copy, prepare_output_dir, read_json
 from openfly_agent.hub.model_card import split_front_matter
 
 logger = logging.getLogger(__name__)
@@ -42,7 +42,7 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
     root = Path(cfg.dataset_root)
     splits = _split_trajectories(root)
     out = prepare_output_dir(
-        cfg.output_dir or root.parent / f"release-{cfg.repo_id.split('/')[1]}", cfg.overwrite
+        cfg.output_dir or DEFAULT_RELEASE_ROOT / cfg.repo_id.split("/")[1], cfg.overwrite
     )
     for files in splits.values():
         for rel in files:

@@ -8,6 +8,8 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+DEFAULT_RELEASE_ROOT = Path("outputs") / "releases"  # release folders go to <this>/<repo name> by default
+
 
 def prepare_output_dir(path: str | Path, overwrite: bool) -> Path:
     """Return an empty folder at `path`; refuse to touch a non-empty one unless `overwrite`."""

@@ -18,7 +18,7 @@ from openfly_agent.constants import (
     WEIGHTS_NAME,
 )
 from openfly_agent.hub.config import ModelReleaseConfig
-from openfly_agent.hub.folder_utils import prepare_output_dir, read_json
+from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
 from openfly_agent.hub.model_card import ModelFacts, render_model_card
 from openfly_agent.hub.remote_code import CONFIGURATION_FILE, MODELING_FILE, add_auto_map, write_remote_code
 from openfly_agent.hub.results import load_results, resolve_results_path
@@ -26,7 +26,6 @@ from openfly_agent.hub.results import load_results, resolve_results_path
 logger = logging.getLogger(__name__)
 
 EVAL_RESULTS_NAME = "eval_results.json"
-DEFAULT_RELEASE_ROOT = Path("outputs") / "releases"
 LAST_POINTER_NAME = "last"  # training's pointer file naming the newest checkpoint folder
 # Files of a checkpoint the release carries over when the agent's own save did not write them.
 CARRIED_FILES = (TRAIN_CONFIG_NAME, NORM_STATS_NAME, ACTION_TOKENIZER_NAME)
