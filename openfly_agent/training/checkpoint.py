@@ -1,4 +1,4 @@
-"""Atomic checkpoint folders: write `.tmp-step-N/`, rename to `step-N/`, then move the `last` pointer; keep the newest M.
+"""Atomic checkpoint folders: write `.tmp-step-N/`, rename it to `step-N/`, then move the `last` pointer.
 
 The file system side only; what goes inside a checkpoint is written by `training/export.py` (the Hugging Face
 folder) and `training/state.py` (the accelerate training state).
@@ -28,8 +28,8 @@ def checkpoint_name(step: int) -> str:
 class CheckpointManager:
     """Creates, commits, lists and prunes checkpoint folders under `<output_dir>/checkpoints/`.
 
-    A checkpoint is complete once its staging folder has been renamed (the rename is the commit), so a crash at
-    any moment leaves either the previous set of checkpoints or the new one, never a half-written `step-N/`.
+    A checkpoint is complete once its staging folder has been renamed (the rename is the commit), so a crash
+    at any moment leaves either the previous set of checkpoints or the new one, never a half-written `step-N/`.
     All methods touch the file system and must run on the main process only.
 
     Args:
@@ -85,7 +85,7 @@ class CheckpointManager:
         return [p for _, p in sorted(found)]
 
     def latest(self) -> Path | None:
-        """The newest complete checkpoint: the one `last` names, else the highest step found (None if none)."""
+        """The newest complete checkpoint: the one `last` names, else the highest step (None if none)."""
         pointer = self.root / LAST_POINTER_NAME
         if pointer.is_file():
             candidate = self.root / pointer.read_text().strip()
@@ -98,7 +98,7 @@ class CheckpointManager:
         return complete[-1] if complete else None
 
     def prune(self) -> list[Path]:
-        """Delete all but the newest `keep_last` checkpoints (never the one `last` names); return what went."""
+        """Delete all but the newest `keep_last` checkpoints (never the one `last` names); return them."""
         complete = self.complete_checkpoints()
         protected = self.latest()
         removed = [p for p in complete[: max(len(complete) - self.keep_last, 0)] if p != protected]

@@ -1,4 +1,4 @@
-"""Fold LoRA adapters into their base weights from an in-memory state dict (rank 0, CPU, no second base model)."""
+"""Fold LoRA adapters into their base weights from an in-memory state dict (CPU, no second base model)."""
 
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def merge_lora_state_dict(
 ) -> dict[str, torch.Tensor]:
     """Return the plain-model state dict with every LoRA pair folded in: `W + scaling * (B @ A)`.
 
-    The maths runs in float32 on the CPU and the result takes the base weight's dtype; the input is not changed.
+    The maths runs in float32 on the CPU and the result takes the base weight's dtype; the input is unchanged.
 
     Args:
         state_dict: full state dict of the peft-wrapped model (e.g. `accelerator.get_state_dict(model)`).
@@ -46,8 +46,8 @@ def merge_lora_state_dict(
         adapter: peft adapter name.
 
     Raises:
-        ValueError: an adapter kind this merge does not handle (embedding LoRA, DoRA, modules_to_save), or a LoRA
-            pair without its base weight or scaling.
+        ValueError: an adapter kind this merge does not handle (embedding LoRA, DoRA, modules_to_save), or a
+            LoRA pair without its base weight or scaling.
     """
     unsupported = sorted({k for k in state_dict for marker in _UNSUPPORTED if f".{marker}." in k})
     if unsupported:

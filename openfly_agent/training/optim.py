@@ -1,4 +1,4 @@
-"""AdamW with decay only on matrices, and the learning-rate schedule (constant | cosine | linear, with warmup)."""
+"""AdamW with decay only on matrices, and the lr schedule (constant | cosine | linear, with warmup)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ def make_param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
     """Split the trainable parameters into a decayed group (matrices) and an undecayed one (biases, norms).
 
     Frozen parameters (`requires_grad=False`) are left out, so the optimizer state only covers what trains.
-    If the model offers `get_optim_params()` (param groups of its own, e.g. a separate backbone lr), each of its
-    groups is split the same way and keeps its own options.
+    If the model offers `get_optim_params()` (param groups of its own, e.g. a separate backbone lr), each of
+    its groups is split the same way and keeps its own options.
     """
     if hasattr(model, "get_optim_params"):
         groups = list(model.get_optim_params())
@@ -76,8 +76,8 @@ def lr_multiplier(
     """The factor applied to the base lr after `step` optimizer steps (step 0 is the first update).
 
     Warmup ramps linearly from 1/(warmup_steps+1) to 1 over `warmup_steps` steps; then `constant` stays at 1,
-    `cosine` follows half a cosine down to `min_lr_ratio` at `total_steps`, `linear` falls in a straight line to
-    `min_lr_ratio` at `total_steps`.
+    `cosine` follows half a cosine down to `min_lr_ratio` at `total_steps`, `linear` falls in a straight line
+    to `min_lr_ratio` at `total_steps`.
     """
     if schedule not in SCHEDULES:
         raise ValueError(f"optim.schedule must be one of {SCHEDULES}, got {schedule!r}")

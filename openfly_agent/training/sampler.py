@@ -9,7 +9,7 @@ from torch.utils.data import Sampler
 
 
 class EpochShuffleSampler(Sampler[int]):
-    """Yields a permutation of `range(num_samples)` drawn from `seed + epoch`, truncated to whole global batches.
+    """A permutation of `range(num_samples)` drawn from `seed + epoch`, cut to whole global batches.
 
     Every optimizer step consumes exactly `global_batch_size` samples, whatever the number of processes: the
     accelerate batch-sampler shard hands micro-batch i to process `i % world_size`, so the first

@@ -1,4 +1,4 @@
-"""The resumable training state: counters in `trainer_state.json` plus accelerate's optimizer/scheduler/RNG state.
+"""The resumable training state: `trainer_state.json` counters plus accelerate's optimizer/scheduler/RNG state.
 
 Only trainable tensors go into the accelerate state (frozen weights are rebuilt from the config and the init
 checkpoint at start-up), so a LoRA checkpoint of a 7B model stays small.
@@ -47,7 +47,7 @@ class TrainerState:
 
     @classmethod
     def load(cls, folder: str | Path) -> TrainerState:
-        """Read `trainer_state.json` from a checkpoint folder, naming the file and field when it is malformed."""
+        """Read `trainer_state.json` from a checkpoint folder; errors name the file and field."""
         path = Path(folder) / TRAINER_STATE_NAME
         if not path.is_file():
             raise FileNotFoundError(f"{path} is missing: {folder} is not a complete training checkpoint")
@@ -80,8 +80,8 @@ def keep_trainable_weights_hook(models: list[nn.Module], weights: list[dict], ou
 def load_trainable_weights_hook(models: list[nn.Module], input_dir: str) -> None:
     """accelerate load-state pre-hook: load the trainable tensors ourselves and take the models off the list.
 
-    accelerate would load the file strictly and fail on the missing frozen weights; here the missing keys must be
-    exactly frozen parameters, and anything else is an error that names the checkpoint.
+    accelerate would load the file strictly and fail on the missing frozen weights; here the missing keys must
+    be exactly frozen parameters, and anything else is an error that names the checkpoint.
     """
     from safetensors.torch import load_file
 
@@ -99,9 +99,9 @@ def load_trainable_weights_hook(models: list[nn.Module], input_dir: str) -> None
         )
         if result.unexpected_keys or missing:
             raise RuntimeError(
-                f"{path} does not match the model being trained: unexpected {sorted(result.unexpected_keys)[:5]}, "
-                f"missing trainable {sorted(missing)[:5]}; the run's config (freeze stage, LoRA) must be the one "
-                "it was saved with"
+                f"{path} does not match the model being trained: unexpected "
+                f"{sorted(result.unexpected_keys)[:5]}, missing trainable {sorted(missing)[:5]}; the run's config "
+                "(freeze stage, LoRA) must be the one it was saved with"
             )
 
 

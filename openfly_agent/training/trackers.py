@@ -1,4 +1,4 @@
-"""Experiment trackers through accelerate: TensorBoard (default), W&B (optional), and a JSON-lines file always."""
+"""Experiment trackers through accelerate: TensorBoard (default), W&B (optional), always a JSON-lines file."""
 
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ class JsonlTracker(GeneralTracker):
     """Appends one JSON object per `log` call to `<logging_dir>/metrics.jsonl` (main process only).
 
     The file is the machine-readable record of a run: tests and `bench/` read it, and it survives without
-    TensorBoard. On resume it is appended to, so a resumed run's file holds the whole history (a step logged twice
-    means the run was interrupted after that step and before its next checkpoint).
+    TensorBoard. On resume it is appended to, so a resumed run's file holds the whole history (a step logged
+    twice means the run was interrupted after that step and before its next checkpoint).
     """
 
     name = "jsonl"
@@ -57,7 +57,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def make_trackers(kind: str, run_name: str, logging_dir: str | Path) -> list:
-    """The `log_with` list for `Accelerator`: the JSON-lines tracker plus `kind` (tensorboard | wandb | none)."""
+    """The `log_with` list for `Accelerator`: the JSON-lines tracker plus `kind` (tensorboard|wandb|none)."""
     if kind not in TRACKERS:
         raise ValueError(f"logging.tracker must be one of {TRACKERS}, got {kind!r}")
     trackers: list = [JsonlTracker(run_name, logging_dir)]
