@@ -29,7 +29,7 @@ class CheckpointManager:
     """Creates, commits, lists and prunes checkpoint folders under `<output_dir>/checkpoints/`.
 
     A checkpoint is complete once its staging folder has been renamed (the rename is the commit), so a crash
-    at any moment leaves either the previous set of checkpoints or the new one, never a half-written `step-N/`.
+    at any moment leaves either the previous set of checkpoints or the new one, never half a `step-N/`.
     All methods touch the file system and must run on the main process only.
 
     Args:
