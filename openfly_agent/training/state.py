@@ -1,4 +1,4 @@
-"""The resumable training state: `trainer_state.json` counters plus accelerate's optimizer/scheduler/RNG state.
+"""Resumable training state: `trainer_state.json` counters plus accelerate's optimizer/scheduler/RNG state.
 
 Only trainable tensors go into the accelerate state (frozen weights are rebuilt from the config and the init
 checkpoint at start-up), so a LoRA checkpoint of a 7B model stays small.
@@ -100,8 +100,8 @@ def load_trainable_weights_hook(models: list[nn.Module], input_dir: str) -> None
         if result.unexpected_keys or missing:
             raise RuntimeError(
                 f"{path} does not match the model being trained: unexpected "
-                f"{sorted(result.unexpected_keys)[:5]}, missing trainable {sorted(missing)[:5]}; the run's config "
-                "(freeze stage, LoRA) must be the one it was saved with"
+                f"{sorted(result.unexpected_keys)[:5]}, missing trainable {sorted(missing)[:5]}; "
+                "the run's config (freeze stage, LoRA) must be the one it was saved with"
             )
 
 
