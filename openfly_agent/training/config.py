@@ -253,5 +253,5 @@ class TrainConfig:
         )
         _require(
             not (self.lora.enabled and self.freeze_stage == "full"),
-            "lora.enabled=true needs a freeze stage that freezes the LLM base weights, e.g. freeze_stage=lora",
+            "lora.enabled=true needs a freeze stage that freezes the LLM base weights (e.g. lora)",
         )

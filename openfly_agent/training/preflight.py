@@ -55,7 +55,7 @@ def check_output_dir(output_dir: str | Path, resume: bool) -> Path | None:
 
 
 def check_batch(batch: BatchConfig, world_size: int) -> int:
-    """Gradient-accumulation steps for `world_size` processes; raises `PreflightError` if it does not divide."""
+    """Gradient-accumulation steps for `world_size` processes; `PreflightError` if it does not divide."""
     try:
         return batch.accumulation_steps(world_size)
     except BatchSizeError as err:
