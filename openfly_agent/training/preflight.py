@@ -76,12 +76,13 @@ def check_dataset_root(data: TrainDataConfig) -> None:
     for split in dict.fromkeys((data.train_split, data.val_split, data.test_split)):
         if not annotation_path(root, split).is_file() and not part_files(root, split):
             raise PreflightError(
-                f"dataset {root} has no annotation for split {split!r}: expected {annotation_path(root, split)}"
+                f"dataset {root} has no annotation for split {split!r}: "
+                f"expected {annotation_path(root, split)}"
             )
 
 
 def load_split(data: TrainDataConfig, split: str) -> list:
-    """Episodes of `split`, with schema errors turned into a `PreflightError` naming file, record and field."""
+    """Episodes of `split`; schema errors become a `PreflightError` naming file, record and field."""
     from openfly_agent.data.openfly_reader import load_openfly_dataset
     from openfly_agent.data.schema import SchemaError
 
