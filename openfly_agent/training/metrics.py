@@ -1,4 +1,4 @@
-"""Throughput, memory and running means for the training log; box IoU for validation."""
+"""Throughput, token counts, memory and running means for the training log."""
 
 from __future__ import annotations
 
@@ -9,9 +9,11 @@ from collections import defaultdict
 
 import torch
 
+from openfly_agent import constants as C
+
 
 class ThroughputMeter:
-    """Samples/s and tokens/s between two `report` calls (wall clock, all processes' samples counted)."""
+    """Samples/s and tokens/s between two `report` calls (wall clock; counts summed over processes)."""
 
     def __init__(self) -> None:
         self._start = time.perf_counter()
@@ -19,14 +21,20 @@ class ThroughputMeter:
         self._tokens = 0
 
     def update(self, samples: int, tokens: int) -> None:
-        """Count one optimizer step's global batch."""
+        """Count one micro-batch of this process."""
         self._samples += samples
         self._tokens += tokens
 
-    def report(self) -> dict[str, float]:
-        """Rates since the previous report (or the start), then reset."""
+    def report(self, accelerator=None) -> dict[str, float]:
+        """Rates since the previous report (or the start), summed over processes, then reset.
+
+        With an `accelerator`, every process must call this at the same step (it all-reduces the counts).
+        """
         elapsed = max(time.perf_counter() - self._start, 1e-9)
-        rates = {"samples_per_s": self._samples / elapsed, "tokens_per_s": self._tokens / elapsed}
+        counts = torch.tensor([self._samples, self._tokens], dtype=torch.float64)
+        if accelerator is not None and accelerator.num_processes > 1:
+            counts = accelerator.reduce(counts.to(accelerator.device), reduction="sum").cpu()
+        rates = {"samples_per_s": float(counts[0]) / elapsed, "tokens_per_s": float(counts[1]) / elapsed}
         self.__init__()
         return rates
 
@@ -65,10 +73,16 @@ class RunningMeans:
         return means
 
 
-def box_iou_cxcywh(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """IoU of matching boxes given as (cx, cy, w, h) in [0, 1]: (N, 4), (N, 4) -> (N,)."""
-    p_lo, p_hi = pred[:, :2] - pred[:, 2:] / 2, pred[:, :2] + pred[:, 2:] / 2  # (N, 2) each
-    t_lo, t_hi = target[:, :2] - target[:, 2:] / 2, target[:, :2] + target[:, 2:] / 2
-    inter = (torch.minimum(p_hi, t_hi) - torch.maximum(p_lo, t_lo)).clamp(min=0).prod(dim=1)  # (N,)
-    union = pred[:, 2:].prod(dim=1) + target[:, 2:].prod(dim=1) - inter
-    return inter / union.clamp(min=1e-12)
+def count_llm_tokens(batch: dict, model_cfg) -> int:
+    """LLM sequence positions of a batch: text tokens (attention mask) + visual tokens of each sample.
+
+    Visual tokens = the current frame's P patch tokens + `memory_tokens_per_set` for every memory set that
+    holds at least one real frame (an empty set contributes nothing).
+    """
+    text = int(batch[C.ATTENTION_MASK].sum())
+    batch_size = int(batch[C.INPUT_IDS].shape[0])
+    visual = batch_size * model_cfg.vision.num_patches
+    if C.MEMORY_FRAME_MASK in batch:
+        sets = int(batch[C.MEMORY_FRAME_MASK].any(dim=-1).sum())  # (B, K, S) -> sets with a real frame
+        visual += sets * model_cfg.memory_tokens_per_set
+    return text + visual

@@ -29,7 +29,6 @@ class TrainerState:
         epoch: the epoch the next batch comes from.
         step_in_epoch: optimizer steps already done in `epoch` (batches to skip on resume).
         samples_seen: training samples consumed (all processes).
-        tokens_seen: non-padding tokens consumed (all processes).
         world_size: processes of the run that saved it (the data order is the same at any world size).
     """
 
@@ -37,7 +36,6 @@ class TrainerState:
     epoch: int = 0
     step_in_epoch: int = 0
     samples_seen: int = 0
-    tokens_seen: int = 0
     world_size: int = 1
 
     def save(self, folder: str | Path) -> None:
