@@ -36,7 +36,7 @@ def register_state_hooks(accelerator: Accelerator) -> None:
 
 
 def save_checkpoint(run) -> Path:
-    """Write the checkpoint of `run.state.step` atomically (call on every process); return its final folder."""
+    """Write the checkpoint of `run.state.step` atomically (call on every process); return its folder."""
     acc, step = run.accelerator, run.state.step
     if acc.is_main_process:
         run.checkpoints.begin(step)
