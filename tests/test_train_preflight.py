@@ -1,4 +1,4 @@
-"""Preflight errors, raised before any compute: output folder, batch sizes, dataset, checkpoint architecture."""
+"""Preflight errors, raised before any compute: output folder, batch sizes, dataset, checkpoint shapes."""
 
 from __future__ import annotations
 
