@@ -54,7 +54,7 @@ def save_checkpoint(run) -> Path:
 
 
 def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerState:
-    """Load optimizer, scheduler, RNG and trainable weights from `folder` (every process); return its counters.
+    """Load optimizer, scheduler, RNG and trainable weights from `folder` (every process); return counters.
 
     Call after `accelerator.prepare` and before the first step.
     """
@@ -62,8 +62,8 @@ def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerS
     state = TrainerState.load(folder)
     if state.world_size != accelerator.num_processes:
         raise RuntimeError(
-            f"{folder} was saved by {state.world_size} processes but this run has {accelerator.num_processes}: "
-            "resume with the same number of processes (the per-process RNG and optimizer shards must match)"
+            f"{folder} was saved by {state.world_size} processes but this run has "
+            f"{accelerator.num_processes}: resume with the same number of processes (the per-process RNG and optimizer shards must match)"
         )
     accelerator.load_state(str(folder / ACCELERATE_STATE_DIR))
     logger.info(
