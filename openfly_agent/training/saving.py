@@ -63,7 +63,8 @@ def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerS
     if state.world_size != accelerator.num_processes:
         raise RuntimeError(
             f"{folder} was saved by {state.world_size} processes but this run has "
-            f"{accelerator.num_processes}: resume with the same number of processes (the per-process RNG and optimizer shards must match)"
+            f"{accelerator.num_processes}: resume with the same number of processes "
+            "(the per-process RNG and optimizer shards must match)"
         )
     accelerator.load_state(str(folder / ACCELERATE_STATE_DIR))
     logger.info(
