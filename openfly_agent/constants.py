@@ -68,6 +68,9 @@ ACTION = "action"  # (B,) long, action id 0..9
 ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
 EPISODE_ID = "episode_id"  # list[str]
 STEP_INDEX = "step_index"  # (B,) long
+MEMORY = (
+    "memory"  # dataset sample only: K keyframe sets, each a list of (rgb, box, box_visible), oldest first
+)
 
 IGNORE_INDEX = -100
 
