@@ -1,4 +1,4 @@
-"""The data cards stay in sync with the code: front matter parses, every parquet column and option is documented."""
+"""Data cards stay in sync with the code: front matter parses, every column and option is documented."""
 
 from __future__ import annotations
 

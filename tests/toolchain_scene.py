@@ -18,7 +18,7 @@ def box_surface_points(lo, hi, spacing: float = 1.0) -> np.ndarray:
     for axis in range(3):
         others = [a for a in range(3) if a != axis]
         u, v = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
-        for value in ((lo[axis], hi[axis]) if axis != 2 else (hi[axis],)):
+        for value in (lo[axis], hi[axis]) if axis != 2 else (hi[axis],):
             face = np.zeros((u.size, 3))
             face[:, axis] = value
             face[:, others[0]], face[:, others[1]] = u.ravel(), v.ravel()

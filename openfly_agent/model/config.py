@@ -138,6 +138,10 @@ class LLMConfig:
     intermediate_size: int = 344  # tiny only
     max_length: int = 2048
     attn_implementation: str = "sdpa"  # sdpa | eager | flash_attention_2 (passed to transformers)
+    # Special token ids (taken from the tokenizer when the model is built with one).
+    bos_token_id: int = 1
+    eos_token_id: int = 2
+    pad_token_id: int | None = None
 
     def __post_init__(self) -> None:
         _check_choice("llm", "preset", self.preset, LLM_PRESETS)
@@ -181,8 +185,8 @@ class GroundingConfig:
     enabled: bool = True
     num_layers: int = 3
     num_queries: int = 1
-    dim: int = 256
-    num_heads: int = 8
+    dim: int = 64  # 256 in the 7B preset
+    num_heads: int = 4  # 8 in the 7B preset
     loss_weight: float = 1.0  # weight of the grounding loss in the total loss
     l1_weight: float = 1.0  # grounding loss = GIoU + l1_weight * L1 (visible boxes) + visibility_weight * BCE
     visibility_weight: float = (
@@ -243,7 +247,7 @@ class MemoryConfig:
     """FIFO memory of K keyframe sets, each grid-pooled to (grid_side / g)^2 tokens."""
 
     capacity: int = 2  # K; 0 = current frame only
-    grid: int = 16  # g, pooling window in patches
+    grid: int = 8  # g, pooling window in patches (the paper: 16 on the 16x16 grid of 224 px)
 
     def __post_init__(self) -> None:
         if self.capacity < 0:
@@ -301,6 +305,10 @@ class ModelConfig:
             raise ValueError(
                 "mode=openvla_compat reproduces the released model: set action_head.type=openvla_bins"
             )
+        if self.mode == MODE_OPENVLA_COMPAT and self.memory.grid != side:
+            raise ValueError(
+                f"mode=openvla_compat summarises each history frame in one token: set memory.grid={side}"
+            )
         vocab = self.llm.vocab_size
         if (
             vocab is not None
@@ -329,25 +337,21 @@ def _divisors(n: int) -> list[int]:
 
 
 def tiny_config(**overrides) -> ModelConfig:
-    """CPU preset: two 3-block ViTs (112 px, 8x8 patches), a 2-layer width-128 Llama, g = 8 (1 token/set)."""
-    cfg = ModelConfig(
-        vision=VisionConfig(
-            preset=VISION_TINY, image_size=112, patch_size=14, width=96, fused_width=128, depth=3
-        ),
-        llm=LLMConfig(preset=LLM_TINY, hidden_size=128, num_layers=2, num_heads=4, intermediate_size=344),
-        grounding=GroundingConfig(dim=64, num_heads=4),
-        memory=MemoryConfig(capacity=2, grid=8),
-    )
-    return dataclasses.replace(cfg, **overrides)
+    """CPU preset (= the dataclass defaults): two 3-block ViTs at 112 px (8x8 patches), a 2-layer Llama of
+    width 128, K = 2, g = 8 (1 token per keyframe set)."""
+    return dataclasses.replace(ModelConfig(), **overrides)
 
 
 def openfly_7b_config(**overrides) -> ModelConfig:
     """The paper's model: dinosiglip-224px + llama2-7b, K = 2, g = 16 (256 + 2 visual tokens per step)."""
     cfg = ModelConfig(
         vision=VisionConfig(preset=VISION_DINOSIGLIP_224, image_size=224, patch_size=14),
-        llm=LLMConfig(preset=LLM_LLAMA2_7B, vocab_size=LLAMA2_PADDED_VOCAB),
+        llm=LLMConfig(
+            preset=LLM_LLAMA2_7B, vocab_size=LLAMA2_PADDED_VOCAB, pad_token_id=LLAMA2_TOKENIZER_VOCAB
+        ),
         prompt=PromptConfig(),
         action_head=ActionHeadConfig(vocab_end=LLAMA2_TOKENIZER_VOCAB),
+        grounding=GroundingConfig(dim=256, num_heads=8),
         memory=MemoryConfig(capacity=2, grid=16),
     )
     return dataclasses.replace(cfg, **overrides)

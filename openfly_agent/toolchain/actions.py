@@ -65,7 +65,9 @@ def merge_forward(primitives: list[int]) -> tuple[list[int], list[int]]:
     return labels, raw
 
 
-def build_action_sequence(start: Pose, nav_primitives: list[int], takeoff_steps: int = 0, landing_steps: int = 0) -> ActionSequence:
+def build_action_sequence(
+    start: Pose, nav_primitives: list[int], takeoff_steps: int = 0, landing_steps: int = 0
+) -> ActionSequence:
     """Codebook labels + replayed poses of: take-off climbs, navigation, STOP, landing descents.
 
     Args:
@@ -75,7 +77,13 @@ def build_action_sequence(start: Pose, nav_primitives: list[int], takeoff_steps:
         landing_steps: 3 m descents (-2) after STOP; adds landing_steps + 1 frames (see the module docstring).
     """
     for p in nav_primitives:
-        if p not in (C.ACTION_FORWARD, C.ACTION_TURN_LEFT, C.ACTION_TURN_RIGHT, C.ACTION_ASCEND, C.ACTION_DESCEND):
+        if p not in (
+            C.ACTION_FORWARD,
+            C.ACTION_TURN_LEFT,
+            C.ACTION_TURN_RIGHT,
+            C.ACTION_ASCEND,
+            C.ACTION_DESCEND,
+        ):
             raise ValueError(f"navigation primitives must be 1..5 (3 m / 30 deg), got {p}")
     raw = [C.ACTION_TAKEOFF] * takeoff_steps + list(nav_primitives) + [C.ACTION_STOP]
     if landing_steps:
@@ -93,7 +101,11 @@ def build_action_sequence(start: Pose, nav_primitives: list[int], takeoff_steps:
 def navigation_mask(actions: np.ndarray) -> np.ndarray:
     """(T,) bool: frames of the navigation segment (not take-off climbs, not frames after STOP)."""
     actions = np.asarray(actions)
-    stop = int(np.flatnonzero(actions == C.ACTION_STOP)[0]) if (actions == C.ACTION_STOP).any() else len(actions) - 1
+    stop = (
+        int(np.flatnonzero(actions == C.ACTION_STOP)[0])
+        if (actions == C.ACTION_STOP).any()
+        else len(actions) - 1
+    )
     mask = np.zeros(len(actions), dtype=bool)
     mask[: stop + 1] = True
     mask &= actions != C.ACTION_TAKEOFF

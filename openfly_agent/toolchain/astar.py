@@ -44,7 +44,7 @@ class PlanResult:
 
 
 def turns_between(heading: int, new_heading: int) -> int:
-    """Signed number of 30 deg turn primitives from `heading` to `new_heading` (+ = left; 180 deg = 6 left)."""
+    """Signed count of 30 deg turns from `heading` to `new_heading` (+ = left; 180 deg = 6 left)."""
     d = (new_heading - heading) % NUM_HEADINGS
     return d if d <= NUM_HEADINGS // 2 else d - NUM_HEADINGS
 
@@ -92,15 +92,19 @@ class ActionSpaceAStar:
             raise PlanningFailed("goal_blocked", f"goal {(gx, gy, gz)} is in an obstacle or outside the map")
         yaws = [start.yaw + math.radians(C.TURN_DEGREES) * h for h in range(NUM_HEADINGS)]
         dxy = [(step * math.cos(a), step * math.sin(a)) for a in yaws]
-        turn_cost = [[cfg.turn_penalty * abs(turns_between(h, h2)) for h2 in range(NUM_HEADINGS)] for h in range(NUM_HEADINGS)]
+        turn_cost = [
+            [cfg.turn_penalty * abs(turns_between(h, h2)) for h2 in range(NUM_HEADINGS)]
+            for h in range(NUM_HEADINGS)
+        ]
         vertical_cost = step + cfg.vertical_penalty
-        res, w, tol, blocked = cfg.key_resolution_m, cfg.heuristic_weight, cfg.goal_tolerance_m, self.blocked
+        res, tol, blocked = cfg.key_resolution_m, cfg.goal_tolerance_m, self.blocked
+        heuristic = self._heuristic(yaws, (gx, gy, gz))
 
         # Node arrays: position, heading, parent, move code that reached it.
         xs, ys, zs, hs, parents, moves, gs = [start.x], [start.y], [start.z], [0], [-1], [-1], [0.0]
         best = {(round(start.x / res), round(start.y / res), round(start.z / res)): 0.0}
         closed: set = set()
-        heap = [(w * math.dist((start.x, start.y, start.z), (gx, gy, gz)), 0)]
+        heap = [(heuristic(start.x, start.y, start.z, 0), 0)]
         expansions = 0
         while heap:
             _, node = heapq.heappop(heap)
@@ -113,29 +117,52 @@ class ActionSpaceAStar:
                 return self._result(node, xs, ys, zs, hs, parents, moves, expansions, g)
             expansions += 1
             if expansions > cfg.max_expansions:
-                raise PlanningFailed("max_expansions", f"{cfg.max_expansions} expansions without reaching the goal")
+                raise PlanningFailed(
+                    "max_expansions", f"{cfg.max_expansions} expansions without reaching the goal"
+                )
             for move in range(NUM_HEADINGS + 2):
                 if move < NUM_HEADINGS:
-                    nx_, ny_, nz_ = x + dxy[move][0], y + dxy[move][1], z
-                    cost = step + turn_cost[h][move]
-                    mid_blocked = blocked(x + 0.5 * dxy[move][0], y + 0.5 * dxy[move][1], z)
-                    new_h = move
+                    mx, my, mz = x + 0.5 * dxy[move][0], y + 0.5 * dxy[move][1], z  # segment midpoint
+                    nx_, ny_, nz_, new_h = x + dxy[move][0], y + dxy[move][1], z, move
+                    ng = g + step + turn_cost[h][move]
                 else:
-                    nx_, ny_, nz_ = x, y, z + (step if move == _UP else -step)
-                    cost = vertical_cost
-                    mid_blocked = blocked(x, y, 0.5 * (z + nz_))
-                    new_h = h
+                    nz_ = z + (step if move == _UP else -step)
+                    mx, my, mz, nx_, ny_, new_h = x, y, 0.5 * (z + nz_), x, y, h
+                    ng = g + vertical_cost
                 nkey = (round(nx_ / res), round(ny_ / res), round(nz_ / res))
-                ng = g + cost
-                if nkey in closed or ng >= best.get(nkey, math.inf):
-                    continue
-                if mid_blocked or blocked(nx_, ny_, nz_):
+                if (
+                    nkey in closed
+                    or ng >= best.get(nkey, math.inf)
+                    or blocked(nx_, ny_, nz_)
+                    or blocked(mx, my, mz)
+                ):
                     continue
                 best[nkey] = ng
                 xs.append(nx_), ys.append(ny_), zs.append(nz_), hs.append(new_h)
                 parents.append(node), moves.append(move), gs.append(ng)
-                heapq.heappush(heap, (ng + w * math.dist((nx_, ny_, nz_), (gx, gy, gz)), len(xs) - 1))
+                heapq.heappush(heap, (ng + heuristic(nx_, ny_, nz_, new_h), len(xs) - 1))
         raise PlanningFailed("no_path", f"open set exhausted after {expansions} expansions")
+
+    def _heuristic(self, yaws: list[float], goal: tuple[float, float, float]):
+        """Distance to the goal + the turns any path must still make, times `heuristic_weight`.
+
+        The turn term is a lower bound: a path that turns at most j times only moves inside the cone of
+        headings within +- j * 30 deg of the current one, so the goal's tolerance ball must touch that cone.
+        """
+        gx, gy, gz = goal
+        tol, w, penalty = self.cfg.goal_tolerance_m, self.cfg.heuristic_weight, self.cfg.turn_penalty
+        turn_rad, two_pi = math.radians(C.TURN_DEGREES), 2.0 * math.pi
+
+        def heuristic(x: float, y: float, z: float, h: int) -> float:
+            dx, dy = gx - x, gy - y
+            horizontal = math.hypot(dx, dy)
+            turns = 0
+            if horizontal > tol:
+                delta = abs((math.atan2(dy, dx) - yaws[h] + math.pi) % two_pi - math.pi)  # [0, pi]
+                turns = max(0, math.ceil((delta - math.asin(tol / horizontal)) / turn_rad - 1e-9))
+            return w * (math.hypot(horizontal, gz - z) + penalty * turns)
+
+        return heuristic
 
     @staticmethod
     def _result(node, xs, ys, zs, hs, parents, moves, expansions, cost) -> PlanResult:

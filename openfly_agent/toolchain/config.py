@@ -22,9 +22,9 @@ class MapConfig:
 
     voxel_size_m: float = 2.0  # VoxelWidth
     dilate_radius_m: float = 3.0  # DilateRadius: obstacle inflation of the planning grid
-    bounds: list[float] | None = None  # MapBound [xmin, xmax, ymin, ymax, zmin, zmax]; None = the scene's bounds
+    bounds: list[float] | None = None  # MapBound [xmin, xmax, ymin, ymax, zmin, zmax]; None = scene's
     elevation_m: float | None = None  # map_elevation (ground height); None = the scene's ground height
-    min_height_thresh_m: float = 6.0  # min_height_thresh: points below elevation + this are left out of the BEV
+    min_height_thresh_m: float = 6.0  # min_height_thresh: points below elevation + this stay out of the BEV
     bev_voxel_size_m: float = 4.0  # seg_map.bev_voxel_size: BEV pixel size for landmark segmentation
     pcd_scale_ratio: float = 1.0  # point cloud units -> metres (multiplier)
     outlier_min_neighbors: int = 0  # drop points with fewer neighbours in their 3x3x3 voxel block; 0 = off
@@ -46,13 +46,17 @@ class MapConfig:
 class SegmentationConfig:
     """Landmark segmentation from the BEV map (official `seg_gen`)."""
 
-    source: str = "scene"  # "scene": the scene's landmark list (embedded city / official list); "segment": BEV contours
+    # "scene": the scene's landmark list (embedded city / official list); "segment": BEV contours
+    source: str = "scene"
     erode_iterations: int = 2  # 3x3 erosions before contour extraction (official: 2)
     min_area_m2: float = 64.0  # contours smaller than this are dropped
     height_window_m: float = 5.0  # instance height = max z of points within +- this of the centroid
 
     def __post_init__(self) -> None:
-        _check(self.source in ("scene", "segment"), f"segmentation.source must be 'scene' or 'segment', got {self.source!r}")
+        _check(
+            self.source in ("scene", "segment"),
+            f"segmentation.source must be 'scene' or 'segment', got {self.source!r}",
+        )
         _check(self.erode_iterations >= 0, "segmentation.erode_iterations must be >= 0")
 
 
@@ -80,7 +84,9 @@ class RouteConfig:
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"route.{name} must be a probability in [0, 1], got {value}")
         lo, hi = self.chain_bearing_deg
-        _check(0 <= lo <= hi <= 180, f"route.chain_bearing_deg must be [lo, hi] within [0, 180], got {[lo, hi]}")
+        _check(
+            0 <= lo <= hi <= 180, f"route.chain_bearing_deg must be [lo, hi] within [0, 180], got {[lo, hi]}"
+        )
         _check(self.max_landmark_tries > 0 and self.max_start_tries > 0, "route.max_*_tries must be > 0")
 
 
@@ -91,13 +97,18 @@ class PlannerConfig:
     turn_penalty: float = 2.0  # extra cost per 30 deg turn primitive
     vertical_penalty: float = 1.0  # extra cost per climb / descent primitive (prefer level flight)
     goal_tolerance_m: float = 3.1  # search stops within this distance of the goal (official 3.1)
-    max_expansions: int = 30000  # bounded search: the route is discarded (and counted) beyond this
-    key_resolution_m: float = 1.0  # visited-state key = position rounded to this grid (official: 1 m)
-    heuristic_weight: float = 1.0  # 1 = admissible Euclidean heuristic; > 1 = weighted A* (faster)
+    max_expansions: int = 20000  # bounded search: the route is discarded (and counted) beyond this
+    key_resolution_m: float = 1.5  # visited-state key = position rounded to this grid (official: 1 m)
+    # 1 = (near-)admissible distance + turns heuristic; 1.5 = weighted A*: ~6x fewer expansions, paths
+    # ~0.3 % longer with ~20 % more turns on a 1 km embedded city (measured, see docs/TOOLCHAIN.md)
+    heuristic_weight: float = 1.5
 
     def __post_init__(self) -> None:
         _check(self.turn_penalty >= 0 and self.vertical_penalty >= 0, "planner penalties must be >= 0")
-        _check(self.goal_tolerance_m >= C.STEP_METERS / 2, "planner.goal_tolerance_m must be >= 1.5 (half a step)")
+        _check(
+            self.goal_tolerance_m >= C.STEP_METERS / 2,
+            "planner.goal_tolerance_m must be >= 1.5 (half a step)",
+        )
         _check(self.max_expansions > 0, "planner.max_expansions must be > 0")
         _check(self.key_resolution_m > 0, "planner.key_resolution_m must be > 0")
         _check(self.heuristic_weight >= 1.0, "planner.heuristic_weight must be >= 1")
@@ -107,8 +118,8 @@ class PlannerConfig:
 class CategoryConfig:
     """`{low,medium,high}_{short,average,long}` by flight height above ground and path length."""
 
-    height_bins_m: list[float] = field(default_factory=lambda: [30.0, 60.0])  # low < a <= medium < b <= high
-    length_bins_m: list[float] = field(default_factory=lambda: [100.0, 200.0])  # short < a <= average < b <= long
+    height_bins_m: list[float] = field(default_factory=lambda: [30.0, 60.0])  # low < a <= medium < b
+    length_bins_m: list[float] = field(default_factory=lambda: [100.0, 200.0])  # short < a <= average < b
 
     def __post_init__(self) -> None:
         for name in ("height_bins_m", "length_bins_m"):
@@ -144,20 +155,29 @@ class VLMConfig:
     image_size: int = 224  # frames are resized to this (longest side) before base64 encoding
 
     def __post_init__(self) -> None:
-        _check(self.base_url.startswith(("http://", "https://")), f"vlm.base_url must be http(s)://..., got {self.base_url!r}")
+        _check(
+            self.base_url.startswith(("http://", "https://")),
+            f"vlm.base_url must be http(s)://..., got {self.base_url!r}",
+        )
         _check(self.concurrency >= 1, "vlm.concurrency must be >= 1")
-        _check(self.max_retries >= 0 and self.backoff_s >= 0 and self.timeout_s > 0, "vlm retry/timeout must be >= 0")
+        _check(
+            self.max_retries >= 0 and self.backoff_s >= 0 and self.timeout_s > 0,
+            "vlm retry/timeout must be >= 0",
+        )
 
 
 @dataclass
 class InstructionConfig:
     backend: str = "template"  # "template" (offline, default) | "vlm" (OpenAI-compatible API)
     vlm: VLMConfig = field(default_factory=VLMConfig)
-    min_box_area: float = 0.002  # a landmark counts as 'seen' in a frame when its box covers this image fraction
+    min_box_area: float = 0.002  # a landmark is 'seen' in a frame when its box covers this image fraction
     mention_distance: bool = True  # template: say distances of long straight legs ("about 60 meters")
 
     def __post_init__(self) -> None:
-        _check(self.backend in ("template", "vlm"), f"instructions.backend must be 'template' or 'vlm', got {self.backend!r}")
+        _check(
+            self.backend in ("template", "vlm"),
+            f"instructions.backend must be 'template' or 'vlm', got {self.backend!r}",
+        )
 
 
 @dataclass
@@ -168,7 +188,7 @@ class FilterConfig:
     max_actions: int = 150
     min_frame_std: float = 3.0  # a frame whose pixel std is below this (uniform colour) is damaged
     max_dominant_fraction: float = 0.98  # ... or whose most common colour covers more than this fraction
-    tree_height_m: float | None = None  # no navigation pose below ground + this; None = the scene's tallest tree
+    tree_height_m: float | None = None  # no navigation pose below ground + this; None = scene's tallest tree
 
     def __post_init__(self) -> None:
         _check(1 <= self.min_actions <= self.max_actions, "filters: need 1 <= min_actions <= max_actions")
@@ -205,7 +225,9 @@ class SceneConfig:
 
     def __post_init__(self) -> None:
         overlap = set(self.train_seeds) & set(self.unseen_seeds)
-        _check(not overlap, f"scenes: unseen_seeds must not be used in train_seeds (both hold {sorted(overlap)})")
+        _check(
+            not overlap, f"scenes: unseen_seeds must not be used in train_seeds (both hold {sorted(overlap)})"
+        )
         _check(len(set(self.train_seeds)) == len(self.train_seeds), "scenes.train_seeds has duplicates")
         _check(0.0 <= self.test_seen_fraction < 1.0, "scenes.test_seen_fraction must be in [0, 1)")
         _check(self.trajectories_per_scene >= 1, "scenes.trajectories_per_scene must be >= 1")
@@ -250,4 +272,3 @@ def parse_shard(shard: str) -> tuple[int, int]:
         raise ValueError(f"shard must look like 'i/N' (e.g. '0/4'), got {shard!r}") from None
     _check(count >= 1 and 0 <= index < count, f"shard {shard!r}: need 0 <= i < N")
     return index, count
-

@@ -7,7 +7,10 @@ height the highest point within +- 5 m of the centroid.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -99,3 +102,50 @@ def segment_landmarks(
             )
         )
     return landmarks
+
+
+def fill_landmark_heights(landmarks: list[Landmark], pmap, window_m: float = 5.0) -> list[Landmark]:
+    """Give landmarks without a height (list z at or below the ground, e.g. UE / 3DGS lists) the highest
+    map point within +- `window_m` of their x-y position, as the official segmentation measures it.
+
+    Args:
+        landmarks: landmarks in metres.
+        pmap: a `PlanningMap` (its column height map).
+        window_m: half size of the square searched around each landmark.
+    """
+    filled = []
+    r = max(0, int(math.ceil(window_m / pmap.voxel_size)))
+    for lm in landmarks:
+        if landmark_top(lm) > pmap.elevation:
+            filled.append(lm)
+            continue
+        idx, inside = pmap.column_of(np.array(lm.position[:2]))
+        i, j = (int(v) for v in idx[0])
+        patch = pmap.height[max(0, i - r) : i + r + 1, max(0, j - r) : j + r + 1] if inside[0] else None
+        if patch is None or not np.isfinite(patch).any():
+            filled.append(lm)
+            continue
+        top = float(patch.max())
+        filled.append(
+            dataclasses.replace(
+                lm, position=(lm.position[0], lm.position[1], top), extent=(*lm.extent[:2], 0.0)
+            )
+        )
+    return filled
+
+
+def write_landmark_list(path, landmarks: list[Landmark], pcd_scale_ratio: float = 1.0) -> None:
+    """Write landmarks as an official `seg_map` JSONL (AirSim / 3DGS convention: point cloud units).
+
+    Each line: {"type", "color", "size", "shape", "feature", "filename": "X=<x>Y=<y>Z=<z>.png"} with the
+    position divided by `pcd_scale_ratio`, so `sim.real_scene.read_landmark_list` reads it back.
+    """
+    lines = []
+    for lm in landmarks:
+        x, y, z = (v / pcd_scale_ratio for v in lm.position)
+        record = {k: getattr(lm, k) or "test" for k in ("type", "color", "size", "shape", "feature")}
+        record["filename"] = f"X={x!r}Y={y!r}Z={z!r}.png"
+        lines.append(json.dumps(record))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + ("\n" if lines else ""), encoding="utf-8")

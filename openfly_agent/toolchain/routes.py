@@ -47,7 +47,9 @@ class Route:
         self.landmark_ids = [leg.landmark.landmark_id for leg in self.legs]
 
 
-def _walk_out_of_footprint(pmap: PlanningMap, origin_xy: np.ndarray, towards_xy: np.ndarray, z: float) -> np.ndarray | None:
+def _walk_out_of_footprint(
+    pmap: PlanningMap, origin_xy: np.ndarray, towards_xy: np.ndarray, z: float
+) -> np.ndarray | None:
     """First point on origin -> towards (1 m steps) that is off the dilated BEV footprint and free in 3-D."""
     span = float(np.linalg.norm(towards_xy - origin_xy))
     if span < 1.0:
@@ -105,7 +107,9 @@ class RouteSampler:
                     continue
                 legs.append(second)
             bearing = math.atan2(leg.goal[1] - start_xyz[1], leg.goal[0] - start_xyz[0])
-            yaw = wrap_yaw(bearing + math.radians(rng.uniform(-cfg.start_yaw_jitter_deg, cfg.start_yaw_jitter_deg)))
+            yaw = wrap_yaw(
+                bearing + math.radians(rng.uniform(-cfg.start_yaw_jitter_deg, cfg.start_yaw_jitter_deg))
+            )
             start = Pose(float(start_xyz[0]), float(start_xyz[1]), float(start_xyz[2]), yaw)
             return Route(start, legs, float(flight_z), takeoff_landing=takeoff_landing, with_turn=with_turn)
         raise RouteSamplingFailed(f"no start / goal found around {cfg.max_landmark_tries} landmarks")
@@ -126,7 +130,9 @@ class RouteSampler:
             return start, RouteLeg(landmark, goal)
         return None
 
-    def _next_leg(self, leg: RouteLeg, start_xyz: np.ndarray, z: float, rng: np.random.Generator) -> RouteLeg | None:
+    def _next_leg(
+        self, leg: RouteLeg, start_xyz: np.ndarray, z: float, rng: np.random.Generator
+    ) -> RouteLeg | None:
         cfg = self.cfg
         heading = math.atan2(leg.goal[1] - start_xyz[1], leg.goal[0] - start_xyz[0])
         offsets = self._xy - leg.goal[:2]
