@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import HistoryConfig, ReaderOptions
-from openfly_agent.model.config import ModelConfig, tiny_config
+from openfly_agent.model.config import LoraSettings, ModelConfig, tiny_config
 
 PRECISIONS = ("no", "bf16", "fp16")
 SCHEDULES = ("constant", "cosine", "linear")
@@ -35,7 +35,7 @@ class TrainDataConfig:
     `keyframes.set_size`; `TrainConfig` checks it.
     """
 
-    root: str = "data/generated/embedded-small"
+    root: str = "outputs/datasets/embedded-small"  # where the toolchain writes embedded-small
     train_split: str = C.SPLIT_TRAIN
     val_split: str = C.SPLIT_TEST_SEEN  # periodic validation
     test_split: str = C.SPLIT_TEST_UNSEEN  # the final offline evaluation
@@ -139,24 +139,15 @@ class BatchConfig:
 
 
 @dataclass
-class LoraSettings:
-    """peft LoRA on the LLM (the projector and the new heads train fully; see the model's `lora` stage)."""
+class LoraTrainingConfig(LoraSettings):
+    """peft LoRA on the LLM (model/lora.py); the projector and the grounding head train fully (stage `lora`).
+
+    Inherits rank, alpha, dropout, target_modules ("all-linear" or comma-separated names) and init from the
+    model's `LoraSettings`.
+    """
 
     enabled: bool = False
-    r: int = 32
-    alpha: int = 16
-    dropout: float = 0.0
-    target_modules: list[str] = field(
-        default_factory=lambda: ["q_proj", "k_proj", "v_proj", "o_proj", "gate_proj", "up_proj", "down_proj"]
-    )
-    merge_at_end: bool = True  # also write <output_dir>/merged: full weights, merged on rank 0 on CPU
-
-    def __post_init__(self) -> None:
-        _require(
-            self.r > 0 and self.alpha > 0, f"lora.r and lora.alpha must be > 0, got {self.r}, {self.alpha}"
-        )
-        _require(0 <= self.dropout < 1, f"lora.dropout must be in [0, 1), got {self.dropout}")
-        _require(bool(self.target_modules), "lora.target_modules must name at least one module")
+    merge_at_end: bool = True  # also write <output_dir>/merged: full weights, merged on rank 0 on the CPU
 
 
 @dataclass
@@ -211,7 +202,7 @@ class TrainConfig:
     init: InitConfig = field(default_factory=InitConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
-    lora: LoraSettings = field(default_factory=LoraSettings)
+    lora: LoraTrainingConfig = field(default_factory=LoraTrainingConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
@@ -252,6 +243,7 @@ class TrainConfig:
             f"{self.model.keyframes.set_size} (2 x keyframes.radius + 1); set both",
         )
         _require(
-            not (self.lora.enabled and self.freeze_stage == "full"),
-            "lora.enabled=true needs a freeze stage that freezes the LLM base weights (e.g. lora)",
+            self.lora.enabled == (self.freeze_stage == "lora"),
+            f"lora.enabled={self.lora.enabled} with freeze_stage={self.freeze_stage!r}: LoRA runs use "
+            "freeze_stage=lora (adapters + projector + grounding head train) and only they do",
         )

@@ -92,11 +92,12 @@ def assemble_run(
     model: torch.nn.Module,
     train_dataset: Dataset,
     collate_fn: Callable,
-    export: Callable[[Path], None],
+    make_export: Callable[[torch.nn.Module], Callable[[Path], None]],
     val_dataset: Dataset | None = None,
     test_dataset: Dataset | None = None,
     resume_from: Path | None = None,
     majority_rate: Callable[[list[int]], float] | None = None,
+    after_training: Callable[[TrainingRun], None] | None = None,
 ) -> TrainingRun:
     """Prepare model, optimizer, schedule and loaders with accelerate, restore a checkpoint, start trackers.
 
@@ -106,11 +107,13 @@ def assemble_run(
         model: the network; `forward(batch) -> (loss, logs)`. Freeze stages / LoRA must already be applied.
         train_dataset: map-style dataset of training samples.
         collate_fn: samples -> batch dict.
-        export: writes the model's Hugging Face folder into a checkpoint folder (see `training/saving.py`).
+        make_export: prepared model -> `export(folder)`, which writes the model's Hugging Face folder into a
+            checkpoint folder on every process (see `training/saving.py`).
         val_dataset: periodic validation samples (None: no validation).
         test_dataset: final evaluation samples (None: no final evaluation).
         resume_from: a checkpoint folder to continue from.
         majority_rate: maps the final evaluation's sample indices to the majority-class rate.
+        after_training: called on every process after the final checkpoint (e.g. the LoRA merge).
     """
     per_device = cfg.batch.per_device_batch_size
     sampler = EpochShuffleSampler(len(train_dataset), cfg.batch.global_batch_size, cfg.seed)
@@ -121,7 +124,7 @@ def assemble_run(
         drop_last=True,
         collate_fn=collate_fn,
         num_workers=cfg.data.num_workers,
-        persistent_workers=cfg.data.num_workers > 0,
+        persistent_workers=False,  # fresh workers each epoch see the dataset's current epoch (random history)
         generator=torch.Generator().manual_seed(cfg.seed),  # keeps the global torch RNG out of data loading
     )
     steps = total_steps(cfg, sampler.steps_per_epoch)
@@ -166,8 +169,9 @@ def assemble_run(
         state=state,
         total_steps=steps,
         checkpoints=CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last),
-        export=export,
+        export=make_export(model),
         majority_rate=(lambda: majority_rate(test_indices)) if majority_rate and test_indices else None,
+        after_training=after_training,
     )
 
 

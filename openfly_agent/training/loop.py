@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,8 @@ class TrainingRun:
         checkpoints: the checkpoint folder manager.
         export: writes the Hugging Face folder of the model into a checkpoint folder
             (`export(folder)`, called on every process; see `training/saving.py`).
-        majority_rate: `(split, indices) -> rate` of the most frequent train action (None: not reported).
+        majority_rate: `() -> rate` of the most frequent train action on the final split (None: not reported).
+        after_training: `(run) -> None` run on every process after the final checkpoint (the LoRA merge).
     """
 
     cfg: TrainConfig
@@ -60,7 +61,7 @@ class TrainingRun:
     checkpoints: CheckpointManager
     export: Any
     majority_rate: Any = None
-    extra: dict = field(default_factory=dict)
+    after_training: Any = None
 
 
 @dataclass
@@ -133,6 +134,8 @@ def fit(run: TrainingRun) -> FitResult:
     progress.close()
     if last_checkpoint is None or TrainerState.load(last_checkpoint).step != state.step:
         last_checkpoint = save_checkpoint(run)
+    if run.after_training is not None:
+        run.after_training(run)
     final = _final_evaluation(run)
     acc.end_training()
     return FitResult(state, last_checkpoint, final, stopped_early)
