@@ -2,7 +2,7 @@
 
     accelerate launch train.py                                   # tiny preset, embedded-small data, CPU
     accelerate launch train.py --config_path configs/train/tiny.yaml --optim.lr=3e-4 --steps=500
-    accelerate launch train.py --resume                          # continue <output_dir> from its last checkpoint
+    accelerate launch train.py --resume                      # continue <output_dir> from its last checkpoint
     accelerate launch --config_file configs/accelerate/fsdp.yaml train.py \
         --config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b
 
@@ -36,7 +36,7 @@ def parse_args(argv: list[str]):
 
 
 def ensure_dataset(cfg) -> None:
-    """Generate the dataset with the toolchain when `data.root` has no train split yet (rank 0; others wait)."""
+    """Generate the dataset with the toolchain when `data.root` has no train split (rank 0; others wait)."""
     from accelerate import PartialState
 
     from openfly_agent.data.openfly_reader import annotation_path
@@ -61,10 +61,10 @@ def report(result, cfg) -> None:
     final = result.final_metrics
     print(f"finished at step {result.state.step}; last checkpoint: {result.checkpoint}")
     if final:
+        majority = final.get("majority_class_rate", float("nan"))
         print(
             f"offline action accuracy on {cfg.data.test_split} ({int(final['samples'])} samples): "
-            f"{final['action_accuracy']:.4f}; majority-class rate: {final.get('majority_class_rate', float('nan')):.4f}; "
-            f"box IoU: {final['box_iou']:.4f}"
+            f"{final['action_accuracy']:.4f}; majority-class rate: {majority:.4f}; box IoU: {final['box_iou']:.4f}"
         )
 
 
