@@ -64,7 +64,8 @@ def report(result, cfg) -> None:
         majority = final.get("majority_class_rate", float("nan"))
         print(
             f"offline action accuracy on {cfg.data.test_split} ({int(final['samples'])} samples): "
-            f"{final['action_accuracy']:.4f}; majority-class rate: {majority:.4f}; box IoU: {final['box_iou']:.4f}"
+            f"{final['action_accuracy']:.4f}; majority-class rate: {majority:.4f}; "
+            f"box IoU: {final['box_iou']:.4f}"
         )
 
 

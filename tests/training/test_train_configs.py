@@ -11,7 +11,7 @@ from openfly_agent.training.config import BatchConfig, BatchSizeError, OptimConf
 from openfly_agent.training.engine import flat_config
 from openfly_agent.utils.config import config_from_dict, config_to_dict, parse_config
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 TRAIN_CONFIGS = sorted((CONFIGS / "train").glob("*.yaml")) + sorted(
     (CONFIGS / "train" / "ablations").glob("*.yaml")
 )
