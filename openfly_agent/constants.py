@@ -101,6 +101,11 @@ DATASET_TRAJ_DIR = "traj"  # traj/<scene>/astar_data/<category>/<folder>.parquet
 DATASET_ANNOTATION_DIR = "Annotation"  # Annotation/{train,seen,unseen}.json
 DATASET_PARTS_DIR = "Annotation/parts"  # Annotation/parts/<split>/<scene>.json, merged by finalize()
 DATASET_SCHEMA_VERSION = 1
+# The toolchain's own records inside a generated dataset root (toolchain/ledger.py, toolchain/summary.py)
+TOOLCHAIN_UNITS_DIR = "meta/toolchain/units"  # units/<scene>.jsonl: one line per finished work unit
+TOOLCHAIN_SUMMARY_JSON = "meta/toolchain/summary.json"  # the paper's statistics of the dataset
+TOOLCHAIN_SUMMARY_PNG = "meta/toolchain/summary.png"
+TOOLCHAIN_CONFIG_JSON = "meta/toolchain/generate_config.json"
 
 MODEL_TYPE = "openfly_agent"
 
