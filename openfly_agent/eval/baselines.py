@@ -121,4 +121,6 @@ def make_baseline(name: str, episodes: list[Episode], seed: int = 0, oracle_mode
         return ConstantPolicy("forward", C.ACTION_FORWARD)
     if name == "oracle":
         return OraclePolicy(episodes, oracle_mode)
-    raise ValueError(f"unknown baseline {name!r}; choose one of {BASELINE_NAMES} (or 'agent' with a checkpoint)")
+    raise ValueError(
+        f"unknown baseline {name!r}; choose one of {BASELINE_NAMES} (or 'agent' with a checkpoint)"
+    )

@@ -41,7 +41,9 @@ class SimSettings:
         for name in ("width", "height"):
             value = getattr(self, name)
             if value is not None and value < 16:
-                raise ValueError(f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)")
+                raise ValueError(
+                    f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)"
+                )
         if self.connect_timeout_s <= 0 or self.read_timeout_s <= 0:
             raise ValueError("sim.connect_timeout_s and sim.read_timeout_s must be > 0 seconds")
 
@@ -56,7 +58,9 @@ class AgentSettings:
 
     def __post_init__(self) -> None:
         if self.decode_rule is not None and self.decode_rule not in DECODE_RULES:
-            raise ValueError(f"agent.decode_rule={self.decode_rule!r}: choose one of {DECODE_RULES} (or null)")
+            raise ValueError(
+                f"agent.decode_rule={self.decode_rule!r}: choose one of {DECODE_RULES} (or null)"
+            )
         if self.dtype not in ("auto", "float32", "bfloat16", "float16"):
             raise ValueError(f"agent.dtype={self.dtype!r}: choose auto, float32, bfloat16 or float16")
 
@@ -70,8 +74,12 @@ class EvalConfig:
     """
 
     policy: str = "agent"  # agent | random | stop | forward | oracle
-    checkpoint: str | None = None  # agent: our checkpoint folder, an OpenVLA / OpenFly-Agent folder, or a Hub id
-    baselines: list[str] = field(default_factory=list)  # more policies through the same runner, e.g. [random,stop]
+    checkpoint: str | None = (
+        None  # agent: our checkpoint folder, an OpenVLA / OpenFly-Agent folder, or a Hub id
+    )
+    baselines: list[str] = field(
+        default_factory=list
+    )  # more policies through the same runner, e.g. [random,stop]
     dataset_root: str = "data/generated/embedded-small"
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
     max_episodes: int | None = None  # per split, the first N by episode id (quick runs); None = all
@@ -83,7 +91,9 @@ class EvalConfig:
     oracle_mode: str = "auto"  # auto | replay | teleport (docs/EVAL.md)
     output_dir: str = "outputs/eval"
     plots: int = 6  # top-down plots per policy and split (evenly spaced over the episode ids)
-    gif_episodes: list[str] = field(default_factory=list)  # episode ids to save as GIFs with the predicted box
+    gif_episodes: list[str] = field(
+        default_factory=list
+    )  # episode ids to save as GIFs with the predicted box
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda | cuda:<k>
     overwrite: bool = False  # discard existing logs in output_dir instead of resuming
@@ -96,7 +106,9 @@ class EvalConfig:
         if len({self.policy, *self.baselines}) != 1 + len(self.baselines):
             raise ValueError(f"policy {self.policy!r} and baselines {self.baselines} must not repeat a name")
         if "agent" in (self.policy, *self.baselines) and not self.checkpoint:
-            raise ValueError("policy 'agent' needs --checkpoint=<folder or Hub id> (or pick a baseline with --policy)")
+            raise ValueError(
+                "policy 'agent' needs --checkpoint=<folder or Hub id> (or pick a baseline with --policy)"
+            )
         for split in self.split:
             if split not in C.SPLITS:
                 raise ValueError(f"split {split!r}: choose from {C.SPLITS}")
@@ -130,7 +142,11 @@ class EvalConfig:
             "sim_height": self.sim.height,
         }
         if policy == "agent":
-            identity.update(checkpoint=self.checkpoint, unnorm_key=self.agent.unnorm_key, decode_rule=self.agent.decode_rule)
+            identity.update(
+                checkpoint=self.checkpoint,
+                unnorm_key=self.agent.unnorm_key,
+                decode_rule=self.agent.decode_rule,
+            )
         if policy == "random":
             identity["seed"] = self.seed
         if policy == "oracle":

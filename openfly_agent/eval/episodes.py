@@ -59,7 +59,7 @@ def reference_path(episode: Episode) -> np.ndarray:
 
 
 def oracle_actions(episode: Episode) -> list[int]:
-    """The ground-truth motion as model actions: STOPs removed, take-off / landing mapped to 4 / 5, one final STOP.
+    """The ground-truth motion as model actions: STOPs removed, take-off / landing as 4 / 5, then STOP.
 
     Released annotations put the landing descent (-2) after STOP; moving STOP to the end makes the oracle
     finish on the landed point, which is the goal of the official evaluation.
@@ -69,7 +69,7 @@ def oracle_actions(episode: Episode) -> list[int]:
 
 
 def oracle_replays_exactly(episode: Episode, tolerance_m: float = REPLAY_TOLERANCE_M) -> bool:
-    """Whether executing the episode's actions from its start visits its recorded positions and ends at the goal.
+    """Whether the episode's actions, executed from its start, visit its recorded positions and end at the goal.
 
     Checks `positions[t + 1] == apply_action(pose[t], actions[t])` for every recorded frame (position only,
     within `tolerance_m`) and that the last motion ends within `tolerance_m` of the goal.

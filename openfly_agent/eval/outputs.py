@@ -1,7 +1,7 @@
 """Files a finished evaluation leaves behind: results JSON / Markdown, the policy comparison, plots.
 
-    <output_dir>/<policy>/results.json, results.md, episodes.jsonl, plots/<split>/*.png, gifs/*.gif
-    <output_dir>/summary.json, summary.md
+<output_dir>/<policy>/results.json, results.md, episodes.jsonl, plots/<split>/*.png, gifs/*.gif
+<output_dir>/summary.json, summary.md
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def run_meta(cfg: EvalConfig, policy: str) -> dict:
 
 
 def sample_for_plots(records: list[EpisodeRecord], count: int) -> list[EpisodeRecord]:
-    """`count` records per split, evenly spaced over the sorted episode ids (the same ones for every policy)."""
+    """`count` records per split, evenly spaced over the sorted episode ids (the same for every policy)."""
     picked = []
     for split in dict.fromkeys(r.split for r in records):
         subset = sorted((r for r in records if r.split == split), key=lambda r: r.episode_id)
@@ -80,7 +80,9 @@ def write_plots(
         out = folder / "plots" / record.split / f"{safe_name(record.episode_id)}.png"
         paths.append(
             plot_topdown(
-                record, out, footprints,
+                record,
+                out,
+                footprints,
                 target_landmark_id=target_landmark(episode) if episode else None,
                 subtitle=_subtitle(record, cfg.profiles),
             )
@@ -111,6 +113,9 @@ def write_summary(cfg: EvalConfig, all_results: list[dict], root: Path) -> str:
     text += comparison_markdown(all_results, cfg.profiles)
     text += f"\nPer-scene tables: {root}/<policy>/results.md; plots: {root}/<policy>/plots/\n"
     write_text_atomic(root / SUMMARY_MD, text)
-    summary = {r["policy"]: {s: {p: t["overall"] for p, t in tables.items()} for s, tables in r["splits"].items()} for r in all_results}
+    summary = {
+        r["policy"]: {s: {p: t["overall"] for p, t in tables.items()} for s, tables in r["splits"].items()}
+        for r in all_results
+    }
     write_text_atomic(root / SUMMARY_JSON, json.dumps(summary, indent=2) + "\n")
     return text

@@ -33,7 +33,7 @@ class Footprint:
 
 
 def safe_name(episode_id: str) -> str:
-    """A file name for an episode id ('embedded-3/astar_data/low_short/t0007' -> 'embedded-3__astar_data__...')."""
+    """A file name for an episode id ('embedded-3/astar_data/low_short/t7' -> 'embedded-3__astar_data__...')."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", episode_id.replace("/", "__"))
 
 
@@ -78,16 +78,22 @@ def plot_topdown(
         is_target = bool(target_landmark_id) and fp.landmark_id == target_landmark_id
         ax.add_patch(
             Rectangle(
-                (fp.xmin, fp.ymin), fp.xmax - fp.xmin, fp.ymax - fp.ymin,
-                facecolor="#f2b705" if is_target else "#b8b8b8", edgecolor="#333333" if is_target else "none",
-                alpha=0.8, zorder=1,
+                (fp.xmin, fp.ymin),
+                fp.xmax - fp.xmin,
+                fp.ymax - fp.ymin,
+                facecolor="#f2b705" if is_target else "#b8b8b8",
+                edgecolor="#333333" if is_target else "none",
+                alpha=0.8,
+                zorder=1,
             )
         )
     ref = np.asarray(record.reference_path, dtype=np.float64)
     pos = record.positions()
     goal = np.asarray(record.goal, dtype=np.float64)
     ax.plot(ref[:, 0], ref[:, 1], "--", color="#1a9850", lw=2, label="ground truth", zorder=3)
-    ax.plot(pos[:, 0], pos[:, 1], "-", marker=".", ms=4, color="#2166ac", lw=1.5, label=record.policy, zorder=4)
+    ax.plot(
+        pos[:, 0], pos[:, 1], "-", marker=".", ms=4, color="#2166ac", lw=1.5, label=record.policy, zorder=4
+    )
     ax.add_patch(Circle((goal[0], goal[1]), success_radius_m, fill=False, ls=":", color="#1a9850", zorder=2))
     ax.scatter([pos[0, 0]], [pos[0, 1]], marker="o", s=60, color="black", label="start", zorder=5)
     ax.scatter([goal[0]], [goal[1]], marker="*", s=140, color="#1a9850", label="goal", zorder=5)
@@ -132,7 +138,16 @@ def annotate_frames(frames: FrameLog, actions: list[int]) -> list[np.ndarray]:
         _draw_box(img, frames.predicted_boxes[t], PREDICTED_COLOR)
         label = f"{t}: {C.ACTION_NAMES.get(actions[t], '?')}" if t < len(actions) else str(t)
         scale = max(0.3, img.shape[1] / 448)
-        cv2.putText(img, label, (3, int(14 * scale * 2)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            img,
+            label,
+            (3, int(14 * scale * 2)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            scale,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
         out.append(img)
     return out
 

@@ -49,7 +49,8 @@ def step_details(policy: Policy, episode_ids: list[str]) -> list[dict]:
     details = method(episode_ids)
     if len(details) != len(episode_ids):
         raise ValueError(
-            f"policy {policy.name!r}: step_details returned {len(details)} entries for {len(episode_ids)} episodes"
+            f"policy {policy.name!r}: step_details returned {len(details)} entries "
+            f"for {len(episode_ids)} episodes"
         )
     return [dict(d or {}) for d in details]
 
@@ -57,11 +58,15 @@ def step_details(policy: Policy, episode_ids: list[str]) -> list[dict]:
 def check_actions(policy_name: str, actions: list[int], expected: int) -> list[int]:
     """Validate a policy's output: `expected` ints in 0..9; raises a ValueError that names the policy."""
     if len(actions) != expected:
-        raise ValueError(f"policy {policy_name!r} returned {len(actions)} actions for {expected} observations")
+        raise ValueError(
+            f"policy {policy_name!r} returned {len(actions)} actions for {expected} observations"
+        )
     out = []
     for action in actions:
         action = int(action)
         if action not in C.MODEL_ACTION_IDS:
-            raise ValueError(f"policy {policy_name!r} returned action {action}; valid ids are 0..{C.NUM_ACTIONS - 1}")
+            raise ValueError(
+                f"policy {policy_name!r} returned action {action}; valid ids are 0..{C.NUM_ACTIONS - 1}"
+            )
         out.append(action)
     return out

@@ -80,7 +80,11 @@ class EpisodeRecord:
     def from_dict(cls, data: dict, file: str | Path = "<memory>", line: int = 0) -> EpisodeRecord:
         """Build a record from a decoded JSON object, checking the fields; raises RecordError."""
         names = set(cls.__dataclass_fields__)
-        missing = [n for n in ("split", "episode_id", "scene_id", "policy", "actions", "poses", "stopped") if n not in data]
+        missing = [
+            n
+            for n in ("split", "episode_id", "scene_id", "policy", "actions", "poses", "stopped")
+            if n not in data
+        ]
         if missing:
             raise RecordError(file, line, missing[0], "missing")
         unknown = sorted(set(data) - names)

@@ -45,7 +45,7 @@ class RolloutStats:
 
 @dataclass
 class FrameLog:
-    """Egocentric frames of one episode, kept for a GIF: RGB, predicted and ground-truth target box per frame."""
+    """Egocentric frames of one episode for a GIF: RGB, predicted and ground-truth target box per frame."""
 
     frames: list[np.ndarray] = field(default_factory=list)  # (H, W, 3) uint8 each
     predicted_boxes: list[list[float] | None] = field(default_factory=list)
@@ -127,7 +127,12 @@ class LockstepRunner:
         stats = RolloutStats()
         queue = deque(episodes)
         slots: list[_Running | None] = [None] * self.env.num_slots
-        bar = tqdm(total=len(episodes), desc=f"{self.policy.name}/{split}", disable=not self.show_progress, leave=False)
+        bar = tqdm(
+            total=len(episodes),
+            desc=f"{self.policy.name}/{split}",
+            disable=not self.show_progress,
+            leave=False,
+        )
 
         def finish(slot: int) -> None:
             running = slots[slot]
@@ -162,7 +167,9 @@ class LockstepRunner:
         try:
             obs = self.env.reset_slot(slot, episode_spec(episode))
         except (OSError, RuntimeError, TimeoutError, ConnectionError) as err:
-            logger.warning("episode %s: simulator reset failed (%s); scored from its start", episode.episode_id, err)
+            logger.warning(
+                "episode %s: simulator reset failed (%s); scored from its start", episode.episode_id, err
+            )
             return _failed_start(episode, split, self.policy.name, err)
         stats.sim_s += time.perf_counter() - t0
         running = _Running(episode, obs, _new_record(episode, split, self.policy.name, obs))

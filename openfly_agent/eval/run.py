@@ -14,7 +14,14 @@ from pathlib import Path
 
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.config import EvalConfig
-from openfly_agent.eval.distributed import ProcessInfo, log_name, merge_logs, process_info, read_all_logs, shard
+from openfly_agent.eval.distributed import (
+    ProcessInfo,
+    log_name,
+    merge_logs,
+    process_info,
+    read_all_logs,
+    shard,
+)
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
 from openfly_agent.eval.policy import Policy
 from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
@@ -62,7 +69,7 @@ def evaluate_policy(
     folder: Path,
     info: ProcessInfo,
 ) -> RolloutStats:
-    """Run this process' shard of every split that is not in the logs of `folder` yet; append as they finish."""
+    """Run this process' shard of every split not yet in the logs of `folder`; append as they finish."""
     from openfly_agent.eval.plots import write_gif
 
     done = {r.key for r in read_all_logs(folder)}
@@ -76,16 +83,27 @@ def evaluate_policy(
     for split, episodes in episodes_by_split.items():
         mine = shard(episodes, info.rank, info.world_size)
         todo = [e for e in mine if (split, e.episode_id) not in done]
-        logger.info("%s / %s: %d episodes in this shard, %d already done", policy.name, split, len(mine), len(mine) - len(todo))
+        logger.info(
+            "%s / %s: %d episodes in this shard, %d already done",
+            policy.name,
+            split,
+            len(mine),
+            len(mine) - len(todo),
+        )
         replays = getattr(policy, "replays", None)
-        if replays is not None:  # the oracle: episodes whose actions do not replay follow the ground-truth poses
+        if (
+            replays is not None
+        ):  # the oracle: episodes whose actions do not replay follow the ground-truth poses
             for episode in [e for e in todo if not replays(e.episode_id)]:
                 log.append(teleport_record(episode, split, policy.name, cfg.max_steps))
             todo = [e for e in todo if replays(e.episode_id)]
         runner.run(todo, split, on_finish=log.append, on_frames=save_gif)
         missing = [
-            e for e in mine
-            if e.episode_id in gif_ids and (split, e.episode_id) in done and not gif_path(folder, split, e.episode_id).is_file()
+            e
+            for e in mine
+            if e.episode_id in gif_ids
+            and (split, e.episode_id) in done
+            and not gif_path(folder, split, e.episode_id).is_file()
         ]
         if missing:  # finished in an earlier run: replay them (results are deterministic) to get frames
             runner.run(missing, split, on_finish=lambda record: None, on_frames=save_gif)
@@ -113,7 +131,11 @@ def run(cfg: EvalConfig) -> dict:
             stats = evaluate_policy(cfg, policy, episodes_by_split, env, folder, info)
             logger.info(
                 "%s: %d episodes, %d steps, simulator %.1f s, policy %.1f s",
-                name, stats.episodes, stats.steps, stats.sim_s, stats.policy_s,
+                name,
+                stats.episodes,
+                stats.steps,
+                stats.sim_s,
+                stats.policy_s,
             )
             del policy
     finally:
@@ -126,7 +148,9 @@ def run(cfg: EvalConfig) -> dict:
     for name in cfg.policies:
         records = [r for r in merge_logs(root / name) if r.key in wanted]
         if len(records) != len(wanted):
-            raise RuntimeError(f"{root / name}: {len(wanted) - len(records)} episodes have no record after the run")
+            raise RuntimeError(
+                f"{root / name}: {len(wanted) - len(records)} episodes have no record after the run"
+            )
         all_results[name] = write_policy_outputs(cfg, name, records, root / name, episodes_by_split)
     summary = write_summary(cfg, list(all_results.values()), root)
     return {"summary_markdown": summary, "results": all_results, "output_dir": str(root)}
@@ -135,4 +159,3 @@ def run(cfg: EvalConfig) -> dict:
 def expected_keys(episodes_by_split: dict[str, list[Episode]]) -> set[tuple[str, str]]:
     """(split, episode id) of every episode the run covers."""
     return {(split, e.episode_id) for split, eps in episodes_by_split.items() for e in eps}
-

@@ -57,7 +57,9 @@ class SimulatorSlots:
             except (OSError, RuntimeError, TimeoutError, ConnectionError) as err:
                 logger.warning("slot %d: simulator step failed (%s); ending its episode", slot, err)
                 observations[slot] = self._last[slot]
-                infos[slot] = StepInfo(action=int(action), done=True, extra={ERROR_KEY: f"{type(err).__name__}: {err}"})
+                infos[slot] = StepInfo(
+                    action=int(action), done=True, extra={ERROR_KEY: f"{type(err).__name__}: {err}"}
+                )
             self._last[slot] = observations[slot]
         return observations, infos
 
