@@ -69,7 +69,7 @@ def oracle_actions(episode: Episode) -> list[int]:
 
 
 def oracle_replays_exactly(episode: Episode, tolerance_m: float = REPLAY_TOLERANCE_M) -> bool:
-    """Whether the episode's actions, executed from its start, visit its recorded positions and end at the goal.
+    """Whether the actions, executed from the episode start, visit its recorded positions and end at the goal.
 
     Checks `positions[t + 1] == apply_action(pose[t], actions[t])` for every recorded frame (position only,
     within `tolerance_m`) and that the last motion ends within `tolerance_m` of the goal.

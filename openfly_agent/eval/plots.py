@@ -33,7 +33,7 @@ class Footprint:
 
 
 def safe_name(episode_id: str) -> str:
-    """A file name for an episode id ('embedded-3/astar_data/low_short/t7' -> 'embedded-3__astar_data__...')."""
+    """A file name for an episode id ('s/astar_data/low_short/t7' -> 's__astar_data__low_short__t7')."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", episode_id.replace("/", "__"))
 
 
