@@ -79,12 +79,12 @@ def test_complete_last_record_without_newline_is_kept(tmp_path):
 def test_corrupt_middle_line_names_file_line_and_field(tmp_path):
     path = tmp_path / "episodes.jsonl"
     path.write_text(_record().to_json() + "\n{not json\n" + _record("x").to_json() + "\n")
-    with pytest.raises(RecordError, match=r"episodes.jsonl: line 2: field '<line>'"):
+    with pytest.raises(RecordError, match=r"episodes.jsonl:2: field '<line>'"):
         read_jsonl(path)
     bad = json.loads(_record().to_json())
     bad["poses"] = bad["poses"][:-1]
     path.write_text(json.dumps(bad) + "\n")
-    with pytest.raises(RecordError, match=r"line 1: field 'poses': 3 poses for 3 actions"):
+    with pytest.raises(RecordError, match=r"jsonl:1: field 'poses': 3 poses for 3 actions"):
         read_jsonl(path)
     del bad["stopped"]
     path.write_text(json.dumps(bad) + "\n")

@@ -67,16 +67,21 @@ def _subtitle(record: EpisodeRecord, profiles: list[str]) -> str:
 
 
 def write_plots(
-    cfg: EvalConfig, records: list[EpisodeRecord], folder: Path, episodes: dict[tuple[str, str], Episode]
+    cfg: EvalConfig,
+    records: list[EpisodeRecord],
+    folder: Path,
+    episodes: dict[tuple[str, str], Episode],
+    city_config=None,
 ) -> list[Path]:
-    """Top-down plots of a sample of episodes into `folder/plots/<split>/`."""
+    """Top-down plots of a sample of episodes into `folder/plots/<split>/` (`city_config`: embedded scenes)."""
     from openfly_agent.eval.plots import plot_topdown, safe_name
-    from openfly_agent.eval.scene_map import scene_footprints
+    from openfly_agent.eval.scene_map import FootprintCache
 
+    footprints_of = FootprintCache(city_config)
     paths = []
     for record in sample_for_plots(records, cfg.plots):
         episode = episodes.get(record.key)
-        footprints = scene_footprints(record.scene_id) if cfg.sim.type == "embedded" else []
+        footprints = footprints_of(record.scene_id) if cfg.sim.type == "embedded" else []
         out = folder / "plots" / record.split / f"{safe_name(record.episode_id)}.png"
         paths.append(
             plot_topdown(

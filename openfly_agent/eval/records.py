@@ -15,18 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
+from openfly_agent.utils.errors import RecordError
+
 logger = logging.getLogger(__name__)
 
 END_REASONS = ("stop", "max_steps", "collision", "error", "teleport")
 RECORD_VERSION = 1
-
-
-class RecordError(ValueError):
-    """A malformed line of an episode log; the message names the file, the line and the field."""
-
-    def __init__(self, file: str | Path, line: int, field_name: str, problem: str):
-        self.file, self.line, self.field_name, self.problem = str(file), line, field_name, problem
-        super().__init__(f"{file}: line {line}: field '{field_name}': {problem}")
 
 
 @dataclass
