@@ -93,6 +93,11 @@ RESULTS_JSON = "results.json"
 RESULTS_MD = "results.md"
 DATASET_INFO_JSON = "meta/info.json"
 DATASET_STATS_JSON = "meta/stats.json"
+# Dataset root layout (mirrors the released OpenFly data; data/writer.py, data/openfly_reader.py)
+DATASET_TRAJ_DIR = "traj"  # traj/<scene>/astar_data/<category>/<folder>.parquet, one per trajectory
+DATASET_ANNOTATION_DIR = "Annotation"  # Annotation/{train,seen,unseen}.json
+DATASET_PARTS_DIR = "Annotation/parts"  # Annotation/parts/<split>/<scene>.json, merged by finalize()
+DATASET_SCHEMA_VERSION = 1
 
 MODEL_TYPE = "openfly_agent"
 

@@ -1,1 +1,36 @@
-"""Level-1 data: episode schema, OpenFly readers, parquet writer, torch dataset and collator."""
+"""Level-1 data: episode schema, OpenFly readers, parquet writer, torch dataset and collator.
+
+Public names are re-exported lazily (importing the package imports nothing heavy).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "Episode": "schema",
+    "SchemaError": "schema",
+    "ReaderOptions": "config",
+    "HistoryConfig": "config",
+    "DataConfig": "config",
+    "episode_from_record": "records",
+    "record_from_episode": "records",
+    "read_annotation_file": "openfly_reader",
+    "load_openfly_dataset": "openfly_reader",
+    "split_episodes": "openfly_reader",
+    "ReadReport": "openfly_reader",
+    "read_parquet_episode": "parquet_io",
+    "FrameStore": "frames",
+    "OpenFlyDatasetWriter": "writer",
+    "compute_action_statistics": "stats",
+    "NavigationStepDataset": "dataset",
+    "NavigationCollator": "collator",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)

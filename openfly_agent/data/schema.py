@@ -48,11 +48,40 @@ class Episode:
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
         self.yaws = np.asarray(self.yaws, dtype=np.float64)
         n = len(self.actions)
-        for name, value in (("positions", self.positions), ("yaws", self.yaws), ("frame_ids", self.frame_ids)):
+        for name, value in (
+            ("positions", self.positions),
+            ("yaws", self.yaws),
+            ("frame_ids", self.frame_ids),
+        ):
             if len(value) != n:
-                raise SchemaError(self.episode_id, self.episode_id, name, f"length {len(value)} != {n} actions")
+                raise SchemaError(
+                    self.episode_id, self.episode_id, name, f"length {len(value)} != {n} actions"
+                )
+        if self.boxes is not None or self.box_visible is not None:
+            self._check_boxes(n)
         if self.goal is None and n:
             self.goal = self.positions[-1].copy()
+
+    def _check_boxes(self, n: int) -> None:
+        """Boxes and visibility come together, one per frame: boxes (T, 4), box_visible (T,) bool."""
+        if self.boxes is None or self.box_visible is None:
+            missing = "boxes" if self.boxes is None else "box_visible"
+            raise SchemaError(self.episode_id, self.episode_id, missing, "boxes and box_visible go together")
+        self.boxes = np.asarray(self.boxes, dtype=np.float64)
+        self.box_visible = np.asarray(self.box_visible, dtype=bool)
+        if self.boxes.shape != (n, 4):
+            raise SchemaError(
+                self.episode_id, self.episode_id, "boxes", f"shape {self.boxes.shape} != ({n}, 4)"
+            )
+        if self.box_visible.shape != (n,):
+            raise SchemaError(
+                self.episode_id, self.episode_id, "box_visible", f"shape {self.box_visible.shape} != ({n},)"
+            )
+
+    @property
+    def has_boxes(self) -> bool:
+        """Whether landmark boxes are known (generated data); released OpenFly data has none."""
+        return self.boxes is not None
 
     def __len__(self) -> int:
         return len(self.actions)

@@ -1,0 +1,105 @@
+"""Typed options of the data part: how released labels are read, and how training samples are built.
+
+Leaf module (stdlib + constants only) so run configs can compose it without importing torch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from openfly_agent import constants as C
+
+TAKEOFF_LANDING_MODES = ("keep", "map", "trim")
+MERGED_FORWARD_POSITIONS = ("end", "start")
+HISTORY_MODES = ("keyframes", "uniform", "random", "none")
+
+
+@dataclass
+class ReaderOptions:
+    """How annotation records become `Episode`s (data_cards/openfly_released.md explains each choice).
+
+    Attributes:
+        takeoff_landing: what to do with the -1 (take-off climb) / -2 (landing descent) phases.
+            "keep": leave them (training skips those steps, they still serve as history frames);
+            "map": -1 -> 4 (ascend) in place, and the released "0, -2, ..., -2" tail becomes
+            "5, ..., 5, 0": each descent label moves to the frame where that descent starts and STOP
+            goes to the landed frame (the order the official toolchain writes, reference 7.4);
+            "trim": drop the -1 frames and the -2 frames; the episode ends at its STOP frame, which
+            also becomes the goal.
+        merged_forward_position: where merged 6 / 9 m labels (8 / 9) sit. "end" = as released (on the
+            last raw frame of the merged block). "start" = relabel every forward frame (1 / 8 / 9) with
+            the forward move that its pose -> next pose displacement shows (3 / 6 / 9 m), so a label
+            describes the motion that starts at its frame; frames whose displacement is not a pure
+            forward move keep their label (see data/labels.py).
+        strict: raise `SchemaError` on the first bad record (True) or log it, skip the episode and
+            collect it in the read report (False).
+    """
+
+    takeoff_landing: str = "trim"
+    merged_forward_position: str = "end"
+    strict: bool = True
+
+    def __post_init__(self) -> None:
+        if self.takeoff_landing not in TAKEOFF_LANDING_MODES:
+            choices = TAKEOFF_LANDING_MODES
+            raise ValueError(
+                f"ReaderOptions.takeoff_landing={self.takeoff_landing!r}: choose one of {choices}"
+            )
+        if self.merged_forward_position not in MERGED_FORWARD_POSITIONS:
+            raise ValueError(
+                f"ReaderOptions.merged_forward_position={self.merged_forward_position!r}: "
+                f"choose one of {MERGED_FORWARD_POSITIONS}"
+            )
+
+
+@dataclass
+class HistoryConfig:
+    """Which earlier frames a training sample carries as memory.
+
+    Attributes:
+        mode: "keyframes" (the injected keyframe selector), "uniform" (K single frames evenly spaced over
+            the frames before t), "random" (K random earlier frames, reproducible per sample) or "none".
+        capacity: K, memory sets per sample (the FIFO memory bank size; 2 in the paper).
+        set_size: S, frames per keyframe set (change point +- 2 frames = 5).
+    """
+
+    mode: str = "keyframes"
+    capacity: int = 2
+    set_size: int = 5
+
+    def __post_init__(self) -> None:
+        if self.mode not in HISTORY_MODES:
+            raise ValueError(f"HistoryConfig.mode={self.mode!r}: choose one of {HISTORY_MODES}")
+        if self.capacity < 0:
+            raise ValueError(f"HistoryConfig.capacity={self.capacity}: must be >= 0 (0 = no memory)")
+        if self.set_size < 1:
+            raise ValueError(f"HistoryConfig.set_size={self.set_size}: must be >= 1")
+
+
+@dataclass
+class DataConfig:
+    """Where the dataset lives and how samples are drawn from it.
+
+    Attributes:
+        root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated.
+        split: one of constants.SPLITS.
+        reader: label handling (ReaderOptions).
+        history: memory frames per sample (HistoryConfig).
+        seed: seed of the "random" history mode.
+        cache_episodes: episodes whose encoded frames stay in memory per process (LRU).
+        cache_frames: decoded frames kept per process (LRU).
+    """
+
+    root: str = "data/generated/embedded-small"
+    split: str = C.SPLIT_TRAIN
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
+    history: HistoryConfig = field(default_factory=HistoryConfig)
+    seed: int = 0
+    cache_episodes: int = 8
+    cache_frames: int = 256
+
+    def __post_init__(self) -> None:
+        if self.split not in C.SPLITS:
+            raise ValueError(f"DataConfig.split={self.split!r}: choose one of {C.SPLITS}")
+        if self.cache_episodes < 1 or self.cache_frames < 1:
+            raise ValueError("DataConfig.cache_episodes and cache_frames must be >= 1")

@@ -1,0 +1,191 @@
+"""Writer -> reader round trips, `datasets` streaming over written files, resume and shard merge."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from data_factories import assert_episodes_equal, make_episode, make_frames
+
+from openfly_agent.data.config import ReaderOptions
+from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.openfly_reader import load_openfly_dataset
+from openfly_agent.data.parquet_io import read_parquet_episode
+from openfly_agent.data.schema import SchemaError
+from openfly_agent.data.stats import compute_action_statistics
+from openfly_agent.data.writer import OpenFlyDatasetWriter
+
+KEEP = ReaderOptions(takeoff_landing="keep")
+
+
+def _episodes():
+    return [
+        make_episode("embedded-1/astar_data/high_short/traj_a", [9, 2, 9, 1, 0], "train", seed=1),
+        make_episode("embedded-1/astar_data/low_short/traj_b", [-1, 8, 3, 9, 0, -2], "train", seed=2),
+        make_episode("embedded-2/astar_data/low_average/traj_c", [1, 1, 4, 0], "test_seen", seed=3),
+        make_episode(
+            "embedded-9/astar_data/low_short/traj_d", [9, 0], "test_unseen", with_boxes=False, seed=4
+        ),
+    ]
+
+
+def _write_all(root, episodes, image_format="png"):
+    writer = OpenFlyDatasetWriter(root, image_format=image_format)
+    frames = {}
+    for i, episode in enumerate(episodes):
+        frames[episode.episode_id] = make_frames(len(episode), seed=10 + i)
+        writer.write_episode(episode, frames[episode.episode_id])
+    return writer, frames
+
+
+def test_round_trip_episodes_frames_boxes(tmp_path):
+    episodes = _episodes()
+    writer, frames = _write_all(tmp_path, episodes)
+    info = writer.finalize()
+    assert info["num_episodes"] == 4 and info["num_frames"] == 17
+    assert {s: v["episodes"] for s, v in info["splits"].items()} == {
+        "train": 2,
+        "test_seen": 1,
+        "test_unseen": 1,
+    }
+    assert info["splits"]["train"]["scenes"] == ["embedded-1"] and info["episodes_with_boxes"] == 3
+    assert info["action_counts"]["9"] == 4 and info["stats_split"] == "train"
+    store = FrameStore(tmp_path)
+    for split in ("train", "test_seen", "test_unseen"):
+        read = load_openfly_dataset(tmp_path, split, KEEP)
+        expected = sorted((e for e in episodes if e.split == split), key=lambda e: e.episode_id)
+        assert len(read) == len(expected)
+        for got, want in zip(read, expected):
+            assert_episodes_equal(got, want)
+            for rgb, frame in zip(store.frames(got), frames[want.episode_id]):
+                np.testing.assert_array_equal(rgb, frame)
+    assert read[0].boxes is None  # released-like episode without boxes stays without
+    assert read_annotation_pitch(tmp_path) == -45.0
+    stats = json.loads((tmp_path / "meta/stats.json").read_text())
+    assert stats == compute_action_statistics([e for e in episodes if e.split == "train"])
+    data_files = json.loads((tmp_path / "meta/data_files.json").read_text())
+    assert data_files["test_seen"] == ["traj/embedded-2/astar_data/low_average/traj_c.parquet"]
+
+
+def read_annotation_pitch(root) -> float:
+    records = json.loads((root / "Annotation/train.json").read_text())
+    return records[0]["pitch_deg"]
+
+
+def test_parquet_holds_the_episode(tmp_path):
+    episode = _episodes()[1]
+    writer, _ = _write_all(tmp_path, [episode])
+    got = read_parquet_episode(writer.trajectory_path(episode.episode_id))
+    assert_episodes_equal(got, episode)
+
+
+def test_jpeg_frames_are_close(tmp_path):
+    episode = _episodes()[0]
+    _, frames = _write_all(tmp_path, [episode], image_format="jpeg")
+    (got,) = load_openfly_dataset(tmp_path, "train", KEEP)
+    rgb = FrameStore(tmp_path).frame(got, 0)
+    assert rgb.shape == frames[episode.episode_id][0].shape  # lossy: only shape and rough content
+    assert np.abs(rgb.astype(int) - frames[episode.episode_id][0]).mean() < 60
+
+
+def test_datasets_streaming_over_written_files(tmp_path):
+    datasets = pytest.importorskip("datasets")
+    episodes = _episodes()
+    writer, frames = _write_all(tmp_path, episodes)
+    writer.finalize()
+    files = sorted(str(p) for p in (tmp_path / "traj").rglob("*.parquet"))
+    stream = datasets.load_dataset("parquet", data_files={"train": files}, split="train", streaming=True)
+    rows = list(stream)
+    assert len(rows) == 17
+    by_episode = {e.episode_id: e for e in episodes}
+    seen = {}
+    for row in rows:
+        episode = by_episode[row["episode_id"]]
+        t = seen.setdefault(row["episode_id"], 0)
+        seen[row["episode_id"]] += 1
+        np.testing.assert_array_equal(np.asarray(row["image"].convert("RGB")), frames[episode.episode_id][t])
+        assert row["action"] == episode.actions[t] and row["split"] == episode.split
+        assert row["instruction"] == episode.instruction and row["scene_id"] == episode.scene_id
+        if episode.boxes is not None and episode.box_visible[t]:
+            assert row["box_visible"] and np.allclose(row["box"], episode.boxes[t])
+        else:
+            assert not row["box_visible"] and row["box"] is None
+    non_streaming = datasets.load_dataset("parquet", data_files={"train": files}, split="train")
+    assert non_streaming.features["image"].__class__.__name__ == "Image"
+    assert len(non_streaming.filter(lambda r: r["split"] == "test_seen")) == 4
+
+
+def test_resume_has_episode(tmp_path):
+    episode = _episodes()[0]
+    writer = OpenFlyDatasetWriter(tmp_path)
+    assert not writer.has_episode(episode.episode_id)
+    writer.write_episode(episode, make_frames(len(episode)))
+    assert writer.has_episode(episode.episode_id)
+    assert OpenFlyDatasetWriter(tmp_path).has_episode(episode.episode_id)  # a new process sees it too
+    writer.write_episode(episode, make_frames(len(episode)))  # written again: replaced, not duplicated
+    part = tmp_path / "Annotation/parts/train/embedded-1.json"
+    assert len(json.loads(part.read_text())) == 1
+    writer.trajectory_path(episode.episode_id).unlink()  # record without parquet (crash between the two)
+    assert not OpenFlyDatasetWriter(tmp_path).has_episode(episode.episode_id)
+    with pytest.raises(FileNotFoundError, match="no parquet file"):
+        writer.finalize()
+    info = writer.finalize(strict=False)
+    assert info["num_episodes"] == 0
+
+
+def test_moving_an_episode_to_another_split_drops_the_old_record(tmp_path):
+    episode = _episodes()[0]
+    writer = OpenFlyDatasetWriter(tmp_path)
+    writer.write_episode(episode, make_frames(len(episode)))
+    episode.split = "test_seen"
+    writer.write_episode(episode, make_frames(len(episode)))
+    info = writer.finalize()
+    assert info["splits"]["train"]["episodes"] == 0 and info["splits"]["test_seen"]["episodes"] == 1
+
+
+def test_shard_merge(tmp_path):
+    episodes = _episodes()
+    _write_all(tmp_path / "machine_a", episodes[:2])  # scene embedded-1
+    _write_all(tmp_path / "machine_b", episodes[2:])  # scenes embedded-2, embedded-9
+    merged = tmp_path / "merged"
+    for shard in ("machine_a", "machine_b"):
+        shutil.copytree(tmp_path / shard, merged, dirs_exist_ok=True)
+    info = OpenFlyDatasetWriter(merged).finalize()
+    assert info["num_episodes"] == 4 and info["scenes"] == ["embedded-1", "embedded-2", "embedded-9"]
+    assert len(load_openfly_dataset(merged, "train", KEEP)) == 2
+    # the same episode written on two machines under different part files is an error
+    clash = merged / "Annotation/parts/train/embedded-1-copy.json"
+    shutil.copy(merged / "Annotation/parts/train/embedded-1.json", clash)
+    with pytest.raises(SchemaError, match="is also in"):
+        OpenFlyDatasetWriter(merged).finalize()
+
+
+def test_reading_parts_before_finalize(tmp_path, caplog):
+    episodes = _episodes()
+    _write_all(tmp_path, episodes)
+    read = load_openfly_dataset(tmp_path, "train", KEEP)
+    assert {e.episode_id for e in read} == {e.episode_id for e in episodes if e.split == "train"}
+    assert "call OpenFlyDatasetWriter.finalize()" in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        (lambda e, f: setattr(e, "split", "val"), "split"),
+        (lambda e, f: f.pop(), "frames"),
+        (lambda e, f: f.__setitem__(0, f[0][..., 0]), "frames"),
+        (lambda e, f: e.boxes.__setitem__((0, 2), 1.5), "boxes"),
+        (lambda e, f: e.actions.__setitem__(1, 0), "action"),
+        (lambda e, f: setattr(e, "scene_id", "embedded-7"), "scene_id"),
+    ],
+)
+def test_writer_rejects_bad_episodes_and_writes_nothing(tmp_path, change, field):
+    episode = _episodes()[0]
+    frames = make_frames(len(episode))
+    change(episode, frames)
+    with pytest.raises(SchemaError) as info:
+        OpenFlyDatasetWriter(tmp_path).write_episode(episode, frames)
+    assert info.value.field_name == field
+    assert not any(tmp_path.rglob("*.parquet")) and not any(tmp_path.rglob("*.json"))
