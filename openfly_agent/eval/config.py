@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
+from openfly_agent.data.config import ReaderOptions
 
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
@@ -82,6 +83,8 @@ class EvalConfig:
     )  # more policies through the same runner, e.g. [random,stop]
     dataset_root: str = "data/generated/embedded-small"
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
+    # Released data: keep take-off / landing so the goal is the landed point, as in the official evaluation.
+    reader: ReaderOptions = field(default_factory=lambda: ReaderOptions(takeoff_landing="keep"))
     max_episodes: int | None = None  # per split, the first N by episode id (quick runs); None = all
     sim: SimSettings = field(default_factory=SimSettings)
     agent: AgentSettings = field(default_factory=AgentSettings)
@@ -136,6 +139,7 @@ class EvalConfig:
         identity = {
             "policy": policy,
             "dataset_root": self.dataset_root,
+            "reader": [self.reader.takeoff_landing, self.reader.merged_forward_position],
             "max_steps": self.max_steps,
             "sim_type": self.sim.type,
             "sim_width": self.sim.width,
