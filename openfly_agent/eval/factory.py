@@ -40,7 +40,7 @@ def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
 
 
 def dataset_frame_size(root: str, episodes: list[Episode]) -> tuple[int, int] | None:
-    """(height, width) of the dataset's frames, from the first frame of the first episode; None without frames."""
+    """(height, width) of the dataset frames (its first frame), or None when the dataset has no frames."""
     from openfly_agent.data.frames import FrameStore
 
     if not episodes:

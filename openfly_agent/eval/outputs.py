@@ -73,7 +73,7 @@ def write_plots(
     episodes: dict[tuple[str, str], Episode],
     city_config=None,
 ) -> list[Path]:
-    """Top-down plots of a sample of episodes into `folder/plots/<split>/` (`city_config`: embedded scenes)."""
+    """Top-down plots of a sample of episodes into `folder/plots/<split>/` (`city_config`: embedded)."""
     from openfly_agent.eval.plots import plot_topdown, safe_name
     from openfly_agent.eval.scene_map import FootprintCache
 
