@@ -1,7 +1,7 @@
 """Closed-loop evaluation of a checkpoint (and baselines) on the test-seen / test-unseen splits.
 
     python eval.py --checkpoint runs/tiny/checkpoints/last --split test_seen test_unseen --sim embedded
-    python eval.py --policy oracle --baselines random stop forward --dataset_root data/generated/embedded-small
+    python eval.py --policy oracle --baselines random stop forward --dataset_root <dataset root>
     python eval.py --config_path configs/eval/embedded.yaml --checkpoint <folder or Hub id>
     accelerate launch eval.py ...        # episodes split over processes / GPUs, results merged by rank 0
 
