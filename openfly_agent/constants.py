@@ -68,6 +68,9 @@ ACTION = "action"  # (B,) long, action id 0..9
 ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
 EPISODE_ID = "episode_id"  # list[str]
 STEP_INDEX = "step_index"  # (B,) long
+MEMORY = (
+    "memory"  # dataset sample only: K keyframe sets, each a list of (rgb, box, box_visible), oldest first
+)
 
 IGNORE_INDEX = -100
 
@@ -98,6 +101,11 @@ DATASET_TRAJ_DIR = "traj"  # traj/<scene>/astar_data/<category>/<folder>.parquet
 DATASET_ANNOTATION_DIR = "Annotation"  # Annotation/{train,seen,unseen}.json
 DATASET_PARTS_DIR = "Annotation/parts"  # Annotation/parts/<split>/<scene>.json, merged by finalize()
 DATASET_SCHEMA_VERSION = 1
+# The toolchain's own records inside a generated dataset root (toolchain/ledger.py, toolchain/summary.py)
+TOOLCHAIN_UNITS_DIR = "meta/toolchain/units"  # units/<scene>.jsonl: one line per finished work unit
+TOOLCHAIN_SUMMARY_JSON = "meta/toolchain/summary.json"  # the paper's statistics of the dataset
+TOOLCHAIN_SUMMARY_PNG = "meta/toolchain/summary.png"
+TOOLCHAIN_CONFIG_JSON = "meta/toolchain/generate_config.json"
 
 MODEL_TYPE = "openfly_agent"
 

@@ -256,3 +256,33 @@ def test_ground_truth_replay_of_eval_test_is_perfect(openfly_fixtures):
     assert results["standard"]["overall"]["spl_pct"] == pytest.approx(100.0)
     # openfly SPL = straight line / (GT path + 1e-3) <= 1 on replayed ground truth
     assert 0.0 < results["openfly"]["overall"]["spl_pct"] < 100.0
+
+
+def test_stop_at_once_baseline_matches_the_published_per_scene_rates(openfly_fixtures):
+    """STOP at step 0 succeeds on 26/240 eval_test episodes, per scene as reference/openfly.md 6.2."""
+    trajectories = []
+    for gt in _eval_test_trajectories(openfly_fixtures / "eval_test.json"):
+        start = gt.positions[0]
+        trajectories.append(
+            EpisodeTrajectory(
+                gt.episode_id, gt.scene_id, [start, start], gt.goal, gt.reference_path, stop_step=0
+            )
+        )
+    results = evaluate_profiles(trajectories)
+    expected_sr = {
+        "env_airsim_16": 10.0,
+        "env_airsim_18": 13.3,
+        "env_airsim_23": 6.7,
+        "env_airsim_26": 3.3,
+        "env_airsim_sh": 0.0,
+        "env_airsim_gz": 10.0,
+        "env_ue_smallcity": 16.7,
+        "env_ue_bigcity": 26.7,
+    }
+    for result in results.values():
+        assert result["overall"]["sr_pct"] == pytest.approx(100 * 26 / 240)
+        assert result["overall"]["ne_m"] == pytest.approx(74.2, abs=0.05)  # mean straight-line start -> goal
+        per_scene = {scene: round(s["sr_pct"], 1) for scene, s in result["per_scene"].items()}
+        assert per_scene == expected_sr
+    assert results["standard"]["overall"]["spl_pct"] == pytest.approx(100 * 26 / 240)  # L / max(0, L) = 1
+    assert results["openfly"]["overall"]["spl_pct"] > 10_000  # L / 0.001 for the 26 successes

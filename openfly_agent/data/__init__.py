@@ -24,6 +24,7 @@ _EXPORTS = {
     "OpenFlyDatasetWriter": "writer",
     "compute_action_statistics": "stats",
     "NavigationStepDataset": "dataset",
+    "make_step_dataset": "dataset",
     "NavigationCollator": "collator",
 }
 

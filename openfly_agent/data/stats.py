@@ -3,7 +3,8 @@
 The 8-dim vectors are one-hot-like codes (constants.OPENVLA_ACTION_VECTORS). OpenVLA normalises each
 dim with its 1st / 99th percentiles; a code value outside [q01, q99] is clipped and cannot be decoded
 back (a rare action with q01 == q99 == 0 decodes to 0, reference/openfly.md 1.6 and 10). So on every
-dim where the percentiles would clip a value that occurs, q01 / q99 are widened to min / max.
+dim where the percentiles would clip a value that occurs, or the 0 code ("not this action"), q01 / q99
+are widened to min(min, 0) / max(max, 0).
 """
 
 from __future__ import annotations
@@ -41,8 +42,9 @@ def compute_action_statistics(episodes: Iterable[Episode]) -> dict:
     Returns:
         {"action": {"mean", "std", "max", "min", "q01", "q99", "mask"} (8 values each),
         "num_transitions", "num_trajectories"}. `mask` is all True (every dim is un-normalised).
-        q01 / q99 are the 1st / 99th percentiles, widened to min / max on any dim where they would
-        clip a value that occurs; so every used dim has q01 < q99, unused dims have q01 == q99 == 0.
+        q01 / q99 are the 1st / 99th percentiles, widened to min(min, 0) / max(max, 0) on any dim where
+        they would clip a value that occurs or 0; so every used dim has q01 < q99 and every code value
+        survives normalise -> un-normalise; unused dims have q01 == q99 == 0.
 
     Raises:
         ValueError: no model step at all.
@@ -54,12 +56,13 @@ def compute_action_statistics(episodes: Iterable[Episode]) -> dict:
     vectors = action_vectors(np.concatenate(per_episode)).astype(np.float64)  # (N, 8)
     lo, hi = vectors.min(axis=0), vectors.max(axis=0)  # (8,)
     q01, q99 = np.quantile(vectors, 0.01, axis=0), np.quantile(vectors, 0.99, axis=0)
-    widened = (q01 > lo) | (q99 < hi)
+    lo_code, hi_code = np.minimum(lo, 0.0), np.maximum(hi, 0.0)  # the range must hold 0 and every value
+    widened = (q01 > lo_code) | (q99 < hi_code)
     if widened.any():
         logger.info(
             "action statistics: q01/q99 widened to min/max on dims %s", np.flatnonzero(widened).tolist()
         )
-    q01, q99 = np.where(widened, lo, q01), np.where(widened, hi, q99)
+    q01, q99 = np.where(widened, lo_code, q01), np.where(widened, hi_code, q99)
     return {
         "action": {
             "mean": vectors.mean(axis=0).tolist(),

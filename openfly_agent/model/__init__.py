@@ -1,1 +1,1 @@
-"""Level-1 model: vision backbone, projector, LLM, grounding head, keyframes, merging, memory, action tokenizer, agent."""
+"""Level-1 model: vision, projector, LLM, grounding, keyframes, merging, memory, actions, agent."""

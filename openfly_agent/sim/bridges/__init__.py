@@ -1,1 +1,4 @@
-"""Bridges to real engines (UnrealCV, AirSim, 3DGS SIBR HTTP), speaking their wire protocols."""
+"""Bridges to real engines over their wire protocols: `unrealcv`, `airsim` (msgpack-RPC), `gs_http` (SIBR).
+
+Import the engine module you need; `airsim` loads `msgpack` only when it connects. See docs/BRIDGES.md.
+"""

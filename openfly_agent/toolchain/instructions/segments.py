@@ -1,0 +1,128 @@
+"""Sub-trajectories for instruction generation: split at action transitions, the landmark seen at each end.
+
+As the paper (and the official `ins_gen`): the trajectory is cut wherever the action type changes; each
+piece is described by its action and by the landmark seen in the frame where it ends; the last piece ends at
+the target landmark.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from openfly_agent import constants as C
+from openfly_agent.sim.scene import Landmark
+
+FORWARD, LEFT, RIGHT, UP, DOWN = "forward", "left", "right", "up", "down"
+TAKEOFF, LANDING, STOP = "takeoff", "landing", "stop"
+_KIND = {
+    C.ACTION_FORWARD: FORWARD,
+    C.ACTION_FORWARD_6: FORWARD,
+    C.ACTION_FORWARD_9: FORWARD,
+    C.ACTION_TURN_LEFT: LEFT,
+    C.ACTION_TURN_RIGHT: RIGHT,
+    C.ACTION_ASCEND: UP,
+    C.ACTION_DESCEND: DOWN,
+    C.ACTION_MOVE_LEFT: "move_left",
+    C.ACTION_MOVE_RIGHT: "move_right",
+    C.ACTION_TAKEOFF: TAKEOFF,
+    C.ACTION_LANDING: LANDING,
+    C.ACTION_STOP: STOP,
+}
+_FORWARD_METRES = {C.ACTION_FORWARD: 3.0, C.ACTION_FORWARD_6: 6.0, C.ACTION_FORWARD_9: 9.0}
+
+
+@dataclass
+class Segment:
+    """A run of one action kind: frames [start, end) carry its actions; `end` is the frame it arrives at."""
+
+    kind: str
+    start: int
+    end: int
+    primitives: int  # 30 deg turns, or 3 m steps (forward / vertical / lateral)
+    landmark_id: str | None = None  # the landmark seen at `end` (or the leg target)
+    forced: bool = False  # the landmark is a route target (not just what is visible)
+
+    @property
+    def metres(self) -> float:
+        return C.STEP_METERS * self.primitives
+
+    @property
+    def degrees(self) -> float:
+        return C.TURN_DEGREES * self.primitives
+
+
+@dataclass
+class InstructionRequest:
+    """Everything an instruction backend needs for one trajectory."""
+
+    actions: np.ndarray  # (T,) ids -2..9
+    frame_boxes: list[dict[str, np.ndarray]]  # per frame: visible landmark id -> (cx, cy, w, h)
+    landmarks: dict[str, Landmark]  # id -> landmark (attributes to name)
+    target_ids: list[str]  # route targets in order; the last is the final target
+    leg_end_frames: list[int]  # frame where each leg ends (the last = the STOP frame)
+    seed: int = 0
+    frames: list[np.ndarray] | None = None  # (H, W, 3) uint8, used by the VLM backend
+    min_box_area: float = 0.002
+    extra: dict = field(default_factory=dict)
+
+
+def split_at_transitions(actions: np.ndarray) -> list[Segment]:
+    """Runs of equal action kind (forward 3/6/9 m are one kind); the STOP frame ends the navigation.
+
+    >>> [(s.kind, s.start, s.end, s.primitives) for s in split_at_transitions([3, 9, 8, 2, 0])]
+    [('right', 0, 1, 1), ('forward', 1, 3, 5), ('left', 3, 4, 1)]
+    """
+    actions = [int(a) for a in actions]
+    segments: list[Segment] = []
+    for t, action in enumerate(actions):
+        if action not in _KIND:
+            raise ValueError(f"unknown action id {action} at frame {t}")
+        kind = _KIND[action]
+        if kind == STOP:
+            continue
+        units = int(_FORWARD_METRES.get(action, C.STEP_METERS) / C.STEP_METERS)
+        if segments and segments[-1].kind == kind and segments[-1].end == t:
+            segments[-1].end, segments[-1].primitives = t + 1, segments[-1].primitives + units
+        else:
+            segments.append(Segment(kind, t, t + 1, units))
+    return segments
+
+
+def box_area(box) -> float:
+    return float(box[2] * box[3])
+
+
+def seen_landmark(boxes: dict[str, np.ndarray], min_area: float, exclude: set | None = None) -> str | None:
+    """The most prominent visible landmark of a frame: the largest box covering at least `min_area`."""
+    best, best_area = None, min_area
+    for landmark_id, box in boxes.items():
+        area = box_area(box)
+        if area >= best_area and not (exclude and landmark_id in exclude):
+            best, best_area = landmark_id, area
+    return best
+
+
+def image_side(box) -> str:
+    """'left' / 'center' / 'right' third of the image for a box centre (the official 'dir' of the target)."""
+    if box is None:
+        return "center"
+    cx = float(box[0])
+    return "left" if cx < 1.0 / 3.0 else ("right" if cx > 2.0 / 3.0 else "center")
+
+
+def assign_landmarks(request: InstructionRequest, segments: list[Segment]) -> list[Segment]:
+    """Set each segment's landmark: leg targets where legs end, else the most prominent visible one."""
+    nav = [s for s in segments if s.kind not in (TAKEOFF, LANDING)]
+    last_frame = len(request.frame_boxes) - 1
+    for seg in nav:
+        frame = min(seg.end, last_frame)
+        seg.landmark_id = seen_landmark(request.frame_boxes[frame], request.min_box_area)
+    for target, end_frame in zip(request.target_ids, request.leg_end_frames):
+        owners = [s for s in nav if s.start < end_frame <= s.end] or [s for s in nav if s.end <= end_frame][
+            -1:
+        ]
+        if owners:
+            owners[0].landmark_id, owners[0].forced = target, True
+    return segments

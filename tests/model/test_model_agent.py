@@ -1,0 +1,148 @@
+"""OpenFlyAgent training forward: shapes, token counts, masking invariances, gradients, grounding maths."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from openfly_agent.model.config import GroundingConfig, MemoryConfig, MergingConfig, openfly_7b_config
+from openfly_agent.model.grounding import GroundingHead, grounding_loss, iou_and_giou
+
+LOG_KEYS = {"loss", "action_loss", "grounding_loss", "action_accuracy", "box_iou", "num_visible_boxes"}
+
+
+def test_forward_backward_reaches_every_parameter(make_agent, make_batch):
+    agent = make_agent().train()
+    loss, logs = agent(make_batch(agent, batch_size=3))
+    assert torch.isfinite(loss)
+    assert set(logs) >= LOG_KEYS and all(isinstance(v, float) for v in logs.values())
+    loss.backward()
+    no_grad = [name for name, p in agent.named_parameters() if p.grad is None]
+    assert no_grad == []  # DDP-safe: nothing unused
+
+
+def test_visual_token_count_tiny(make_agent, make_batch):
+    agent = make_agent()  # 4x4 patches, g = 2 -> 4 tokens per set, K = 2
+    visual, mask = agent.encode_visual(make_batch(agent, batch_size=2))
+    assert visual.shape == (2, 16 + 2 * 4, agent.llm_dim)
+    assert agent.model_cfg.visual_tokens_per_step() == 24
+    assert mask[:, -16:].all()
+
+
+def test_7b_shapes_on_meta_device():
+    from openfly_agent.model.agent import OpenFlyAgent
+
+    with torch.device("meta"):
+        agent = OpenFlyAgent.from_model_config(openfly_7b_config())
+    assert 7.4e9 < sum(p.numel() for p in agent.parameters()) < 7.6e9
+    pixels = torch.zeros(2, 3, 224, 224, dtype=torch.uint8, device="meta")
+    features = agent.vision_backbone(pixels)
+    assert features.shape == (2, 256, 2176)
+    sets = agent.memory_set_tokens(
+        torch.zeros(4, 5, 256, 2176, device="meta"),
+        torch.ones(4, 5, dtype=torch.bool, device="meta"),
+        torch.zeros(4, 5, 4, device="meta"),
+        torch.ones(4, 5, dtype=torch.bool, device="meta"),
+    )
+    assert sets.shape == (4, 1, 4096)  # (16 / g)^2 = 1 token per keyframe set
+    assert features.shape[1] + 2 * sets.shape[1] == 258 == agent.model_cfg.visual_tokens_per_step()
+    assert agent.language_model.lm_head.weight.shape == (32064, 4096)
+
+
+def test_missing_memory_sets_contribute_nothing(make_agent, make_batch):
+    agent = make_agent()
+    batch = make_batch(agent, batch_size=2)
+    batch["memory_frame_mask"][:, 1] = False  # set 1 missing everywhere
+    loss_two_slots, _ = agent(batch)
+    one_slot = dict(batch)
+    for key in ("memory_pixel_values", "memory_frame_mask", "memory_boxes", "memory_box_visible"):
+        one_slot[key] = batch[key][:, :1]
+    loss_one_slot, _ = agent(one_slot)
+    swapped = dict(batch)  # the missing set first: positions only count attended tokens
+    for key in ("memory_pixel_values", "memory_frame_mask", "memory_boxes", "memory_box_visible"):
+        swapped[key] = batch[key].flip(1)
+    loss_swapped, _ = agent(swapped)
+    torch.testing.assert_close(loss_two_slots, loss_one_slot, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(loss_two_slots, loss_swapped, rtol=1e-5, atol=1e-6)
+
+
+def test_right_padding_does_not_change_samples(make_agent, make_batch):
+    agent = make_agent(grounding=GroundingConfig(enabled=False))
+    batch = make_batch(agent, batch_size=3)
+    loss_all, _ = agent(batch)
+    singles = []
+    for i in range(3):
+        row = {k: v[i : i + 1] for k, v in batch.items()}
+        length = int(row["attention_mask"].sum())
+        for key in ("input_ids", "attention_mask", "labels"):
+            row[key] = row[key][:, :length]
+        singles.append(agent(row)[0])
+    torch.testing.assert_close(loss_all, torch.stack(singles).mean(), rtol=1e-5, atol=1e-6)
+
+
+def test_merging_disabled_and_memory_off(make_agent, make_batch):
+    agent = make_agent(merging=MergingConfig(enabled=False))
+    loss, _ = agent(make_batch(agent))
+    assert torch.isfinite(loss)
+    agent = make_agent(memory=MemoryConfig(capacity=0, grid=2))
+    batch = make_batch(agent, capacity=0)
+    visual, _ = agent.encode_visual(batch)
+    assert visual.shape[1] == 16
+    assert torch.isfinite(agent(batch)[0])
+
+
+def test_bad_batches_are_clear_errors(make_agent, make_batch):
+    agent = make_agent()
+    batch = make_batch(agent)
+    with pytest.raises(ValueError, match="memory sets but memory.capacity is 2"):
+        agent(make_batch(agent, capacity=3))
+    wrong = dict(batch, pixel_values=batch["pixel_values"].float())
+    with pytest.raises(ValueError, match="uint8 RGB pixels"):
+        agent(wrong)
+    no_bos = dict(batch, input_ids=batch["input_ids"].roll(1, dims=1))
+    with pytest.raises(ValueError, match="start with BOS"):
+        agent(no_bos)
+
+
+@pytest.mark.parametrize(
+    ("pred", "target", "iou", "giou"),
+    [
+        ((0.5, 0.5, 0.4, 0.4), (0.5, 0.5, 0.4, 0.4), 1.0, 1.0),  # identical
+        ((0.5, 0.5, 0.4, 0.4), (0.5, 0.5, 0.8, 0.8), 0.25, 0.25),  # nested: hull = outer box
+        ((0.1, 0.1, 0.2, 0.2), (0.7, 0.7, 0.2, 0.2), 0.0, -0.875),  # disjoint: 0 - (0.64 - 0.08) / 0.64
+        ((0.3, 0.5, 0.4, 0.2), (0.5, 0.5, 0.4, 0.2), 1 / 3, 1 / 3),  # half overlap: 0.04 / 0.12
+    ],
+)
+def test_giou_by_hand(pred, target, iou, giou):
+    got_iou, got_giou = iou_and_giou(torch.tensor([pred]), torch.tensor([target]))
+    assert got_iou.item() == pytest.approx(iou, abs=1e-6)
+    assert got_giou.item() == pytest.approx(giou, abs=1e-6)
+
+
+def test_grounding_loss_ignores_invisible_targets():
+    cfg = GroundingConfig(l1_weight=2.0, visibility_weight=0.0)
+    pred = torch.tensor([[0.5, 0.5, 0.4, 0.4], [0.5, 0.5, 0.2, 0.2]])
+    target = torch.tensor([[0.5, 0.5, 0.8, 0.8], [0.1, 0.1, 0.1, 0.1]])
+    visible = torch.tensor([True, False])
+    loss, logs = grounding_loss(pred, torch.zeros(2), target, visible, cfg)
+    # only row 0: (1 - GIoU) = 0.75, L1 = 0.4 + 0.4 -> 0.75 + 2 * 0.8
+    assert loss.item() == pytest.approx(0.75 + 1.6, abs=1e-6)
+    assert logs["box_iou"] == pytest.approx(0.25) and logs["num_visible_boxes"] == 1.0
+    target[1] = torch.tensor([0.9, 0.9, 0.05, 0.05])
+    assert grounding_loss(pred, torch.zeros(2), target, visible, cfg)[0].item() == pytest.approx(loss.item())
+    none_visible, logs = grounding_loss(pred, torch.zeros(2), target, torch.tensor([False, False]), cfg)
+    assert none_visible.item() == 0.0 and logs["box_iou"] == 0.0
+
+
+def test_grounding_head_outputs_unit_boxes():
+    head = GroundingHead(24, dataclasses.replace(GroundingConfig(dim=16, num_heads=2), num_queries=3))
+    hidden = torch.randn(2, 7, 24) * 10
+    mask = torch.tensor([[True] * 7, [True] * 3 + [False] * 4])
+    boxes, vis = head(hidden, mask)
+    assert boxes.shape == (2, 4) and vis.shape == (2,)
+    assert ((boxes > 0) & (boxes < 1)).all()
+    hidden2 = hidden.clone()
+    hidden2[1, 3:] = 1e3  # masked positions do not matter
+    torch.testing.assert_close(head(hidden2, mask)[0][1], boxes[1])

@@ -1,0 +1,58 @@
+"""Model config: presets, YAML files, validation messages, dict round trip, token arithmetic."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from openfly_agent.model.config import (
+    MemoryConfig,
+    ModelConfig,
+    VisionConfig,
+    config_from_dict,
+    config_to_dict,
+    make_model_config,
+    openfly_7b_config,
+    tiny_config,
+)
+from openfly_agent.utils.config import load_yaml_config
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("name", ["tiny", "openfly-7b", "openvla-compat-7b"])
+def test_yaml_presets_equal_the_python_presets(name):
+    loaded = load_yaml_config(ModelConfig, REPO_ROOT / "configs" / "model" / f"{name}.yaml")
+    assert loaded == make_model_config(name)
+
+
+def test_token_counts():
+    cfg = openfly_7b_config()
+    assert cfg.vision.num_patches == 256 and cfg.vision.feature_dim == 2176
+    assert cfg.memory_tokens_per_set == 1
+    assert cfg.visual_tokens_per_step() == 258  # 256 + K * (16 / 16)^2
+    g4 = dataclasses.replace(cfg, memory=MemoryConfig(capacity=2, grid=4))
+    assert g4.visual_tokens_per_step() == 256 + 2 * 16
+    assert tiny_config().visual_tokens_per_step() == 64 + 2
+
+
+def test_dict_round_trip():
+    cfg = openfly_7b_config()
+    assert config_from_dict(config_to_dict(cfg)) == cfg
+    with pytest.raises(ValueError, match="unknown key.*'memory'"):
+        config_from_dict({**config_to_dict(cfg), "memory": {"capacity": 2, "gird": 16}})
+
+
+def test_validation_messages_say_what_to_change():
+    with pytest.raises(ValueError, match="memory.grid=3 must divide the patch grid side 16"):
+        openfly_7b_config(memory=MemoryConfig(grid=3))
+    with pytest.raises(ValueError, match="multiple of vision.patch_size"):
+        VisionConfig(image_size=100, patch_size=14)
+    with pytest.raises(ValueError, match="dinosiglip-224px needs image_size=224"):
+        VisionConfig(preset="dinosiglip-224px", image_size=112)
+    with pytest.raises(ValueError, match="action_head.type=openvla_bins"):
+        tiny_config(mode="openvla_compat")
+    with pytest.raises(ValueError, match="unknown model preset"):
+        make_model_config("huge")

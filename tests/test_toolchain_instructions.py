@@ -1,0 +1,111 @@
+"""Template instructions: transitions, landmark naming, pronouns, reproducible variety."""
+
+from __future__ import annotations
+
+import numpy as np
+from toolchain_scene import synthetic_scene
+
+from openfly_agent.toolchain.instructions import (
+    InstructionRequest,
+    split_at_transitions,
+    template_instruction,
+)
+from openfly_agent.toolchain.instructions.segments import assign_landmarks, image_side, seen_landmark
+from openfly_agent.toolchain.instructions.template import describe_landmark
+
+# b0 red tower with a spire, b1 blue office building with a billboard, b2 white skyscraper with a dome
+LANDMARKS = {lm.landmark_id: lm for lm in synthetic_scene()[1]}
+
+
+def _request(actions, boxes=None, targets=("b0",), leg_ends=None, seed=0):
+    actions = np.array(actions)
+    boxes = boxes or [{} for _ in actions]
+    stop = int(np.flatnonzero(actions == 0)[0])
+    return InstructionRequest(actions, boxes, LANDMARKS, list(targets), list(leg_ends or [stop]), seed=seed)
+
+
+def test_split_at_transitions():
+    segs = split_at_transitions([-1, -1, 3, 3, 9, 9, 1, 2, 4, 4, 0, -2, -2])
+    assert [(s.kind, s.start, s.end, s.primitives) for s in segs] == [
+        ("takeoff", 0, 2, 2),
+        ("right", 2, 4, 2),
+        ("forward", 4, 7, 7),  # 9 + 9 + 3 m = 7 steps of 3 m
+        ("left", 7, 8, 1),
+        ("up", 8, 10, 2),
+        ("landing", 11, 13, 2),
+    ]
+    assert segs[2].metres == 21.0 and segs[1].degrees == 60.0
+
+
+def test_seen_landmark_is_the_largest_box_above_the_threshold():
+    boxes = {
+        "a": np.array([0.5, 0.5, 0.1, 0.1]),
+        "b": np.array([0.2, 0.5, 0.3, 0.2]),
+        "c": np.array([0.9, 0.5, 0.01, 0.01]),
+    }
+    assert seen_landmark(boxes, 0.002) == "b"
+    assert seen_landmark(boxes, 0.002, exclude={"b"}) == "a"
+    assert seen_landmark(boxes, 0.5) is None
+    assert [image_side(np.array([x, 0.5, 0.1, 0.1])) for x in (0.1, 0.5, 0.9)] == ["left", "center", "right"]
+
+
+def test_leg_targets_own_the_segment_where_their_leg_ends():
+    actions = np.array([9, 9, 2, 2, 9, 1, 0])
+    boxes = [{} for _ in actions]
+    boxes[2] = {"b2": np.array([0.5, 0.5, 0.2, 0.2])}  # seen at the end of the first forward run
+    segs = assign_landmarks(
+        _request(actions, boxes, targets=("b1", "b0"), leg_ends=(4, 6)), split_at_transitions(actions)
+    )
+    assert [(s.kind, s.landmark_id, s.forced) for s in segs] == [
+        ("forward", "b2", False),
+        ("left", "b1", True),
+        ("forward", "b0", True),
+    ]
+
+
+def test_instruction_names_the_target_attributes_and_uses_a_pronoun():
+    text = template_instruction(_request([3, 9, 9, 1, 2, 9, 0]))
+    red_tower = LANDMARKS["b0"]
+    assert text.count("red") == 1 and "tower" in text and "spire" in text  # full name once ...
+    assert text.rstrip(".").endswith(" it")  # ... then "it" when stopping at the same landmark
+    assert text[0].isupper() and text.endswith(".")
+    assert red_tower.color in text and red_tower.feature in text
+
+
+def test_repeated_landmark_after_another_gets_a_short_name():
+    actions = np.array([9, 2, 9, 3, 9, 0])
+    boxes = [{} for _ in actions]
+    boxes[1] = {"b0": np.array([0.5, 0.5, 0.2, 0.2])}
+    boxes[2] = {"b2": np.array([0.5, 0.5, 0.2, 0.2])}
+    text = template_instruction(_request(actions, boxes, targets=("b0",)))
+    assert "white skyscraper" in text and "dome" in text
+    assert text.count("spire") == 1 and "the red tower" in text  # second mention: short name, no feature
+
+
+def test_phrasing_varies_with_the_seed_and_is_reproducible():
+    texts = {template_instruction(_request([3, 9, 9, 1, 2, 9, 0], seed=s)) for s in range(12)}
+    assert len(texts) >= 6
+    assert template_instruction(_request([3, 9, 0], seed=5)) == template_instruction(
+        _request([3, 9, 0], seed=5)
+    )
+
+
+def test_takeoff_turns_climbs_and_landing_are_described():
+    text = template_instruction(_request([-1, -1, 2, 2, 2, 2, 2, 2, 4, 4, 9, 0, -2, -2], seed=1)).lower()
+    assert any(w in text for w in ("take off", "lift off", "rise from the ground"))
+    assert any(w in text for w in ("turn around", "u-turn"))
+    assert "6 meters" in text
+    assert any(w in text for w in ("land", "touch down", "to the ground"))
+
+
+def test_describe_landmark_grammar():
+    rng = np.random.default_rng(0)
+    lm = LANDMARKS["b1"]
+    text = describe_landmark(lm, rng)
+    assert text.startswith("the ") and "blue office building" in text and "a rooftop billboard" in text
+    arched = type(lm)("x", "house", "beige", "low-rise", "rectangular", "arched windows", (0, 0, 0))
+    assert "a arched" not in describe_landmark(arched, rng) and "arched windows" in describe_landmark(
+        arched, rng
+    )
+    unnamed = type(lm)("y", "building", "test", "test", "test", "test", (0, 0, 0))
+    assert describe_landmark(unnamed, rng) == "the building"
