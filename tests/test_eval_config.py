@@ -34,7 +34,7 @@ def test_shorthands_leave_draccus_forms_alone():
     argv = [
         "--split=[test_unseen]",
         "--sim.type=unrealcv",
-        "--sim.port=9001",
+        "--sim.unrealcv.port=9001",
         "--baselines",
         "random",
         "stop",
@@ -44,12 +44,12 @@ def test_shorthands_leave_draccus_forms_alone():
     assert out == [
         "--split=[test_unseen]",
         "--sim.type=unrealcv",
-        "--sim.port=9001",
+        "--sim.unrealcv.port=9001",
         "--baselines=[random,stop]",
         "--plots=2",
     ]
     cfg = parse_config(EvalConfig, out + ["--checkpoint=x"])
-    assert cfg.baselines == ["random", "stop"] and cfg.sim.port == 9001 and cfg.split == ["test_unseen"]
+    assert cfg.baselines == ["random", "stop"] and cfg.sim.unrealcv.port == 9001 and cfg.split == ["test_unseen"]
     assert normalize_argv(["--sim=airsim", "--gif_episodes", "a/b/c"]) == [
         "--sim.type=airsim",
         "--gif_episodes=[a/b/c]",

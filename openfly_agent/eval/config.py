@@ -1,7 +1,7 @@
 """`EvalConfig`: what `eval.py` evaluates, on which data and simulator, and where results go.
 
-A leaf module (dataclasses and constants only), parsed with draccus from YAML (`configs/eval/*.yaml`)
-and dotted command-line overrides.
+Parsed with draccus from YAML (`configs/eval/*.yaml`) and dotted command-line overrides. It holds the
+bridges' own config dataclasses (`--sim.unrealcv.port=9001`), so no setting is declared twice.
 """
 
 from __future__ import annotations
@@ -10,6 +10,9 @@ from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
+from openfly_agent.sim.bridges.airsim import AirSimConfig
+from openfly_agent.sim.bridges.gs_http import GSHttpConfig
+from openfly_agent.sim.bridges.unrealcv import UnrealCVConfig
 
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
@@ -22,19 +25,23 @@ DECODE_RULES = ("exact", "nearest")
 class SimSettings:
     """The simulator episodes run in.
 
-    `embedded` renders the procedural city of each `embedded-<seed>` scene; the bridges connect to a
-    running engine (reference/openfly.md section 6.3). Collisions are always recorded and never end an
-    episode: each metric profile decides what a collision means (docs/EVAL.md).
+    `embedded` renders the procedural city of each `embedded-<seed>` scene (the city parameters and frame
+    size come from the dataset's toolchain config); the bridges connect to a running engine
+    (docs/BRIDGES.md, one engine per process). Collisions are recorded and never end an episode: each
+    metric profile decides what a collision means (docs/EVAL.md).
     """
 
     type: str = "embedded"  # embedded | unrealcv | airsim | gs_http
-    width: int | None = None  # frame size; None = the dataset's frame size (meta/info.json), else 224
+    width: int | None = None  # embedded frame size; None = the dataset's (toolchain config, else a frame)
     height: int | None = None
-    host: str = "127.0.0.1"  # bridges: the engine's address
-    port: int | None = None  # bridges: None = the engine's default port
-    connect_timeout_s: float = 10.0
-    read_timeout_s: float = 60.0
-    gs_scene_scale: float | None = None  # gs_http: dataset metres per scene unit; None = per-scene table
+    unrealcv: UnrealCVConfig = field(default_factory=UnrealCVConfig)
+    airsim: AirSimConfig = field(default_factory=AirSimConfig)
+    gs_http: GSHttpConfig = field(default_factory=GSHttpConfig)
+    # Bridges: a point cloud per scene for collision checks, e.g. "scenes/{scene_id}.pcd" (None = no check,
+    # as the official evaluation); voxel size of the occupancy built from it.
+    occupancy_pcd: str | None = None
+    occupancy_voxel_m: float = 2.0
+    port_per_rank: bool = True  # bridges under a launcher: process k connects to port + k
 
     def __post_init__(self) -> None:
         if self.type not in SIM_TYPES:
@@ -42,11 +49,15 @@ class SimSettings:
         for name in ("width", "height"):
             value = getattr(self, name)
             if value is not None and value < 16:
-                raise ValueError(
-                    f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)"
-                )
-        if self.connect_timeout_s <= 0 or self.read_timeout_s <= 0:
-            raise ValueError("sim.connect_timeout_s and sim.read_timeout_s must be > 0 seconds")
+                raise ValueError(f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)")
+        if self.occupancy_pcd is not None and "{scene_id}" not in self.occupancy_pcd:
+            raise ValueError(f"sim.occupancy_pcd={self.occupancy_pcd!r} must contain '{{scene_id}}'")
+        if self.occupancy_voxel_m <= 0:
+            raise ValueError(f"sim.occupancy_voxel_m={self.occupancy_voxel_m} must be > 0 metres")
+
+    def bridge_config(self):
+        """The settings of the selected bridge (None for the embedded simulator)."""
+        return getattr(self, self.type) if self.type != "embedded" else None
 
 
 @dataclass
@@ -144,6 +155,7 @@ class EvalConfig:
             "sim_type": self.sim.type,
             "sim_width": self.sim.width,
             "sim_height": self.sim.height,
+            "sim_occupancy": self.sim.occupancy_pcd,
         }
         if policy == "agent":
             identity.update(

@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
+from pathlib import Path
 
+from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.eval.distributed import ProcessInfo
+from openfly_agent.eval.slots import SimulatorSlots
+from openfly_agent.utils.errors import RecordError
 
 logger = logging.getLogger(__name__)
 
@@ -51,3 +58,74 @@ def dataset_frame_size(root: str, episodes: list[Episode]) -> tuple[int, int] | 
         logger.info("no frames under %s (%s); rendering at %d px", root, err, DEFAULT_FRAME_SIZE)
         return None
     return int(frame.shape[0]), int(frame.shape[1])
+
+
+def toolchain_settings(root: str) -> dict:
+    """Frame size and city parameters the dataset was generated with, from its toolchain config ({} if none).
+
+    Returns keys `width`, `height`, `city_size_m`, `city_buildings`, `collision_voxel_m` (those present).
+    """
+    path = Path(root) / C.TOOLCHAIN_CONFIG_JSON
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+        render, scenes = data.get("render", {}), data.get("scenes", {})
+    except (json.JSONDecodeError, AttributeError) as err:
+        raise RecordError(path, None, "<json>", f"not a toolchain config: {err}") from err
+    out = {"width": render.get("width"), "height": render.get("height")}
+    out.update(
+        city_size_m=scenes.get("city_size_m"),
+        city_buildings=scenes.get("city_buildings"),
+        collision_voxel_m=scenes.get("collision_voxel_m"),
+    )
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def scene_occupancy(template: str, scene_id: str, voxel_m: float):
+    """Occupancy grid of a real scene from its point cloud (`template` with `{scene_id}`), for collisions."""
+    from openfly_agent.sim.occupancy import OccupancyGrid
+    from openfly_agent.sim.pointcloud import read_points
+    from openfly_agent.sim.scene import SceneBounds
+
+    path = Path(template.format(scene_id=scene_id))
+    if not path.is_file():
+        raise FileNotFoundError(f"sim.occupancy_pcd: no point cloud for scene {scene_id} at {path}")
+    points = read_points(path)  # (N, 3) metres
+    lo, hi = points.min(axis=0) - voxel_m, points.max(axis=0) + voxel_m
+    bounds = SceneBounds(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+    return OccupancyGrid.from_points(points, bounds, voxel_m)
+
+
+class _BridgeSlots(SimulatorSlots):
+    """One bridge; its collision occupancy follows the scene of the episode being reset."""
+
+    def __init__(self, bridge, settings: SimSettings):
+        super().__init__([bridge])
+        self.settings = settings
+        self._occupancy: dict[str, object] = {}
+
+    def reset_slot(self, slot: int, spec):
+        if self.settings.occupancy_pcd:
+            if spec.scene_id not in self._occupancy:
+                self._occupancy[spec.scene_id] = scene_occupancy(
+                    self.settings.occupancy_pcd, spec.scene_id, self.settings.occupancy_voxel_m
+                )
+            self.sims[slot].occupancy = self._occupancy[spec.scene_id]
+        return super().reset_slot(slot, spec)
+
+
+def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
+    """One engine bridge per process (`port + rank` when `port_per_rank`), as lockstep slots of width 1."""
+    from openfly_agent.sim.bridges.airsim import AirSimBridge
+    from openfly_agent.sim.bridges.gs_http import GSHttpBridge
+    from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
+
+    classes = {"unrealcv": UnrealCVBridge, "airsim": AirSimBridge, "gs_http": GSHttpBridge}
+    bridge_cls = classes[settings.type]
+    config = settings.bridge_config()
+    if settings.port_per_rank and info.world_size > 1:
+        port = (config.port or bridge_cls.default_port) + info.rank
+        config = dataclasses.replace(config, port=port)
+    logger.info("%s bridge at %s:%s", settings.type, config.host, config.port or bridge_cls.default_port)
+    return _BridgeSlots(bridge_cls(config), settings)
