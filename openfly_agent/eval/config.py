@@ -49,7 +49,9 @@ class SimSettings:
         for name in ("width", "height"):
             value = getattr(self, name)
             if value is not None and value < 16:
-                raise ValueError(f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)")
+                raise ValueError(
+                    f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)"
+                )
         if self.occupancy_pcd is not None and "{scene_id}" not in self.occupancy_pcd:
             raise ValueError(f"sim.occupancy_pcd={self.occupancy_pcd!r} must contain '{{scene_id}}'")
         if self.occupancy_voxel_m <= 0:
