@@ -80,3 +80,15 @@ def test_result_identity_tracks_what_changes_results():
     b = EvalConfig(policy="random", seed=2, batch_size=64, plots=0)
     assert a.result_identity("random") != b.result_identity("random")
     assert a.result_identity("stop") == b.result_identity("stop")  # batch size and plots never change results
+
+
+@pytest.mark.parametrize("name", ["embedded", "baselines", "released-unrealcv", "released-airsim", "released-gs"])
+def test_shipped_configs_parse(name):
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "eval" / f"{name}.yaml"
+    cfg = parse_config(EvalConfig, ["--config_path", str(path), "--checkpoint=ckpt"])
+    assert cfg.sim.type in ("embedded", "unrealcv", "airsim", "gs_http")
+    if name.startswith("released"):
+        assert cfg.agent.unnorm_key == "vlnv1" and cfg.agent.decode_rule == "exact" and cfg.batch_size == 1
+        assert cfg.reader.takeoff_landing == "keep"
