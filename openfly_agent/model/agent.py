@@ -45,7 +45,9 @@ from .config import (
     ModelConfig,
 )
 from .configuration import OpenFlyAgentConfig
+from .freeze import freeze
 from .grounding import GroundingHead, grounding_loss
+from .inference import StepResult, predict_step, reset_episodes
 from .keyframes import KeyframeSelector
 from .llm import build_language_model, unwrap_causal_lm
 from .memory import grid_pool
@@ -154,7 +156,7 @@ class OpenFlyAgent(PreTrainedModel):
                 import cv2
 
                 rgb = cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA)
-        return torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).contiguous()
+        return torch.from_numpy(np.array(rgb, dtype=np.uint8, copy=True)).permute(2, 0, 1).contiguous()
 
     def build_prompt(self, instruction: str) -> str:
         """The text after the visual tokens for `instruction` (template of the `prompt` section)."""
@@ -322,6 +324,40 @@ class OpenFlyAgent(PreTrainedModel):
             )
         return loss, accuracy
 
+    # --- closed-loop inference (model/inference.py) -----------------------------------------------
+    def select_action(self, observations: list[dict[str, Any]]) -> list[int]:
+        """One action per observation, all episodes in one batch, each with its own memory.
+
+        Args:
+            observations: dicts with `episode_id`, `instruction`, `rgb` ((H, W, 3) uint8) and `pose`.
+
+        Returns:
+            Action ids 0..9, in the order of `observations`.
+        """
+        return [result.action for result in predict_step(self, observations)]
+
+    def predict_step(self, observations: list[dict[str, Any]]) -> list[StepResult]:
+        """`select_action` with details: action logits (or bin tokens) and the predicted landmark box."""
+        return predict_step(self, observations)
+
+    def reset(self, episode_ids: list[str] | None = None) -> None:
+        """Forget the memory of the listed episodes (every episode when None)."""
+        reset_episodes(self, episode_ids)
+
+    # --- training set-up ---------------------------------------------------------------------------
+    def freeze(self, stage: str) -> dict[str, int]:
+        """Apply a named freeze stage (`full`, `frozen_vision`, `heads_only`, `lora`); see model/freeze.py."""
+        return freeze(self, stage)
+
+    def get_optim_params(self, weight_decay: float = 0.0) -> list[dict]:
+        """Trainable parameters in two AdamW groups: decay on matrices, none on biases / norms / tokens."""
+        decay, no_decay = [], []
+        for name, param in self.named_parameters():
+            if param.requires_grad:
+                tokens = any(key in name for key in ("pos_embed", "cls_token", "reg_token", "box_queries"))
+                (no_decay if param.ndim < 2 or tokens else decay).append(param)
+        return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+
     # --- persistence ------------------------------------------------------------------------------
     def save_pretrained(self, save_directory, *args, **kwargs) -> None:
         """transformers' save (config.json + safetensors) + action_tokenizer.json, norm stats, tokenizer."""
@@ -397,3 +433,13 @@ def _resolve_vocabulary(cfg: ModelConfig, tokenizer) -> ModelConfig:
             head.vocab_end - 1,
         )
     return dataclasses.replace(cfg, llm=llm, action_head=head)
+
+
+def register_auto_classes() -> None:
+    """Register the agent with transformers' AutoConfig / AutoModel (call once from an entry point)."""
+    from transformers import AutoConfig, AutoModel
+
+    from openfly_agent.constants import MODEL_TYPE
+
+    AutoConfig.register(MODEL_TYPE, OpenFlyAgentConfig, exist_ok=True)
+    AutoModel.register(OpenFlyAgentConfig, OpenFlyAgent, exist_ok=True)

@@ -439,3 +439,20 @@ __all__ = [
     "config_to_dict",
     "make_model_config",
 ]
+
+
+@dataclass
+class LoraSettings:
+    """LoRA on the LLM through peft (OpenVLA's finetune.py defaults: r 32, alpha 16, all linear layers)."""
+
+    rank: int = 32
+    alpha: int = 16
+    dropout: float = 0.0
+    target_modules: str = "all-linear"  # peft's shorthand (every Linear but lm_head) or comma-separated names
+    init: str = "gaussian"  # peft init_lora_weights
+
+    def __post_init__(self) -> None:
+        _check_positive("lora", "rank", self.rank)
+        _check_positive("lora", "alpha", self.alpha)
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"lora.dropout={self.dropout} must be in [0, 1)")

@@ -136,7 +136,7 @@ def grounding_loss(
     vis_term = F.binary_cross_entropy_with_logits(visibility_logits.float(), visible.float())
     loss = giou_term + cfg.l1_weight * l1_term + cfg.visibility_weight * vis_term
     logs = {
-        "box_iou": float(iou.mean()) if count else 0.0,
+        "box_iou": float(iou.detach().mean()) if count else 0.0,
         "num_visible_boxes": float(count),
         "giou_loss": float(giou_term.detach()),
         "l1_loss": float(l1_term.detach()),

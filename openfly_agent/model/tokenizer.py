@@ -71,14 +71,16 @@ def train_bpe_tokenizer(texts: Iterable[str], vocab_size: int, out_dir: str | Pa
 
 def load_tokenizer(folder: str | Path):
     """Load a tokenizer saved with `save_pretrained` (ours or Llama-2's) from a local folder only."""
-    from transformers import AutoTokenizer
+    from transformers import AutoTokenizer, PreTrainedConfig
 
     path = Path(folder)
     if not path.is_dir():
         raise FileNotFoundError(
             f"tokenizer folder {path} does not exist (llm.tokenizer_path must be a local folder)"
         )
-    tokenizer = AutoTokenizer.from_pretrained(str(path), local_files_only=True)
+    # A blank config: the class comes from tokenizer_config.json, not from a model config.json beside it
+    # (an agent checkpoint's model_type is unknown to AutoConfig unless registered).
+    tokenizer = AutoTokenizer.from_pretrained(str(path), config=PreTrainedConfig(), local_files_only=True)
     if tokenizer.pad_token_id is None:
         raise ValueError(f"tokenizer in {path} has no pad token: add one (OpenVLA adds <PAD> to Llama-2's)")
     return tokenizer

@@ -35,6 +35,7 @@ class Observation:
     pose: Pose
     boxes: dict[str, np.ndarray] | None = None  # landmark id -> (4,) (cx, cy, w, h) in [0, 1]
     depth: np.ndarray | None = None  # (H, W) float32 metres, where the engine provides it
+    extra: dict = field(default_factory=dict)  # engine-specific extras (e.g. visible pixels per landmark)
 
 
 @dataclass

@@ -1,0 +1,220 @@
+"""The embedded simulator: procedural cities + the moderngl renderer + dynamics + occupancy collisions.
+
+`EmbeddedSimulator` runs one episode at a time; `sibling()` gives more simulators that share its GL
+context and city cache (what `VectorSimulator.embedded` uses to step many episodes in lockstep).
+No network, no GPU needed; the GL context is created lazily in the process that renders.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+from openfly_agent import constants as C
+from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
+from openfly_agent.sim.city import City, CityConfig, generate_city, parse_scene_id
+from openfly_agent.sim.collision import check_policy, motion_collides
+from openfly_agent.sim.dynamics import step_motion
+from openfly_agent.sim.renderer import CityRenderer
+from openfly_agent.utils.geometry import Pose
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class EmbeddedSimConfig:
+    """Image, camera, city and collision settings of the embedded simulator."""
+
+    width: int = 224
+    height: int = 224
+    hfov_deg: float = C.CAMERA_HFOV_DEG
+    city: CityConfig = field(default_factory=CityConfig)
+    collision: str = "end"  # "end" | "count" | "ignore" (see sim/collision.py)
+    voxel_size: float = 2.0  # metres, occupancy used for collisions
+    render_depth: bool = False  # fill Observation.depth (metres along the view axis)
+    min_box_pixels: int = 16  # a landmark needs this many visible pixels to get a box
+    return_instance_ids: bool = False  # put the (H, W) int32 instance image in Observation.extra
+    max_cached_scenes: int = 4  # cities (and their GPU buffers) kept per process
+    egl_device: int | None = None  # EGL device index on multi-GPU machines; None = default
+
+    def __post_init__(self) -> None:
+        check_policy(self.collision)
+        if self.width < 8 or self.height < 8:
+            raise ValueError(f"EmbeddedSimConfig.width/height must be >= 8, got {self.width} x {self.height}")
+        if self.voxel_size <= 0:
+            raise ValueError(f"EmbeddedSimConfig.voxel_size must be > 0, got {self.voxel_size}")
+        if self.min_box_pixels < 1:
+            raise ValueError(f"EmbeddedSimConfig.min_box_pixels must be >= 1, got {self.min_box_pixels}")
+
+
+class _Backend:
+    """What simulators of one process share: the renderer (GL context) and the city cache."""
+
+    def __init__(self, cfg: EmbeddedSimConfig):
+        self.cfg = cfg
+        self.renderer = CityRenderer(
+            cfg.width,
+            cfg.height,
+            cfg.hfov_deg,
+            min_box_pixels=cfg.min_box_pixels,
+            max_cached_scenes=cfg.max_cached_scenes,
+            egl_device=cfg.egl_device,
+        )
+        self.generated: OrderedDict[str, City] = OrderedDict()
+        self.registered: dict[str, City] = {}
+        self.users = 0
+
+    def city(self, scene_id: str) -> City:
+        if scene_id in self.registered:
+            return self.registered[scene_id]
+        if scene_id not in self.generated:
+            self.generated[scene_id] = generate_city(parse_scene_id(scene_id), self.cfg.city)
+            while len(self.generated) > self.cfg.max_cached_scenes:
+                self.generated.popitem(last=False)
+        self.generated.move_to_end(scene_id)
+        return self.generated[scene_id]
+
+
+class EmbeddedSimulator:
+    """A `Simulator` over embedded cities. Scenes are `embedded-<seed>` or cities added by `register_city`."""
+
+    def __init__(self, cfg: EmbeddedSimConfig | None = None, *, _backend: _Backend | None = None):
+        self.cfg = cfg or EmbeddedSimConfig()
+        self._backend = _backend or _Backend(self.cfg)
+        self._backend.users += 1
+        self._closed = False
+        self._episode: EpisodeSpec | None = None
+        self._city: City | None = None
+        self._poses: list[Pose] = []
+        self._collided: list[bool] = []
+        self._done = False
+        self._last_obs: Observation | None = None
+
+    # --- scenes ------------------------------------------------------------------------------------------
+
+    def sibling(self) -> EmbeddedSimulator:
+        """Another simulator with its own episode state, sharing this one's GL context and cities."""
+        return EmbeddedSimulator(self.cfg, _backend=self._backend)
+
+    def register_city(self, city: City) -> None:
+        """Make a hand-built `City` available under `city.scene_id` (to this simulator and its siblings)."""
+        self._backend.registered[city.scene_id] = city
+
+    def city(self, scene_id: str) -> City:
+        """The city of `scene_id` (generated on first use and cached)."""
+        return self._backend.city(scene_id)
+
+    @property
+    def renderer(self) -> CityRenderer:
+        return self._backend.renderer
+
+    # --- episode state -------------------------------------------------------------------------------------
+
+    @property
+    def pose(self) -> Pose:
+        self._require_episode()
+        return self._poses[-1]
+
+    @property
+    def poses(self) -> list[Pose]:
+        """Poses visited in this episode, the start first (one more than steps taken)."""
+        return list(self._poses)
+
+    @property
+    def collided(self) -> list[bool]:
+        """Per step: did its motion segment collide."""
+        return list(self._collided)
+
+    @property
+    def done(self) -> bool:
+        return self._done
+
+    def _require_episode(self) -> None:
+        if self._closed:
+            raise RuntimeError("this EmbeddedSimulator is closed")
+        if self._episode is None:
+            raise RuntimeError("no episode running: call reset(episode) first")
+
+    # --- Simulator protocol -----------------------------------------------------------------------------
+
+    def reset(self, episode: EpisodeSpec) -> Observation:
+        """Start `episode` at its start pose and return the first observation."""
+        if self._closed:
+            raise RuntimeError("this EmbeddedSimulator is closed")
+        self._city = self._backend.city(episode.scene_id)
+        self._episode = episode
+        start = Pose(*(float(v) for v in episode.start.as_array()))
+        occupancy = self._city.occupancy(self.cfg.voxel_size)
+        if start.z <= self._city.ground_z or occupancy.is_occupied(start.position[None])[0]:
+            logger.warning(
+                "episode %s starts inside an obstacle or the ground at %s", episode.episode_id, start
+            )
+        self._poses, self._collided, self._done = [start], [], False
+        self._last_obs = self._observe(start)
+        return self._last_obs
+
+    def step(self, action_id: int) -> tuple[Observation, StepInfo]:
+        """Execute one action; under collision policy `end` a colliding step leaves the pose unchanged."""
+        self._require_episode()
+        if self._done:
+            raise RuntimeError(
+                f"episode {self._episode.episode_id} has ended (STOP or collision); call reset()"
+            )
+        action = int(action_id)
+        motion = step_motion(self._poses[-1], action)
+        collided = False
+        if self.cfg.collision != "ignore":
+            collided = motion_collides(self._city.occupancy(self.cfg.voxel_size), motion, self._city.ground_z)
+        blocked = collided and self.cfg.collision == "end"
+        pose = motion.start if blocked else motion.end
+        self._done = action == C.ACTION_STOP or blocked
+        self._poses.append(pose)
+        self._collided.append(collided)
+        if pose != motion.start:
+            self._last_obs = self._observe(pose)
+        info = StepInfo(
+            action=action,
+            collided=collided,
+            done=self._done,
+            extra={
+                "step": len(self._collided),
+                "attempted_pose": motion.end,
+                "out_of_bounds": not bool(self._city.bounds.contains(motion.end.position[None])[0]),
+                "collisions": sum(self._collided),
+            },
+        )
+        return self._last_obs, info
+
+    def render(self, scene_id: str, pose: Pose, pitch_deg: float = 0.0) -> Observation:
+        """A frame of `scene_id` from `pose`, without touching the episode state (used by the toolchain)."""
+        if self._closed:
+            raise RuntimeError("this EmbeddedSimulator is closed")
+        return self._render(self._backend.city(scene_id), pose, pitch_deg)
+
+    def _observe(self, pose: Pose) -> Observation:
+        return self._render(self._city, pose, self._episode.pitch_deg)
+
+    def _render(self, city: City, pose: Pose, pitch_deg: float) -> Observation:
+        out = self._backend.renderer.render(
+            city, pose, pitch_deg, depth=self.cfg.render_depth, ids=self.cfg.return_instance_ids
+        )
+        extra = {"pixel_counts": out.pixel_counts, "scene_id": city.scene_id, "pitch_deg": float(pitch_deg)}
+        if out.instance_ids is not None:
+            extra["instance_ids"] = out.instance_ids
+        return Observation(rgb=out.rgb, pose=pose, boxes=out.boxes, depth=out.depth, extra=extra)
+
+    def close(self) -> None:
+        """Release this simulator; the GL context goes when the last sibling closes."""
+        if self._closed:
+            return
+        self._closed = True
+        self._backend.users -= 1
+        if self._backend.users == 0:
+            self._backend.renderer.close()
+
+    def __enter__(self) -> EmbeddedSimulator:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

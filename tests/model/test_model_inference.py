@@ -1,0 +1,170 @@
+"""Closed-loop inference: batched == one episode at a time, memory updates, KV-cache decoding, compat mode."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from openfly_agent.model.action_tokenizer import CODEBOOK
+from openfly_agent.model.config import (
+    ActionHeadConfig,
+    GroundingConfig,
+    KeyframeConfig,
+    MemoryConfig,
+    PromptConfig,
+)
+from openfly_agent.model.inference import compat_history_indices, greedy_decode
+from openfly_agent.model.sequence import left_pad
+
+INSTRUCTIONS = [
+    "Fly to the red tower and turn left.",
+    "Ascend above the white house, then stop near the blue dome.",
+    "Go straight.",
+]
+
+NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
+
+
+def _memory_agent(make_agent, **overrides):
+    """An untrained agent whose actions change with the image (seed 1, visual tokens amplified), and where
+    every change point yields a keyframe set (all predicted boxes visible, theta = 0)."""
+    agent = make_agent(
+        seed=1,
+        grounding=GroundingConfig(dim=32, num_heads=2, visibility_weight=0.0),
+        keyframes=KeyframeConfig(theta=0.0),
+        **overrides,
+    )
+    with torch.no_grad():
+        agent.projector.fc3.weight.mul_(10.0)
+    return agent
+
+
+def _frames(episodes: int, steps: int, size: int = 56, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    frames = rng.integers(0, 256, (episodes, steps, size, size, 3), dtype=np.uint8)
+    if steps > 3:
+        frames[:, 3] = frames[:, 2]  # a repeated view: its tokens merge into the other one
+    return frames
+
+
+def _obs(episode: int, frame: np.ndarray) -> dict:
+    return {
+        "episode_id": f"ep{episode}",
+        "instruction": INSTRUCTIONS[episode % len(INSTRUCTIONS)],
+        "rgb": frame,
+        "pose": (0.0, 0.0, 10.0, 0.0),
+    }
+
+
+def test_batched_equals_one_episode_at_a_time(make_agent):
+    agent = _memory_agent(make_agent)
+    episodes, steps = 3, 10
+    frames = _frames(episodes, steps)
+    batched = [agent.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]
+    batched_memory = {e: agent.episodes[f"ep{e}"].memory.keys() for e in range(episodes)}
+    assert any(batched_memory.values()), "the scripted run should fill some memory"
+    agent.reset()
+    assert agent.episodes == {}
+    for e in range(episodes):
+        for t in range(steps):
+            (single,) = agent.predict_step([_obs(e, frames[e, t])])
+            assert single.action == batched[t][e].action
+            torch.testing.assert_close(
+                single.action_logits, batched[t][e].action_logits, rtol=1e-4, atol=1e-4
+            )
+            np.testing.assert_allclose(single.box, batched[t][e].box, rtol=1e-4, atol=1e-5)
+        assert agent.episodes[f"ep{e}"].memory.keys() == batched_memory[e]
+
+
+def test_memory_follows_the_keyframe_selector(make_agent):
+    agent = _memory_agent(make_agent)
+    frames = _frames(1, 14, seed=3)
+    for t in range(14):
+        agent.select_action([_obs(0, frames[0, t])])
+        state = agent.episodes["ep0"]
+        expected = agent.keyframe_selector.select(state.actions, state.box_areas, state.step)
+        assert state.memory.keys() == [tuple(s) for s in expected]
+        assert len(state.frame_features) <= agent.keyframe_selector.set_size + 1
+    assert len(agent.episodes["ep0"].memory) > 0
+
+
+def test_black_and_white_images_give_different_action_logits(make_agent):
+    agent = make_agent()
+    size = agent.model_cfg.vision.image_size
+    black = np.zeros((size, size, 3), np.uint8)
+    white = np.full((size, size, 3), 255, np.uint8)
+    results = agent.predict_step(
+        [{**_obs(0, black), "episode_id": "b"}, {**_obs(0, white), "episode_id": "w"}]
+    )
+    assert (results[0].action_logits - results[1].action_logits).abs().max() > 1e-3
+
+
+def test_reset_and_errors(make_agent):
+    agent = make_agent()
+    frame = _frames(1, 1)[0, 0]
+    agent.select_action([_obs(0, frame), _obs(1, frame)])
+    agent.reset(["ep0"])
+    assert set(agent.episodes) == {"ep1"}
+    with pytest.raises(ValueError, match="appears twice"):
+        agent.select_action([_obs(1, frame), _obs(1, frame)])
+    with pytest.raises(ValueError, match="changed its instruction"):
+        agent.select_action([{**_obs(1, frame), "instruction": "something else"}])
+    with pytest.raises(ValueError, match="lacks"):
+        agent.select_action([{"episode_id": "x", "rgb": frame}])
+    assert agent.select_action([]) == []
+
+
+def test_kv_cache_decoding_equals_full_recompute(make_agent):
+    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    torch.manual_seed(1)
+    rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
+    embeds, mask = left_pad(rows)
+    out = agent.run_llm(embeds, mask, use_cache=True)
+    cached = greedy_decode(agent, agent.lm_logits(out.last_hidden_state[:, -1]), mask, out.past_key_values, 8)
+    seq, seq_mask, tokens = embeds, mask, []
+    for _ in range(8):
+        token = agent.lm_logits(agent.run_llm(seq, seq_mask).last_hidden_state[:, -1]).argmax(-1)
+        tokens.append(token)
+        seq = torch.cat([seq, agent.embed_text(token[:, None])], dim=1)
+        seq_mask = torch.cat([seq_mask, seq_mask.new_ones(3, 1)], dim=1)
+    assert torch.equal(cached, torch.stack(tokens, dim=1))
+
+
+def test_bins_head_select_action(make_agent):
+    agent = make_agent(
+        action_head=ActionHeadConfig(type="openvla_bins", decode_rule="nearest"), norm_stats=NORM_STATS
+    )
+    frames = _frames(2, 3)
+    for t in range(3):
+        results = agent.predict_step([_obs(e, frames[e, t]) for e in range(2)])
+        assert all(0 <= r.action <= 9 and r.action_logits.shape == (8,) for r in results)
+
+
+def test_compat_history_indices():
+    assert compat_history_indices(0, 2) == [0, 0]
+    assert compat_history_indices(1, 2) == [0, 0]  # eval: [f0, f0, f1]
+    assert compat_history_indices(2, 2) == [0, 1]
+    assert compat_history_indices(7, 2) == [5, 6]
+
+
+def test_compat_mode_runs_the_released_layout(make_agent):
+    agent = make_agent(
+        mode="openvla_compat",
+        memory=MemoryConfig(capacity=2, grid=4),
+        prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
+        action_head=ActionHeadConfig(type="openvla_bins"),
+        norm_stats=NORM_STATS,
+    )
+    frames = _frames(1, 4)
+    for t in range(4):
+        (result,) = agent.predict_step([_obs(0, frames[0, t])])
+        assert 0 <= result.action <= 9
+    state = agent.episodes["ep0"]
+    assert state.prompt_ids[-1] == 5 and state.prompt_ids[0] == agent.tokenizer.bos_token_id
+    assert sorted(state.history_tokens) == [0, 2, 3]  # frame 0 (padding) + the last K frames
+    # history token = projector(DINO CLS ++ pooled SigLIP patches), one per frame
+    pixels = agent.image_transform(frames[0, 3])[None]
+    patches, cls = agent.vision_backbone.forward_with_cls(pixels)
+    manual = agent.projector(torch.cat([cls, patches[..., agent.vision_backbone.dino_dim :].mean(1)], -1))
+    torch.testing.assert_close(state.history_tokens[3], manual[0], rtol=1e-5, atol=1e-5)

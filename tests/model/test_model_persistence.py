@@ -1,0 +1,164 @@
+"""save_pretrained -> from_pretrained equality, sharding, freeze stages, LoRA attach / save / merge."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from openfly_agent.model.action_tokenizer import CODEBOOK
+from openfly_agent.model.agent import OpenFlyAgent
+from openfly_agent.model.config import ActionHeadConfig, LoraSettings
+from openfly_agent.model.freeze import FREEZE_STAGES
+from openfly_agent.model.lora import attach_lora, has_lora, load_lora_adapter, merge_lora, save_lora_adapter
+
+NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
+
+
+def _logits(agent, batch) -> torch.Tensor:
+    """Full-vocabulary logits at every position of the training layout (eval mode, no grad)."""
+    from openfly_agent.model.sequence import splice_after_bos
+
+    with torch.no_grad():
+        visual, visual_mask = agent.encode_visual(batch)
+        embeds, mask, _ = splice_after_bos(
+            agent.embed_text(batch["input_ids"]), batch["attention_mask"], None, visual, visual_mask
+        )
+        return agent.lm_logits(agent.run_llm(embeds, mask).last_hidden_state)
+
+
+def test_save_load_gives_identical_logits(make_agent, make_batch, tmp_path):
+    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    batch = make_batch(agent)
+    agent.save_pretrained(tmp_path)
+    files = {p.name for p in tmp_path.iterdir()}
+    assert {"config.json", "model.safetensors", "action_tokenizer.json", "dataset_statistics.json"} <= files
+    assert "tokenizer.json" in files
+    config = json.loads((tmp_path / "config.json").read_text())
+    assert config["model_type"] == "openfly_agent" and config["norm_stats"] == NORM_STATS
+    assert config["agent"]["action_head"]["type"] == "openvla_bins"
+
+    loaded = OpenFlyAgent.from_pretrained(tmp_path).eval()
+    assert loaded.tokenizer is not None and len(loaded.tokenizer) == len(agent.tokenizer)
+    assert loaded.model_cfg == agent.model_cfg
+    own, other = agent.state_dict(), loaded.state_dict()
+    assert own.keys() == other.keys()
+    assert all(torch.equal(own[k], other[k]) for k in own)
+    assert torch.equal(_logits(agent, batch), _logits(loaded, batch))
+    assert agent(batch)[1] == loaded(batch)[1]
+    assert [loaded.action_tokenizer.action_to_token_ids(a) for a in range(10)] == [
+        agent.action_tokenizer.action_to_token_ids(a) for a in range(10)
+    ]
+
+
+def test_sharded_save_loads(make_agent, make_batch, tmp_path):
+    agent = make_agent()
+    agent.save_pretrained(tmp_path, max_shard_size="200KB")
+    assert (tmp_path / "model.safetensors.index.json").is_file()
+    assert len(list(tmp_path.glob("model-*.safetensors"))) > 1
+    loaded = OpenFlyAgent.from_pretrained(tmp_path).eval()
+    batch = make_batch(agent)
+    assert torch.equal(_logits(agent, batch), _logits(loaded, batch))
+
+
+def test_loaded_agent_acts_like_the_saved_one(make_agent, tmp_path):
+    agent = make_agent()
+    agent.save_pretrained(tmp_path)
+    loaded = OpenFlyAgent.from_pretrained(tmp_path).eval()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        obs = [
+            {
+                "episode_id": "a",
+                "instruction": "Go to the tower.",
+                "rgb": rng.integers(0, 256, (80, 60, 3), np.uint8),
+            }
+        ]
+        ours, theirs = agent.predict_step(obs)[0], loaded.predict_step(obs)[0]
+        assert ours.action == theirs.action
+        # bit-identical weights; memory-mapped tensors may take other SIMD paths (~1e-8 differences)
+        torch.testing.assert_close(ours.action_logits, theirs.action_logits, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("stage", FREEZE_STAGES)
+def test_freeze_stages(make_agent, stage):
+    agent = make_agent()
+    if stage == "lora":
+        attach_lora(agent, LoraSettings(rank=4, alpha=8))
+    counts = agent.freeze(stage)
+    trains = {name: p.requires_grad for name, p in agent.named_parameters()}
+
+    def part(prefix):
+        return {trains[n] for n in trains if n.startswith(prefix)}
+
+    expected = {
+        "full": ({True}, {True}, {True}, {True}),
+        "frozen_vision": ({False}, {True}, {True}, {True}),
+        "heads_only": ({False}, {False}, {True, False}, {True}),
+        "lora": ({False}, {True}, {True, False}, {True}),
+    }[stage]
+    assert (
+        part("vision_backbone."),
+        part("projector."),
+        part("language_model."),
+        part("grounding_head."),
+    ) == expected
+    if stage == "heads_only":
+        assert [n for n in trains if n.startswith("language_model.") and trains[n]] == [
+            "language_model.lm_head.weight"
+        ]
+    if stage == "lora":
+        assert all("lora_" in n for n in trains if n.startswith("language_model.") and trains[n])
+    assert sum(counts.values()) == sum(p.numel() for p in agent.parameters() if p.requires_grad)
+
+
+def test_freeze_errors(make_agent):
+    agent = make_agent()
+    with pytest.raises(ValueError, match="unknown freeze stage"):
+        agent.freeze("everything")
+    with pytest.raises(ValueError, match="needs LoRA adapters"):
+        agent.freeze("lora")
+
+
+def test_lora_merge_equals_unmerged_and_adapter_round_trip(make_agent, make_batch, tmp_path):
+    agent = make_agent()
+    batch = make_batch(agent)
+    base_logits = _logits(agent, batch)
+    agent.save_pretrained(tmp_path / "base")
+    attach_lora(agent, LoraSettings(rank=4, alpha=8))
+    with torch.no_grad():  # peft starts B at zero (a no-op); make the adapter do something
+        for name, param in agent.named_parameters():
+            if "lora_B" in name:
+                param.normal_(std=0.05)
+        agent.projector.fc3.bias.add_(0.1)
+    unmerged = _logits(agent, batch)
+    assert not torch.allclose(unmerged, base_logits, atol=1e-4)
+    with pytest.raises(ValueError, match="LoRA is attached"):
+        agent.save_pretrained(tmp_path / "nope")
+
+    save_lora_adapter(agent, tmp_path / "run")
+    reloaded = load_lora_adapter(OpenFlyAgent.from_pretrained(tmp_path / "base").eval(), tmp_path / "run")
+    torch.testing.assert_close(_logits(reloaded, batch), unmerged, rtol=1e-5, atol=1e-5)
+
+    merge_lora(agent)
+    assert not has_lora(agent)
+    assert not any("lora_" in k for k in agent.state_dict())
+    torch.testing.assert_close(_logits(agent, batch), unmerged, rtol=1e-4, atol=1e-4)
+    agent.save_pretrained(tmp_path / "merged")
+    merged = OpenFlyAgent.from_pretrained(tmp_path / "merged").eval()
+    assert torch.equal(_logits(merged, batch), _logits(agent, batch))
+
+
+def test_auto_model_registration(make_agent, tmp_path):
+    from transformers import AutoModel
+
+    from openfly_agent.model import OpenFlyAgent as Lazy
+    from openfly_agent.model import register_auto_classes
+
+    assert Lazy is OpenFlyAgent
+    make_agent().save_pretrained(tmp_path)
+    register_auto_classes()
+    loaded = AutoModel.from_pretrained(tmp_path)
+    assert isinstance(loaded, OpenFlyAgent)
