@@ -39,10 +39,17 @@ def _png(rgb: np.ndarray) -> bytes:
     return cv2.imencode(".png", rgb[..., ::-1])[1].tobytes()
 
 
-def write_release_parquet(path: Path, frames: list[np.ndarray], corrupt_row: int | None = None) -> None:
-    """Columns and types as in the released files (reference/openfly.md 1.3); no extra columns."""
+def write_release_parquet(
+    path: Path, frames: list[np.ndarray], corrupt_row: int | None = None, stem_in_image_id: bool = False
+) -> None:
+    """Columns and types as in the released files (reference/openfly.md 1.3); no extra columns.
+
+    `stem_in_image_id`: no image path, and `image_id` already holds the whole `<stamp>_<k>` stem.
+    """
     stamp = "20250119_070457"
     image = [{"bytes": _png(f), "path": f"{stamp}_{k}.png"} for k, f in enumerate(frames)]
+    if stem_in_image_id:
+        image = [{"bytes": i["bytes"], "path": None} for i in image]
     if corrupt_row is not None:
         image[corrupt_row]["bytes"] = image[corrupt_row]["bytes"][:40]
     table = pa.table(
@@ -55,7 +62,7 @@ def write_release_parquet(path: Path, frames: list[np.ndarray], corrupt_row: int
             "env_id": [ENV_ID] * len(RAW_ROWS),
             "traj_id": [TRAJ_ID] * len(RAW_ROWS),
             "frame_index": list(range(len(RAW_ROWS))),
-            "image_id": [stamp] * len(RAW_ROWS),
+            "image_id": [f"{stamp}_{k}" if stem_in_image_id else stamp for k in range(len(RAW_ROWS))],
         }
     )
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -75,12 +82,14 @@ def _annotation(root: Path) -> None:
     (root / "Annotation" / "train.json").write_text(json.dumps([record]))
 
 
-@pytest.mark.parametrize("file_name", [TRAJ_ID, "2025-01-19_07-04-57_654899"])
-def test_release_parquet_frames_are_pixel_exact(tmp_path, file_name):
+@pytest.mark.parametrize(
+    ("file_name", "stem_in_image_id"),
+    [(TRAJ_ID, False), ("2025-01-19_07-04-57_654899", False), (TRAJ_ID, True)],
+)
+def test_release_parquet_frames_are_pixel_exact(tmp_path, file_name, stem_in_image_id):
     frames = make_frames(len(RAW_ROWS), height=10, width=14, seed=4)
-    write_release_parquet(
-        tmp_path / "traj" / "env_airsim_18/astar_data/low_short_updown" / f"{file_name}.parquet", frames
-    )
+    folder = tmp_path / "traj" / "env_airsim_18/astar_data/low_short_updown"
+    write_release_parquet(folder / f"{file_name}.parquet", frames, stem_in_image_id=stem_in_image_id)
     _annotation(tmp_path)
     episode = load_openfly_dataset(tmp_path, "train", ReaderOptions(takeoff_landing="keep"))[0]
     store = FrameStore(tmp_path)

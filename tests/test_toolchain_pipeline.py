@@ -6,8 +6,10 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from toolchain_scene import BUILDINGS, box_surface_points
 
 from openfly_agent import constants as C
 from openfly_agent.sim import dynamics
@@ -43,7 +45,6 @@ from openfly_agent.toolchain.scenes import (
 )
 from openfly_agent.toolchain.summary import summarize_records
 from openfly_agent.toolchain.voxel_map import dilate_grid
-from toolchain_scene import BUILDINGS, box_surface_points
 
 TINY = SceneConfig(
     city_size_m=300, city_buildings=30, train_seeds=[0, 2], unseen_seeds=[1], trajectories_per_scene=10
@@ -178,8 +179,8 @@ def test_summary_counts(tmp_path):
         {"status": "ok", "split": "train", "scene_id": "embedded-0", "category": "low_short", "kind": "astar",
          "instruction": "Fly forward to the red tower and stop near it.", "actions": [9, 2, 1, 0],
          "flight_height_m": 12.0, "path_length_m": 15.0},
-        {"status": "ok", "split": "test_unseen", "scene_id": "embedded-1", "category": "high_long", "kind": "dagger",
-         "instruction": "Turn left, then stop at the blue house.", "actions": [2, 9, 9, 0],
+        {"status": "ok", "split": "test_unseen", "scene_id": "embedded-1", "category": "high_long",
+         "kind": "dagger", "instruction": "Turn left, then stop at the blue house.", "actions": [2, 9, 9, 0],
          "flight_height_m": 31.0, "path_length_m": 18.0},
         {"status": "rejected", "reason": "no_route"},
         {"status": "rejected", "reason": "no_route"},
@@ -187,7 +188,8 @@ def test_summary_counts(tmp_path):
     s = summarize_records(records)
     assert s["trajectories"] == 2 and s["attempts"] == 4 and s["rejected"] == {"no_route": 2}
     assert s["per_split"] == {"test_unseen": 1, "train": 1} and s["dagger_episodes"] == 1
-    words = set("fly forward to the red tower and stop near it turn left then at blue house".split())
+    words = {"fly", "forward", "to", "the", "red", "tower", "and", "stop", "near", "it"}
+    words |= {"turn", "left", "then", "at", "blue", "house"}
     assert s["vocabulary_size"] == len(words)
     assert s["instruction_words"]["mean"] == pytest.approx((10 + 8) / 2)
     assert s["action_histogram"] == {"stop": 2, "forward": 1, "turn left": 2, "forward 9": 3}
@@ -220,15 +222,19 @@ def test_official_env_yaml_becomes_map_and_route_settings(openfly_fixtures):
 
 
 def _small_env_yaml(path, name="env_airsim_77", ratio=1.0):
-    path.write_text(
-        "datagen:\n  env: \"%s\"\n  data_type: \"low_short\"\n  freq: 2\n"
-        "traj_map:\n  DilateRadius: 3\n  VoxelWidth: 2\n  MapBound: [-150, 150, -150, 150, -10, 100]\n"
-        "  LidarDelta: [50, 50, 50]\n  pcd_scale_ratio: %s\n  traj_scale_ratio: 1\n  map_elevation: 0\n"
-        "  min_height_thresh: 6\nseg_map:\n  bev_voxel_size: 2\nthread_params:\n  - name: t\n    nums: 5\n"
-        "    min_dis: 60\n    max_dis: 90\n    height_min: 5\n    height_max: 20\n    aim_port: 1\n"
-        "    listen_port: 2\n    sim_ip: \"127.0.0.1\"\n    sim_port: 3\n    aimlandmark_nums: 1\n"
-        "    add_takeoff_land: false\n    with_turn: false\n" % (name, ratio)
-    )  # fmt: skip
+    """An env yaml in the official layout with a 300 m planning volume (the fixtures' are kilometres)."""
+    thread = {"name": "t", "nums": 5, "min_dis": 60, "max_dis": 90, "height_min": 5, "height_max": 20,
+              "aim_port": 1, "listen_port": 2, "sim_ip": "127.0.0.1", "sim_port": 3, "aimlandmark_nums": 1,
+              "add_takeoff_land": False, "with_turn": False}  # fmt: skip
+    data = {
+        "datagen": {"env": name, "data_type": "low_short", "freq": 2},
+        "traj_map": {"DilateRadius": 3, "VoxelWidth": 2, "MapBound": [-150, 150, -150, 150, -10, 100],
+                     "LidarDelta": [50, 50, 50], "pcd_scale_ratio": ratio, "traj_scale_ratio": 1,
+                     "map_elevation": 0, "min_height_thresh": 6},
+        "seg_map": {"bev_voxel_size": 2},
+        "thread_params": [thread],
+    }  # fmt: skip
+    path.write_text(yaml.safe_dump(data))
     return path
 
 

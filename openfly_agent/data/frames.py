@@ -15,7 +15,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from openfly_agent import constants as C
-from openfly_agent.data.parquet_io import FRAME_KEY_COLUMNS, row_frame_key
+from openfly_agent.data.parquet_io import FRAME_KEY_COLUMNS, row_frame_keys
 from openfly_agent.data.schema import Episode, SchemaError
 
 logger = logging.getLogger(__name__)
@@ -73,8 +73,8 @@ class FrameStore:
     else a parquet in `<root>/traj/<episode_id's folder>/` whose `env_id`/`traj_id` columns name the
     episode (released file names need not equal `image_path`); else image files
     `<root>/{images,image}/<episode_id>/<frame_id>.{png,jpg,jpeg}`. Parquet rows are matched to
-    `frame_ids` by the image path stem or `<image_id>_<frame_index>`, so files holding every raw frame
-    work too.
+    `frame_ids` by the image path stem, `<image_id>_<frame_index>` or `image_id` (parquet_io.row_frame_keys),
+    so files holding every raw frame work too.
 
     Args:
         root: the dataset root.
@@ -148,8 +148,7 @@ class FrameStore:
         rows = table.to_pylist()
         by_key = {}
         for r, row in enumerate(rows):
-            key = row_frame_key(row)
-            if key is not None:
+            for key in row_frame_keys(row):
                 by_key.setdefault(key, r)
         blobs, row_ids = [], []
         for t, frame_id in enumerate(episode.frame_ids):

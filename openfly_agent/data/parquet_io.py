@@ -174,14 +174,21 @@ def _row_pose(row: dict, path: str, r: int) -> tuple[list[float], float]:
     return list(pos[:3]), float(yaw)
 
 
-def row_frame_key(row: dict) -> str | None:
-    """The `index_list` stem of a parquet row: the image path's stem, else `<image_id>_<frame_index>`."""
+def row_frame_keys(row: dict) -> list[str]:
+    """Names under which a parquet row may appear in `index_list`, most specific first.
+
+    The image path's stem, `<image_id>_<frame_index>`, and `image_id` alone (in case it already ends in
+    `_<k>`); empty when the row has none of these columns.
+    """
+    keys = []
     image = row.get("image") or {}
     if image.get("path"):
-        return Path(str(image["path"]).replace("\\", "/")).stem
+        keys.append(Path(str(image["path"]).replace("\\", "/")).stem)
     if row.get("image_id") is not None and row.get("frame_index") is not None:
-        return f"{row['image_id']}_{int(row['frame_index'])}"
-    return None
+        keys.append(f"{row['image_id']}_{int(row['frame_index'])}")
+    if row.get("image_id") is not None:
+        keys.append(str(row["image_id"]))
+    return keys
 
 
 def read_parquet_episode(path: str | Path, instruction: str | None = None) -> Episode:
@@ -209,7 +216,7 @@ def read_parquet_episode(path: str | Path, instruction: str | None = None) -> Ep
         pos, yaw = _row_pose(row, path, r)
         positions.append(pos)
         yaws.append(yaw)
-        frame_ids.append(row_frame_key(row) or str(r))
+        frame_ids.append((row_frame_keys(row) or [str(r)])[0])
     boxes = visible = None
     if "box_visible" in rows[0]:
         visible = np.array([bool(row["box_visible"]) for row in rows])

@@ -68,6 +68,8 @@ class OpenFlyDatasetWriter:
         self.image_format = image_format
         self._ext = IMAGE_FORMATS[image_format]
         self._part_of: dict[str, Path] | None = None  # episode id -> part file, loaded on first use
+        # part file -> {episode id: record as JSON text}; a part is rewritten without re-encoding old records
+        self._part_text: dict[Path, dict[str, str]] = {}
 
     # --- paths ---------------------------------------------------------------------------------------
     def trajectory_path(self, episode_id: str) -> Path:
@@ -136,16 +138,30 @@ class OpenFlyDatasetWriter:
         if len(shapes) != 1:
             raise SchemaError(eid, eid, "frames", f"frames differ in shape: {sorted(shapes)}")
 
+    def _records_text(self, part: Path) -> dict[str, str]:
+        if part not in self._part_text:
+            records = _read_records(part) if part.is_file() else []
+            self._part_text[part] = {r.get("image_path"): json.dumps(r, ensure_ascii=False) for r in records}
+        return self._part_text[part]
+
+    def _write_part(self, part: Path) -> None:
+        part.parent.mkdir(parents=True, exist_ok=True)
+        tmp = part.with_name(f".{part.name}.tmp")
+        tmp.write_text("[" + ",\n".join(self._records_text(part).values()) + "]\n", encoding="utf-8")
+        tmp.replace(part)
+
     def _put_record(self, record: dict, part: Path) -> None:
+        """Add (or replace) `record` in `part`, rewriting the file atomically (tmp + rename)."""
         index = self._part_index()
         episode_id = record["image_path"]
         old_part = index.get(episode_id)
         if old_part is not None and old_part != part:  # the episode moved split: drop the old record
-            kept = [r for r in _read_records(old_part) if r.get("image_path") != episode_id]
-            write_json_atomic(old_part, kept)
-        records = _read_records(part) if part.is_file() else []
-        records = [r for r in records if r.get("image_path") != episode_id] + [record]
-        write_json_atomic(part, records)
+            self._records_text(old_part).pop(episode_id, None)
+            self._write_part(old_part)
+        texts = self._records_text(part)
+        texts.pop(episode_id, None)
+        texts[episode_id] = json.dumps(record, ensure_ascii=False)
+        self._write_part(part)
         index[episode_id] = part
 
     # --- finalize ------------------------------------------------------------------------------------

@@ -34,10 +34,19 @@ def _config_args(args: list[str]) -> list[str]:
 
 
 def _parse_generate(args: list[str]):
+    """GenerateConfig from YAML + overrides; a bad value exits with the message that names the field."""
+    import draccus
+
     from openfly_agent.toolchain.config import GenerateConfig
     from openfly_agent.utils.config import parse_config
 
-    return parse_config(GenerateConfig, _config_args(args))
+    try:
+        return parse_config(GenerateConfig, _config_args(args))
+    except draccus.utils.ParsingError as err:
+        cause = err.__cause__
+        while cause is not None and cause.__cause__ is not None and not isinstance(cause, ValueError):
+            cause = cause.__cause__
+        raise SystemExit(f"bad generate config: {cause or err}") from None
 
 
 def cmd_generate(args: list[str]) -> None:

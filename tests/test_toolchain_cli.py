@@ -1,0 +1,50 @@
+"""The toolchain command line and its shipped configs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from openfly_agent.toolchain.__main__ import _config_args, main
+from openfly_agent.toolchain.config import GenerateConfig
+from openfly_agent.utils.config import load_yaml_config
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "toolchain"
+
+
+@pytest.mark.parametrize("name", ["embedded-small", "embedded-100k"])
+def test_shipped_configs_load_and_keep_unseen_scenes_apart(name):
+    cfg = load_yaml_config(GenerateConfig, CONFIGS / f"{name}.yaml")
+    assert not set(cfg.scenes.train_seeds) & set(cfg.scenes.unseen_seeds)
+    assert cfg.instructions.backend == "template" and cfg.workers >= 1
+    attempts = cfg.scenes.trajectories_per_scene * (
+        len(cfg.scenes.train_seeds) + len(cfg.scenes.unseen_seeds)
+    )
+    assert (800 <= attempts <= 2000) if name == "embedded-small" else attempts >= 100_000
+
+
+def test_config_flag_aliases_and_overrides():
+    assert _config_args(["--config", "a.yaml", "--config=b.yaml", "--x=1"]) == [
+        "--config_path",
+        "a.yaml",
+        "--config_path=b.yaml",
+        "--x=1",
+    ]
+    cfg = load_yaml_config(
+        GenerateConfig, CONFIGS / "embedded-small.yaml", ["--shard=1/4", "--render.width=96"]
+    )
+    assert cfg.shard == "1/4" and cfg.render.width == 96
+
+
+def test_bad_config_values_name_the_field():
+    config = str(CONFIGS / "embedded-small.yaml")
+    with pytest.raises(SystemExit, match="instructions.backend must be 'template' or 'vlm'"):
+        main(["generate", "--config", config, "--instructions.backend=gpt"])
+    with pytest.raises(SystemExit, match="route.chain_prob must be a probability"):
+        main(["generate", "--config", config, "--route.chain_prob=2"])
+
+
+def test_unknown_command_prints_usage():
+    with pytest.raises(SystemExit, match="usage"):
+        main(["train"])
