@@ -82,7 +82,9 @@ def test_result_identity_tracks_what_changes_results():
     assert a.result_identity("stop") == b.result_identity("stop")  # batch size and plots never change results
 
 
-@pytest.mark.parametrize("name", ["embedded", "baselines", "released-unrealcv", "released-airsim", "released-gs"])
+@pytest.mark.parametrize(
+    "name", ["embedded", "baselines", "released-unrealcv", "released-airsim", "released-gs"]
+)
 def test_shipped_configs_parse(name):
     from pathlib import Path
 

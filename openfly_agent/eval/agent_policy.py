@@ -116,7 +116,11 @@ def _released_model_config(settings: AgentSettings):
     from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
     from openfly_agent.utils.config import load_yaml_config
 
-    cfg = load_yaml_config(ModelConfig, settings.model_config) if settings.model_config else openvla_compat_7b_config()
+    cfg = (
+        load_yaml_config(ModelConfig, settings.model_config)
+        if settings.model_config
+        else openvla_compat_7b_config()
+    )
     head = cfg.action_head
     head = dataclasses.replace(
         head,
@@ -142,7 +146,11 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     dtype = resolve_dtype(settings.dtype, device)
     if checkpoint_kind(folder) == "openvla":
         agent, report = agent_from_openvla_checkpoint(
-            folder, _released_model_config(settings), tokenizer=load_tokenizer(folder), device=device, dtype=dtype
+            folder,
+            _released_model_config(settings),
+            tokenizer=load_tokenizer(folder),
+            device=device,
+            dtype=dtype,
         )
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()

@@ -69,7 +69,9 @@ class AgentSettings:
     unnorm_key: str | None = None  # openvla_bins head: norm-stats key (released model: vlnv1 or vln_norm)
     decode_rule: str | None = None  # openvla_bins head: exact | nearest; None = the checkpoint's setting
     dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on CUDA) | float32 | bfloat16 | float16
-    model_config: str | None = None  # released (OpenVLA-format) folders: ModelConfig YAML; None = 7B compat preset
+    model_config: str | None = (
+        None  # released (OpenVLA-format) folders: ModelConfig YAML; None = 7B compat preset
+    )
 
     def __post_init__(self) -> None:
         if self.decode_rule is not None and self.decode_rule not in DECODE_RULES:

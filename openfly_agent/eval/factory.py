@@ -9,9 +9,10 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
+from openfly_agent.eval.baselines import make_baseline
 from openfly_agent.eval.config import EvalConfig, SimSettings
 from openfly_agent.eval.distributed import ProcessInfo
-from openfly_agent.eval.slots import SimulatorSlots
+from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
 from openfly_agent.utils.errors import RecordError
 
 logger = logging.getLogger(__name__)
@@ -129,3 +130,59 @@ def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
         config = dataclasses.replace(config, port=port)
     logger.info("%s bridge at %s:%s", settings.type, config.host, config.port or bridge_cls.default_port)
     return _BridgeSlots(bridge_cls(config), settings)
+
+
+def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
+    """`EmbeddedSimConfig` that rebuilds the dataset's cities at its frame size, counting collisions.
+
+    Frame size: `sim.width/height`, else the toolchain config of the dataset, else its first frame, else
+    224. City parameters and the collision voxel come from the toolchain config (defaults otherwise).
+    """
+    from openfly_agent.sim.city import CityConfig
+    from openfly_agent.sim.embedded import EmbeddedSimConfig
+
+    generated = toolchain_settings(cfg.dataset_root)
+    size = None
+    if "width" in generated and "height" in generated:
+        size = (generated["height"], generated["width"])
+    elif cfg.sim.width is None or cfg.sim.height is None:
+        size = dataset_frame_size(cfg.dataset_root, episodes)
+    height = cfg.sim.height or (size[0] if size else DEFAULT_FRAME_SIZE)
+    width = cfg.sim.width or (size[1] if size else DEFAULT_FRAME_SIZE)
+    city = CityConfig(size_m=generated.get("city_size_m", CityConfig.size_m))
+    if "city_buildings" in generated:
+        city = dataclasses.replace(city, n_buildings=int(generated["city_buildings"]))
+    voxel = float(generated.get("collision_voxel_m", 2.0))
+    return EmbeddedSimConfig(
+        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel
+    )
+
+
+def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True) -> SlotEnv:
+    """Lockstep slots of `cfg.sim`: `batch_size` embedded environments (rendering or blind), or a bridge."""
+    if cfg.sim.type != "embedded":
+        if cfg.batch_size > 1:
+            logger.info("%s: one engine per process, so episodes run one at a time", cfg.sim.type)
+        return make_bridge_env(cfg.sim, info)
+    sim_cfg = embedded_sim_config(cfg, episodes)
+    if not render:
+        from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
+
+        cities = CityCache(sim_cfg)
+        return SimulatorSlots([BlindEmbeddedSimulator(sim_cfg, cities) for _ in range(cfg.batch_size)])
+    from openfly_agent.sim.vector import VectorSimulator
+
+    logger.info(
+        "embedded simulator: %d x %d px, %d environments", sim_cfg.width, sim_cfg.height, cfg.batch_size
+    )
+    return VectorSlots(VectorSimulator.embedded(sim_cfg, num_envs=cfg.batch_size))
+
+
+def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: ProcessInfo):
+    """The policy called `name`: the agent of `cfg.checkpoint`, or a baseline."""
+    if name != "agent":
+        return make_baseline(name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode)
+    from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
+
+    device = resolve_device(cfg.device, getattr(info.state, "device", None))
+    return AgentPolicy(load_agent(cfg.checkpoint, cfg.agent, device))

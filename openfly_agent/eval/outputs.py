@@ -101,14 +101,18 @@ def write_policy_outputs(
     records: list[EpisodeRecord],
     folder: Path,
     episodes_by_split: dict[str, list[Episode]],
+    city_config=None,
 ) -> dict:
-    """results.json + results.md (+ plots) of one policy, all computed from `records`; returns the results."""
+    """results.json + results.md (+ plots) of one policy, all computed from `records`; returns the results.
+
+    `city_config` is the `CityConfig` of the embedded scenes (building footprints on the plots).
+    """
     results = policy_results(policy, records, cfg.profiles, run_meta(cfg, policy))
     write_text_atomic(folder / C.RESULTS_JSON, json.dumps(results, indent=2) + "\n")
     write_text_atomic(folder / C.RESULTS_MD, results_markdown(results) + "\n")
     if cfg.plots:
         episodes = {(split, e.episode_id): e for split, eps in episodes_by_split.items() for e in eps}
-        write_plots(cfg, records, folder, episodes)
+        write_plots(cfg, records, folder, episodes, city_config)
     return results
 
 

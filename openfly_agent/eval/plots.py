@@ -30,6 +30,7 @@ class Footprint:
     ymax: float
     height_m: float = 0.0
     landmark_id: str = ""
+    kind: str = "building"  # building | tree
 
 
 def safe_name(episode_id: str) -> str:

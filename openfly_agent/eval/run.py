@@ -116,42 +116,43 @@ def run(cfg: EvalConfig) -> dict:
     Every process runs its shard; only rank 0 merges, writes reports and returns the tables (other ranks
     return an empty dict).
     """
-    from openfly_agent.eval.factory import load_splits, make_env, make_policy
+    from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
 
     info = process_info()
     root = Path(cfg.output_dir)
     episodes_by_split = load_splits(cfg)
     all_episodes = [e for eps in episodes_by_split.values() for e in eps]
-    env = make_env(cfg, cfg.dataset_root)
+    envs: dict[bool, SlotEnv] = {}  # rendering or blind (baselines never look at frames)
     try:
         for name in cfg.policies:
             folder = root / name
             prepare_output(folder, cfg.result_identity(name), cfg.overwrite, info)
             policy = make_policy(name, cfg, all_episodes, info)
-            stats = evaluate_policy(cfg, policy, episodes_by_split, env, folder, info)
+            render = bool(policy.needs_frames or cfg.gif_episodes)
+            if render not in envs:
+                envs[render] = make_env(cfg, info, all_episodes, render=render)
+            stats = evaluate_policy(cfg, policy, episodes_by_split, envs[render], folder, info)
             logger.info(
                 "%s: %d episodes, %d steps, simulator %.1f s, policy %.1f s",
-                name,
-                stats.episodes,
-                stats.steps,
-                stats.sim_s,
-                stats.policy_s,
-            )
+                name, stats.episodes, stats.steps, stats.sim_s, stats.policy_s,
+            )  # fmt: skip
             del policy
     finally:
-        env.close()
+        for env in envs.values():
+            env.close()
     info.wait()
     if not info.is_main:
         return {}
     all_results = {}
     wanted = expected_keys(episodes_by_split)
+    city = embedded_sim_config(cfg, all_episodes).city if cfg.sim.type == "embedded" else None
     for name in cfg.policies:
         records = [r for r in merge_logs(root / name) if r.key in wanted]
         if len(records) != len(wanted):
             raise RuntimeError(
                 f"{root / name}: {len(wanted) - len(records)} episodes have no record after the run"
             )
-        all_results[name] = write_policy_outputs(cfg, name, records, root / name, episodes_by_split)
+        all_results[name] = write_policy_outputs(cfg, name, records, root / name, episodes_by_split, city)
     summary = write_summary(cfg, list(all_results.values()), root)
     return {"summary_markdown": summary, "results": all_results, "output_dir": str(root)}
 

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from openfly_agent.eval.plots import Footprint
 
 
 def scene_footprints(scene_id: str, city_config=None) -> list[Footprint]:
-    """Footprints of every building of an `embedded-<seed>` scene; [] for other scenes.
+    """Footprints of every building and tree of an `embedded-<seed>` scene; [] for other scenes.
 
     Args:
         scene_id: the episode's scene id.
@@ -18,13 +20,21 @@ def scene_footprints(scene_id: str, city_config=None) -> list[Footprint]:
     if not scene_id.startswith(SCENE_PREFIX):
         return []
     city = generate_city(parse_scene_id(scene_id), city_config)
-    return [
+    buildings = [
         Footprint(
             float(b.lo[0]), float(b.lo[1]), float(b.hi[0]), float(b.hi[1]),
             height_m=float(b.hi[2]), landmark_id=b.landmark_id,
         )
         for b in city.buildings
     ]  # fmt: skip
+    trees = []
+    for tree in city.trees:  # obstacles too: the union of trunk and canopy boxes
+        lo = np.min([part.lo for part in tree.parts], axis=0)
+        hi = np.max([part.hi for part in tree.parts], axis=0)
+        trees.append(
+            Footprint(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), float(hi[2]), kind="tree")
+        )
+    return buildings + trees
 
 
 class FootprintCache:
