@@ -78,6 +78,8 @@ class ModelReleaseConfig:
         output_dir: Release folder to write; default `outputs/releases/<name>`.
         results: Eval results JSON (eval.py's `results.json`) for the card's `model-index`; optional.
         lora: For LoRA checkpoints: `merged` (full weights) or `adapter` (adapter weights + base reference).
+        base_checkpoint: Base weights of a LoRA checkpoint (folder or Hub id, ours or OpenVLA); default the
+            `init.checkpoint` recorded in its train_config.json.
         max_shard_size: Weights above this size are split into shards + index (transformers notation, "5GB").
         push: Upload the folder after writing it.
         private: Create the repo private (only when it does not exist yet).
@@ -92,6 +94,7 @@ class ModelReleaseConfig:
     output_dir: str | None = None
     results: str | None = None
     lora: str = "merged"
+    base_checkpoint: str | None = None
     max_shard_size: str = DEFAULT_MAX_SHARD_SIZE
     push: bool = False
     private: bool = False

@@ -56,6 +56,7 @@ class ModelFacts:
     release_form: str
     files: dict[str, str] = field(default_factory=dict)
     train_summary: str | None = None
+    adapter_release: bool = False
 
 
 def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) -> list[dict[str, Any]]:
@@ -89,7 +90,9 @@ def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) 
     return [{"name": model_name, "results": results}]
 
 
-def build_metadata(card: CardConfig, model_name: str, rows: list[ResultRow] | None) -> dict[str, Any]:
+def build_metadata(
+    card: CardConfig, model_name: str, rows: list[ResultRow] | None, adapter: bool = False
+) -> dict[str, Any]:
     """The YAML front matter as a dict, keys in the order the Hub documents them."""
     meta: dict[str, Any] = {"license": card.license}
     if card.license == "other":
@@ -98,11 +101,14 @@ def build_metadata(card: CardConfig, model_name: str, rows: list[ResultRow] | No
     meta["library_name"] = "transformers"
     meta["pipeline_tag"] = card.pipeline_tag
     meta["language"] = list(card.language)
-    meta["tags"] = list(dict.fromkeys([*FIXED_TAGS, *card.tags]))
+    extra = ["lora"] if adapter else []
+    meta["tags"] = list(dict.fromkeys([*FIXED_TAGS, *extra, *card.tags]))
     if card.datasets:
         meta["datasets"] = list(card.datasets)
     if card.base_model:
         meta["base_model"] = card.base_model
+        if adapter:
+            meta["base_model_relation"] = "adapter"
     if rows:
         meta["model-index"] = build_model_index(model_name, rows, card)
     return meta
@@ -123,7 +129,7 @@ def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | Non
 
     model_name = repo_id.split("/", 1)[1]
     rows = results.rows if results else []
-    meta = build_metadata(card, model_name, rows)
+    meta = build_metadata(card, model_name, rows, adapter=facts.adapter_release)
     profiles = {row.profile: describe_profile(row.profile, results.profiles.get(row.profile)) for row in rows}
     template_text = resources.files("openfly_agent.hub").joinpath("templates", TEMPLATE_NAME).read_text()
     env = jinja2.Environment(undefined=jinja2.StrictUndefined, keep_trailing_newline=True, autoescape=False)

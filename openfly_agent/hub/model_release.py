@@ -19,6 +19,7 @@ from openfly_agent.constants import (
 )
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
+from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
 from openfly_agent.hub.model_card import ModelFacts, render_model_card
 from openfly_agent.hub.remote_code import CONFIGURATION_FILE, MODELING_FILE, add_auto_map, write_remote_code
 from openfly_agent.hub.results import load_results, resolve_results_path
@@ -60,39 +61,60 @@ def resolve_checkpoint(path: str | Path) -> Path:
 def build_model_release(cfg: ModelReleaseConfig) -> Path:
     """Write the release folder for `cfg.checkpoint` and return it.
 
-    Steps: load the agent (merging or keeping a LoRA adapter as `cfg.lora` says), save it with
-    `max_shard_size`, carry over the training config / norm stats, write the two `trust_remote_code` files and
-    `auto_map`, copy the eval results, render README.md. Inputs are checked before anything is written.
+    Full checkpoints are loaded and saved again with `max_shard_size`. LoRA checkpoints (metadata +
+    `adapter/`) are rebuilt on their base weights and released merged, or as the adapter alone (`cfg.lora`).
+    Then: training config / norm stats carried over, the two `trust_remote_code` files and `auto_map` (not for
+    an adapter, which has no weights to load), the eval results, README.md. Inputs are checked first.
     """
     checkpoint = resolve_checkpoint(cfg.checkpoint)
     results = load_results(cfg.results) if cfg.results else None
-    name = cfg.repo_id.split("/", 1)[1]
-    out = prepare_output_dir(cfg.output_dir or DEFAULT_RELEASE_ROOT / name, cfg.overwrite)
+    base = base_of(checkpoint, cfg.base_checkpoint) if is_lora_checkpoint(checkpoint) else None
+    adapter_form = base is not None and cfg.lora == "adapter"
+    if adapter_form and not cfg.card.base_model:
+        raise ValueError("--lora adapter needs --card.base-model <Hub id of the base weights> for the card")
+    out = prepare_output_dir(
+        cfg.output_dir or DEFAULT_RELEASE_ROOT / cfg.repo_id.split("/", 1)[1], cfg.overwrite
+    )
     logger.info("releasing %s -> %s", checkpoint, out)
-    agent = _load_agent(checkpoint)
-    agent.save_pretrained(out, max_shard_size=cfg.max_shard_size)
+    agent, form = _write_weights(checkpoint, base, adapter_form, out, cfg.max_shard_size)
     for file_name in CARRIED_FILES:
         if (checkpoint / file_name).is_file() and not (out / file_name).exists():
             shutil.copy2(checkpoint / file_name, out / file_name)
-    write_remote_code(out, __version__)
-    add_auto_map(out)
+    if not adapter_form:
+        write_remote_code(out, __version__)
+        add_auto_map(out)
     if results is not None:
         shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
-    facts = model_facts(agent, out, release_form="full weights")
+    facts = model_facts(agent, out, release_form=form, adapter_release=adapter_form)
     (out / MODEL_CARD_NAME).write_text(render_model_card(cfg.card, cfg.repo_id, results, facts))
-    check_release_folder(out)
+    check_release_folder(out, adapter_form)
     logger.info("release folder ready: %s (%d files)", out, len(list(out.iterdir())))
     return out
 
 
-def _load_agent(checkpoint: Path):
+def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: Path, max_shard_size: str):
+    """Save the weights into `out` in the chosen form; returns (agent, description of the form)."""
     from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.lora import merge_lora, save_lora_adapter
 
-    agent = OpenFlyAgent.from_pretrained(checkpoint)
-    return agent.eval()
+    if base is None:
+        agent = OpenFlyAgent.from_pretrained(str(checkpoint)).eval()
+        agent.save_pretrained(out, max_shard_size=max_shard_size)
+        return agent, "full weights"
+    agent = load_lora_agent(checkpoint, base)  # also proves the adapter fits its base
+    if adapter_form:
+        for path in checkpoint.iterdir():  # config, tokenizer, action tokenizer, norm stats, train config
+            if path.is_file() and path.suffix not in FORBIDDEN_SUFFIXES:
+                shutil.copy2(path, out / path.name)
+        adapter = save_lora_adapter(agent, out)
+        (adapter / MODEL_CARD_NAME).unlink(missing_ok=True)  # peft's empty card template; ours is the root one
+        return agent, "LoRA adapter only (`adapter/`); load it on its base weights (see Usage)"
+    merge_lora(agent)
+    agent.save_pretrained(out, max_shard_size=max_shard_size)
+    return agent, f"LoRA adapter merged into its base weights (`{Path(base).name}`)"
 
 
-def model_facts(agent, folder: Path, release_form: str) -> ModelFacts:
+def model_facts(agent, folder: Path, release_form: str, adapter_release: bool = False) -> ModelFacts:
     """What the card says about the weights in `folder`."""
     cfg = agent.model_cfg
     num_params = sum(p.numel() for p in agent.parameters())
@@ -104,6 +126,7 @@ def model_facts(agent, folder: Path, release_form: str) -> ModelFacts:
         weights_summary=_weights_summary(folder),
         release_form=release_form,
         files=describe_files(folder),
+        adapter_release=adapter_release,
     )
 
 
@@ -134,12 +157,12 @@ def describe_files(folder: Path) -> dict[str, str]:
     return described
 
 
-def check_release_folder(folder: Path) -> None:
-    """Fail if a pickle-based weight file slipped in, or config.json lacks `auto_map`."""
+def check_release_folder(folder: Path, adapter_form: bool = False) -> None:
+    """Fail if a pickle-based weight file slipped in, or a full release's config.json lacks `auto_map`."""
     bad = sorted(p.name for p in folder.rglob("*") if p.suffix in FORBIDDEN_SUFFIXES)
     if bad:
         raise ValueError(f"{folder}: pickle-based files must not be released (safetensors only): {bad}")
-    if "auto_map" not in read_json(folder / CONFIG_NAME):
+    if not adapter_form and "auto_map" not in read_json(folder / CONFIG_NAME):
         raise ValueError(f"{folder / CONFIG_NAME}: auto_map is missing")
 
 
