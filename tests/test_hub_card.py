@@ -170,3 +170,64 @@ def test_eval_output_folder_is_accepted(tmp_path):
     assert load_results(tmp_path).rows == load_results(tmp_path / "agent" / "results.json").rows
     with pytest.raises(ResultsError, match="without agent/results.json"):
         load_results(tmp_path / "agent")
+
+
+def test_model_index_of_evals_own_results(tmp_path):
+    """results.json as eval/report.py writes it from hand-made episode records: the card carries its numbers."""
+    from openfly_agent.eval.records import EpisodeRecord
+    from openfly_agent.eval.report import policy_results
+
+    def record(split: str, episode: str, end_x: float, stopped: bool) -> EpisodeRecord:
+        return EpisodeRecord(
+            split=split,
+            episode_id=episode,
+            scene_id="embedded-1",
+            policy="agent",
+            instruction="fly east",
+            goal=[60.0, 0.0, 30.0],
+            reference_path=[[0.0, 0.0, 30.0], [60.0, 0.0, 30.0]],
+            actions=[1] * int(end_x // 3) + ([0] if stopped else []),
+            poses=[[3.0 * k, 0.0, 30.0, 0.0] for k in range(int(end_x // 3) + 1)]
+            + ([[end_x, 0.0, 30.0, 0.0]] if stopped else []),
+            stopped=stopped,
+            end_reason="stop" if stopped else "max_steps",
+        )
+
+    records = [
+        record("test_seen", "a", 60.0, True),  # reaches the goal and stops
+        record("test_seen", "b", 30.0, True),  # stops 30 m short
+        record("test_unseen", "c", 45.0, False),  # 15 m short, no STOP: success only under `openfly`
+    ]
+    results = policy_results("agent", records, ["openfly", "standard"])
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(results))
+    meta, _ = split_front_matter(render_model_card(CardConfig(), "me/tiny", load_results(path), FACTS))
+    blocks = meta["model-index"][0]["results"]
+    for block in blocks:
+        split, profile = block["dataset"]["split"], block["metrics"][0]["config"]
+        overall = results["splits"][split][profile]["overall"]
+        assert {m["type"]: m["value"] for m in block["metrics"]} == {
+            "ne": overall["ne_m"],
+            "sr": overall["sr_pct"],
+            "osr": overall["osr_pct"],
+            "spl": overall["spl_pct"],
+        }
+    by_key = {(b["dataset"]["split"], b["metrics"][0]["config"]): b for b in blocks}
+    sr = {key: next(m["value"] for m in b["metrics"] if m["type"] == "sr") for key, b in by_key.items()}
+    ne = {key: next(m["value"] for m in b["metrics"] if m["type"] == "ne") for key, b in by_key.items()}
+    assert sr[("test_seen", "openfly")] == sr[("test_seen", "standard")] == 50.0  # hand-checked
+    assert (sr[("test_unseen", "openfly")], sr[("test_unseen", "standard")]) == (100.0, 0.0)
+    assert ne[("test_seen", "openfly")] == pytest.approx(15.0) and ne[
+        ("test_unseen", "standard")
+    ] == pytest.approx(15.0)
+
+
+def test_training_table_from_a_real_train_config():
+    from openfly_agent.hub.model_card import summarize_train_config
+    from openfly_agent.training.config import TrainConfig
+    from openfly_agent.utils.config import config_to_dict
+
+    table = summarize_train_config(config_to_dict(TrainConfig(steps=120)))
+    assert "| `steps` | `120` |" in table and "| `optim.lr` | `0.0003` |" in table
+    assert "| `batch.global_batch_size` | `16` |" in table
+    assert summarize_train_config({"unrelated": 1}) is None

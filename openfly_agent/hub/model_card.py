@@ -59,6 +59,40 @@ class ModelFacts:
     adapter_release: bool = False
 
 
+# Dotted keys of train_config.json (training.config.TrainConfig) shown in the card's training table.
+TRAIN_SUMMARY_KEYS = (
+    "init.checkpoint",
+    "data.root",
+    "data.history.mode",
+    "freeze_stage",
+    "lora.enabled",
+    "steps",
+    "epochs",
+    "batch.global_batch_size",
+    "optim.lr",
+    "optim.schedule",
+    "precision",
+    "seed",
+)
+
+
+_MISSING = object()
+
+
+def summarize_train_config(train_config: dict[str, Any]) -> str | None:
+    """A Markdown table of the main training settings (TRAIN_SUMMARY_KEYS found in `train_config`)."""
+    rows = []
+    for key in TRAIN_SUMMARY_KEYS:
+        node: Any = train_config
+        for part in key.split("."):
+            node = node.get(part, _MISSING) if isinstance(node, dict) else _MISSING
+        if node is not _MISSING:
+            rows.append(f"| `{key}` | `{node}` |")
+    if not rows:
+        return None
+    return "\n".join(["| setting | value |", "|---|---|", *rows])
+
+
 def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) -> list[dict[str, Any]]:
     """The card's `model-index`: one result block per (split, metric profile), metrics NE / SR / OSR / SPL.
 

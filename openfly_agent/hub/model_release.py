@@ -20,7 +20,7 @@ from openfly_agent.constants import (
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
 from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
-from openfly_agent.hub.model_card import ModelFacts, render_model_card
+from openfly_agent.hub.model_card import ModelFacts, render_model_card, summarize_train_config
 from openfly_agent.hub.remote_code import CONFIGURATION_FILE, MODELING_FILE, add_auto_map, write_remote_code
 from openfly_agent.hub.results import load_results, resolve_results_path
 
@@ -86,6 +86,8 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     if results is not None:
         shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
     facts = model_facts(agent, out, release_form=form, adapter_release=adapter_form)
+    if (out / TRAIN_CONFIG_NAME).is_file():
+        facts.train_summary = summarize_train_config(read_json(out / TRAIN_CONFIG_NAME))
     (out / MODEL_CARD_NAME).write_text(render_model_card(cfg.card, cfg.repo_id, results, facts))
     check_release_folder(out, adapter_form)
     logger.info("release folder ready: %s (%d files)", out, len(list(out.iterdir())))
@@ -107,7 +109,9 @@ def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: 
             if path.is_file() and path.suffix not in FORBIDDEN_SUFFIXES:
                 shutil.copy2(path, out / path.name)
         adapter = save_lora_adapter(agent, out)
-        (adapter / MODEL_CARD_NAME).unlink(missing_ok=True)  # peft's empty card template; ours is the root one
+        (adapter / MODEL_CARD_NAME).unlink(
+            missing_ok=True
+        )  # peft's empty card template; ours is the root one
         return agent, "LoRA adapter only (`adapter/`); load it on its base weights (see Usage)"
     merge_lora(agent)
     agent.save_pretrained(out, max_shard_size=max_shard_size)
