@@ -173,7 +173,7 @@ def test_eval_output_folder_is_accepted(tmp_path):
 
 
 def test_model_index_of_evals_own_results(tmp_path):
-    """results.json as eval/report.py writes it from hand-made episode records: the card carries its numbers."""
+    """eval/report.py results.json from hand-made episode records: the card carries its numbers."""
     from openfly_agent.eval.records import EpisodeRecord
     from openfly_agent.eval.report import policy_results
 
