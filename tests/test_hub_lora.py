@@ -95,6 +95,7 @@ def test_adapter_release_loads_on_its_base(lora_run):
     )
     meta, body = split_front_matter((folder / "README.md").read_text())
     assert meta["base_model"] == "me/openfly-tiny-base" and meta["base_model_relation"] == "adapter"
+    assert "| Weights | LoRA adapter in `adapter/`" in body and "lora" in meta["tags"]
     [usage] = [b for b in re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL) if "load_lora_agent" in b]
     usage = usage.replace('"me/openfly-tiny-adapter"', repr(str(folder)))
     usage = usage.replace('"me/openfly-tiny-base"', repr(str(lora_run.root / "base")))

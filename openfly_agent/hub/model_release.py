@@ -9,6 +9,7 @@ from pathlib import Path
 from openfly_agent import __version__
 from openfly_agent.constants import (
     ACTION_TOKENIZER_NAME,
+    ADAPTER_DIR_NAME,
     CONFIG_NAME,
     MODEL_CARD_NAME,
     MODEL_TYPE,
@@ -109,9 +110,8 @@ def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: 
             if path.is_file() and path.suffix not in FORBIDDEN_SUFFIXES:
                 shutil.copy2(path, out / path.name)
         adapter = save_lora_adapter(agent, out)
-        (adapter / MODEL_CARD_NAME).unlink(
-            missing_ok=True
-        )  # peft's empty card template; ours is the root one
+        # peft writes an empty card template beside the adapter; the release's card is the root README.md
+        (adapter / MODEL_CARD_NAME).unlink(missing_ok=True)
         return agent, "LoRA adapter only (`adapter/`); load it on its base weights (see Usage)"
     merge_lora(agent)
     agent.save_pretrained(out, max_shard_size=max_shard_size)
@@ -137,7 +137,7 @@ def model_facts(agent, folder: Path, release_form: str, adapter_release: bool = 
 def describe_files(folder: Path) -> dict[str, str]:
     """A one-line description of every file of the release (README.md included)."""
     known = {
-        CONFIG_NAME: "model config (`model_type: openfly_agent`, `auto_map`, model sections, norm stats)",
+        CONFIG_NAME: "model config (`model_type: openfly_agent`, model sections, norm stats, `auto_map`)",
         WEIGHTS_NAME: "weights (safetensors)",
         WEIGHTS_INDEX_NAME: "tensor name -> shard file",
         ACTION_TOKENIZER_NAME: "action head settings: action ids <-> token ids / bins",
@@ -154,6 +154,8 @@ def describe_files(folder: Path) -> dict[str, str]:
     names = sorted({p.name for p in folder.iterdir() if p.is_file()} | {MODEL_CARD_NAME})
     shards = [n for n in names if n.startswith("model-") and n.endswith(".safetensors")]
     described = {n: known.get(n, "") for n in names if n not in shards}
+    if (folder / ADAPTER_DIR_NAME).is_dir():
+        described[f"{ADAPTER_DIR_NAME}/"] = "LoRA adapter: peft files of the LLM + projector / grounding head"
     if shards:
         described[f"model-000NN-of-{len(shards):05d}.safetensors"] = (
             f"weights, {len(shards)} safetensors shards"
@@ -171,6 +173,9 @@ def check_release_folder(folder: Path, adapter_form: bool = False) -> None:
 
 
 def _weights_summary(folder: Path) -> str:
+    if not list(folder.glob("*.safetensors")) and (folder / ADAPTER_DIR_NAME).is_dir():
+        size = sum(p.stat().st_size for p in (folder / ADAPTER_DIR_NAME).glob("*.safetensors"))
+        return f"LoRA adapter in `{ADAPTER_DIR_NAME}/`, {_human_bytes(size)}"
     files = sorted(folder.glob("*.safetensors"))
     size = sum(p.stat().st_size for p in files)
     if (folder / WEIGHTS_INDEX_NAME).is_file():
