@@ -99,6 +99,7 @@ def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: 
     """Save the weights into `out` in the chosen form; returns (agent, description of the form)."""
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.lora import merge_lora, save_lora_adapter
+    from openfly_agent.training.export import write_model_metadata
 
     if base is None:
         agent = OpenFlyAgent.from_pretrained(str(checkpoint)).eval()
@@ -106,9 +107,7 @@ def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: 
         return agent, "full weights"
     agent = load_lora_agent(checkpoint, base)  # also proves the adapter fits its base
     if adapter_form:
-        for path in checkpoint.iterdir():  # config, tokenizer, action tokenizer, norm stats, train config
-            if path.is_file() and path.suffix not in FORBIDDEN_SUFFIXES:
-                shutil.copy2(path, out / path.name)
+        write_model_metadata(agent, out)  # config, tokenizer, action tokenizer, norm stats: no weights
         adapter = save_lora_adapter(agent, out)
         # peft writes an empty card template beside the adapter; the release's card is the root README.md
         (adapter / MODEL_CARD_NAME).unlink(missing_ok=True)
