@@ -85,6 +85,7 @@ def test_model_index_matches_eval_json(results_path):
     # the body's table states the profile of every number, and the profiles' recorded settings
     assert "| test_unseen | `standard` | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
     assert "Settings used: stop_required=False." in body
+    assert "run settings `sim=embedded`" in body  # eval's run meta that changes the numbers
 
 
 def test_huggingface_hub_reads_the_card(results_path):

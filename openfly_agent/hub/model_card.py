@@ -33,12 +33,12 @@ METRIC_IDS = {
 PROFILE_SUMMARIES = {
     "openfly": (
         "parity with the official OpenFly evaluation: 3-D distance to the goal, success within 20 m, no "
-        "STOP needed, at most 100 steps, SPL = straight-line start-goal distance / travelled length without "
-        "clamp, no collision check."
+        "STOP needed, SPL = straight-line start-goal distance / travelled length without clamp, no "
+        "collision check."
     ),
     "standard": (
-        "VLN-CE style: the agent must STOP within 20 m, a collision ends the episode as a failure, at most "
-        "100 steps, SPL = S * L / max(P, L) with L the reference path length and P the travelled length."
+        "VLN-CE style: the agent must STOP within 20 m, a collision ends the episode as a failure, "
+        "SPL = S * L / max(P, L) with L the reference path length and P the travelled length."
     ),
 }
 TEMPLATE_NAME = "model_card.md.j2"
@@ -86,7 +86,7 @@ def summarize_train_config(train_config: dict[str, Any]) -> str | None:
         node: Any = train_config
         for part in key.split("."):
             node = node.get(part, _MISSING) if isinstance(node, dict) else _MISSING
-        if node is not _MISSING:
+        if node is not _MISSING and node is not None:
             rows.append(f"| `{key}` | `{node}` |")
     if not rows:
         return None
@@ -157,6 +157,15 @@ def describe_profile(name: str, settings: dict[str, Any] | None) -> str:
     return text
 
 
+# Keys of eval.py's results `meta` that change the numbers, shown next to them.
+RUN_KEYS = ("sim", "max_steps", "seed", "unnorm_key")
+
+
+def describe_run(meta: dict[str, Any]) -> str:
+    """`sim=embedded, max_steps=100, ...` from the results' run settings (empty when none were recorded)."""
+    return ", ".join(f"`{key}={meta[key]}`" for key in RUN_KEYS if meta.get(key) is not None)
+
+
 def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | None, facts: ModelFacts) -> str:
     """Render README.md: YAML front matter (yaml.safe_dump, so it always parses) + the Jinja body."""
     import jinja2
@@ -175,6 +184,7 @@ def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | Non
         eval_dataset_name=card.eval_dataset_name,
         results=rows,
         profile_definitions=profiles,
+        run_settings=describe_run(results.meta if results else {}),
         **vars(facts),
     )
     front = yaml.safe_dump(meta, sort_keys=False, allow_unicode=True, width=1000)
