@@ -62,7 +62,7 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
 
 
 def _split_trajectories(root: Path) -> dict[str, list[str]]:
-    """split -> parquet paths relative to root, from the annotation files (episode id = path under traj/)."""
+    """Map each split to its parquet paths (relative to root) via the annotation files (id = path in traj/)."""
     if not root.is_dir():
         raise FileNotFoundError(f"dataset root {root} does not exist")
     splits: dict[str, list[str]] = {}

@@ -72,6 +72,7 @@ class FakeHub:
 
     @property
     def url(self) -> str:
+        """`http://127.0.0.1:<port>`: the value for HF_ENDPOINT."""
         host, port = self._server.server_address[:2]
         return f"http://{host}:{port}"
 
