@@ -62,7 +62,7 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
 
 
 def _split_trajectories(root: Path) -> dict[str, list[str]]:
-    """Map each split to its parquet paths (relative to root) via the annotation files (id = path in traj/)."""
+    """Map each split to its parquet paths (relative to root) via its annotation file (id = path in traj/)."""
     if not root.is_dir():
         raise FileNotFoundError(f"dataset root {root} does not exist")
     splits: dict[str, list[str]] = {}
