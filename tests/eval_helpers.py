@@ -75,3 +75,55 @@ class PoseSimulator:
 
     def close(self) -> None:
         return None
+
+
+def generate_tiny_dataset(root) -> None:
+    """A generated embedded dataset small enough for tests (~5 s): 2 scenes of 300 m, 64 px frames.
+
+    Scene 0 gives train and test_seen episodes (half each), scene 1 (unseen seed) test_unseen.
+    """
+    from openfly_agent.toolchain.config import (
+        CategoryConfig,
+        GenerateConfig,
+        RenderConfig,
+        RouteConfig,
+        SceneConfig,
+    )
+    from openfly_agent.toolchain.generate import generate
+
+    scenes = SceneConfig(
+        city_size_m=300, city_buildings=30, train_seeds=[0], unseen_seeds=[1], trajectories_per_scene=8,
+        test_seen_fraction=0.5,
+    )  # fmt: skip
+    route = RouteConfig(height_min_m=10, height_max_m=40, min_dist_m=40, max_dist_m=90, with_turn_prob=0.3)
+    cfg = GenerateConfig(
+        output_dir=str(root), workers=1, scenes=scenes, route=route, plots=False,
+        categories=CategoryConfig(height_bins_m=[25, 40], length_bins_m=[50, 100]),
+        render=RenderConfig(width=64, height=64),
+    )  # fmt: skip
+    generate(cfg, progress=False)
+
+
+def small_agent_config():
+    """The tiny model preset shrunk further (56 px, 2 blocks of width 32/48, a 2-layer LM of width 64)."""
+    from openfly_agent.model.config import GroundingConfig, LLMConfig, MemoryConfig, VisionConfig, tiny_config
+
+    return tiny_config(
+        vision=VisionConfig(image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2),
+        llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
+        grounding=GroundingConfig(dim=32, num_heads=2),
+        memory=MemoryConfig(capacity=2, grid=2),
+    )
+
+
+def save_small_agent(folder, texts, seed: int = 0) -> None:
+    """A freshly initialised small agent (random weights, BPE tokenizer on `texts`) saved as a checkpoint."""
+    import torch
+
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
+    torch.manual_seed(seed)
+    agent = OpenFlyAgent.from_model_config(small_agent_config(), tokenizer=tokenizer).eval()
+    agent.save_pretrained(str(folder))
