@@ -127,3 +127,49 @@ def save_small_agent(folder, texts, seed: int = 0) -> None:
     torch.manual_seed(seed)
     agent = OpenFlyAgent.from_model_config(small_agent_config(), tokenizer=tokenizer).eval()
     agent.save_pretrained(str(folder))
+
+
+NORM_STATS = {
+    "vlnv1": {"action": {"q01": [0.0] * 8, "q99": [1, 9, 15, 15, 2, 2, 5, 5]}},
+    "vln_norm": {"action": {"q01": [0.0] * 8, "q99": [1, 5, 15, 15, 2, 0, 5, 5]}},
+}
+
+
+def save_released_format_agent(folder, texts, seed: int = 0):
+    """A small `openvla_compat` agent exported as a released OpenVLA-format folder.
+
+    Writes `model.safetensors` in the OpenVLA key layout (no new modules), `config.json` with
+    `model_type: openvla` and two norm-stats profiles, the tokenizer, and `model.yaml` (its ModelConfig).
+    Returns the in-memory agent.
+    """
+    import dataclasses
+    import json
+    from pathlib import Path
+
+    import torch
+    import yaml
+    from safetensors.torch import save_file
+
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import ActionHeadConfig, MemoryConfig, PromptConfig, config_to_dict
+    from openfly_agent.model.openvla_loader import to_openvla_state_dict
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
+    cfg = dataclasses.replace(
+        small_agent_config(),
+        mode="openvla_compat",
+        memory=MemoryConfig(capacity=2, grid=4),
+        prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
+        action_head=ActionHeadConfig(type="openvla_bins", unnorm_key="vlnv1", decode_rule="nearest"),
+    )
+    torch.manual_seed(seed)
+    agent = OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer, norm_stats=NORM_STATS).eval()
+    state = {k: v.contiguous() for k, v in to_openvla_state_dict(agent).items()}
+    save_file(state, str(folder / "model.safetensors"))
+    (folder / "config.json").write_text(json.dumps({"model_type": "openvla", "norm_stats": NORM_STATS}))
+    tokenizer.save_pretrained(str(folder))
+    (folder / "model.yaml").write_text(yaml.safe_dump(config_to_dict(cfg)))
+    return agent

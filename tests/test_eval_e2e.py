@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from eval_helpers import generate_tiny_dataset, save_small_agent
 
 from openfly_agent import constants as C
@@ -97,13 +98,20 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
         "plots": 0,
         "max_episodes": 3,
     }
-    outcomes = [run(_cfg(dataset, tmp_path / f"b{b}", batch_size=b, **common)) for b in (1, 4)]
+    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # (sorted ids: within max_episodes)
+    outcomes = [
+        run(_cfg(dataset, tmp_path / f"b{b}", batch_size=b, gif_episodes=[gif] if b == 1 else [], **common))
+        for b in (1, 4)
+    ]
     one, many = (read_all_logs(tmp_path / f"b{b}" / "agent") for b in (1, 4))
     assert one == many and len(one) == 6
     assert outcomes[0]["results"]["agent"]["splits"] == outcomes[1]["results"]["agent"]["splits"]
     boxes = [b for r in one for b in r.boxes]
     assert len(boxes) == sum(len(r.actions) for r in one)
     assert all(b is None or (len(b) == 4 and all(0.0 <= v <= 1.0 for v in b)) for b in boxes)
+    (gif_file,) = (tmp_path / "b1" / "agent" / "gifs").glob("*.gif")
+    record = next(r for r in one if r.episode_id == gif)
+    assert Image.open(gif_file).n_frames == len(record.actions)  # one frame per decision
 
 
 def _eval_cmd(dataset, out, *extra):
@@ -164,3 +172,36 @@ def test_two_processes_split_and_merge(dataset, reference, tmp_path):
     assert double.returncode == 0, double.stdout[-3000:] + double.stderr[-6000:]
     assert sorted(p.name for p in (tmp_path / "random").glob("episodes*.jsonl")) == [C.EPISODES_JSONL]
     _same_results(reference, tmp_path)
+
+
+def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
+    from eval_helpers import NORM_STATS, save_released_format_agent
+
+    from openfly_agent.eval.agent_policy import AgentPolicy, checkpoint_kind, load_agent
+    from openfly_agent.eval.config import AgentSettings
+    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
+
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)[:3]
+    source = save_released_format_agent(tmp_path / "released", [e.instruction for e in episodes])
+    assert checkpoint_kind(tmp_path / "released") == "openvla"
+    settings = AgentSettings(model_config=str(tmp_path / "released" / "model.yaml"), unnorm_key="vln_norm")
+    loaded = load_agent(str(tmp_path / "released"), settings, "cpu")
+    assert loaded.action_tokenizer.decode_rule == "nearest"
+    q99 = loaded.action_tokenizer.action_stats["q99"]
+    np.testing.assert_array_equal(q99, NORM_STATS["vln_norm"]["action"]["q99"])
+    source.action_tokenizer = ActionTokenizer(
+        head="openvla_bins", vocab_end=source.action_tokenizer.vocab_end, decode_rule="nearest",
+        eos_token_id=source.action_tokenizer.eos_token_id, action_stats=select_action_stats(NORM_STATS, "vln_norm"),
+    )  # fmt: skip
+    cfg = _cfg(dataset, tmp_path, policy="stop", max_steps=5)
+    runs = []
+    for agent in (loaded, source):  # the folder's agent flies exactly like the one that wrote it
+        env = make_env(cfg, ProcessInfo(), episodes, render=True)
+        records = []
+        LockstepRunner(AgentPolicy(agent), env, cfg.max_steps, show_progress=False).run(
+            episodes, "s", records.append
+        )
+        env.close()
+        runs.append(records)
+    assert runs[0] == runs[1]
+    assert all(0 <= a <= 9 for r in runs[0] for a in r.actions)

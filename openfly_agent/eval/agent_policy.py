@@ -137,7 +137,7 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     OpenFly-Agent) through `agent_from_openvla_checkpoint` with the `openvla_compat` model config
     (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
     """
-    from openfly_agent.model.action_tokenizer import select_action_stats
+    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
     from openfly_agent.model.tokenizer import load_tokenizer
@@ -155,10 +155,14 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()
     agent = OpenFlyAgent.from_pretrained(str(folder), dtype=dtype).to(device).eval()
-    tokenizer = agent.action_tokenizer
-    if settings.decode_rule:
-        tokenizer.decode_rule = settings.decode_rule
-    if settings.unnorm_key:
-        tokenizer.action_stats = select_action_stats(agent.config.norm_stats, settings.unnorm_key)
+    if settings.decode_rule or settings.unnorm_key:  # rebuild the action tokenizer with the chosen decoding
+        old = agent.action_tokenizer
+        stats = old.action_stats
+        if settings.unnorm_key:
+            stats = select_action_stats(agent.config.norm_stats, settings.unnorm_key)
+        agent.action_tokenizer = ActionTokenizer(
+            head=old.head, vocab_end=old.vocab_end, eos_token_id=old.eos_token_id,
+            action_stats=stats, decode_rule=settings.decode_rule or old.decode_rule,
+        )  # fmt: skip
     logger.info("checkpoint %s on %s (%s)", folder, device, dtype)
     return agent
