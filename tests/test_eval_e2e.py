@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 from eval_helpers import generate_tiny_dataset, save_small_agent
+from PIL import Image
 
 from openfly_agent import constants as C
 from openfly_agent.data.openfly_reader import load_openfly_dataset
@@ -189,9 +189,10 @@ def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
     assert loaded.action_tokenizer.decode_rule == "nearest"
     q99 = loaded.action_tokenizer.action_stats["q99"]
     np.testing.assert_array_equal(q99, NORM_STATS["vln_norm"]["action"]["q99"])
+    old = source.action_tokenizer
     source.action_tokenizer = ActionTokenizer(
-        head="openvla_bins", vocab_end=source.action_tokenizer.vocab_end, decode_rule="nearest",
-        eos_token_id=source.action_tokenizer.eos_token_id, action_stats=select_action_stats(NORM_STATS, "vln_norm"),
+        head="openvla_bins", vocab_end=old.vocab_end, decode_rule="nearest", eos_token_id=old.eos_token_id,
+        action_stats=select_action_stats(NORM_STATS, "vln_norm"),
     )  # fmt: skip
     cfg = _cfg(dataset, tmp_path, policy="stop", max_steps=5)
     runs = []
