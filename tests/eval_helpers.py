@@ -75,3 +75,101 @@ class PoseSimulator:
 
     def close(self) -> None:
         return None
+
+
+def generate_tiny_dataset(root) -> None:
+    """A generated embedded dataset small enough for tests (~5 s): 2 scenes of 300 m, 64 px frames.
+
+    Scene 0 gives train and test_seen episodes (half each), scene 1 (unseen seed) test_unseen.
+    """
+    from openfly_agent.toolchain.config import (
+        CategoryConfig,
+        GenerateConfig,
+        RenderConfig,
+        RouteConfig,
+        SceneConfig,
+    )
+    from openfly_agent.toolchain.generate import generate
+
+    scenes = SceneConfig(
+        city_size_m=300, city_buildings=30, train_seeds=[0], unseen_seeds=[1], trajectories_per_scene=8,
+        test_seen_fraction=0.5,
+    )  # fmt: skip
+    route = RouteConfig(height_min_m=10, height_max_m=40, min_dist_m=40, max_dist_m=90, with_turn_prob=0.3)
+    cfg = GenerateConfig(
+        output_dir=str(root), workers=1, scenes=scenes, route=route, plots=False,
+        categories=CategoryConfig(height_bins_m=[25, 40], length_bins_m=[50, 100]),
+        render=RenderConfig(width=64, height=64),
+    )  # fmt: skip
+    generate(cfg, progress=False)
+
+
+def small_agent_config():
+    """The tiny model preset shrunk further (56 px, 2 blocks of width 32/48, a 2-layer LM of width 64)."""
+    from openfly_agent.model.config import GroundingConfig, LLMConfig, MemoryConfig, VisionConfig, tiny_config
+
+    return tiny_config(
+        vision=VisionConfig(image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2),
+        llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
+        grounding=GroundingConfig(dim=32, num_heads=2),
+        memory=MemoryConfig(capacity=2, grid=2),
+    )
+
+
+def save_small_agent(folder, texts, seed: int = 0) -> None:
+    """A freshly initialised small agent (random weights, BPE tokenizer on `texts`) saved as a checkpoint."""
+    import torch
+
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
+    torch.manual_seed(seed)
+    agent = OpenFlyAgent.from_model_config(small_agent_config(), tokenizer=tokenizer).eval()
+    agent.save_pretrained(str(folder))
+
+
+NORM_STATS = {
+    "vlnv1": {"action": {"q01": [0.0] * 8, "q99": [1, 9, 15, 15, 2, 2, 5, 5]}},
+    "vln_norm": {"action": {"q01": [0.0] * 8, "q99": [1, 5, 15, 15, 2, 0, 5, 5]}},
+}
+
+
+def save_released_format_agent(folder, texts, seed: int = 0):
+    """A small `openvla_compat` agent exported as a released OpenVLA-format folder.
+
+    Writes `model.safetensors` in the OpenVLA key layout (no new modules), `config.json` with
+    `model_type: openvla` and two norm-stats profiles, the tokenizer, and `model.yaml` (its ModelConfig).
+    Returns the in-memory agent.
+    """
+    import dataclasses
+    import json
+    from pathlib import Path
+
+    import torch
+    import yaml
+    from safetensors.torch import save_file
+
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import ActionHeadConfig, MemoryConfig, PromptConfig, config_to_dict
+    from openfly_agent.model.openvla_loader import to_openvla_state_dict
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
+    cfg = dataclasses.replace(
+        small_agent_config(),
+        mode="openvla_compat",
+        memory=MemoryConfig(capacity=2, grid=4),
+        prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
+        action_head=ActionHeadConfig(type="openvla_bins", unnorm_key="vlnv1", decode_rule="nearest"),
+    )
+    torch.manual_seed(seed)
+    agent = OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer, norm_stats=NORM_STATS).eval()
+    state = {k: v.contiguous() for k, v in to_openvla_state_dict(agent).items()}
+    save_file(state, str(folder / "model.safetensors"))
+    (folder / "config.json").write_text(json.dumps({"model_type": "openvla", "norm_stats": NORM_STATS}))
+    tokenizer.save_pretrained(str(folder))
+    (folder / "model.yaml").write_text(yaml.safe_dump(config_to_dict(cfg)))
+    return agent

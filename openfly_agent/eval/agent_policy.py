@@ -19,6 +19,10 @@ from openfly_agent.eval.policy import OBS_EPISODE_ID
 
 logger = logging.getLogger(__name__)
 
+# The layout train.py writes (docs/TRAINING.md): <run>/checkpoints/step-N/ and a `last` pointer file.
+RUN_CHECKPOINTS_DIR = "checkpoints"
+LAST_POINTER = "last"
+
 
 class AgentPolicy:
     """Adapter from the agent's inference API to the runner's `Policy` protocol.
@@ -88,12 +92,28 @@ def resolve_dtype(dtype: str, device: str):
 
 
 def checkpoint_folder(checkpoint: str) -> Path:
-    """A local folder as is; otherwise a Hub id resolved through the local Hub cache / a download."""
+    """The checkpoint's HF folder: a folder with config.json as is; a training run (`<run>`,
+    `<run>/checkpoints` or the `last` pointer file) resolved to its newest checkpoint; otherwise a Hub id
+    resolved through the local Hub cache (or a download when online)."""
     path = Path(checkpoint)
-    if path.is_dir():
+    for _ in range(3):  # run dir -> checkpoints dir -> pointer file -> step folder
+        if path.is_dir() and (path / C.CONFIG_NAME).is_file():
+            return path
+        if path.is_file():  # a pointer: one line naming the newest checkpoint folder beside it
+            path = path.parent / path.read_text().strip()
+        elif (path / LAST_POINTER).is_file():
+            path = path / LAST_POINTER
+        elif (path / RUN_CHECKPOINTS_DIR / LAST_POINTER).is_file():
+            path = path / RUN_CHECKPOINTS_DIR / LAST_POINTER
+        else:
+            break
+    if path.is_dir() and (path / C.CONFIG_NAME).is_file():
         return path
-    if path.exists() or checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
-        raise FileNotFoundError(f"--checkpoint {checkpoint!r} is not a folder (nor a Hub id 'owner/name')")
+    if Path(checkpoint).exists() or checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
+        raise FileNotFoundError(
+            f"--checkpoint {checkpoint!r}: no config.json there (nor a training run with checkpoints/last, "
+            "nor a Hub id 'owner/name')"
+        )
     from huggingface_hub import snapshot_download
 
     return Path(snapshot_download(repo_id=checkpoint))
@@ -137,7 +157,7 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     OpenFly-Agent) through `agent_from_openvla_checkpoint` with the `openvla_compat` model config
     (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
     """
-    from openfly_agent.model.action_tokenizer import select_action_stats
+    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
     from openfly_agent.model.tokenizer import load_tokenizer
@@ -155,10 +175,14 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()
     agent = OpenFlyAgent.from_pretrained(str(folder), dtype=dtype).to(device).eval()
-    tokenizer = agent.action_tokenizer
-    if settings.decode_rule:
-        tokenizer.decode_rule = settings.decode_rule
-    if settings.unnorm_key:
-        tokenizer.action_stats = select_action_stats(agent.config.norm_stats, settings.unnorm_key)
+    if settings.decode_rule or settings.unnorm_key:  # rebuild the action tokenizer with the chosen decoding
+        old = agent.action_tokenizer
+        stats = old.action_stats
+        if settings.unnorm_key:
+            stats = select_action_stats(agent.config.norm_stats, settings.unnorm_key)
+        agent.action_tokenizer = ActionTokenizer(
+            head=old.head, vocab_end=old.vocab_end, eos_token_id=old.eos_token_id,
+            action_stats=stats, decode_rule=settings.decode_rule or old.decode_rule,
+        )  # fmt: skip
     logger.info("checkpoint %s on %s (%s)", folder, device, dtype)
     return agent
