@@ -202,16 +202,6 @@ def test_fresh_process_trust_remote_code_acts_like_the_checkpoint(releases, sour
     assert "Do you wish to run the custom code" not in result.stdout + result.stderr
 
 
-def test_card_usage_code_runs(releases, tmp_path):
-    body = (releases.single / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL)
-    [usage] = [b for b in blocks if "from_pretrained" in b]
-    assert '"me/openfly-tiny"' in usage
-    result = run_python(usage.replace('"me/openfly-tiny"', repr(str(releases.single))), tmp_path)
-    actions = last_json_line(result)
-    assert len(actions) == 1 and actions[0] in range(10)
-
-
 def test_release_accepts_the_last_pointer_and_names_bad_input(source, tmp_path):
     assert resolve_checkpoint(source.root / "run" / "checkpoints" / "last") == source.checkpoint
     assert resolve_checkpoint(source.root / "run") == source.checkpoint
@@ -257,8 +247,14 @@ def pushed(source, tmp_path_factory):
             HF_ENDPOINT=hub.url,
             **online,
         )
-        received = hub.files("me/openfly-tiny")
-    return SimpleNamespace(work=work, release=release, load=load, received=received, folder=work / "release")
+        yield SimpleNamespace(
+            hub=hub,
+            work=work,
+            release=release,
+            load=load,
+            received=hub.files("me/openfly-tiny"),
+            folder=work / "release",
+        )
 
 
 def _run_cli(work: Path, endpoint: str, online: dict, results: Path, source) -> subprocess.CompletedProcess:
@@ -285,6 +281,18 @@ def _results_json() -> dict:
         for s in ("test_seen", "test_unseen")
     }
     return {"version": 1, "policy": "agent", "meta": {}, "profiles": {}, "splits": splits}
+
+
+def test_card_usage_code_runs_against_the_hub(pushed, source, tmp_path):
+    """The card's Python block, verbatim, downloads the pushed repo anonymously and acts like the source."""
+    body = pushed.received["README.md"].decode()
+    [usage] = [b for b in re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL) if "from_pretrained" in b]
+    assert 'snapshot_download("me/openfly-tiny")' in usage
+    result = run_python(usage, tmp_path, HF_ENDPOINT=pushed.hub.url, HF_HUB_OFFLINE="0")
+    printed = last_json_line(result)
+    namespace = {"agent": source.agent, "np": np}
+    exec(usage.split("agent.eval()\n", 1)[1], namespace)  # noqa: S102 (same observation, source agent)
+    assert printed == namespace["actions"] and len(printed) == 1 and printed[0] in range(10)
 
 
 def test_push_uploads_the_release_folder(pushed):

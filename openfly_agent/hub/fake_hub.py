@@ -5,7 +5,7 @@ repo creation, branch creation, YAML validation, `preupload` (always answering "
 inline in the commit and no LFS / Xet transfer is needed), the NDJSON `commit` endpoint (base64 contents are
 decoded and kept per repo and branch), `repo_info`, `whoami-v2`, and `resolve` (HEAD / GET of one file at a
 branch or commit) so `from_pretrained("<namespace>/<name>")` can read back what was pushed. API calls must
-carry the expected token; downloads need it only from private repos.
+carry the expected token, except reads (downloads, repo info, file lists) of public repos.
 """
 
 from __future__ import annotations
@@ -100,7 +100,10 @@ class FakeHub:
             download = _RESOLVE.match(route)
             if download is not None and method in ("GET", "HEAD"):
                 return self._resolve(download, authorized)
-            if not authorized:
+            match = _REPO_API.match(route)
+            repo = self.repos.get((match["type"][:-1], match["repo"])) if match else None
+            public_read = method == "GET" and repo is not None and not repo.private
+            if not (authorized or public_read):
                 return Reply(
                     HTTPStatus.UNAUTHORIZED, {"error": "Invalid credentials in Authorization header"}
                 )
@@ -110,10 +113,8 @@ class FakeHub:
                 return self._create_repo(json.loads(body or b"{}"))
             if method == "POST" and route == "/api/validate-yaml":
                 return Reply(HTTPStatus.OK, {"errors": [], "warnings": []})
-            match = _REPO_API.match(route)
             if match is None:
                 return Reply(HTTPStatus.NOT_FOUND, {"error": f"fake hub: no route for {method} {route}"})
-            repo = self.repos.get((match["type"][:-1], match["repo"]))
             if repo is None:
                 return _not_found("RepoNotFound", "Repository not found")
             return self._repo_call(method, repo, match["rest"] or "", body, parse_qs(url.query))
