@@ -2,6 +2,14 @@
 
 from __future__ import annotations
 
+import json
+import os
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
 import pytest
 
 from openfly_agent.hub.cli import build_parser, main
@@ -73,3 +81,27 @@ def test_bad_values_exit_with_a_named_error(argv, message, capsys):
 def test_missing_checkpoint_folder_is_named(tmp_path, capsys):
     assert main(["release", "--checkpoint", str(tmp_path / "nope"), "--repo-id", "me/tiny"]) == 2
     assert "is not a checkpoint folder" in capsys.readouterr().err
+
+
+def test_fake_hub_command_serves_until_interrupted(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        line = proc.stdout.readline()
+        url = line.split("HF_ENDPOINT=")[1].split()[0]
+        request = urllib.request.Request(
+            f"{url}/api/repos/create",
+            data=json.dumps({"name": "x", "organization": "me"}).encode(),
+            headers={"Authorization": "Bearer tok", "Content-Type": "application/json"},
+        )
+        assert json.loads(urllib.request.urlopen(request, timeout=10).read())["url"] == f"{url}/me/x"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "model me/x@main: 0 files, 0 bytes" in out
