@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import platform
 import sys
 import tempfile
@@ -62,6 +63,8 @@ def _agent(args, texts, device: str):
 
 
 def _measure(agent, episodes, cfg, batch: int, device: str) -> dict:
+    import torch
+
     from openfly_agent.eval.agent_policy import AgentPolicy
     from openfly_agent.eval.distributed import ProcessInfo
     from openfly_agent.eval.factory import embedded_sim_config, make_env
@@ -90,6 +93,8 @@ def _measure(agent, episodes, cfg, batch: int, device: str) -> dict:
         "sim_ms_per_step": round(1000.0 * stats.sim_s / stats.steps, 3),
         "model_ms_per_step": round(1000.0 * stats.policy_s / stats.steps, 3),
         "sim_share": round(stats.sim_s / max(stats.sim_s + stats.policy_s, 1e-9), 3),
+        "torch_threads": torch.get_num_threads(),
+        "load_avg_1m": round(os.getloadavg()[0], 2),
         "machine": platform.processor() or platform.machine(),
     }
 
@@ -103,6 +108,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=16, help="episodes per configuration (test splits)")
     parser.add_argument("--max_steps", type=int, default=20)
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -111,7 +117,8 @@ def main() -> None:
     from openfly_agent.eval.config import EvalConfig
     from openfly_agent.eval.factory import load_splits
 
-    torch.set_num_threads(max(1, torch.get_num_threads()))
+    if args.threads:
+        torch.set_num_threads(args.threads)
     root = _dataset(args)
     cfg = EvalConfig(policy="stop", dataset_root=root, max_episodes=args.episodes, max_steps=args.max_steps)
     episodes = [e for split in load_splits(cfg).values() for e in split][: args.episodes]
