@@ -115,6 +115,8 @@ class EvalConfig:
     )  # episode ids to save as GIFs with the predicted box
     seed: int = 0
     device: str = "auto"  # auto | cpu | cuda | cuda:<k>
+    torch_threads: int | None = None  # CPU threads of the model (None = torch's default); 1 avoids thrashing
+    # when other processes share few cores (docs/BENCHMARKS.md)
     overwrite: bool = False  # discard existing logs in output_dir instead of resuming
     progress: bool = True
 
@@ -142,6 +144,8 @@ class EvalConfig:
             raise ValueError(f"max_episodes={self.max_episodes} must be >= 1 (or null for all)")
         if self.oracle_mode not in ORACLE_MODES:
             raise ValueError(f"oracle_mode={self.oracle_mode!r}: choose from {ORACLE_MODES}")
+        if self.torch_threads is not None and self.torch_threads < 1:
+            raise ValueError(f"torch_threads={self.torch_threads} must be >= 1 (or null for torch's default)")
         if self.plots < 0:
             raise ValueError(f"plots={self.plots} must be >= 0")
 

@@ -119,6 +119,10 @@ def run(cfg: EvalConfig) -> dict:
     from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
 
     info = process_info()
+    if cfg.torch_threads is not None:
+        import torch
+
+        torch.set_num_threads(cfg.torch_threads)
     root = Path(cfg.output_dir)
     episodes_by_split = load_splits(cfg)
     all_episodes = [e for eps in episodes_by_split.values() for e in eps]
