@@ -80,6 +80,8 @@ def test_wrong_token_fails_cleanly(tmp_path):
         "--repo-id",
         "me/ds",
         "--push",
+        "--output-dir",
+        str(tmp_path / "release"),
     ]
     wrong = "hf_wrongTokenAlsoSecret987"
     with FakeHub(token=TOKEN) as hub:
