@@ -1,0 +1,36 @@
+"""Closed-loop evaluation of a checkpoint (and baselines) on the test-seen / test-unseen splits.
+
+    python eval.py --checkpoint runs/tiny/checkpoints/last --split test_seen test_unseen --sim embedded
+    python eval.py --policy oracle --baselines random stop forward --dataset_root <dataset root>
+    python eval.py --config_path configs/eval/embedded.yaml --checkpoint <folder or Hub id>
+    accelerate launch eval.py ...        # episodes split over processes / GPUs, results merged by rank 0
+
+A killed run resumes where it stopped (same --output_dir). Results: <output_dir>/summary.md and
+<output_dir>/<policy>/{results.json,results.md,episodes.jsonl,plots/}. See docs/EVAL.md.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from openfly_agent.eval.cli import normalize_argv
+from openfly_agent.eval.config import EvalConfig
+from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.logging_utils import setup_logging
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Parse the command line, run the evaluation, print the comparison table (rank 0)."""
+    setup_logging()
+    cfg = parse_config(EvalConfig, normalize_argv(list(sys.argv[1:] if argv is None else argv)))
+    from openfly_agent.eval.run import run
+
+    outcome = run(cfg)
+    if outcome:
+        print(outcome["summary_markdown"])
+        print(f"Results, per-scene tables and plots: {outcome['output_dir']}/")
+    return outcome
+
+
+if __name__ == "__main__":
+    main()

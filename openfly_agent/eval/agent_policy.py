@@ -1,0 +1,188 @@
+"""The trained agent as a `Policy`: batched `select_action` with per-episode memory, plus its predictions.
+
+`AgentPolicy` wraps any object with the agent's public inference API (`select_action(list[dict]) ->
+list[int]`, `reset(episode_ids)`, optionally `last_step_info`), so the runner never touches model
+internals. `load_agent` builds `OpenFlyAgent` from our checkpoint folder, a released OpenVLA /
+OpenFly-Agent folder (through the model's `openvla_compat` path and `openvla_bins` head) or a Hub id.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from pathlib import Path
+
+from openfly_agent import constants as C
+from openfly_agent.eval.config import AgentSettings
+from openfly_agent.eval.policy import OBS_EPISODE_ID
+
+logger = logging.getLogger(__name__)
+
+# The layout train.py writes (docs/TRAINING.md): <run>/checkpoints/step-N/ and a `last` pointer file.
+RUN_CHECKPOINTS_DIR = "checkpoints"
+LAST_POINTER = "last"
+
+
+class AgentPolicy:
+    """Adapter from the agent's inference API to the runner's `Policy` protocol.
+
+    Args:
+        agent: an `OpenFlyAgent` (or anything with `select_action`, `reset`).
+        name: the policy name in tables and folders.
+    """
+
+    needs_frames = True
+
+    def __init__(self, agent, name: str = "agent"):
+        self.agent = agent
+        self.name = name
+
+    def reset(self, episode_ids: list[str]) -> None:
+        self.agent.reset(list(episode_ids))
+
+    def act(self, observations: list[dict]) -> list[int]:
+        import torch
+
+        inputs = [
+            {key: obs[key] for key in (OBS_EPISODE_ID, C.OBS_INSTRUCTION, C.OBS_RGB, C.OBS_POSE)}
+            for obs in observations
+        ]
+        with torch.inference_mode():
+            return [int(a) for a in self.agent.select_action(inputs)]
+
+    def step_details(self, episode_ids: list[str]) -> list[dict]:
+        """The predicted landmark box and keyframe decision of the last step, per episode (if exposed)."""
+        info = getattr(self.agent, "last_step_info", None)
+        if not info:
+            return [{} for _ in episode_ids]
+        return [_details(info.get(episode_id)) for episode_id in episode_ids]
+
+
+def _details(step: dict | None) -> dict:
+    if not step:
+        return {}
+    out = {}
+    box = step.get("box")
+    if box is not None:
+        out["box"] = [float(v) for v in box]
+    if "keyframe" in step:
+        out["keyframe"] = bool(step["keyframe"])
+    return out
+
+
+def resolve_device(device: str, info_device=None) -> str:
+    """`auto` -> the launcher's device for this process (accelerate), else cuda when present, else cpu."""
+    import torch
+
+    if device != "auto":
+        return device
+    if info_device is not None:
+        return str(info_device)
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def resolve_dtype(dtype: str, device: str):
+    """`auto` -> bfloat16 on CUDA, float32 elsewhere."""
+    import torch
+
+    if dtype == "auto":
+        return torch.bfloat16 if device.startswith("cuda") else torch.float32
+    return getattr(torch, dtype)
+
+
+def checkpoint_folder(checkpoint: str) -> Path:
+    """The checkpoint's HF folder: a folder with config.json as is; a training run (`<run>`,
+    `<run>/checkpoints` or the `last` pointer file) resolved to its newest checkpoint; otherwise a Hub id
+    resolved through the local Hub cache (or a download when online)."""
+    path = Path(checkpoint)
+    for _ in range(3):  # run dir -> checkpoints dir -> pointer file -> step folder
+        if path.is_dir() and (path / C.CONFIG_NAME).is_file():
+            return path
+        if path.is_file():  # a pointer: one line naming the newest checkpoint folder beside it
+            path = path.parent / path.read_text().strip()
+        elif (path / LAST_POINTER).is_file():
+            path = path / LAST_POINTER
+        elif (path / RUN_CHECKPOINTS_DIR / LAST_POINTER).is_file():
+            path = path / RUN_CHECKPOINTS_DIR / LAST_POINTER
+        else:
+            break
+    if path.is_dir() and (path / C.CONFIG_NAME).is_file():
+        return path
+    if Path(checkpoint).exists() or checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
+        raise FileNotFoundError(
+            f"--checkpoint {checkpoint!r}: no config.json there (nor a training run with checkpoints/last, "
+            "nor a Hub id 'owner/name')"
+        )
+    from huggingface_hub import snapshot_download
+
+    return Path(snapshot_download(repo_id=checkpoint))
+
+
+def checkpoint_kind(folder: Path) -> str:
+    """`openfly_agent` (ours) or `openvla` (a released OpenVLA / OpenFly-Agent folder), from config.json."""
+    config = folder / C.CONFIG_NAME
+    if not config.is_file():
+        raise FileNotFoundError(f"{config} not found: a checkpoint folder holds config.json and safetensors")
+    model_type = json.loads(config.read_text()).get("model_type")
+    if model_type == C.MODEL_TYPE:
+        return C.MODEL_TYPE
+    if model_type == "openvla":
+        return "openvla"
+    raise ValueError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
+
+
+def _released_model_config(settings: AgentSettings):
+    from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
+    from openfly_agent.utils.config import load_yaml_config
+
+    cfg = (
+        load_yaml_config(ModelConfig, settings.model_config)
+        if settings.model_config
+        else openvla_compat_7b_config()
+    )
+    head = cfg.action_head
+    head = dataclasses.replace(
+        head,
+        unnorm_key=settings.unnorm_key or head.unnorm_key,
+        decode_rule=settings.decode_rule or head.decode_rule,
+    )
+    return dataclasses.replace(cfg, action_head=head)
+
+
+def load_agent(checkpoint: str, settings: AgentSettings, device: str):
+    """Load the agent of `checkpoint` on `device`, in eval mode, with the decoding settings applied.
+
+    Our folders load with `OpenFlyAgent.from_pretrained`; OpenVLA-format folders (the released
+    OpenFly-Agent) through `agent_from_openvla_checkpoint` with the `openvla_compat` model config
+    (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
+    """
+    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
+    from openfly_agent.model.tokenizer import load_tokenizer
+
+    folder = checkpoint_folder(checkpoint)
+    dtype = resolve_dtype(settings.dtype, device)
+    if checkpoint_kind(folder) == "openvla":
+        agent, report = agent_from_openvla_checkpoint(
+            folder,
+            _released_model_config(settings),
+            tokenizer=load_tokenizer(folder),
+            device=device,
+            dtype=dtype,
+        )
+        logger.info("released checkpoint %s: %s", folder, report.summary())
+        return agent.eval()
+    agent = OpenFlyAgent.from_pretrained(str(folder), dtype=dtype).to(device).eval()
+    if settings.decode_rule or settings.unnorm_key:  # rebuild the action tokenizer with the chosen decoding
+        old = agent.action_tokenizer
+        stats = old.action_stats
+        if settings.unnorm_key:
+            stats = select_action_stats(agent.config.norm_stats, settings.unnorm_key)
+        agent.action_tokenizer = ActionTokenizer(
+            head=old.head, vocab_end=old.vocab_end, eos_token_id=old.eos_token_id,
+            action_stats=stats, decode_rule=settings.decode_rule or old.decode_rule,
+        )  # fmt: skip
+    logger.info("checkpoint %s on %s (%s)", folder, device, dtype)
+    return agent

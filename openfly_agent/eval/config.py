@@ -1,0 +1,179 @@
+"""`EvalConfig`: what `eval.py` evaluates, on which data and simulator, and where results go.
+
+Parsed with draccus from YAML (`configs/eval/*.yaml`) and dotted command-line overrides. It holds the
+bridges' own config dataclasses (`--sim.unrealcv.port=9001`), so no setting is declared twice.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from openfly_agent import constants as C
+from openfly_agent.data.config import ReaderOptions
+from openfly_agent.sim.bridges.airsim import AirSimConfig
+from openfly_agent.sim.bridges.gs_http import GSHttpConfig
+from openfly_agent.sim.bridges.unrealcv import UnrealCVConfig
+
+POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
+SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
+PROFILE_NAMES = ("openfly", "standard")
+ORACLE_MODES = ("auto", "replay", "teleport")
+DECODE_RULES = ("exact", "nearest")
+
+
+@dataclass
+class SimSettings:
+    """The simulator episodes run in.
+
+    `embedded` renders the procedural city of each `embedded-<seed>` scene (the city parameters and frame
+    size come from the dataset's toolchain config); the bridges connect to a running engine
+    (docs/BRIDGES.md, one engine per process). Collisions are recorded and never end an episode: each
+    metric profile decides what a collision means (docs/EVAL.md).
+    """
+
+    type: str = "embedded"  # embedded | unrealcv | airsim | gs_http
+    width: int | None = None  # embedded frame size; None = the dataset's (toolchain config, else a frame)
+    height: int | None = None
+    unrealcv: UnrealCVConfig = field(default_factory=UnrealCVConfig)
+    airsim: AirSimConfig = field(default_factory=AirSimConfig)
+    gs_http: GSHttpConfig = field(default_factory=GSHttpConfig)
+    # Bridges: a point cloud per scene for collision checks, e.g. "scenes/{scene_id}.pcd" (None = no check,
+    # as the official evaluation); voxel size of the occupancy built from it.
+    occupancy_pcd: str | None = None
+    occupancy_voxel_m: float = 2.0
+    port_per_rank: bool = True  # bridges under a launcher: process k connects to port + k
+
+    def __post_init__(self) -> None:
+        if self.type not in SIM_TYPES:
+            raise ValueError(f"sim.type={self.type!r}: choose one of {SIM_TYPES}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if value is not None and value < 16:
+                raise ValueError(
+                    f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)"
+                )
+        if self.occupancy_pcd is not None and "{scene_id}" not in self.occupancy_pcd:
+            raise ValueError(f"sim.occupancy_pcd={self.occupancy_pcd!r} must contain '{{scene_id}}'")
+        if self.occupancy_voxel_m <= 0:
+            raise ValueError(f"sim.occupancy_voxel_m={self.occupancy_voxel_m} must be > 0 metres")
+
+    def bridge_config(self):
+        """The settings of the selected bridge (None for the embedded simulator)."""
+        return getattr(self, self.type) if self.type != "embedded" else None
+
+
+@dataclass
+class AgentSettings:
+    """How a checkpoint is loaded and decoded (used when `policy` is `agent`)."""
+
+    unnorm_key: str | None = None  # openvla_bins head: norm-stats key (released model: vlnv1 or vln_norm)
+    decode_rule: str | None = None  # openvla_bins head: exact | nearest; None = the checkpoint's setting
+    dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on CUDA) | float32 | bfloat16 | float16
+    model_config: str | None = (
+        None  # released (OpenVLA-format) folders: ModelConfig YAML; None = 7B compat preset
+    )
+
+    def __post_init__(self) -> None:
+        if self.decode_rule is not None and self.decode_rule not in DECODE_RULES:
+            raise ValueError(
+                f"agent.decode_rule={self.decode_rule!r}: choose one of {DECODE_RULES} (or null)"
+            )
+        if self.dtype not in ("auto", "float32", "bfloat16", "float16"):
+            raise ValueError(f"agent.dtype={self.dtype!r}: choose auto, float32, bfloat16 or float16")
+
+
+@dataclass
+class EvalConfig:
+    """Closed-loop evaluation of one policy (plus baselines) on dataset splits.
+
+    Outputs go to `<output_dir>/<policy>/` (episodes.jsonl, results.json, results.md, plots/, gifs/) and
+    `<output_dir>/summary.md` (every policy side by side).
+    """
+
+    policy: str = "agent"  # agent | random | stop | forward | oracle
+    checkpoint: str | None = (
+        None  # agent: our checkpoint folder, an OpenVLA / OpenFly-Agent folder, or a Hub id
+    )
+    baselines: list[str] = field(
+        default_factory=list
+    )  # more policies through the same runner, e.g. [random,stop]
+    dataset_root: str = "data/generated/embedded-small"
+    split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
+    # Released data: keep take-off / landing so the goal is the landed point, as in the official evaluation.
+    reader: ReaderOptions = field(default_factory=lambda: ReaderOptions(takeoff_landing="keep"))
+    max_episodes: int | None = None  # per split, the first N by episode id (quick runs); None = all
+    sim: SimSettings = field(default_factory=SimSettings)
+    agent: AgentSettings = field(default_factory=AgentSettings)
+    batch_size: int = 16  # episodes stepped in lockstep (the policy's batch)
+    max_steps: int = C.MAX_EPISODE_STEPS
+    profiles: list[str] = field(default_factory=lambda: list(PROFILE_NAMES))
+    oracle_mode: str = "auto"  # auto | replay | teleport (docs/EVAL.md)
+    output_dir: str = "outputs/eval"
+    plots: int = 6  # top-down plots per policy and split (evenly spaced over the episode ids)
+    gif_episodes: list[str] = field(
+        default_factory=list
+    )  # episode ids to save as GIFs with the predicted box
+    seed: int = 0
+    device: str = "auto"  # auto | cpu | cuda | cuda:<k>
+    torch_threads: int | None = None  # CPU threads of the model (None = torch's default); 1 avoids thrashing
+    # when other processes share few cores (docs/BENCHMARKS.md)
+    overwrite: bool = False  # discard existing logs in output_dir instead of resuming
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        for name in [self.policy, *self.baselines]:
+            if name not in POLICY_NAMES:
+                raise ValueError(f"policy / baselines entry {name!r}: choose from {POLICY_NAMES}")
+        if len({self.policy, *self.baselines}) != 1 + len(self.baselines):
+            raise ValueError(f"policy {self.policy!r} and baselines {self.baselines} must not repeat a name")
+        if "agent" in (self.policy, *self.baselines) and not self.checkpoint:
+            raise ValueError(
+                "policy 'agent' needs --checkpoint=<folder or Hub id> (or pick a baseline with --policy)"
+            )
+        for split in self.split:
+            if split not in C.SPLITS:
+                raise ValueError(f"split {split!r}: choose from {C.SPLITS}")
+        if not self.split:
+            raise ValueError("split is empty: pass e.g. --split test_seen test_unseen")
+        for profile in self.profiles:
+            if profile not in PROFILE_NAMES:
+                raise ValueError(f"profile {profile!r}: choose from {PROFILE_NAMES}")
+        if self.batch_size < 1 or self.max_steps < 1:
+            raise ValueError(f"batch_size ({self.batch_size}) and max_steps ({self.max_steps}) must be >= 1")
+        if self.max_episodes is not None and self.max_episodes < 1:
+            raise ValueError(f"max_episodes={self.max_episodes} must be >= 1 (or null for all)")
+        if self.oracle_mode not in ORACLE_MODES:
+            raise ValueError(f"oracle_mode={self.oracle_mode!r}: choose from {ORACLE_MODES}")
+        if self.torch_threads is not None and self.torch_threads < 1:
+            raise ValueError(f"torch_threads={self.torch_threads} must be >= 1 (or null for torch's default)")
+        if self.plots < 0:
+            raise ValueError(f"plots={self.plots} must be >= 0")
+
+    @property
+    def policies(self) -> list[str]:
+        """The policy, then the baselines, in run order."""
+        return [self.policy, *self.baselines]
+
+    def result_identity(self, policy: str) -> dict:
+        """The settings that decide a policy's per-episode results (checked before resuming a log)."""
+        identity = {
+            "policy": policy,
+            "dataset_root": self.dataset_root,
+            "reader": [self.reader.takeoff_landing, self.reader.merged_forward_position],
+            "max_steps": self.max_steps,
+            "sim_type": self.sim.type,
+            "sim_width": self.sim.width,
+            "sim_height": self.sim.height,
+            "sim_occupancy": self.sim.occupancy_pcd,
+        }
+        if policy == "agent":
+            identity.update(
+                checkpoint=self.checkpoint,
+                unnorm_key=self.agent.unnorm_key,
+                decode_rule=self.agent.decode_rule,
+            )
+        if policy == "random":
+            identity["seed"] = self.seed
+        if policy == "oracle":
+            identity["oracle_mode"] = self.oracle_mode
+        return identity

@@ -1,0 +1,188 @@
+"""Builders behind `run(cfg)`: the evaluated episodes, the simulator slots and the policies."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from pathlib import Path
+
+from openfly_agent import constants as C
+from openfly_agent.data.schema import Episode
+from openfly_agent.eval.baselines import make_baseline
+from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.eval.distributed import ProcessInfo
+from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
+from openfly_agent.utils.errors import RecordError
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_FRAME_SIZE = 224
+
+
+def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
+    """{split: episodes sorted by id} for every split of `cfg` (the first `max_episodes` when set).
+
+    Raises:
+        FileNotFoundError: the dataset root or a split's annotation is missing, with the path and a hint.
+    """
+    from openfly_agent.data.openfly_reader import load_openfly_dataset
+
+    out = {}
+    for split in cfg.split:
+        try:
+            episodes = load_openfly_dataset(cfg.dataset_root, split, cfg.reader)
+        except FileNotFoundError as err:
+            raise FileNotFoundError(
+                f"{err}. Generate a dataset first (python -m openfly_agent.toolchain generate "
+                "--config configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
+            ) from err
+        episodes = sorted(episodes, key=lambda e: e.episode_id)
+        if cfg.max_episodes is not None:
+            episodes = episodes[: cfg.max_episodes]
+        if not episodes:
+            raise ValueError(f"{cfg.dataset_root}: split {split!r} has no episodes")
+        out[split] = episodes
+        logger.info("%s: %d episodes from %s", split, len(episodes), cfg.dataset_root)
+    return out
+
+
+def dataset_frame_size(root: str, episodes: list[Episode]) -> tuple[int, int] | None:
+    """(height, width) of the dataset frames (its first frame), or None when the dataset has no frames."""
+    from openfly_agent.data.frames import FrameStore
+
+    if not episodes:
+        return None
+    try:
+        frame = FrameStore(root).frame(episodes[0], 0)
+    except (FileNotFoundError, KeyError, OSError) as err:
+        logger.info("no frames under %s (%s); rendering at %d px", root, err, DEFAULT_FRAME_SIZE)
+        return None
+    return int(frame.shape[0]), int(frame.shape[1])
+
+
+def toolchain_settings(root: str) -> dict:
+    """Frame size and city parameters the dataset was generated with, from its toolchain config ({} if none).
+
+    Returns keys `width`, `height`, `city_size_m`, `city_buildings`, `collision_voxel_m` (those present).
+    """
+    path = Path(root) / C.TOOLCHAIN_CONFIG_JSON
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+        render, scenes = data.get("render", {}), data.get("scenes", {})
+    except (json.JSONDecodeError, AttributeError) as err:
+        raise RecordError(path, None, "<json>", f"not a toolchain config: {err}") from err
+    out = {"width": render.get("width"), "height": render.get("height")}
+    out.update(
+        city_size_m=scenes.get("city_size_m"),
+        city_buildings=scenes.get("city_buildings"),
+        collision_voxel_m=scenes.get("collision_voxel_m"),
+    )
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def scene_occupancy(template: str, scene_id: str, voxel_m: float):
+    """Occupancy grid of a real scene from its point cloud (`template` with `{scene_id}`), for collisions."""
+    from openfly_agent.sim.occupancy import OccupancyGrid
+    from openfly_agent.sim.pointcloud import read_points
+    from openfly_agent.sim.scene import SceneBounds
+
+    path = Path(template.format(scene_id=scene_id))
+    if not path.is_file():
+        raise FileNotFoundError(f"sim.occupancy_pcd: no point cloud for scene {scene_id} at {path}")
+    points = read_points(path)  # (N, 3) metres
+    lo, hi = points.min(axis=0) - voxel_m, points.max(axis=0) + voxel_m
+    bounds = SceneBounds(lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
+    return OccupancyGrid.from_points(points, bounds, voxel_m)
+
+
+class _BridgeSlots(SimulatorSlots):
+    """One bridge; its collision occupancy follows the scene of the episode being reset."""
+
+    def __init__(self, bridge, settings: SimSettings):
+        super().__init__([bridge])
+        self.settings = settings
+        self._occupancy: dict[str, object] = {}
+
+    def reset_slot(self, slot: int, spec):
+        if self.settings.occupancy_pcd:
+            if spec.scene_id not in self._occupancy:
+                self._occupancy[spec.scene_id] = scene_occupancy(
+                    self.settings.occupancy_pcd, spec.scene_id, self.settings.occupancy_voxel_m
+                )
+            self.sims[slot].occupancy = self._occupancy[spec.scene_id]
+        return super().reset_slot(slot, spec)
+
+
+def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
+    """One engine bridge per process (`port + rank` when `port_per_rank`), as lockstep slots of width 1."""
+    from openfly_agent.sim.bridges.airsim import AirSimBridge
+    from openfly_agent.sim.bridges.gs_http import GSHttpBridge
+    from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
+
+    classes = {"unrealcv": UnrealCVBridge, "airsim": AirSimBridge, "gs_http": GSHttpBridge}
+    bridge_cls = classes[settings.type]
+    config = settings.bridge_config()
+    if settings.port_per_rank and info.world_size > 1:
+        port = (config.port or bridge_cls.default_port) + info.rank
+        config = dataclasses.replace(config, port=port)
+    logger.info("%s bridge at %s:%s", settings.type, config.host, config.port or bridge_cls.default_port)
+    return _BridgeSlots(bridge_cls(config), settings)
+
+
+def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
+    """`EmbeddedSimConfig` that rebuilds the dataset's cities at its frame size, counting collisions.
+
+    Frame size: `sim.width/height`, else the toolchain config of the dataset, else its first frame, else
+    224. City parameters and the collision voxel come from the toolchain config (defaults otherwise).
+    """
+    from openfly_agent.sim.city import CityConfig
+    from openfly_agent.sim.embedded import EmbeddedSimConfig
+
+    generated = toolchain_settings(cfg.dataset_root)
+    size = None
+    if "width" in generated and "height" in generated:
+        size = (generated["height"], generated["width"])
+    elif cfg.sim.width is None or cfg.sim.height is None:
+        size = dataset_frame_size(cfg.dataset_root, episodes)
+    height = cfg.sim.height or (size[0] if size else DEFAULT_FRAME_SIZE)
+    width = cfg.sim.width or (size[1] if size else DEFAULT_FRAME_SIZE)
+    city = CityConfig(size_m=generated.get("city_size_m", CityConfig.size_m))
+    if "city_buildings" in generated:
+        city = dataclasses.replace(city, n_buildings=int(generated["city_buildings"]))
+    voxel = float(generated.get("collision_voxel_m", 2.0))
+    return EmbeddedSimConfig(
+        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel
+    )
+
+
+def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True) -> SlotEnv:
+    """Lockstep slots of `cfg.sim`: `batch_size` embedded environments (rendering or blind), or a bridge."""
+    if cfg.sim.type != "embedded":
+        if cfg.batch_size > 1:
+            logger.info("%s: one engine per process, so episodes run one at a time", cfg.sim.type)
+        return make_bridge_env(cfg.sim, info)
+    sim_cfg = embedded_sim_config(cfg, episodes)
+    if not render:
+        from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
+
+        cities = CityCache(sim_cfg)
+        return SimulatorSlots([BlindEmbeddedSimulator(sim_cfg, cities) for _ in range(cfg.batch_size)])
+    from openfly_agent.sim.vector import VectorSimulator
+
+    logger.info(
+        "embedded simulator: %d x %d px, %d environments", sim_cfg.width, sim_cfg.height, cfg.batch_size
+    )
+    return VectorSlots(VectorSimulator.embedded(sim_cfg, num_envs=cfg.batch_size))
+
+
+def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: ProcessInfo):
+    """The policy called `name`: the agent of `cfg.checkpoint`, or a baseline."""
+    if name != "agent":
+        return make_baseline(name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode)
+    from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
+
+    device = resolve_device(cfg.device, getattr(info.state, "device", None))
+    return AgentPolicy(load_agent(cfg.checkpoint, cfg.agent, device))

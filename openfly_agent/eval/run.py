@@ -1,0 +1,166 @@
+"""`run(cfg)`: evaluate the configured policy and baselines on every split, resumably, then report.
+
+Per policy: check that `<output_dir>/<policy>/` holds results of the same settings (or start over with
+`overwrite`), skip episodes already in its logs, run the rest of this process' shard, and append each
+finished episode to the log. Rank 0 then merges the logs and recomputes every table from them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+from openfly_agent.data.schema import Episode
+from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.distributed import (
+    ProcessInfo,
+    log_name,
+    merge_logs,
+    process_info,
+    read_all_logs,
+    shard,
+)
+from openfly_agent.eval.outputs import write_policy_outputs, write_summary
+from openfly_agent.eval.policy import Policy
+from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
+from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, teleport_record
+from openfly_agent.eval.slots import SlotEnv
+
+logger = logging.getLogger(__name__)
+
+RUN_IDENTITY_NAME = "run_identity.json"
+
+
+def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessInfo) -> None:
+    """Make `folder` ready for this run: refuse to mix results of different settings unless `overwrite`."""
+    path = folder / RUN_IDENTITY_NAME
+    if info.is_main:
+        if overwrite and folder.exists():
+            shutil.rmtree(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        if path.is_file():
+            stored = json.loads(path.read_text())
+            changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
+            if changed:
+                details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+                raise ValueError(
+                    f"{folder} holds results of other settings ({details}); pass another --output_dir "
+                    "or --overwrite=true to discard them"
+                )
+        else:
+            path.write_text(json.dumps(identity, indent=2, sort_keys=True) + "\n")
+    info.wait()
+
+
+def gif_path(folder: Path, split: str, episode_id: str) -> Path:
+    """Where the GIF of one episode goes."""
+    from openfly_agent.eval.plots import safe_name
+
+    return folder / "gifs" / f"{split}__{safe_name(episode_id)}.gif"
+
+
+def evaluate_policy(
+    cfg: EvalConfig,
+    policy: Policy,
+    episodes_by_split: dict[str, list[Episode]],
+    env: SlotEnv,
+    folder: Path,
+    info: ProcessInfo,
+) -> RolloutStats:
+    """Run this process' shard of every split not yet in the logs of `folder`; append as they finish."""
+    from openfly_agent.eval.plots import write_gif
+
+    done = {r.key for r in read_all_logs(folder)}
+    log = EpisodeLog(folder / log_name(info))
+    gif_ids = set(cfg.gif_episodes)
+
+    def save_gif(record: EpisodeRecord, frames: FrameLog) -> None:
+        write_gif(frames, record.actions, gif_path(folder, record.split, record.episode_id))
+
+    runner = LockstepRunner(policy, env, cfg.max_steps, gif_ids, show_progress=cfg.progress)
+    for split, episodes in episodes_by_split.items():
+        mine = shard(episodes, info.rank, info.world_size)
+        todo = [e for e in mine if (split, e.episode_id) not in done]
+        logger.info(
+            "%s / %s: %d episodes in this shard, %d already done",
+            policy.name,
+            split,
+            len(mine),
+            len(mine) - len(todo),
+        )
+        replays = getattr(policy, "replays", None)
+        if (
+            replays is not None
+        ):  # the oracle: episodes whose actions do not replay follow the ground-truth poses
+            for episode in [e for e in todo if not replays(e.episode_id)]:
+                log.append(teleport_record(episode, split, policy.name, cfg.max_steps))
+            todo = [e for e in todo if replays(e.episode_id)]
+        runner.run(todo, split, on_finish=log.append, on_frames=save_gif)
+        missing = [
+            e
+            for e in mine
+            if e.episode_id in gif_ids
+            and (split, e.episode_id) in done
+            and not gif_path(folder, split, e.episode_id).is_file()
+        ]
+        if missing:  # finished in an earlier run: replay them (results are deterministic) to get frames
+            runner.run(missing, split, on_finish=lambda record: None, on_frames=save_gif)
+    return runner.stats
+
+
+def run(cfg: EvalConfig) -> dict:
+    """Evaluate `cfg.policies` on `cfg.split`; returns {"summary_markdown", "results": {policy: results}}.
+
+    Every process runs its shard; only rank 0 merges, writes reports and returns the tables (other ranks
+    return an empty dict).
+    """
+    from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
+
+    info = process_info()
+    if cfg.torch_threads is not None:
+        import torch
+
+        torch.set_num_threads(cfg.torch_threads)
+    root = Path(cfg.output_dir)
+    episodes_by_split = load_splits(cfg)
+    all_episodes = [e for eps in episodes_by_split.values() for e in eps]
+    envs: dict[bool, SlotEnv] = {}  # rendering or blind (baselines never look at frames)
+    try:
+        for name in cfg.policies:
+            folder = root / name
+            prepare_output(folder, cfg.result_identity(name), cfg.overwrite, info)
+            policy = make_policy(name, cfg, all_episodes, info)
+            render = bool(policy.needs_frames or cfg.gif_episodes)
+            if render not in envs:
+                envs[render] = make_env(cfg, info, all_episodes, render=render)
+            stats = evaluate_policy(cfg, policy, episodes_by_split, envs[render], folder, info)
+            logger.info(
+                "%s: %d episodes, %d steps, simulator %.1f s, policy %.1f s",
+                name, stats.episodes, stats.steps, stats.sim_s, stats.policy_s,
+            )  # fmt: skip
+            del policy
+    finally:
+        for env in envs.values():
+            env.close()
+    info.wait()
+    if not info.is_main:
+        return {}
+    all_results = {}
+    wanted = expected_keys(episodes_by_split)
+    city = embedded_sim_config(cfg, all_episodes).city if cfg.sim.type == "embedded" else None
+    for name in cfg.policies:
+        records = [r for r in merge_logs(root / name) if r.key in wanted]
+        if len(records) != len(wanted):
+            raise RuntimeError(
+                f"{root / name}: {len(wanted) - len(records)} episodes have no record after the run"
+            )
+        all_results[name] = write_policy_outputs(cfg, name, records, root / name, episodes_by_split, city)
+    summary = write_summary(cfg, list(all_results.values()), root)
+    return {"summary_markdown": summary, "results": all_results, "output_dir": str(root)}
+
+
+def expected_keys(episodes_by_split: dict[str, list[Episode]]) -> set[tuple[str, str]]:
+    """(split, episode id) of every episode the run covers."""
+    return {(split, e.episode_id) for split, eps in episodes_by_split.items() for e in eps}

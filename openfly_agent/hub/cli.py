@@ -1,0 +1,92 @@
+"""`python -m openfly_agent.hub {release, release-dataset, fake-hub}`: build release folders and push them."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from openfly_agent.hub.cli_args import add_dataclass_arguments, build_dataclass
+from openfly_agent.hub.config import DatasetReleaseConfig, ModelReleaseConfig
+from openfly_agent.utils.logging_utils import setup_logging
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line parser with one sub-command per release kind."""
+    parser = argparse.ArgumentParser(prog="python -m openfly_agent.hub", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    model = commands.add_parser("release", help="release a model checkpoint (folder, card, optional push)")
+    add_dataclass_arguments(model, ModelReleaseConfig)
+    dataset = commands.add_parser("release-dataset", help="release a generated dataset as a Hub dataset repo")
+    add_dataclass_arguments(dataset, DatasetReleaseConfig)
+    fake = commands.add_parser(
+        "fake-hub", help="serve a loopback stand-in for the Hub upload API (rehearsal)"
+    )
+    fake.add_argument(
+        "--token", required=True, help="the token clients must send (use the value of HF_TOKEN)"
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    setup_logging()
+    try:
+        if args.command == "release":
+            return _release_model(build_dataclass(ModelReleaseConfig, args))
+        if args.command == "release-dataset":
+            return _release_dataset(build_dataclass(DatasetReleaseConfig, args))
+        return _serve_fake_hub(args.token)
+    except (ValueError, OSError, RuntimeError) as err:  # OSError covers missing files and Hub HTTP errors
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def _release_model(cfg: ModelReleaseConfig) -> int:
+    from openfly_agent.hub.model_release import build_model_release
+    from openfly_agent.hub.push import push_folder
+
+    folder = build_model_release(cfg)
+    print(f"release folder: {folder}")
+    if cfg.push:
+        url = push_folder(
+            folder, cfg.repo_id, private=cfg.private, revision=cfg.revision, commit_message=cfg.commit_message
+        )
+        print(f"pushed: {url}")
+    return 0
+
+
+def _release_dataset(cfg: DatasetReleaseConfig) -> int:
+    from openfly_agent.hub.dataset_release import build_dataset_release
+    from openfly_agent.hub.push import push_folder
+
+    folder = build_dataset_release(cfg)
+    print(f"release folder: {folder}")
+    if cfg.push:
+        url = push_folder(
+            folder,
+            cfg.repo_id,
+            repo_type="dataset",
+            private=cfg.private,
+            revision=cfg.revision,
+            commit_message=cfg.commit_message,
+        )
+        print(f"pushed: {url}")
+    return 0
+
+
+def _serve_fake_hub(token: str) -> int:
+    from openfly_agent.hub.fake_hub import FakeHub
+
+    with FakeHub(token=token) as hub:
+        print(f"fake Hub listening: export HF_ENDPOINT={hub.url}  (Ctrl-C to stop)", flush=True)
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            for (repo_type, repo_id), repo in hub.repos.items():
+                for branch, files in repo.branches.items():
+                    size = sum(map(len, files.values()))
+                    print(f"{repo_type} {repo_id}@{branch}: {len(files)} files, {size} bytes")
+    return 0

@@ -1,0 +1,107 @@
+"""LoRA checkpoints (metadata + `adapter/`, no base weights): rebuild the agent from its base and the adapter.
+
+Used by the model release (merged or adapter form) and by users loading an adapter release:
+`load_lora_agent("<adapter repo or folder>", base="<base repo or folder>")`.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, MODEL_TYPE, TRAIN_CONFIG_NAME
+from openfly_agent.hub.folder_utils import read_json
+
+logger = logging.getLogger(__name__)
+
+BASE_OURS, BASE_OPENVLA = "openfly_agent", "openvla"
+
+
+def is_lora_checkpoint(folder: Path) -> bool:
+    """Whether `folder` holds a LoRA adapter (`adapter/adapter_config.json`) instead of full weights."""
+    return (Path(folder) / ADAPTER_DIR_NAME / "adapter_config.json").is_file()
+
+
+def base_of(checkpoint: Path, override: str | None) -> str:
+    """The base weights of a LoRA checkpoint: `override`, else `init.checkpoint` of its train_config.json.
+
+    Raises:
+        ValueError: neither is set (a LoRA run on randomly initialised weights has no base to rebuild).
+    """
+    if override:
+        return override
+    train_config = checkpoint / TRAIN_CONFIG_NAME
+    init = (read_json(train_config).get("init") or {}) if train_config.is_file() else {}
+    if init.get("checkpoint"):
+        return str(init["checkpoint"])
+    raise ValueError(
+        f"{checkpoint} is a LoRA checkpoint without base weights and {train_config.name} names no "
+        "init.checkpoint: pass --base-checkpoint <folder or repo id> (the weights the run started from), or "
+        "release the full folder training merges at the end (<output_dir>/merged, lora.merge_at_end)"
+    )
+
+
+def local_folder(path_or_repo_id: str | Path) -> Path:
+    """A local folder as is; a Hub repo id downloaded (snapshot_download, honouring HF_ENDPOINT / offline)."""
+    path = Path(path_or_repo_id)
+    if path.is_dir():
+        return path
+    from huggingface_hub import snapshot_download
+
+    return Path(snapshot_download(str(path_or_repo_id)))
+
+
+def base_format(folder: Path) -> str:
+    """`openfly_agent` for our folders, `openvla` for OpenVLA / released OpenFly-Agent HF folders."""
+    model_type = read_json(folder / CONFIG_NAME).get("model_type")
+    return BASE_OURS if model_type == MODEL_TYPE else BASE_OPENVLA
+
+
+def load_lora_agent(checkpoint: str | Path, base: str | Path):
+    """The agent of a LoRA checkpoint: base weights (ours or OpenVLA) + its adapter, LoRA attached, eval mode.
+
+    Args:
+        checkpoint: folder (or Hub repo id) with config.json, the tokenizer and `adapter/`.
+        base: folder (or Hub repo id) with the weights the run started from.
+
+    Raises:
+        ValueError: the base's model sections differ from the checkpoint's (wrong base), with the differences.
+    """
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.configuration import OpenFlyAgentConfig
+    from openfly_agent.model.lora import load_lora_adapter
+    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
+    from openfly_agent.model.tokenizer import load_tokenizer
+
+    checkpoint, base = local_folder(checkpoint), local_folder(base)
+    config = OpenFlyAgentConfig.from_pretrained(str(checkpoint))
+    tokenizer = load_tokenizer(checkpoint) if (checkpoint / "tokenizer_config.json").is_file() else None
+    if base_format(base) == BASE_OURS:
+        agent = OpenFlyAgent.from_pretrained(str(base), tokenizer=tokenizer)
+        _check_same_sections(agent.config.agent, config.agent, base, checkpoint)
+    else:
+        agent, report = agent_from_openvla_checkpoint(base, config.model_config, tokenizer=tokenizer)
+        logger.info("base weights from the OpenVLA folder %s: %s", base, report.summary())
+    load_lora_adapter(agent, checkpoint)
+    return agent.eval()
+
+
+def _check_same_sections(base_sections: dict, own_sections: dict, base: Path, checkpoint: Path) -> None:
+    differing = _diff(base_sections, own_sections)
+    if differing:
+        raise ValueError(
+            f"base {base} does not match the LoRA checkpoint {checkpoint}: model sections differ at "
+            f"{differing[:8]}; pass the weights the run started from as --base-checkpoint"
+        )
+
+
+def _diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    keys = sorted(set(a) | set(b))
+    out = []
+    for key in keys:
+        left, right = a.get(key), b.get(key)
+        if isinstance(left, dict) and isinstance(right, dict):
+            out += _diff(left, right, f"{prefix}{key}.")
+        elif left != right:
+            out.append(f"{prefix}{key}: {left!r} vs {right!r}")
+    return out

@@ -1,0 +1,216 @@
+"""Model card: YAML metadata (licence, tags, base model, `model-index` from eval results) + a Jinja body."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from typing import Any
+
+import yaml
+
+from openfly_agent.hub.config import CardConfig
+from openfly_agent.hub.results import EvalResults, ResultRow
+
+# Always present; the Hub adds `custom_code` itself for repos with `auto_map`, we state it explicitly.
+FIXED_TAGS = (
+    "openfly",
+    "openfly-agent",
+    "vision-language-navigation",
+    "aerial-vln",
+    "uav",
+    "vla",
+    "custom_code",
+)
+TASK_TYPE = "robotics"
+TASK_NAME = "Aerial vision-language navigation"
+# metric key -> (model-index `type`, pretty name with unit)
+METRIC_IDS = {
+    "NE": ("ne", "NE (m)"),
+    "SR": ("sr", "SR (%)"),
+    "OSR": ("osr", "OSR (%)"),
+    "SPL": ("spl", "SPL (%)"),
+}
+PROFILE_SUMMARIES = {
+    "openfly": (
+        "parity with the official OpenFly evaluation: 3-D distance to the goal, success within 20 m, no "
+        "STOP needed, SPL = straight-line start-goal distance / travelled length without clamp, no "
+        "collision check."
+    ),
+    "standard": (
+        "VLN-CE style: the agent must STOP within 20 m, a collision ends the episode as a failure, "
+        "SPL = S * L / max(P, L) with L the reference path length and P the travelled length."
+    ),
+}
+TEMPLATE_NAME = "model_card.md.j2"
+
+
+@dataclass
+class ModelFacts:
+    """What the card body says about the released weights (filled by the release builder)."""
+
+    package_version: str
+    num_parameters: str
+    action_head: str
+    memory_capacity: int
+    weights_summary: str
+    release_form: str
+    files: dict[str, str] = field(default_factory=dict)
+    train_summary: str | None = None
+    adapter_release: bool = False
+
+
+# Dotted keys of train_config.json (training.config.TrainConfig) shown in the card's training table.
+TRAIN_SUMMARY_KEYS = (
+    "init.checkpoint",
+    "data.root",
+    "data.history.mode",
+    "freeze_stage",
+    "lora.enabled",
+    "steps",
+    "epochs",
+    "batch.global_batch_size",
+    "optim.lr",
+    "optim.schedule",
+    "precision",
+    "seed",
+)
+
+
+_MISSING = object()
+
+
+def summarize_train_config(train_config: dict[str, Any]) -> str | None:
+    """A Markdown table of the main training settings (TRAIN_SUMMARY_KEYS found in `train_config`)."""
+    rows = []
+    for key in TRAIN_SUMMARY_KEYS:
+        node: Any = train_config
+        for part in key.split("."):
+            node = node.get(part, _MISSING) if isinstance(node, dict) else _MISSING
+        if node is not _MISSING and node is not None:
+            rows.append(f"| `{key}` | `{node}` |")
+    if not rows:
+        return None
+    return "\n".join(["| setting | value |", "|---|---|", *rows])
+
+
+def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) -> list[dict[str, Any]]:
+    """The card's `model-index`: one result block per (split, metric profile), metrics NE / SR / OSR / SPL.
+
+    Each block names its profile in `task.name`, and every metric carries it as `config` (the Hub's "metric
+    configuration") so the profile survives tools that regroup blocks by dataset and split.
+    """
+    results = []
+    for row in rows:
+        metrics = [
+            {
+                "type": METRIC_IDS[key][0],
+                "name": METRIC_IDS[key][1],
+                "value": row.metrics[key],
+                "config": row.profile,
+            }
+            for key in METRIC_IDS
+        ]
+        results.append(
+            {
+                "task": {"type": TASK_TYPE, "name": f"{TASK_NAME} ({row.profile} metric profile)"},
+                "dataset": {
+                    "type": card.eval_dataset,
+                    "name": f"{card.eval_dataset_name} ({row.split})",
+                    "split": row.split,
+                },
+                "metrics": metrics,
+            }
+        )
+    return [{"name": model_name, "results": results}]
+
+
+def build_metadata(
+    card: CardConfig, model_name: str, rows: list[ResultRow] | None, adapter: bool = False
+) -> dict[str, Any]:
+    """The YAML front matter as a dict, keys in the order the Hub documents them."""
+    meta: dict[str, Any] = {"license": card.license}
+    if card.license == "other":
+        meta["license_name"] = card.license_name
+        meta["license_link"] = card.license_link
+    meta["library_name"] = "transformers"
+    meta["pipeline_tag"] = card.pipeline_tag
+    meta["language"] = list(card.language)
+    extra = ["lora"] if adapter else []
+    meta["tags"] = list(dict.fromkeys([*FIXED_TAGS, *extra, *card.tags]))
+    if card.datasets:
+        meta["datasets"] = list(card.datasets)
+    if card.base_model:
+        meta["base_model"] = card.base_model
+        if adapter:
+            meta["base_model_relation"] = "adapter"
+    if rows:
+        meta["model-index"] = build_model_index(model_name, rows, card)
+    return meta
+
+
+def describe_profile(name: str, settings: dict[str, Any] | None) -> str:
+    """One line per metric profile: what it is for, plus the exact settings eval.py recorded."""
+    text = PROFILE_SUMMARIES.get(name, "custom metric profile.")
+    if settings:
+        shown = ", ".join(f"{key}={value}" for key, value in settings.items() if key != "name")
+        text += f" Settings used: {shown}."
+    return text
+
+
+# Keys of eval.py's results `meta` that change the numbers, shown next to them.
+RUN_KEYS = ("sim", "max_steps", "seed", "unnorm_key")
+
+
+def describe_run(meta: dict[str, Any]) -> str:
+    """`sim=embedded, max_steps=100, ...` from the results' run settings (empty when none were recorded)."""
+    return ", ".join(f"`{key}={meta[key]}`" for key in RUN_KEYS if meta.get(key) is not None)
+
+
+def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | None, facts: ModelFacts) -> str:
+    """Render README.md: YAML front matter (yaml.safe_dump, so it always parses) + the Jinja body."""
+    import jinja2
+
+    model_name = repo_id.split("/", 1)[1]
+    rows = results.rows if results else []
+    meta = build_metadata(card, model_name, rows, adapter=facts.adapter_release)
+    profiles = {row.profile: describe_profile(row.profile, results.profiles.get(row.profile)) for row in rows}
+    template_text = resources.files("openfly_agent.hub").joinpath("templates", TEMPLATE_NAME).read_text()
+    env = jinja2.Environment(undefined=jinja2.StrictUndefined, keep_trailing_newline=True, autoescape=False)
+    body = env.from_string(template_text).render(
+        model_name=model_name,
+        repo_id=repo_id,
+        base_model=card.base_model,
+        eval_dataset=card.eval_dataset,
+        eval_dataset_name=card.eval_dataset_name,
+        results=rows,
+        profile_definitions=profiles,
+        run_settings=describe_run(results.meta if results else {}),
+        **vars(facts),
+    )
+    front = yaml.safe_dump(meta, sort_keys=False, allow_unicode=True, width=1000)
+    text = f"---\n{front}---\n\n{body}"
+    validate_model_card(text)
+    return text
+
+
+def split_front_matter(text: str) -> tuple[dict[str, Any], str]:
+    """Split a card into (YAML metadata, Markdown body); ValueError when the front matter is malformed."""
+    if not text.startswith("---\n"):
+        raise ValueError("card has no YAML front matter: it must start with a '---' line")
+    end = text.find("\n---\n", 4)
+    if end < 0:
+        raise ValueError("card front matter is not closed by a '---' line")
+    meta = yaml.safe_load(text[4 : end + 1])
+    if not isinstance(meta, dict):
+        raise ValueError(f"card front matter is not a mapping: {type(meta).__name__}")
+    return meta, text[end + 5 :]
+
+
+def validate_model_card(text: str) -> None:
+    """Parse `text` the way the Hub client does (huggingface_hub.ModelCard, strict) and fail on any error."""
+    from huggingface_hub import ModelCard
+
+    meta, _ = split_front_matter(text)
+    card = ModelCard(text, ignore_metadata_errors=False)
+    if "model-index" in meta and not card.data.eval_results:
+        raise ValueError("card model-index parsed to no eval results")

@@ -1,0 +1,196 @@
+"""Model release: a run checkpoint -> a Hub-ready folder (weights, config with auto_map, tokenizer, card)."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+from openfly_agent import __version__
+from openfly_agent.constants import (
+    ACTION_TOKENIZER_NAME,
+    ADAPTER_DIR_NAME,
+    CONFIG_NAME,
+    MODEL_CARD_NAME,
+    MODEL_TYPE,
+    NORM_STATS_NAME,
+    TRAIN_CONFIG_NAME,
+    WEIGHTS_INDEX_NAME,
+    WEIGHTS_NAME,
+)
+from openfly_agent.hub.config import ModelReleaseConfig
+from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
+from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
+from openfly_agent.hub.model_card import ModelFacts, render_model_card, summarize_train_config
+from openfly_agent.hub.remote_code import CONFIGURATION_FILE, MODELING_FILE, add_auto_map, write_remote_code
+from openfly_agent.hub.results import load_results, resolve_results_path
+
+logger = logging.getLogger(__name__)
+
+EVAL_RESULTS_NAME = "eval_results.json"
+LAST_POINTER_NAME = "last"  # training's pointer file naming the newest checkpoint folder
+# Files of a checkpoint the release carries over when the agent's own save did not write them.
+CARRIED_FILES = (TRAIN_CONFIG_NAME, NORM_STATS_NAME, ACTION_TOKENIZER_NAME)
+# Pickle-based formats never enter a release (security: weights are safetensors only).
+FORBIDDEN_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """The checkpoint folder: `path` itself, or the folder named by a training `last` pointer file.
+
+    Accepts a checkpoint folder (holding config.json), the pointer file `.../checkpoints/last`, or a folder
+    holding such a pointer (`<run>/checkpoints` or `<run>`).
+    """
+    path = Path(path)
+    if path.is_file() and path.name == LAST_POINTER_NAME:
+        return resolve_checkpoint(path.parent / path.read_text().strip())
+    if path.is_dir() and not (path / CONFIG_NAME).is_file():
+        for pointer in (path / LAST_POINTER_NAME, path / "checkpoints" / LAST_POINTER_NAME):
+            if pointer.is_file():
+                return resolve_checkpoint(pointer)
+    if not (path / CONFIG_NAME).is_file():
+        raise FileNotFoundError(
+            f"{path} is not a checkpoint folder (no {CONFIG_NAME}): pass e.g. <run>/checkpoints/step-000100 "
+            "or the <run>/checkpoints/last pointer"
+        )
+    model_type = read_json(path / CONFIG_NAME).get("model_type")
+    if model_type != MODEL_TYPE:
+        raise ValueError(f"{path / CONFIG_NAME}: model_type is {model_type!r}, expected {MODEL_TYPE!r}")
+    return path
+
+
+def build_model_release(cfg: ModelReleaseConfig) -> Path:
+    """Write the release folder for `cfg.checkpoint` and return it.
+
+    Full checkpoints are loaded and saved again with `max_shard_size`. LoRA checkpoints (metadata +
+    `adapter/`) are rebuilt on their base weights and released merged, or as the adapter alone (`cfg.lora`).
+    Then: training config / norm stats carried over, the two `trust_remote_code` files and `auto_map` (not for
+    an adapter, which has no weights to load), the eval results, README.md. Inputs are checked first.
+    """
+    checkpoint = resolve_checkpoint(cfg.checkpoint)
+    results = load_results(cfg.results) if cfg.results else None
+    base = base_of(checkpoint, cfg.base_checkpoint) if is_lora_checkpoint(checkpoint) else None
+    adapter_form = base is not None and cfg.lora == "adapter"
+    if adapter_form and not cfg.card.base_model:
+        raise ValueError("--lora adapter needs --card.base-model <Hub id of the base weights> for the card")
+    out = prepare_output_dir(
+        cfg.output_dir or DEFAULT_RELEASE_ROOT / cfg.repo_id.split("/", 1)[1], cfg.overwrite
+    )
+    logger.info("releasing %s -> %s", checkpoint, out)
+    agent, form = _write_weights(checkpoint, base, adapter_form, out, cfg.max_shard_size)
+    for file_name in CARRIED_FILES:
+        if (checkpoint / file_name).is_file() and not (out / file_name).exists():
+            shutil.copy2(checkpoint / file_name, out / file_name)
+    if not adapter_form:
+        write_remote_code(out, __version__)
+        add_auto_map(out)
+    if results is not None:
+        shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
+    facts = model_facts(agent, out, release_form=form, adapter_release=adapter_form)
+    if (out / TRAIN_CONFIG_NAME).is_file():
+        facts.train_summary = summarize_train_config(read_json(out / TRAIN_CONFIG_NAME))
+    (out / MODEL_CARD_NAME).write_text(render_model_card(cfg.card, cfg.repo_id, results, facts))
+    check_release_folder(out, adapter_form)
+    logger.info("release folder ready: %s (%d files)", out, len(list(out.iterdir())))
+    return out
+
+
+def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: Path, max_shard_size: str):
+    """Save the weights into `out` in the chosen form; returns (agent, description of the form)."""
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.lora import merge_lora, save_lora_adapter
+    from openfly_agent.training.export import write_model_metadata
+
+    if base is None:
+        agent = OpenFlyAgent.from_pretrained(str(checkpoint)).eval()
+        agent.save_pretrained(out, max_shard_size=max_shard_size)
+        return agent, "full weights"
+    agent = load_lora_agent(checkpoint, base)  # also proves the adapter fits its base
+    if adapter_form:
+        write_model_metadata(agent, out)  # config, tokenizer, action tokenizer, norm stats: no weights
+        adapter = save_lora_adapter(agent, out)
+        # peft writes an empty card template beside the adapter; the release's card is the root README.md
+        (adapter / MODEL_CARD_NAME).unlink(missing_ok=True)
+        return agent, "LoRA adapter only (`adapter/`); load it on its base weights (see Usage)"
+    merge_lora(agent)
+    agent.save_pretrained(out, max_shard_size=max_shard_size)
+    return agent, f"LoRA adapter merged into its base weights (`{Path(base).name}`)"
+
+
+def model_facts(agent, folder: Path, release_form: str, adapter_release: bool = False) -> ModelFacts:
+    """What the card says about the weights in `folder`."""
+    cfg = agent.model_cfg
+    num_params = sum(p.numel() for p in agent.parameters())
+    return ModelFacts(
+        package_version=__version__,
+        num_parameters=_human_count(num_params),
+        action_head=cfg.action_head.type,
+        memory_capacity=cfg.memory.capacity,
+        weights_summary=_weights_summary(folder),
+        release_form=release_form,
+        files=describe_files(folder),
+        adapter_release=adapter_release,
+    )
+
+
+def describe_files(folder: Path) -> dict[str, str]:
+    """A one-line description of every file of the release (README.md included)."""
+    known = {
+        CONFIG_NAME: "model config (`model_type: openfly_agent`, model sections, norm stats, `auto_map`)",
+        WEIGHTS_NAME: "weights (safetensors)",
+        WEIGHTS_INDEX_NAME: "tensor name -> shard file",
+        ACTION_TOKENIZER_NAME: "action head settings: action ids <-> token ids / bins",
+        NORM_STATS_NAME: "action normalisation statistics (OpenVLA `dataset_statistics` format)",
+        TRAIN_CONFIG_NAME: "the training configuration used",
+        EVAL_RESULTS_NAME: "the eval.py results the card's numbers come from",
+        CONFIGURATION_FILE: "`trust_remote_code` entry: imports the config class of `openfly-agent`",
+        MODELING_FILE: "`trust_remote_code` entry: imports the model class of `openfly-agent`",
+        "tokenizer.json": "text tokenizer",
+        "tokenizer_config.json": "text tokenizer settings",
+        "special_tokens_map.json": "text tokenizer special tokens",
+        MODEL_CARD_NAME: "this card",
+    }
+    names = sorted({p.name for p in folder.iterdir() if p.is_file()} | {MODEL_CARD_NAME})
+    shards = [n for n in names if n.startswith("model-") and n.endswith(".safetensors")]
+    described = {n: known.get(n, "") for n in names if n not in shards}
+    if (folder / ADAPTER_DIR_NAME).is_dir():
+        described[f"{ADAPTER_DIR_NAME}/"] = "LoRA adapter: peft files of the LLM + projector / grounding head"
+    if shards:
+        described[f"model-000NN-of-{len(shards):05d}.safetensors"] = (
+            f"weights, {len(shards)} safetensors shards"
+        )
+    return described
+
+
+def check_release_folder(folder: Path, adapter_form: bool = False) -> None:
+    """Fail if a pickle-based weight file slipped in, or a full release's config.json lacks `auto_map`."""
+    bad = sorted(p.name for p in folder.rglob("*") if p.suffix in FORBIDDEN_SUFFIXES)
+    if bad:
+        raise ValueError(f"{folder}: pickle-based files must not be released (safetensors only): {bad}")
+    if not adapter_form and "auto_map" not in read_json(folder / CONFIG_NAME):
+        raise ValueError(f"{folder / CONFIG_NAME}: auto_map is missing")
+
+
+def _weights_summary(folder: Path) -> str:
+    if not list(folder.glob("*.safetensors")) and (folder / ADAPTER_DIR_NAME).is_dir():
+        size = sum(p.stat().st_size for p in (folder / ADAPTER_DIR_NAME).glob("*.safetensors"))
+        return f"LoRA adapter in `{ADAPTER_DIR_NAME}/`, {_human_bytes(size)}"
+    files = sorted(folder.glob("*.safetensors"))
+    size = sum(p.stat().st_size for p in files)
+    if (folder / WEIGHTS_INDEX_NAME).is_file():
+        return f"{len(files)} safetensors shards + `{WEIGHTS_INDEX_NAME}`, {_human_bytes(size)}"
+    return f"`{WEIGHTS_NAME}`, {_human_bytes(size)}"
+
+
+def _human_count(n: int) -> str:
+    for unit, scale in (("B", 1e9), ("M", 1e6), ("K", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.2f} {unit}"
+    return str(n)
+
+
+def _human_bytes(n: int) -> str:
+    for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= scale:
+            return f"{n / scale:.1f} {unit}"
+    return f"{n} B"

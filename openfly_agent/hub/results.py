@@ -1,0 +1,110 @@
+"""Read eval.py's results JSON into the overall NE / SR / OSR / SPL of each split x metric profile."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from openfly_agent.constants import RESULTS_JSON, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
+
+PROFILES = ("openfly", "standard")
+RELEASE_SPLITS = (SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)
+AGENT_POLICY = "agent"
+# card metric -> key of eval's overall summary (units in the key: metres, percent)
+METRIC_KEYS = {"NE": "ne_m", "SR": "sr_pct", "OSR": "osr_pct", "SPL": "spl_pct"}
+
+
+class ResultsError(ValueError):
+    """The results JSON lacks a split, profile or metric the card needs; the message names file and key."""
+
+
+@dataclass(frozen=True)
+class ResultRow:
+    """Overall metrics of one split under one metric profile (NE in metres, the rest in percent)."""
+
+    split: str
+    profile: str
+    metrics: dict[str, float]
+    num_episodes: int | None = None
+
+
+@dataclass(frozen=True)
+class EvalResults:
+    """The rows the card reports plus the run facts stored beside them."""
+
+    rows: list[ResultRow]
+    profiles: dict[str, dict[str, Any]] = field(default_factory=dict)  # profile name -> its settings
+    meta: dict[str, Any] = field(default_factory=dict)  # checkpoint, sim, dataset root, max steps, ...
+    source: str = ""
+
+
+def resolve_results_path(path: str | Path) -> Path:
+    """`path` itself, or `<path>/agent/results.json` when `path` is an eval output folder."""
+    path = Path(path)
+    if path.is_dir():
+        candidate = path / AGENT_POLICY / RESULTS_JSON
+        if not candidate.is_file():
+            raise ResultsError(
+                f"{path} is a folder without {AGENT_POLICY}/{RESULTS_JSON}: pass the results file"
+            )
+        return candidate
+    return path
+
+
+def load_results(path: str | Path) -> EvalResults:
+    """Read eval.py's `results.json` (file, or the eval output folder holding `agent/results.json`).
+
+    Shape (eval/report.py `policy_results`)::
+
+        {"version": 1, "policy": "agent", "meta": {...}, "profiles": {"openfly": {...}, ...},
+         "splits": {"test_seen": {"openfly": {"overall": {"episodes": 40, "ne_m": 31.2, "sr_pct": 12.5,
+                                                          "osr_pct": 20.0, "spl_pct": 11.0, ...}, ...}}}}
+
+    Raises:
+        ResultsError: not JSON, results of a baseline, or a split / profile / metric missing or not finite.
+    """
+    path = resolve_results_path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ResultsError(f"{path}: cannot read the eval results JSON ({err})") from err
+    return parse_results(data, source=str(path))
+
+
+def parse_results(data: dict[str, Any], source: str = "<results>") -> EvalResults:
+    """`load_results` on an already parsed dict; `source` names it in errors."""
+    policy = data.get("policy", AGENT_POLICY) if isinstance(data, dict) else AGENT_POLICY
+    if policy != AGENT_POLICY:
+        raise ResultsError(
+            f"{source}: holds results of policy {policy!r}, not of the agent ('{AGENT_POLICY}')"
+        )
+    splits = _child(data, "splits", source, "")
+    rows = []
+    for split in RELEASE_SPLITS:
+        by_profile = _child(splits, split, source, "splits")
+        for profile in PROFILES:
+            where = f"splits.{split}.{profile}"
+            overall = _child(_child(by_profile, profile, source, f"splits.{split}"), "overall", source, where)
+            metrics = {
+                name: _number(overall, key, source, f"{where}.overall") for name, key in METRIC_KEYS.items()
+            }
+            count = overall.get("episodes")
+            rows.append(ResultRow(split, profile, metrics, int(count) if count is not None else None))
+    return EvalResults(rows, dict(data.get("profiles") or {}), dict(data.get("meta") or {}), source)
+
+
+def _child(node: Any, key: str, source: str, where: str) -> Any:
+    if not isinstance(node, dict) or key not in node:
+        found = sorted(node) if isinstance(node, dict) else type(node).__name__
+        raise ResultsError(f"{source}: missing key '{where + '.' if where else ''}{key}' (found {found})")
+    return node[key]
+
+
+def _number(node: dict, key: str, source: str, where: str) -> float:
+    value = _child(node, key, source, where)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ResultsError(f"{source}: '{where}.{key}' = {value!r} is not a finite number")
+    return float(value)

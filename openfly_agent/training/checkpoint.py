@@ -1,0 +1,138 @@
+"""Atomic checkpoint folders: write `.tmp-step-N/`, rename it to `step-N/`, then move the `last` pointer.
+
+The file system side only; what goes inside a checkpoint is written by `training/export.py` (the Hugging Face
+folder) and `training/state.py` (the accelerate training state).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import shutil
+from pathlib import Path
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINTS_DIR = "checkpoints"
+LAST_POINTER_NAME = "last"  # a one-line text file naming the newest complete checkpoint folder
+STAGING_PREFIX = ".tmp-"
+_STEP_DIR = re.compile(r"^step-(\d+)$")
+
+
+def checkpoint_name(step: int) -> str:
+    """Folder name of the checkpoint taken after `step` optimizer steps."""
+    return f"step-{step:06d}"
+
+
+class CheckpointManager:
+    """Creates, commits, lists and prunes checkpoint folders under `<output_dir>/checkpoints/`.
+
+    A checkpoint is complete once its staging folder has been renamed (the rename is the commit), so a crash
+    at any moment leaves either the previous set of checkpoints or the new one, never half a `step-N/`.
+    All methods touch the file system and must run on the main process only.
+
+    Args:
+        output_dir: the run's output folder.
+        keep_last: how many complete checkpoints to keep (older ones are deleted after each commit).
+    """
+
+    def __init__(self, output_dir: str | Path, keep_last: int) -> None:
+        if keep_last < 1:
+            raise ValueError(f"keep_last must be >= 1, got {keep_last}")
+        self.root = Path(output_dir) / CHECKPOINTS_DIR
+        self.keep_last = keep_last
+
+    def staging_dir(self, step: int) -> Path:
+        """Where the checkpoint of `step` is written before it is committed."""
+        return self.root / f"{STAGING_PREFIX}{checkpoint_name(step)}"
+
+    def final_dir(self, step: int) -> Path:
+        """Where the checkpoint of `step` lives once committed."""
+        return self.root / checkpoint_name(step)
+
+    def begin(self, step: int) -> Path:
+        """Create an empty staging folder for `step` (removing a stale one left by a crash) and return it."""
+        staging = self.staging_dir(step)
+        if staging.exists():
+            shutil.rmtree(staging)
+        staging.mkdir(parents=True)
+        return staging
+
+    def commit(self, step: int) -> Path:
+        """Rename the staging folder of `step` into place, point `last` at it and prune old checkpoints."""
+        staging, final = self.staging_dir(step), self.final_dir(step)
+        _fsync_tree(staging)
+        if final.exists():  # the same step saved again (e.g. the final save right after a periodic one)
+            trash = self.root / f"{STAGING_PREFIX}old-{checkpoint_name(step)}"
+            os.replace(final, trash)
+            os.replace(staging, final)
+            shutil.rmtree(trash)
+        else:
+            os.replace(staging, final)
+        self._write_pointer(final.name)
+        self.prune()
+        logger.info("checkpoint committed: %s", final)
+        return final
+
+    def complete_checkpoints(self) -> list[Path]:
+        """Committed checkpoint folders, oldest first."""
+        if not self.root.is_dir():
+            return []
+        found = [
+            (int(m.group(1)), p) for p in self.root.iterdir() if p.is_dir() and (m := _STEP_DIR.match(p.name))
+        ]
+        return [p for _, p in sorted(found)]
+
+    def latest(self) -> Path | None:
+        """The newest complete checkpoint: the one `last` names, else the highest step (None if none)."""
+        pointer = self.root / LAST_POINTER_NAME
+        if pointer.is_file():
+            candidate = self.root / pointer.read_text().strip()
+            if _STEP_DIR.match(candidate.name) and candidate.is_dir():
+                return candidate
+            logger.warning(
+                "%s names %s, which is not a checkpoint folder; using the newest one", pointer, candidate
+            )
+        complete = self.complete_checkpoints()
+        return complete[-1] if complete else None
+
+    def prune(self) -> list[Path]:
+        """Delete all but the newest `keep_last` checkpoints (never the one `last` names); return them."""
+        complete = self.complete_checkpoints()
+        protected = self.latest()
+        removed = [p for p in complete[: max(len(complete) - self.keep_last, 0)] if p != protected]
+        for path in removed:
+            shutil.rmtree(path)
+            logger.info("removed old checkpoint %s (keep_last=%d)", path, self.keep_last)
+        return removed
+
+    def remove_stale_staging(self) -> list[Path]:
+        """Delete staging folders left by a crash mid-write (call at start-up, before any new save)."""
+        if not self.root.is_dir():
+            return []
+        stale = [p for p in self.root.iterdir() if p.name.startswith(STAGING_PREFIX)]
+        for path in stale:
+            logger.warning("removing the incomplete checkpoint %s left by an interrupted save", path)
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+        return stale
+
+    def _write_pointer(self, name: str) -> None:
+        pointer = self.root / LAST_POINTER_NAME
+        tmp = self.root / f"{STAGING_PREFIX}{LAST_POINTER_NAME}"
+        with open(tmp, "w") as f:
+            f.write(name + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, pointer)
+
+
+def _fsync_tree(folder: Path) -> None:
+    """Flush every file under `folder` to disk so the rename never commits data still in the page cache."""
+    for path in folder.rglob("*"):
+        if path.is_file():
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)

@@ -1,0 +1,249 @@
+"""`TrainConfig`: every knob of a training run, nested by component and checked on construction.
+
+Leaf module (dataclasses, constants and the model/data config leaves only), so parsing a config never imports
+torch. YAML files in `configs/train/` override the defaults; `--a.b=c` flags override the YAML.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from openfly_agent import constants as C
+from openfly_agent.data.config import HistoryConfig, ReaderOptions
+from openfly_agent.model.config import LoraSettings, ModelConfig, tiny_config
+
+PRECISIONS = ("no", "bf16", "fp16")
+SCHEDULES = ("constant", "cosine", "linear")
+TRACKERS = ("tensorboard", "wandb", "none")
+INIT_FORMATS = ("auto", "openfly", "openvla")
+
+
+class BatchSizeError(ValueError):
+    """The global batch does not split evenly over processes x per-device batch x accumulation."""
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+@dataclass
+class TrainDataConfig:
+    """Dataset root, splits and sample construction.
+
+    The memory shape (capacity K, set size S) must equal the model's `memory.capacity` and
+    `keyframes.set_size`; `TrainConfig` checks it.
+    """
+
+    root: str = "outputs/datasets/embedded-small"  # where the toolchain writes embedded-small
+    train_split: str = C.SPLIT_TRAIN
+    val_split: str = C.SPLIT_TEST_SEEN  # periodic validation
+    test_split: str = C.SPLIT_TEST_UNSEEN  # the final offline evaluation
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
+    history: HistoryConfig = field(default_factory=HistoryConfig)
+    num_workers: int = 0  # DataLoader worker processes per training process
+    cache_episodes: int = 8  # FrameStore LRU sizes, per process
+    cache_frames: int = 256
+    generate_if_missing: bool = True  # run the toolchain when `root` has no dataset (train.py)
+    toolchain_config: str = "configs/toolchain/embedded-small.yaml"
+
+    def __post_init__(self) -> None:
+        for name in ("train_split", "val_split", "test_split"):
+            value = getattr(self, name)
+            _require(value in C.SPLITS, f"data.{name}={value!r}: choose one of {C.SPLITS}")
+        _require(self.num_workers >= 0, f"data.num_workers={self.num_workers} must be >= 0")
+
+
+@dataclass
+class TokenizerConfig:
+    """Where the text tokenizer comes from.
+
+    Order: `path` if set; else the model's `llm.tokenizer_path`; else the init checkpoint's folder when it has
+    tokenizer files; else `<output_dir>/tokenizer` from an earlier run; else (tiny LLM only) a BPE tokenizer
+    trained on the train split's instructions and saved there.
+    """
+
+    path: str | None = None
+    train_vocab_size: int = 1024  # BPE vocabulary when one is trained
+
+    def __post_init__(self) -> None:
+        vocab = self.train_vocab_size
+        _require(vocab >= 64, f"tokenizer.train_vocab_size={vocab}: use >= 64")
+
+
+@dataclass
+class InitConfig:
+    """Weights to start from (None: random init from the model config, the tiny default)."""
+
+    checkpoint: str | None = None  # an OpenFly-Agent / OpenVLA HF folder, or one of our checkpoints
+    format: str = "auto"  # auto (ours if config.json has our model_type) | openfly | openvla
+
+    def __post_init__(self) -> None:
+        _require(self.format in INIT_FORMATS, f"init.format={self.format!r}: choose one of {INIT_FORMATS}")
+
+
+@dataclass
+class OptimConfig:
+    """AdamW and the learning-rate schedule (per optimizer step)."""
+
+    lr: float = 3e-4
+    weight_decay: float = 0.0  # applied to matrices only
+    betas: tuple[float, float] = (0.9, 0.95)
+    eps: float = 1e-8
+    schedule: str = "cosine"  # constant | cosine | linear
+    warmup_steps: int = 0
+    min_lr_ratio: float = 0.0  # floor of cosine / linear as a fraction of lr
+    max_grad_norm: float | None = 1.0  # None disables clipping
+
+    def __post_init__(self) -> None:
+        _require(self.lr > 0, f"optim.lr must be > 0, got {self.lr}")
+        _require(self.weight_decay >= 0, f"optim.weight_decay must be >= 0, got {self.weight_decay}")
+        _require(all(0 <= b < 1 for b in self.betas), f"optim.betas must be in [0, 1), got {self.betas}")
+        _require(self.schedule in SCHEDULES, f"optim.schedule={self.schedule!r}: choose one of {SCHEDULES}")
+        _require(self.warmup_steps >= 0, f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
+        _require(
+            0 <= self.min_lr_ratio <= 1, f"optim.min_lr_ratio must be in [0, 1], not {self.min_lr_ratio}"
+        )
+        _require(
+            self.max_grad_norm is None or self.max_grad_norm > 0,
+            f"optim.max_grad_norm must be > 0 or null, got {self.max_grad_norm}",
+        )
+
+
+@dataclass
+class BatchConfig:
+    """Batch sizes; gradient accumulation is derived: global / (per_device x processes)."""
+
+    global_batch_size: int = 16
+    per_device_batch_size: int = 8
+
+    def __post_init__(self) -> None:
+        _require(self.per_device_batch_size > 0, "batch.per_device_batch_size must be > 0")
+        if self.global_batch_size <= 0 or self.global_batch_size % self.per_device_batch_size:
+            raise BatchSizeError(
+                f"batch.global_batch_size={self.global_batch_size} is not a positive multiple of "
+                f"batch.per_device_batch_size={self.per_device_batch_size}"
+            )
+
+    def accumulation_steps(self, world_size: int) -> int:
+        """Micro-batches per optimizer step on each process; raises `BatchSizeError` if it does not divide."""
+        per_step = self.per_device_batch_size * world_size
+        if self.global_batch_size % per_step:
+            multiples = [per_step * k for k in (1, 2, 4, 8)]
+            raise BatchSizeError(
+                f"batch.global_batch_size={self.global_batch_size} does not divide by per_device_batch_size "
+                f"({self.per_device_batch_size}) x processes ({world_size}) = {per_step}; use a global batch "
+                f"such as {multiples} or change --batch.per_device_batch_size / the number of processes"
+            )
+        return self.global_batch_size // per_step
+
+
+@dataclass
+class LoraTrainingConfig(LoraSettings):
+    """peft LoRA on the LLM (model/lora.py); the projector and the grounding head train fully (stage `lora`).
+
+    Inherits rank, alpha, dropout, target_modules ("all-linear" or comma-separated names) and init from the
+    model's `LoraSettings`.
+    """
+
+    enabled: bool = False
+    merge_at_end: bool = True  # also write <output_dir>/merged: full weights, merged on rank 0 on the CPU
+
+
+@dataclass
+class LoggingConfig:
+    """Trackers (a `metrics.jsonl` is always written) and how often the train metrics are logged."""
+
+    tracker: str = "tensorboard"  # tensorboard | wandb | none
+    project: str = "openfly-agent"
+    run_name: str | None = None  # None: the output folder's name
+    log_interval: int = 10  # optimizer steps between log lines
+
+    def __post_init__(self) -> None:
+        _require(self.tracker in TRACKERS, f"logging.tracker={self.tracker!r}: choose one of {TRACKERS}")
+        _require(self.log_interval > 0, f"logging.log_interval must be > 0, got {self.log_interval}")
+
+
+@dataclass
+class ValidationConfig:
+    """Offline action accuracy and box IoU on held-out samples."""
+
+    interval: int = 200  # optimizer steps between validation passes (0: never during training)
+    max_samples: int | None = 256  # evenly spaced subset of the validation split (None: all)
+    final_max_samples: int | None = None  # the final pass on data.test_split (None: all)
+    final_eval: bool = True  # evaluate data.test_split at the end and print the figures
+
+    def __post_init__(self) -> None:
+        _require(self.interval >= 0, f"validation.interval must be >= 0, got {self.interval}")
+        for name in ("max_samples", "final_max_samples"):
+            value = getattr(self, name)
+            _require(value is None or value > 0, f"validation.{name} must be > 0 or null, got {value}")
+
+
+@dataclass
+class CheckpointConfig:
+    """Periodic checkpoints under `<output_dir>/checkpoints/` (one is always written at the end)."""
+
+    save_interval: int = 500  # optimizer steps (0: only at the end)
+    keep_last: int = 3
+
+    def __post_init__(self) -> None:
+        _require(self.save_interval >= 0, f"checkpoint.save_interval must be >= 0, got {self.save_interval}")
+        _require(self.keep_last >= 1, f"checkpoint.keep_last must be >= 1, got {self.keep_last}")
+
+
+@dataclass
+class TrainConfig:
+    """A training run. `configs/train/*.yaml` are instances of it; `train.py --help` lists every field."""
+
+    model: ModelConfig = field(default_factory=tiny_config)
+    data: TrainDataConfig = field(default_factory=TrainDataConfig)
+    tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    batch: BatchConfig = field(default_factory=BatchConfig)
+    lora: LoraTrainingConfig = field(default_factory=LoraTrainingConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    validation: ValidationConfig = field(default_factory=ValidationConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+
+    precision: str = "no"  # no | bf16 | fp16 (autocast; overrides the accelerate config file's value)
+    gradient_checkpointing: bool = False  # activation checkpointing inside the LLM and ViTs
+    freeze_stage: str = "full"  # a stage the model knows (full, frozen_vision, heads_only, lora, ...)
+    steps: int | None = None  # optimizer steps; or
+    epochs: float | None = 1.0  # passes over the train split (`steps` wins when both are set)
+    time_limit_minutes: float | None = None  # also stop (and save) once this much wall time has passed
+    stop_after_steps: int | None = None  # tests: exit after this step WITHOUT the final save (a crash)
+    output_dir: str = "outputs/train/tiny"
+    seed: int = 7
+    resume: bool = False  # continue from <output_dir>/checkpoints/last
+    cpu: bool = False  # train on the CPU even when CUDA is present
+
+    def __post_init__(self) -> None:
+        _require(self.precision in PRECISIONS, f"precision={self.precision!r}: choose one of {PRECISIONS}")
+        _require(
+            self.steps is not None or self.epochs is not None,
+            "set `steps` (optimizer steps) or `epochs` (passes over the train split)",
+        )
+        _require(self.steps is None or self.steps > 0, f"steps must be > 0, got {self.steps}")
+        _require(self.epochs is None or self.epochs > 0, f"epochs must be > 0, got {self.epochs}")
+        _require(
+            self.time_limit_minutes is None or self.time_limit_minutes > 0,
+            f"time_limit_minutes must be > 0 or null, got {self.time_limit_minutes}",
+        )
+        history, memory = self.data.history, self.model.memory
+        _require(
+            history.capacity == memory.capacity,
+            f"data.history.capacity={history.capacity} differs from model.memory.capacity={memory.capacity}: "
+            "the dataset must build as many memory sets as the model holds; set both",
+        )
+        _require(
+            history.set_size == self.model.keyframes.set_size,
+            f"data.history.set_size={history.set_size} differs from the model's keyframe set size "
+            f"{self.model.keyframes.set_size} (2 x keyframes.radius + 1); set both",
+        )
+        _require(
+            self.lora.enabled == (self.freeze_stage == "lora"),
+            f"lora.enabled={self.lora.enabled} with freeze_stage={self.freeze_stage!r}: LoRA runs use "
+            "freeze_stage=lora (adapters + projector + grounding head train) and only they do",
+        )

@@ -1,0 +1,88 @@
+"""Throughput, token counts, memory and running means for the training log."""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+from collections import defaultdict
+
+import torch
+
+from openfly_agent import constants as C
+
+
+class ThroughputMeter:
+    """Samples/s and tokens/s between two `report` calls (wall clock; counts summed over processes)."""
+
+    def __init__(self) -> None:
+        self._start = time.perf_counter()
+        self._samples = 0
+        self._tokens = 0
+
+    def update(self, samples: int, tokens: int) -> None:
+        """Count one micro-batch of this process."""
+        self._samples += samples
+        self._tokens += tokens
+
+    def report(self, accelerator=None) -> dict[str, float]:
+        """Rates since the previous report (or the start), summed over processes, then reset.
+
+        With an `accelerator`, every process must call this at the same step (it all-reduces the counts).
+        """
+        elapsed = max(time.perf_counter() - self._start, 1e-9)
+        counts = torch.tensor([self._samples, self._tokens], dtype=torch.float64)
+        if accelerator is not None and accelerator.num_processes > 1:
+            counts = accelerator.reduce(counts.to(accelerator.device), reduction="sum").cpu()
+        rates = {"samples_per_s": float(counts[0]) / elapsed, "tokens_per_s": float(counts[1]) / elapsed}
+        self.__init__()
+        return rates
+
+
+def memory_stats(device: torch.device) -> dict[str, float]:
+    """Peak accelerator memory (CUDA) or peak resident memory of this process (CPU), in GiB."""
+    if device.type == "cuda":
+        return {
+            "memory_allocated_gib": torch.cuda.max_memory_allocated(device) / 2**30,
+            "memory_reserved_gib": torch.cuda.max_memory_reserved(device) / 2**30,
+        }
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    scale = 2**30 if sys.platform == "darwin" else 2**20
+    return {"memory_rss_peak_gib": peak / scale}
+
+
+class RunningMeans:
+    """Means of logged floats accumulated over micro-batches and steps, emptied by `pop`."""
+
+    def __init__(self) -> None:
+        self._sums: dict[str, float] = defaultdict(float)
+        self._counts: dict[str, int] = defaultdict(int)
+
+    def add(self, values: dict[str, float]) -> None:
+        """Add one micro-batch's logs (NaN values, e.g. an IoU with no visible box, are skipped)."""
+        for key, value in values.items():
+            value = float(value)
+            if value == value:  # not NaN
+                self._sums[key] += value
+                self._counts[key] += 1
+
+    def pop(self) -> dict[str, float]:
+        """The means so far, then reset."""
+        means = {k: self._sums[k] / self._counts[k] for k in self._sums}
+        self.__init__()
+        return means
+
+
+def count_llm_tokens(batch: dict, model_cfg) -> int:
+    """LLM sequence positions of a batch: text tokens (attention mask) + visual tokens of each sample.
+
+    Visual tokens = the current frame's P patch tokens + `memory_tokens_per_set` for every memory set that
+    holds at least one real frame (an empty set contributes nothing).
+    """
+    text = int(batch[C.ATTENTION_MASK].sum())
+    batch_size = int(batch[C.INPUT_IDS].shape[0])
+    visual = batch_size * model_cfg.vision.num_patches
+    if C.MEMORY_FRAME_MASK in batch:
+        sets = int(batch[C.MEMORY_FRAME_MASK].any(dim=-1).sum())  # (B, K, S) -> sets with a real frame
+        visual += sets * model_cfg.memory_tokens_per_set
+    return text + visual

@@ -1,0 +1,39 @@
+"""What trains and how: the freeze stage or LoRA adapters, and activation (gradient) checkpointing."""
+
+from __future__ import annotations
+
+import logging
+
+from torch import nn
+
+from openfly_agent.model.freeze import freeze
+from openfly_agent.model.lora import attach_lora
+from openfly_agent.training.config import TrainConfig
+
+logger = logging.getLogger(__name__)
+
+
+def apply_training_mode(agent: nn.Module, cfg: TrainConfig) -> None:
+    """Attach LoRA (it applies the `lora` stage) or apply `cfg.freeze_stage`; then gradient checkpointing."""
+    if cfg.lora.enabled:
+        attach_lora(agent, cfg.lora)
+    else:
+        freeze(agent, cfg.freeze_stage)
+    if cfg.gradient_checkpointing:
+        enable_gradient_checkpointing(agent)
+
+
+def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:
+    """Recompute activations in the backward pass: the Llama decoder layers and the timm ViT blocks.
+
+    Non-reentrant checkpointing, so frozen inputs (LoRA, frozen vision) need no `requires_grad` tricks.
+    Returns the names of the modules switched on.
+    """
+    agent.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+    switched = [name for name, m in agent.named_modules() if getattr(m, "gradient_checkpointing", False)]
+    for name, module in agent.named_modules():
+        if hasattr(module, "set_grad_checkpointing") and hasattr(module, "blocks"):  # a timm ViT
+            module.set_grad_checkpointing(True)
+            switched.append(name)
+    logger.info("gradient checkpointing on %d modules", len(switched))
+    return switched

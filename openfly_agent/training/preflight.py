@@ -1,0 +1,161 @@
+"""Checks that run before any compute, each failing with a `PreflightError` that says what to change.
+
+Covered: an unwritable or already-used output folder, a batch size that does not divide, a missing or
+malformed dataset, and a checkpoint whose tensors do not match the configured architecture.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import uuid
+from collections.abc import Mapping
+from pathlib import Path
+
+from openfly_agent import constants as C
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.config import BatchConfig, BatchSizeError, TrainDataConfig
+
+logger = logging.getLogger(__name__)
+
+
+class PreflightError(RuntimeError):
+    """A run cannot start; the message names the file / field at fault and what to change."""
+
+
+def check_output_dir(output_dir: str | Path, resume: bool) -> Path | None:
+    """Create `output_dir`, prove it is writable, and match it with `resume`.
+
+    Returns:
+        The checkpoint to resume from (None for a fresh run).
+
+    Raises:
+        PreflightError: the folder cannot be created or written, it already holds checkpoints of another run
+            and `resume` is false, or `resume` is true and it holds none.
+    """
+    folder = Path(output_dir)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write-test-{uuid.uuid4().hex}"
+        probe.write_text("ok")
+        probe.unlink()
+    except OSError as err:
+        raise PreflightError(
+            f"output_dir {folder} is not writable ({err.strerror}): choose another --output_dir"
+        ) from err
+    latest = CheckpointManager(folder, keep_last=1).latest()
+    if latest is not None and not resume:
+        raise PreflightError(
+            f"output_dir {folder} already holds checkpoints (newest {latest.name}): pass --resume=true to "
+            "continue that run, or choose a new --output_dir"
+        )
+    if resume and latest is None:
+        raise PreflightError(f"--resume=true but {folder / 'checkpoints'} holds no complete checkpoint")
+    return latest
+
+
+def check_batch(batch: BatchConfig, world_size: int) -> int:
+    """Gradient-accumulation steps for `world_size` processes; `PreflightError` if it does not divide."""
+    try:
+        return batch.accumulation_steps(world_size)
+    except BatchSizeError as err:
+        raise PreflightError(str(err)) from err
+
+
+def check_dataset_root(data: TrainDataConfig) -> None:
+    """The dataset root exists and has an annotation for every configured split (files only, no parsing)."""
+    from openfly_agent.data.openfly_reader import annotation_path, part_files
+
+    root = Path(data.root)
+    if not root.is_dir():
+        hint = (
+            f"generate it: python -m openfly_agent.toolchain generate --config {data.toolchain_config} "
+            "(or set data.generate_if_missing=true)"
+        )
+        raise PreflightError(f"dataset root {root} does not exist; {hint}, or point --data.root at a dataset")
+    for split in dict.fromkeys((data.train_split, data.val_split, data.test_split)):
+        if not annotation_path(root, split).is_file() and not part_files(root, split):
+            raise PreflightError(
+                f"dataset {root} has no annotation for split {split!r}: "
+                f"expected {annotation_path(root, split)}"
+            )
+
+
+def load_split(data: TrainDataConfig, split: str) -> list:
+    """Episodes of `split`; schema errors become a `PreflightError` naming file, record and field."""
+    from openfly_agent.data.openfly_reader import load_openfly_dataset
+    from openfly_agent.data.schema import SchemaError
+
+    try:
+        episodes = load_openfly_dataset(data.root, split, options=data.reader)
+    except (SchemaError, FileNotFoundError, json.JSONDecodeError) as err:
+        raise PreflightError(f"dataset {data.root}, split {split!r}: {err}") from err
+    if not episodes:
+        raise PreflightError(f"dataset {data.root}, split {split!r} has no episodes")
+    return episodes
+
+
+def check_frames_readable(frame_store, episodes: list) -> None:
+    """Decode the first frame of the first episode, so a missing `traj/` folder fails now, not mid-epoch."""
+    episode = episodes[0]
+    try:
+        frame_store.frame(episode, 0)
+    except Exception as err:  # any reader error: missing parquet, corrupt PNG, ...
+        raise PreflightError(f"cannot read frames of episode {episode.episode_id}: {err}") from err
+
+
+def checkpoint_tensor_shapes(folder: str | Path) -> dict[str, tuple[int, ...]]:
+    """Tensor names and shapes of a checkpoint's safetensors files, read from the headers only."""
+    from safetensors import safe_open
+
+    folder = Path(folder)
+    index = folder / C.WEIGHTS_INDEX_NAME
+    if index.is_file():
+        files = sorted(set(json.loads(index.read_text())["weight_map"].values()))
+    elif (folder / C.WEIGHTS_NAME).is_file():
+        files = [C.WEIGHTS_NAME]
+    else:
+        raise PreflightError(f"{folder} has neither {C.WEIGHTS_NAME} nor {C.WEIGHTS_INDEX_NAME}")
+    shapes: dict[str, tuple[int, ...]] = {}
+    for name in files:
+        with safe_open(str(folder / name), framework="pt") as f:
+            for key in f.keys():  # noqa: SIM118 (safe_open is not a dict)
+                shapes[key] = tuple(f.get_slice(key).get_shape())
+    return shapes
+
+
+def compare_shapes(
+    expected: Mapping[str, tuple[int, ...]], found: Mapping[str, tuple[int, ...]], source: str
+) -> None:
+    """Raise a `PreflightError` listing missing, unexpected and mis-shaped tensors (first few of each)."""
+    missing = sorted(set(expected) - set(found))
+    unexpected = sorted(set(found) - set(expected))
+    wrong = sorted(k for k in set(expected) & set(found) if tuple(expected[k]) != tuple(found[k]))
+    if not (missing or unexpected or wrong):
+        return
+    lines = [f"{source} does not match the configured model architecture:"]
+    if wrong:
+        lines.append(
+            "  shape differs: " + ", ".join(f"{k} {found[k]} vs {tuple(expected[k])}" for k in wrong[:5])
+        )
+    if missing:
+        lines.append(f"  missing ({len(missing)}): {missing[:5]}")
+    if unexpected:
+        lines.append(f"  unexpected ({len(unexpected)}): {unexpected[:5]}")
+    lines.append(
+        "  use the model config the checkpoint was trained with (its config.json), or another checkpoint"
+    )
+    raise PreflightError("\n".join(lines))
+
+
+def diff_configs(expected: Mapping, found: Mapping, prefix: str = "model") -> list[str]:
+    """Dotted paths where two nested config dicts differ, as `path: found -> expected` lines."""
+    lines = []
+    for key in sorted(set(expected) | set(found)):
+        a, b = expected.get(key), found.get(key)
+        path = f"{prefix}.{key}"
+        if isinstance(a, Mapping) and isinstance(b, Mapping):
+            lines += diff_configs(a, b, path)
+        elif a != b:
+            lines.append(f"{path}: checkpoint {b!r}, config {a!r}")
+    return lines

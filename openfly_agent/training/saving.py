@@ -1,0 +1,77 @@
+"""Save and restore a whole checkpoint across processes: HF model folder + accelerate state + counters.
+
+Order of a save: rank 0 creates `.tmp-step-N/`; every process writes its part of the accelerate state and
+joins the state-dict gather of the model export; rank 0 writes the counters, then renames the folder and moves
+the `last` pointer. A crash before the rename leaves the previous checkpoint as the newest.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from accelerate import Accelerator
+from accelerate.utils import DistributedType
+
+from openfly_agent.training.state import (
+    ACCELERATE_STATE_DIR,
+    TrainerState,
+    keep_trainable_weights_hook,
+    load_trainable_weights_hook,
+)
+
+logger = logging.getLogger(__name__)
+
+
+def register_state_hooks(accelerator: Accelerator) -> None:
+    """Keep only trainable tensors in the accelerate state (plain and DDP runs).
+
+    FSDP and DeepSpeed save their own sharded model state, which the hooks do not see; there the whole model
+    goes into the training state.
+    """
+    if accelerator.distributed_type in (DistributedType.FSDP, DistributedType.DEEPSPEED):
+        return
+    accelerator.register_save_state_pre_hook(keep_trainable_weights_hook)
+    accelerator.register_load_state_pre_hook(load_trainable_weights_hook)
+
+
+def save_checkpoint(run) -> Path:
+    """Write the checkpoint of `run.state.step` atomically (call on every process); return its folder."""
+    acc, step = run.accelerator, run.state.step
+    if acc.is_main_process:
+        run.checkpoints.begin(step)
+    acc.wait_for_everyone()
+    staging = run.checkpoints.staging_dir(step)
+    acc.save_state(str(staging / ACCELERATE_STATE_DIR))
+    run.export(staging)
+    if acc.is_main_process:
+        run.state.save(staging)
+    acc.wait_for_everyone()
+    if acc.is_main_process:
+        run.checkpoints.commit(step)
+    acc.wait_for_everyone()
+    return run.checkpoints.final_dir(step)
+
+
+def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerState:
+    """Load optimizer, scheduler, RNG and trainable weights from `folder` (every process); return counters.
+
+    Call after `accelerator.prepare` and before the first step.
+    """
+    folder = Path(folder)
+    state = TrainerState.load(folder)
+    if state.world_size != accelerator.num_processes:
+        raise RuntimeError(
+            f"{folder} was saved by {state.world_size} processes but this run has "
+            f"{accelerator.num_processes}: resume with the same number of processes "
+            "(the per-process RNG and optimizer shards must match)"
+        )
+    accelerator.load_state(str(folder / ACCELERATE_STATE_DIR))
+    logger.info(
+        "resumed from %s at step %d (epoch %d, step %d of it)",
+        folder,
+        state.step,
+        state.epoch,
+        state.step_in_epoch,
+    )
+    return state

@@ -1,0 +1,22 @@
+"""`--checkpoint` resolution: a checkpoint folder, a training run, its `checkpoints/` folder or `last` pointer."""
+
+from __future__ import annotations
+
+import pytest
+
+from openfly_agent.eval.agent_policy import checkpoint_folder, checkpoint_kind
+
+
+def test_training_run_paths_resolve_to_the_newest_checkpoint(tmp_path):
+    step = tmp_path / "run" / "checkpoints" / "step-000010"
+    step.mkdir(parents=True)
+    (step / "config.json").write_text('{"model_type": "openfly_agent"}')
+    (tmp_path / "run" / "checkpoints" / "last").write_text("step-000010\n")
+    for path in ("run", "run/checkpoints", "run/checkpoints/last", "run/checkpoints/step-000010"):
+        assert checkpoint_folder(str(tmp_path / path)) == step
+    assert checkpoint_kind(step) == "openfly_agent"
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        checkpoint_folder(str(tmp_path))
+    (step / "config.json").write_text('{"model_type": "llama"}')
+    with pytest.raises(ValueError, match="model_type 'llama'"):
+        checkpoint_kind(step)

@@ -1,0 +1,96 @@
+"""EvalConfig parsing (the issue's command line through draccus) and its errors."""
+
+from __future__ import annotations
+
+import pytest
+
+from openfly_agent.eval.cli import list_fields, normalize_argv
+from openfly_agent.eval.config import EvalConfig
+from openfly_agent.utils.config import parse_config
+
+
+def test_issue_command_line_parses():
+    argv = [
+        "--checkpoint",
+        "runs/tiny/checkpoints/last",
+        "--split",
+        "test_seen",
+        "test_unseen",
+        "--sim",
+        "embedded",
+    ]
+    assert normalize_argv(argv) == [
+        "--checkpoint",
+        "runs/tiny/checkpoints/last",
+        "--split=[test_seen,test_unseen]",
+        "--sim.type=embedded",
+    ]
+    cfg = parse_config(EvalConfig, normalize_argv(argv))
+    assert cfg.split == ["test_seen", "test_unseen"] and cfg.sim.type == "embedded"
+    assert cfg.checkpoint == "runs/tiny/checkpoints/last" and cfg.policy == "agent"
+
+
+def test_shorthands_leave_draccus_forms_alone():
+    argv = [
+        "--split=[test_unseen]",
+        "--sim.type=unrealcv",
+        "--sim.unrealcv.port=9001",
+        "--baselines",
+        "random",
+        "stop",
+        "--plots=2",
+    ]
+    out = normalize_argv(argv)
+    assert out == [
+        "--split=[test_unseen]",
+        "--sim.type=unrealcv",
+        "--sim.unrealcv.port=9001",
+        "--baselines=[random,stop]",
+        "--plots=2",
+    ]
+    cfg = parse_config(EvalConfig, out + ["--checkpoint=x"])
+    assert cfg.baselines == ["random", "stop"] and cfg.split == ["test_unseen"]
+    assert cfg.sim.unrealcv.port == 9001
+    assert normalize_argv(["--sim=airsim", "--gif_episodes", "a/b/c"]) == [
+        "--sim.type=airsim",
+        "--gif_episodes=[a/b/c]",
+    ]
+    assert {"split", "baselines", "profiles", "gif_episodes"} <= list_fields()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"policy": "agent"}, "needs --checkpoint"),
+        ({"policy": "greedy"}, "choose from"),
+        ({"policy": "random", "baselines": ["random"]}, "must not repeat"),
+        ({"policy": "stop", "split": ["val"]}, "split 'val'"),
+        ({"policy": "stop", "profiles": ["habitat"]}, "profile 'habitat'"),
+        ({"policy": "stop", "batch_size": 0}, "batch_size"),
+        ({"policy": "stop", "oracle_mode": "fly"}, "oracle_mode"),
+    ],
+)
+def test_config_errors_say_what_to_change(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        EvalConfig(**kwargs)
+
+
+def test_result_identity_tracks_what_changes_results():
+    a = EvalConfig(policy="random", seed=1)
+    b = EvalConfig(policy="random", seed=2, batch_size=64, plots=0)
+    assert a.result_identity("random") != b.result_identity("random")
+    assert a.result_identity("stop") == b.result_identity("stop")  # batch size and plots never change results
+
+
+@pytest.mark.parametrize(
+    "name", ["embedded", "baselines", "released-unrealcv", "released-airsim", "released-gs"]
+)
+def test_shipped_configs_parse(name):
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "eval" / f"{name}.yaml"
+    cfg = parse_config(EvalConfig, ["--config_path", str(path), "--checkpoint=ckpt"])
+    assert cfg.sim.type in ("embedded", "unrealcv", "airsim", "gs_http")
+    if name.startswith("released"):
+        assert cfg.agent.unnorm_key == "vlnv1" and cfg.agent.decode_rule == "exact" and cfg.batch_size == 1
+        assert cfg.reader.takeoff_landing == "keep"

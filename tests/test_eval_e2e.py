@@ -1,0 +1,208 @@
+"""End to end on a generated split: baselines and a tiny agent through `eval.run`, resume, processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from eval_helpers import generate_tiny_dataset, save_small_agent
+from PIL import Image
+
+from openfly_agent import constants as C
+from openfly_agent.data.openfly_reader import load_openfly_dataset
+from openfly_agent.eval.baselines import make_baseline
+from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.distributed import ProcessInfo, read_all_logs
+from openfly_agent.eval.factory import make_env
+from openfly_agent.eval.report import policy_results
+from openfly_agent.eval.rollout import LockstepRunner
+from openfly_agent.eval.run import run
+
+REPO = Path(__file__).resolve().parents[1]
+SPLITS = [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("embedded-tiny")
+    generate_tiny_dataset(root)
+    return root
+
+
+def _cfg(dataset, out, **kw):
+    base = {
+        "dataset_root": str(dataset),
+        "output_dir": str(out),
+        "progress": False,
+        "plots": 1,
+        "batch_size": 4,
+    }
+    return EvalConfig(**{**base, **kw})
+
+
+def test_oracle_and_stop_at_start_on_a_generated_split(dataset, tmp_path):
+    outcome = run(_cfg(dataset, tmp_path, policy="oracle", baselines=["stop"]))
+    for split in SPLITS:
+        episodes = load_openfly_dataset(dataset, split)
+        distances = [np.linalg.norm(e.goal - e.positions[0]) for e in episodes]
+        for profile in ("openfly", "standard"):
+            oracle = outcome["results"]["oracle"]["splits"][split][profile]["overall"]
+            assert oracle["sr_pct"] == 100.0 and oracle["ne_m"] == pytest.approx(0.0, abs=1e-6)
+            stop = outcome["results"]["stop"]["splits"][split][profile]["overall"]
+            assert stop["episodes"] == len(episodes)
+            assert stop["sr_pct"] == pytest.approx(100.0 * np.mean([d < 20.0 for d in distances]))
+            assert stop["ne_m"] == pytest.approx(np.mean(distances))
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| oracle | " in summary and "| stop | " in summary
+    assert list((tmp_path / "oracle" / "plots" / C.SPLIT_TEST_UNSEEN).glob("*.png"))
+    # Every table equals the one recomputed from the JSONL alone.
+    for name in ("oracle", "stop"):
+        written = json.loads((tmp_path / name / C.RESULTS_JSON).read_text())
+        assert (
+            written["splits"]
+            == policy_results(name, read_all_logs(tmp_path / name), written["profiles"])["splits"]
+        )
+
+
+@pytest.mark.parametrize("name", ["forward", "random"])
+def test_blind_baselines_equal_the_rendering_simulator(dataset, name):
+    cfg = _cfg(dataset, "unused", policy=name, max_steps=40)
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)
+    results = {}
+    for render in (False, True):
+        env = make_env(cfg, ProcessInfo(), episodes, render=render)
+        records = []
+        policy = make_baseline(name, episodes, seed=1)
+        LockstepRunner(policy, env, cfg.max_steps, show_progress=False).run(episodes, "s", records.append)
+        env.close()
+        results[render] = sorted(records, key=lambda r: r.episode_id)
+    assert results[False] == results[True]
+    if name == "forward":
+        assert any(r.collision_steps for r in results[True])  # the straight flights hit buildings
+
+
+def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TRAIN)
+    save_small_agent(tmp_path / "ckpt", [e.instruction for e in episodes])
+    common = {
+        "policy": "agent",
+        "checkpoint": str(tmp_path / "ckpt"),
+        "max_steps": 6,
+        "plots": 0,
+        "max_episodes": 3,
+    }
+    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # (sorted ids: within max_episodes)
+    outcomes = [
+        run(_cfg(dataset, tmp_path / f"b{b}", batch_size=b, gif_episodes=[gif] if b == 1 else [], **common))
+        for b in (1, 4)
+    ]
+    one, many = (read_all_logs(tmp_path / f"b{b}" / "agent") for b in (1, 4))
+    assert one == many and len(one) == 6
+    assert outcomes[0]["results"]["agent"]["splits"] == outcomes[1]["results"]["agent"]["splits"]
+    boxes = [b for r in one for b in r.boxes]
+    assert len(boxes) == sum(len(r.actions) for r in one)
+    assert all(b is None or (len(b) == 4 and all(0.0 <= v <= 1.0 for v in b)) for b in boxes)
+    (gif_file,) = (tmp_path / "b1" / "agent" / "gifs").glob("*.gif")
+    record = next(r for r in one if r.episode_id == gif)
+    assert Image.open(gif_file).n_frames == len(record.actions)  # one frame per decision
+
+
+def _eval_cmd(dataset, out, *extra):
+    return [
+        sys.executable, str(REPO / "eval.py"), "--policy", "random", "--baselines", "forward",
+        "--dataset_root", str(dataset), "--output_dir", str(out), "--batch_size=2", "--plots=0",
+        "--progress=false", *extra,
+    ]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def reference(dataset, tmp_path_factory):
+    """An uninterrupted single-process run of `_eval_cmd`'s settings, in this process."""
+    out = tmp_path_factory.mktemp("reference")
+    run(_cfg(dataset, out, policy="random", baselines=["forward"], batch_size=2, plots=0))
+    return out
+
+
+def _same_results(a: Path, b: Path) -> None:
+    for name in ("random", "forward"):
+        assert read_all_logs(a / name) == read_all_logs(b / name)
+        assert (
+            json.loads((a / name / C.RESULTS_JSON).read_text())["splits"]
+            == json.loads((b / name / C.RESULTS_JSON).read_text())["splits"]
+        )
+
+
+def test_sigkilled_run_resumes_to_the_same_table(dataset, reference, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    total = len((reference / "random" / C.EPISODES_JSONL).read_text().splitlines())
+    log = tmp_path / "random" / C.EPISODES_JSONL
+    # Frames are rendered for the GIF episode, which slows the run enough to kill it half way.
+    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id
+    proc = subprocess.Popen(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log.is_file() and len(log.read_bytes().splitlines()) >= 2:
+            break
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    done = len(log.read_bytes().splitlines())
+    assert 2 <= done < total
+    resumed = subprocess.run(
+        _eval_cmd(dataset, tmp_path), env=env, capture_output=True, text=True, timeout=300
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "| random |" in resumed.stdout
+    _same_results(reference, tmp_path)
+
+
+def test_two_processes_split_and_merge(dataset, reference, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+    double = subprocess.run(
+        launcher + _eval_cmd(dataset, tmp_path)[1:], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert double.returncode == 0, double.stdout[-3000:] + double.stderr[-6000:]
+    assert sorted(p.name for p in (tmp_path / "random").glob("episodes*.jsonl")) == [C.EPISODES_JSONL]
+    _same_results(reference, tmp_path)
+
+
+def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
+    from eval_helpers import NORM_STATS, save_released_format_agent
+
+    from openfly_agent.eval.agent_policy import AgentPolicy, checkpoint_kind, load_agent
+    from openfly_agent.eval.config import AgentSettings
+    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
+
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)[:3]
+    source = save_released_format_agent(tmp_path / "released", [e.instruction for e in episodes])
+    assert checkpoint_kind(tmp_path / "released") == "openvla"
+    settings = AgentSettings(model_config=str(tmp_path / "released" / "model.yaml"), unnorm_key="vln_norm")
+    loaded = load_agent(str(tmp_path / "released"), settings, "cpu")
+    assert loaded.action_tokenizer.decode_rule == "nearest"
+    q99 = loaded.action_tokenizer.action_stats["q99"]
+    np.testing.assert_array_equal(q99, NORM_STATS["vln_norm"]["action"]["q99"])
+    old = source.action_tokenizer
+    source.action_tokenizer = ActionTokenizer(
+        head="openvla_bins", vocab_end=old.vocab_end, decode_rule="nearest", eos_token_id=old.eos_token_id,
+        action_stats=select_action_stats(NORM_STATS, "vln_norm"),
+    )  # fmt: skip
+    cfg = _cfg(dataset, tmp_path, policy="stop", max_steps=5)
+    runs = []
+    for agent in (loaded, source):  # the folder's agent flies exactly like the one that wrote it
+        env = make_env(cfg, ProcessInfo(), episodes, render=True)
+        records = []
+        LockstepRunner(AgentPolicy(agent), env, cfg.max_steps, show_progress=False).run(
+            episodes, "s", records.append
+        )
+        env.close()
+        runs.append(records)
+    assert runs[0] == runs[1]
+    assert all(0 <= a <= 9 for r in runs[0] for a in r.actions)

@@ -1,0 +1,107 @@
+"""The release command line: options generated from the config dataclasses, defaults kept, errors named."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from openfly_agent.hub.cli import build_parser, main
+from openfly_agent.hub.cli_args import build_dataclass, field_docs
+from openfly_agent.hub.config import CardConfig, DatasetReleaseConfig, ModelReleaseConfig
+
+
+def parse_model(argv: list[str]) -> ModelReleaseConfig:
+    return build_dataclass(ModelReleaseConfig, build_parser().parse_args(["release", *argv]))
+
+
+def test_issue_flags_parse_into_the_config():
+    cfg = parse_model(
+        ["--checkpoint", "runs/x", "--repo-id", "me/tiny", "--results", "r.json", "--push", "--private"]
+        + ["--revision", "v1", "--lora", "adapter", "--card.base-model", "me/base", "--card.tags", "a", "b"]
+    )
+    assert (cfg.checkpoint, cfg.repo_id, cfg.results, cfg.revision, cfg.lora) == (
+        "runs/x",
+        "me/tiny",
+        "r.json",
+        "v1",
+        "adapter",
+    )
+    assert cfg.push is True and cfg.private is True
+    assert cfg.card.base_model == "me/base" and cfg.card.tags == ["a", "b"]
+
+
+def test_options_not_given_keep_the_dataclass_defaults():
+    cfg = parse_model(["--checkpoint", "c", "--repo-id", "me/tiny"])
+    defaults = ModelReleaseConfig(checkpoint="c", repo_id="me/tiny")
+    assert cfg == defaults and cfg.push is False and cfg.card == CardConfig()
+    assert parse_model(["--checkpoint", "c", "--repo-id", "me/t", "--push", "--no-push"]).push is False
+
+
+def test_dataset_command():
+    args = build_parser().parse_args(
+        ["release-dataset", "--dataset-root", "d", "--repo-id", "me/ds", "--push"]
+    )
+    cfg = build_dataclass(DatasetReleaseConfig, args)
+    assert (cfg.dataset_root, cfg.repo_id, cfg.push, cfg.card) == (
+        "d",
+        "me/ds",
+        True,
+        "data_cards/embedded.md",
+    )
+
+
+def test_help_comes_from_the_docstrings():
+    docs = field_docs(ModelReleaseConfig)
+    assert docs["max_shard_size"].startswith("Weights above this size are split")
+    assert "train_config.json" in docs["base_checkpoint"]  # continuation lines are joined
+    assert set(docs) == set(ModelReleaseConfig.__dataclass_fields__)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--repo-id", "me/tiny"], "--checkpoint is required"),
+        (["--checkpoint", "c", "--repo-id", "tiny"], "namespace/name"),
+        (["--checkpoint", "c", "--repo-id", "me/tiny", "--max-shard-size", "big"], "--max-shard-size"),
+        (["--checkpoint", "c", "--repo-id", "me/tiny", "--revision", "has space"], "--revision"),
+    ],
+)
+def test_bad_values_exit_with_a_named_error(argv, message, capsys):
+    assert main(["release", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_missing_checkpoint_folder_is_named(tmp_path, capsys):
+    assert main(["release", "--checkpoint", str(tmp_path / "nope"), "--repo-id", "me/tiny"]) == 2
+    assert "is not a checkpoint folder" in capsys.readouterr().err
+
+
+def test_fake_hub_command_serves_until_interrupted(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        line = proc.stdout.readline()
+        url = line.split("HF_ENDPOINT=")[1].split()[0]
+        request = urllib.request.Request(
+            f"{url}/api/repos/create",
+            data=json.dumps({"name": "x", "organization": "me"}).encode(),
+            headers={"Authorization": "Bearer tok", "Content-Type": "application/json"},
+        )
+        assert json.loads(urllib.request.urlopen(request, timeout=10).read())["url"] == f"{url}/me/x"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "model me/x@main: 0 files, 0 bytes" in out

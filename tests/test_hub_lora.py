@@ -1,0 +1,129 @@
+"""LoRA checkpoints (training's metadata + `adapter/` layout) released merged or as an adapter."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+from test_hub_release import INSTRUCTIONS, assert_same_behaviour, probe_namespace  # tests/ is on sys.path
+
+from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, WEIGHTS_NAME
+from openfly_agent.hub.config import CardConfig, ModelReleaseConfig
+from openfly_agent.hub.lora_release import load_lora_agent
+from openfly_agent.hub.model_card import split_front_matter
+from openfly_agent.hub.model_release import build_model_release
+
+
+@pytest.fixture(scope="module")
+def lora_run(tmp_path_factory):
+    """A base checkpoint and a LoRA checkpoint trained on it (adapter, projector moved) as training writes."""
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import LoraSettings, make_model_config
+    from openfly_agent.model.lora import attach_lora
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.training.export import write_lora_folder
+
+    root = tmp_path_factory.mktemp("lora")
+    tokenizer = train_bpe_tokenizer(INSTRUCTIONS * 4, vocab_size=320, out_dir=root / "tokenizer")
+    torch.manual_seed(1)
+    OpenFlyAgent.from_model_config(make_model_config("tiny"), tokenizer=tokenizer).save_pretrained(
+        root / "base"
+    )
+    agent = attach_lora(OpenFlyAgent.from_pretrained(str(root / "base")), LoraSettings(rank=4, alpha=8))
+    with torch.no_grad():  # stand-in for training: non-zero adapters, a moved projector
+        for name, param in agent.named_parameters():
+            if "lora_B" in name or name.startswith("projector."):
+                param.add_(0.05 * torch.randn_like(param))
+    agent.eval()
+    checkpoint = root / "run" / "checkpoints" / "step-000010"
+    write_lora_folder(agent, agent.state_dict(), checkpoint)
+    train_config = {"init": {"checkpoint": str(root / "base"), "format": "auto"}, "seed": 0}
+    (checkpoint / "train_config.json").write_text(json.dumps(train_config))
+    return SimpleNamespace(root=root, checkpoint=checkpoint, behaviour=probe_namespace()["rollout"](agent))
+
+
+def release(lora_run, form: str, **changes) -> Path:
+    cfg = ModelReleaseConfig(
+        checkpoint=str(lora_run.checkpoint),
+        repo_id=f"me/openfly-tiny-{form}",
+        lora=form,
+        output_dir=str(lora_run.root / form),
+        overwrite=True,
+        **changes,
+    )
+    return build_model_release(cfg)
+
+
+def test_merged_release_acts_like_the_adapter(lora_run):
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.lora import has_lora
+
+    folder = release(lora_run, "merged")
+    assert (folder / WEIGHTS_NAME).is_file() and not (folder / ADAPTER_DIR_NAME).exists()
+    assert "auto_map" in json.loads((folder / CONFIG_NAME).read_text())
+    agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
+    assert not has_lora(agent)
+    base = OpenFlyAgent.from_pretrained(str(lora_run.root / "base"))
+    assert not torch.equal(agent.projector.fc1.weight, base.projector.fc1.weight)  # trained parts are in
+    got = probe_namespace()["rollout"](agent)
+    assert [s["action"] for s in got] == [s["action"] for s in lora_run.behaviour]
+    torch.testing.assert_close(
+        torch.tensor([s["logits"] for s in got]),
+        torch.tensor([s["logits"] for s in lora_run.behaviour]),
+        rtol=0,
+        atol=1e-4,  # merging re-associates the float sums
+    )
+
+
+def test_adapter_release_loads_on_its_base(lora_run):
+    folder = release(lora_run, "adapter", card=CardConfig(base_model="me/openfly-tiny-base"))
+    adapter = folder / ADAPTER_DIR_NAME
+    assert {"adapter_config.json", "adapter_model.safetensors", "trainables.safetensors"} <= {
+        p.name for p in adapter.iterdir()
+    }
+    assert not (adapter / "README.md").exists()  # peft's empty template card stays out
+    assert not list(folder.glob("model*.safetensors"))  # no full weights
+    assert "auto_map" not in json.loads((folder / CONFIG_NAME).read_text())  # nothing AutoModel could load
+    assert not (folder / "modeling_openfly_agent.py").exists()
+    assert_same_behaviour(
+        probe_namespace()["rollout"](load_lora_agent(folder, lora_run.root / "base")), lora_run.behaviour
+    )
+    meta, body = split_front_matter((folder / "README.md").read_text())
+    assert meta["base_model"] == "me/openfly-tiny-base" and meta["base_model_relation"] == "adapter"
+    assert "| Weights | LoRA adapter in `adapter/`" in body and "lora" in meta["tags"]
+    [usage] = [b for b in re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL) if "load_lora_agent" in b]
+    usage = usage.replace('"me/openfly-tiny-adapter"', repr(str(folder)))
+    usage = usage.replace('"me/openfly-tiny-base"', repr(str(lora_run.root / "base")))
+    namespace: dict = {}
+    exec(usage, namespace)  # noqa: S102 (the card's own usage code, ids replaced by local folders)
+    assert namespace["actions"][0] in range(10)
+
+
+def test_lora_errors_say_what_to_pass(lora_run, tmp_path):
+    with pytest.raises(ValueError, match="--card.base-model"):
+        release(lora_run, "adapter")
+    orphan = tmp_path / "orphan"
+    shutil.copytree(lora_run.checkpoint, orphan)
+    (orphan / "train_config.json").write_text(json.dumps({"init": {"checkpoint": None}}))
+    with pytest.raises(ValueError, match="--base-checkpoint"):
+        build_model_release(
+            ModelReleaseConfig(checkpoint=str(orphan), repo_id="me/x", output_dir=str(tmp_path / "o"))
+        )
+    wrong_base = tmp_path / "wrong_base"
+    shutil.copytree(lora_run.root / "base", wrong_base)
+    config = json.loads((wrong_base / CONFIG_NAME).read_text())
+    config["agent"]["memory"]["capacity"] = 1
+    (wrong_base / CONFIG_NAME).write_text(json.dumps(config))
+    cfg = ModelReleaseConfig(
+        checkpoint=str(lora_run.checkpoint),
+        repo_id="me/x",
+        base_checkpoint=str(wrong_base),
+        output_dir=str(tmp_path / "w"),
+    )
+    with pytest.raises(ValueError, match=r"model sections differ at \['memory.capacity: 1 vs 2'"):
+        build_model_release(cfg)

@@ -1,0 +1,106 @@
+"""Preflight errors, raised before any compute: output folder, batch sizes, dataset, checkpoint shapes."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from openfly_agent import constants as C
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.config import BatchConfig, BatchSizeError, TrainDataConfig
+from openfly_agent.training.preflight import (
+    PreflightError,
+    check_batch,
+    check_dataset_root,
+    check_output_dir,
+    checkpoint_tensor_shapes,
+    compare_shapes,
+    diff_configs,
+    load_split,
+)
+
+
+def test_fresh_output_dir_is_created(tmp_path):
+    assert check_output_dir(tmp_path / "a" / "b", resume=False) is None
+    assert (tmp_path / "a" / "b").is_dir()
+
+
+def test_unwritable_output_dir(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")  # a folder cannot be created under a file, even by root
+    with pytest.raises(PreflightError, match="is not writable"):
+        check_output_dir(blocker / "run", resume=False)
+
+
+def test_output_dir_with_checkpoints_needs_resume(tmp_path):
+    manager = CheckpointManager(tmp_path, keep_last=2)
+    manager.begin(4)
+    manager.commit(4)
+    with pytest.raises(PreflightError, match="--resume=true"):
+        check_output_dir(tmp_path, resume=False)
+    assert check_output_dir(tmp_path, resume=True) == tmp_path / "checkpoints" / "step-000004"
+    with pytest.raises(PreflightError, match="holds no complete checkpoint"):
+        check_output_dir(tmp_path / "other", resume=True)
+
+
+def test_batch_sizes_must_divide():
+    assert check_batch(BatchConfig(global_batch_size=16, per_device_batch_size=4), world_size=2) == 2
+    with pytest.raises(
+        PreflightError, match=r"does not divide by per_device_batch_size \(4\) x processes \(3\)"
+    ):
+        check_batch(BatchConfig(global_batch_size=16, per_device_batch_size=4), world_size=3)
+    with pytest.raises(BatchSizeError, match="not a positive multiple"):
+        BatchConfig(global_batch_size=10, per_device_batch_size=4)
+
+
+def test_missing_dataset_root_says_how_to_generate(tmp_path):
+    data = TrainDataConfig(root=str(tmp_path / "nowhere"))
+    with pytest.raises(
+        PreflightError, match="does not exist; generate it: python -m openfly_agent.toolchain"
+    ):
+        check_dataset_root(data)
+
+
+def test_missing_split_is_named(tmp_path, openfly_fixtures):
+    annotation = tmp_path / C.DATASET_ANNOTATION_DIR
+    annotation.mkdir()
+    records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
+    (annotation / "train.json").write_text(json.dumps(records))
+    with pytest.raises(PreflightError, match="no annotation for split 'test_seen'"):
+        check_dataset_root(TrainDataConfig(root=str(tmp_path)))
+
+
+def test_malformed_record_names_file_record_and_field(tmp_path, openfly_fixtures):
+    annotation = tmp_path / C.DATASET_ANNOTATION_DIR
+    annotation.mkdir()
+    records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
+    records[2]["yaw"] = records[2]["yaw"][:-1]  # one yaw short
+    (annotation / "train.json").write_text(json.dumps(records))
+    with pytest.raises(PreflightError) as err:
+        load_split(TrainDataConfig(root=str(tmp_path)), C.SPLIT_TRAIN)
+    message = str(err.value)
+    assert "train.json" in message and "yaw" in message and "2" in message
+
+
+def test_checkpoint_shapes_from_headers_and_mismatch_report(tmp_path):
+    save_file({"a.weight": torch.zeros(4, 3), "b.bias": torch.zeros(2)}, str(tmp_path / C.WEIGHTS_NAME))
+    found = checkpoint_tensor_shapes(tmp_path)
+    assert found == {"a.weight": (4, 3), "b.bias": (2,)}
+    compare_shapes({"a.weight": (4, 3), "b.bias": (2,)}, found, "ckpt")
+    with pytest.raises(PreflightError) as err:
+        compare_shapes({"a.weight": (8, 3), "c.weight": (1,)}, found, "ckpt")
+    message = str(err.value)
+    assert "a.weight (4, 3) vs (8, 3)" in message and "missing (1): ['c.weight']" in message
+    assert "unexpected (1): ['b.bias']" in message
+    with pytest.raises(PreflightError, match="neither"):
+        checkpoint_tensor_shapes(tmp_path / "empty")
+
+
+def test_diff_configs_lists_dotted_paths():
+    lines = diff_configs(
+        {"llm": {"hidden_size": 128, "layers": 2}}, {"llm": {"hidden_size": 64, "layers": 2}}
+    )
+    assert lines == ["model.llm.hidden_size: checkpoint 64, config 128"]
