@@ -314,10 +314,5 @@ def test_load_by_repo_id_gives_the_released_weights(pushed, source):
     assert last_json_line(pushed.load)["digest"] == source.digest
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="OpenFlyAgent.from_pretrained loads the tokenizer from local folders only (model/agent.py), so an "
-    "agent loaded by Hub repo id has no tokenizer and cannot act; the fix belongs to the model package",
-)
 def test_load_by_repo_id_brings_the_tokenizer(pushed):
     assert last_json_line(pushed.load)["tokenizer"] is True

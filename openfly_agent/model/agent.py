@@ -386,16 +386,42 @@ class OpenFlyAgent(PreTrainedModel):
 
     @classmethod
     def from_pretrained(cls, pretrained_model_name_or_path, *args, tokenizer=None, **kwargs):
-        """transformers' load; the tokenizer saved beside the weights is loaded too (local folders)."""
+        """transformers' load; the tokenizer saved beside the weights is loaded too (folder or Hub repo id)."""
         loaded = super().from_pretrained(pretrained_model_name_or_path, *args, **kwargs)
         model = loaded[0] if isinstance(loaded, tuple) else loaded
-        folder = Path(str(pretrained_model_name_or_path))
-        if tokenizer is None and (folder / "tokenizer_config.json").is_file():
-            from .tokenizer import load_tokenizer
+        if tokenizer is None:
+            folder = _tokenizer_folder(str(pretrained_model_name_or_path), kwargs)
+            if folder is not None:
+                from .tokenizer import load_tokenizer
 
-            tokenizer = load_tokenizer(folder)
+                tokenizer = load_tokenizer(folder)
         model.tokenizer = tokenizer
         return loaded
+
+
+# Files a saved tokenizer may consist of (ours: tokenizer.json; Llama-2's: tokenizer.model).
+_TOKENIZER_FILES = ["tokenizer*", "special_tokens_map.json", "added_tokens.json", "vocab*", "merges.txt"]
+
+
+def _tokenizer_folder(name_or_path: str, hub_kwargs: dict) -> Path | None:
+    """Local folder holding the checkpoint's tokenizer, fetching only the tokenizer files of a Hub repo id
+    (with the same revision / token / cache arguments as the weights). None when the checkpoint has none."""
+    folder = Path(name_or_path)
+    if folder.is_dir():
+        return folder if (folder / "tokenizer_config.json").is_file() else None
+    from huggingface_hub import snapshot_download
+
+    snapshot = Path(
+        snapshot_download(
+            name_or_path,
+            revision=hub_kwargs.get("revision"),
+            cache_dir=hub_kwargs.get("cache_dir"),
+            token=hub_kwargs.get("token"),
+            local_files_only=bool(hub_kwargs.get("local_files_only", False)),
+            allow_patterns=_TOKENIZER_FILES,
+        )
+    )
+    return snapshot if (snapshot / "tokenizer_config.json").is_file() else None
 
 
 def register_auto_classes() -> None:
