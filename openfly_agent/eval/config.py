@@ -97,7 +97,7 @@ class EvalConfig:
     baselines: list[str] = field(
         default_factory=list
     )  # more policies through the same runner, e.g. [random,stop]
-    dataset_root: str = "data/generated/embedded-small"
+    dataset_root: str = "outputs/datasets/embedded-small"
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
     # Released data: keep take-off / landing so the goal is the landed point, as in the official evaluation.
     reader: ReaderOptions = field(default_factory=lambda: ReaderOptions(takeoff_landing="keep"))
