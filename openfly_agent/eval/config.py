@@ -101,7 +101,7 @@ class EvalConfig:
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
     # Released data: keep take-off / landing so the goal is the landed point, as in the official evaluation.
     reader: ReaderOptions = field(default_factory=lambda: ReaderOptions(takeoff_landing="keep"))
-    max_episodes: int | None = None  # per split, the first N by episode id (quick runs); None = all
+    max_episodes: int | None = None  # per split, N evenly spaced over the sorted ids (quick runs); None = all
     sim: SimSettings = field(default_factory=SimSettings)
     agent: AgentSettings = field(default_factory=AgentSettings)
     batch_size: int = 16  # episodes stepped in lockstep (the policy's batch)
