@@ -34,22 +34,26 @@ RUN_IDENTITY_NAME = "run_identity.json"
 
 
 def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessInfo) -> None:
-    """Make `folder` ready for this run: refuse to mix results of different settings unless `overwrite`."""
+    """Make `folder` ready for this run: refuse to mix results of different settings unless `overwrite`.
+
+    Every process checks (so all of them fail together, none waits at a barrier alone); rank 0 writes.
+    """
     path = folder / RUN_IDENTITY_NAME
+    if path.is_file() and not overwrite:
+        stored = json.loads(path.read_text())
+        changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
+        if changed:
+            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+            raise ValueError(
+                f"{folder} holds results of other settings ({details}); pass another --output_dir "
+                "or --overwrite=true to discard them"
+            )
+    info.wait()
     if info.is_main:
         if overwrite and folder.exists():
             shutil.rmtree(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        if path.is_file():
-            stored = json.loads(path.read_text())
-            changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
-            if changed:
-                details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
-                raise ValueError(
-                    f"{folder} holds results of other settings ({details}); pass another --output_dir "
-                    "or --overwrite=true to discard them"
-                )
-        else:
+        if not path.is_file():
             path.write_text(json.dumps(identity, indent=2, sort_keys=True) + "\n")
     info.wait()
 
