@@ -22,7 +22,7 @@ from openfly_agent.data.schema import Episode
 from openfly_agent.eval.episodes import episode_spec, goal_of, reference_path, target_landmark
 from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP, Policy, check_actions, step_details
 from openfly_agent.eval.records import EpisodeRecord
-from openfly_agent.eval.slots import ERROR_KEY, SlotEnv
+from openfly_agent.eval.slots import ENGINE_ERRORS, ERROR_KEY, SlotEnv
 from openfly_agent.sim.base import Observation
 
 logger = logging.getLogger(__name__)
@@ -166,7 +166,7 @@ class LockstepRunner:
         t0 = time.perf_counter()
         try:
             obs = self.env.reset_slot(slot, episode_spec(episode))
-        except (OSError, RuntimeError, TimeoutError, ConnectionError) as err:
+        except ENGINE_ERRORS as err:
             logger.warning(
                 "episode %s: simulator reset failed (%s); scored from its start", episode.episode_id, err
             )

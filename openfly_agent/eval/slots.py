@@ -13,10 +13,13 @@ import logging
 from typing import Protocol
 
 from openfly_agent.sim.base import EpisodeSpec, Observation, Simulator, StepInfo
+from openfly_agent.sim.bridges.base import BridgeError
 
 logger = logging.getLogger(__name__)
 
 ERROR_KEY = "error"  # StepInfo.extra key holding the engine error message
+# What an engine failure looks like: the bridges' error (after their one reconnect) or a socket / file error.
+ENGINE_ERRORS = (BridgeError, OSError)
 
 
 class SlotEnv(Protocol):
@@ -54,7 +57,7 @@ class SimulatorSlots:
                 continue
             try:
                 observations[slot], infos[slot] = self.sims[slot].step(int(action))
-            except (OSError, RuntimeError, TimeoutError, ConnectionError) as err:
+            except ENGINE_ERRORS as err:
                 logger.warning("slot %d: simulator step failed (%s); ending its episode", slot, err)
                 observations[slot] = self._last[slot]
                 infos[slot] = StepInfo(
