@@ -109,6 +109,7 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
     boxes = [b for r in one for b in r.boxes]
     assert len(boxes) == sum(len(r.actions) for r in one)
     assert all(b is None or (len(b) == 4 and all(0.0 <= v <= 1.0 for v in b)) for b in boxes)
+    assert all(isinstance(k, list) and len(r.keyframes) == len(r.actions) for r in one for k in r.keyframes)
     (gif_file,) = (tmp_path / "b1" / "agent" / "gifs").glob("*.gif")
     record = next(r for r in one if r.episode_id == gif)
     assert Image.open(gif_file).n_frames == len(record.actions)  # one frame per decision

@@ -37,9 +37,12 @@ class AgentPolicy:
     def __init__(self, agent, name: str = "agent"):
         self.agent = agent
         self.name = name
+        self._details: dict[str, dict] = {}
 
     def reset(self, episode_ids: list[str]) -> None:
         self.agent.reset(list(episode_ids))
+        for episode_id in episode_ids:
+            self._details.pop(episode_id, None)
 
     def act(self, observations: list[dict]) -> list[int]:
         import torch
@@ -49,26 +52,27 @@ class AgentPolicy:
             for obs in observations
         ]
         with torch.inference_mode():
-            return [int(a) for a in self.agent.select_action(inputs)]
+            if not hasattr(self.agent, "predict_step"):
+                return [int(a) for a in self.agent.select_action(inputs)]
+            results = self.agent.predict_step(inputs)
+        for obs, result in zip(inputs, results):
+            self._details[obs[OBS_EPISODE_ID]] = _details(self.agent, obs[OBS_EPISODE_ID], result)
+        return [int(result.action) for result in results]
 
     def step_details(self, episode_ids: list[str]) -> list[dict]:
-        """The predicted landmark box and keyframe decision of the last step, per episode (if exposed)."""
-        info = getattr(self.agent, "last_step_info", None)
-        if not info:
-            return [{} for _ in episode_ids]
-        return [_details(info.get(episode_id)) for episode_id in episode_ids]
+        """The predicted landmark box (None when predicted invisible) and the keyframe sets in memory."""
+        return [self._details.get(episode_id, {}) for episode_id in episode_ids]
 
 
-def _details(step: dict | None) -> dict:
-    if not step:
-        return {}
-    out = {}
-    box = step.get("box")
-    if box is not None:
-        out["box"] = [float(v) for v in box]
-    if "keyframe" in step:
-        out["keyframe"] = bool(step["keyframe"])
-    return out
+def _details(agent, episode_id: str, result) -> dict:
+    """`box`: (cx, cy, w, h) or None; `keyframes`: frame indices of the keyframe sets in the agent memory."""
+    box = [float(v) for v in result.box] if getattr(result, "box_visible", False) else None
+    state = getattr(agent, "episodes", {}).get(episode_id)
+    memory = getattr(state, "memory", None)
+    if memory is None:
+        return {"box": box, "keyframes": None}
+    sets = memory.keys()  # MemoryBank keys: one tuple of frame indices per keyframe set, oldest first
+    return {"box": box, "keyframes": [[int(i) for i in frames] for frames in sets]}
 
 
 def resolve_device(device: str, info_device=None) -> str:

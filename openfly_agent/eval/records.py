@@ -29,7 +29,8 @@ class EpisodeRecord:
 
     `poses[k]` is the pose after `k` actions (`poses[0]` = start), so `len(poses) == len(actions) + 1`;
     STOP leaves the pose unchanged. `collision_steps` are the steps whose motion hit occupied space.
-    `boxes[k]` / `keyframes[k]` are what the policy predicted at step k (None where it predicts nothing).
+    `boxes[k]` is the landmark box the policy predicted at step k (None: predicted invisible, or a policy
+    without boxes); `keyframes[k]` the frame indices of the keyframe sets in its memory after step k.
     """
 
     split: str
@@ -45,7 +46,7 @@ class EpisodeRecord:
     end_reason: str
     collision_steps: list[int] = field(default_factory=list)
     boxes: list[list[float] | None] = field(default_factory=list)  # (cx, cy, w, h) per step or None
-    keyframes: list[bool | None] = field(default_factory=list)
+    keyframes: list[list[list[int]] | None] = field(default_factory=list)
     error: str | None = None
     version: int = RECORD_VERSION
 

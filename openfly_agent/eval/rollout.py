@@ -192,7 +192,7 @@ class LockstepRunner:
         for slot, action, detail in zip(active, actions, details):
             running = slots[slot]
             running.record.boxes.append(_box_list(detail.get("box")))
-            running.record.keyframes.append(detail.get("keyframe"))
+            running.record.keyframes.append(detail.get("keyframes"))
             if running.frames is not None:
                 _log_frame(running, detail)
             if action != C.ACTION_STOP:
