@@ -1,4 +1,4 @@
-"""`--checkpoint` resolution: a checkpoint folder, a training run, its `checkpoints/` folder or `last` pointer."""
+"""`--checkpoint` resolution: a checkpoint folder, a training run, its `checkpoints/` folder or pointer."""
 
 from __future__ import annotations
 
