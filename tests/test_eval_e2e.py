@@ -205,5 +205,8 @@ def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
         )
         env.close()
         runs.append(records)
-    assert runs[0] == runs[1]
+    # Same actions and poses; the boxes differ: the grounding head is not in a released checkpoint and is
+    # initialised afresh on load.
+    for a, b in zip(*runs):
+        assert (a.actions, a.poses, a.collision_steps) == (b.actions, b.poses, b.collision_steps)
     assert all(0 <= a <= 9 for r in runs[0] for a in r.actions)
