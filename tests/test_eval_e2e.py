@@ -104,7 +104,7 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
         for b in (1, 4)
     ]
     one, many = (read_all_logs(tmp_path / f"b{b}" / "agent") for b in (1, 4))
-    assert one == many and len(one) == 6
+    assert one == many and len(one) == 4
     assert outcomes[0]["results"]["agent"]["splits"] == outcomes[1]["results"]["agent"]["splits"]
     boxes = [b for r in one for b in r.boxes]
     assert len(boxes) == sum(len(r.actions) for r in one)
