@@ -23,6 +23,7 @@ from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
 from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
+from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.engine import assemble_run, make_accelerator
 from openfly_agent.training.export import export_merged_lora, make_exporter
@@ -51,6 +52,8 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)
+    if accelerator.is_main_process:
+        CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last).remove_stale_staging()
     splits = dict.fromkeys((cfg.data.train_split, cfg.data.val_split, cfg.data.test_split))
     episodes = {split: load_split(cfg.data, split) for split in splits}
     frames = FrameStore(
