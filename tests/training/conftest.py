@@ -31,7 +31,10 @@ def generated_dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def reference_run(generated_dataset, tmp_path_factory):
-    """An uninterrupted in-process run of STEPS steps, a checkpoint every 2: (output_dir, run, result)."""
+    """An uninterrupted in-process run of STEPS steps, a checkpoint every 2: (output_dir, run, result).
+
+    The vision backbone is frozen, so resuming must rebuild frozen weights and restore only trainable ones.
+    """
     out = tmp_path_factory.mktemp("reference")
     run, result = train_in_process(make_config(generated_dataset, out, steps=STEPS))
     return out, run, result
@@ -54,6 +57,7 @@ def train_args(dataset: Path, output_dir: Path, **overrides) -> list[str]:
         "checkpoint.save_interval": 2,
         "checkpoint.keep_last": 5,
         "data.generate_if_missing": "false",
+        "freeze_stage": "frozen_vision",
     }
     args.update({k.replace("__", "."): v for k, v in overrides.items()})
     return ["--config_path", str(REPO_ROOT / "configs/train/tiny.yaml")] + [

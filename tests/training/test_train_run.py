@@ -54,6 +54,9 @@ def test_run_writes_checkpoints_in_the_hf_layout(reference_run):
     ):  # fmt: skip
         assert (final / name).is_file(), name
     assert (final / ACCELERATE_STATE_DIR / "optimizer.bin").is_file()
+    state_keys = checkpoint_weights(final / ACCELERATE_STATE_DIR).keys()  # trainable tensors only
+    assert state_keys and not any(k.startswith("vision_backbone.") for k in state_keys)
+    assert any(k.startswith("vision_backbone.") for k in checkpoint_weights(final))
     assert json.loads((final / C.TRAIN_CONFIG_NAME).read_text())["steps"] == STEPS
     assert sorted(train_losses(out)) == list(range(1, STEPS + 1))
     assert set(result.final_metrics) >= {"action_accuracy", "box_iou", "majority_class_rate", "samples"}
