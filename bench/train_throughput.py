@@ -6,7 +6,7 @@
 Configurations (one JSON line each):
 - `tiny-cpu`: the tiny preset, full fine-tune, fp32, on the CPU (the embedded default of train.py);
 - `7b-lora-bf16`: the OpenFly-Agent 7B shape (random init) with LoRA r=32 on every LLM linear layer, the
-  vision backbone frozen, bf16 autocast and gradient checkpointing: configs/train/openfly-7b-lora.yaml on one GPU.
+  vision backbone frozen, bf16 autocast, gradient checkpointing (configs/train/openfly-7b-lora.yaml, 1 GPU).
 Batches are synthetic but shaped like training: random 128 px frames resized by the agent's transform,
 ~90-token instructions, and every memory slot filled (K sets of S frames), the most expensive case.
 FLOPs are counted by `torch.utils.flop_counter` over forward + backward (matmuls and attention). MFU divides
