@@ -9,8 +9,9 @@ Prints one JSON line per (mode, resolution) with `resolution`, `fps` (median ove
 -45 deg); `render_batch`: the same poses through `render_many` (16 tiles per framebuffer flush);
 `step`: episodes of random actions through `EmbeddedSimulator.step` (dynamics + collision + render);
 `vector`: 16 such episodes in lockstep through `VectorSimulator.embedded` (frames rendered together).
-`cpu_ms_per_frame` is the CPU time of all threads of the process (llvmpipe rasterises on worker threads);
-`load_avg_1m` tells how busy the machine was.
+`cpu_ms_per_frame` is the CPU time of all threads of the process (llvmpipe rasterises on worker threads)
+and `frames_per_cpu_s` its inverse: the rate one dedicated core sustains, a load-independent figure on a
+shared machine, where `fps` depends on what else runs (`load_avg_1m`).
 """
 
 from __future__ import annotations
@@ -129,6 +130,7 @@ def main() -> None:
                     "fps": round(statistics.median(runs), 1),
                     "fps_runs": [round(r, 1) for r in runs],
                     "cpu_ms_per_frame": round(statistics.median(cpu_ms), 2),  # all threads of this process
+                    "frames_per_cpu_s": round(1000.0 / statistics.median(cpu_ms), 1),
                     "scene": scene_id,
                     "scene_size_m": args.size_m,
                     "buildings": len(city.buildings),

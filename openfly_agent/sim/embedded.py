@@ -8,6 +8,7 @@ No network, no GPU needed; the GL context is created lazily in the process that 
 from __future__ import annotations
 
 import logging
+import weakref
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -39,7 +40,7 @@ class EmbeddedSimConfig:
     min_box_pixels: int = 16  # a landmark needs this many visible pixels to get a box
     return_instance_ids: bool = False  # put the (H, W) int32 instance image in Observation.extra
     max_batch: int = 16  # views rendered per framebuffer flush (lockstep envs, trajectories)
-    max_cached_scenes: int = 4  # cities (and their GPU buffers) kept per process
+    max_cached_scenes: int = 4  # cities (and GPU buffers) kept per process; >= scenes run at once
     egl_device: int | None = None  # EGL device index on multi-GPU machines; None = default
 
     def __post_init__(self) -> None:
@@ -69,6 +70,7 @@ class _Backend:
             egl_device=cfg.egl_device,
         )
         self.generated: OrderedDict[str, City] = OrderedDict()
+        self.alive: weakref.WeakValueDictionary[str, City] = weakref.WeakValueDictionary()  # still in use
         self.registered: dict[str, City] = {}
         self.users = 0
 
@@ -102,7 +104,9 @@ class _Backend:
         if scene_id in self.registered:
             return self.registered[scene_id]
         if scene_id not in self.generated:
-            self.generated[scene_id] = generate_city(parse_scene_id(scene_id), self.cfg.city)
+            # a city evicted from the cache but still held by a running episode is reused, not rebuilt
+            city = self.alive.get(scene_id) or generate_city(parse_scene_id(scene_id), self.cfg.city)
+            self.generated[scene_id] = self.alive[scene_id] = city
             while len(self.generated) > self.cfg.max_cached_scenes:
                 self.generated.popitem(last=False)
         self.generated.move_to_end(scene_id)
