@@ -70,18 +70,7 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
     set_seed(cfg.seed)  # the same initial weights on every process and on resume
     agent = build_agent(cfg, tokenizer, norm_stats, init_format)
     apply_training_mode(agent, cfg)
-    datasets = {
-        split: NavigationStepDataset(
-            episodes[split],
-            frames,
-            keyframe_selector=agent.keyframe_selector,
-            history=cfg.data.history.mode,
-            capacity=cfg.data.history.capacity,
-            set_size=cfg.data.history.set_size,
-            seed=cfg.seed,
-        )
-        for split in splits
-    }
+    datasets = {split: make_dataset(cfg, agent, episodes[split], frames) for split in splits}
     collator = make_collator(agent, cfg)
     if accelerator.is_main_process:
         save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
@@ -104,6 +93,21 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
 def merge_lora_at_end(run: TrainingRun) -> None:
     """The `lora.merge_at_end` step: full merged weights in `<output_dir>/merged` (rank 0, CPU)."""
     export_merged_lora(run.accelerator, run.model, run.cfg.output_dir)
+
+
+def make_dataset(
+    cfg: TrainConfig, agent: OpenFlyAgent, episodes: list, frames: FrameStore
+) -> NavigationStepDataset:
+    """Per-step samples of `episodes` with the history mode of `cfg` and the agent's keyframe selector."""
+    return NavigationStepDataset(
+        episodes,
+        frames,
+        keyframe_selector=agent.keyframe_selector,
+        history=cfg.data.history.mode,
+        capacity=cfg.data.history.capacity,
+        set_size=cfg.data.history.set_size,
+        seed=cfg.seed,
+    )
 
 
 def make_collator(agent: OpenFlyAgent, cfg: TrainConfig) -> NavigationCollator:
