@@ -75,7 +75,7 @@ class FitResult:
 
 
 class _StopFlags:
-    """Stop conditions every process agrees on (time limits are decided on rank 0 and broadcast)."""
+    """Stop conditions every process agrees on (the time limit ends the run when any process hits it)."""
 
     def __init__(self, cfg: TrainConfig, accelerator: Accelerator) -> None:
         self.accelerator = accelerator
