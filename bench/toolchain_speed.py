@@ -17,6 +17,7 @@ import dataclasses
 import json
 import os
 import platform
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -32,7 +33,18 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "toolchain" / "embedd
 
 
 def _machine() -> dict:
-    return {"cpu_count": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version()}
+    return {
+        "cpu_count": os.cpu_count(),
+        "load_avg_1m": round(os.getloadavg()[0], 2),  # other work on the machine slows the wall-clock figures
+        "machine": platform.machine(),
+        "python": platform.python_version(),
+    }
+
+
+def _cpu_s() -> float:
+    """CPU seconds (user + sys) of this process and its finished children, all threads."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def _emit(record: dict) -> None:
@@ -43,17 +55,18 @@ def bench_planning(cfg: GenerateConfig, units: int):
     start = time.perf_counter()
     prepared = prepare_scene(embedded_scene(0, cfg.scenes), cfg)
     prepare_s = time.perf_counter() - start
-    planned, rejected, start = [], 0, time.perf_counter()
+    planned, rejected, start, cpu = [], 0, time.perf_counter(), _cpu_s()
     for i in range(units):
         try:
             planned.append(plan_trajectory(prepared, np.random.default_rng(i), cfg))
         except Rejected:
             rejected += 1
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, _cpu_s() - cpu
     _emit(
         {
             "stage": "planning",
             "trajectories_per_s": len(planned) / wall,
+            "cpu_ms_per_trajectory": 1000 * cpu / max(1, len(planned)),
             "attempts_per_s": units / wall,
             "rejected": rejected,
             "scene_prepare_s": prepare_s,
@@ -70,17 +83,17 @@ def bench_rendering(cfg: GenerateConfig, prepared, planned) -> None:
 
     sim = default_simulator(cfg)
     render_poses(sim, prepared.scene.scene_id, planned[0].seq.poses[:2], 0.0)  # context + scene upload
-    start = time.perf_counter()
-    frames = 0
+    start, cpu, frames = time.perf_counter(), _cpu_s(), 0
     for p in planned:
         frames += len(render_poses(sim, prepared.scene.scene_id, p.seq.poses, p.pitch_deg).frames)
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, _cpu_s() - cpu
     sim.close()
     _emit(
         {
             "stage": "rendering",
             "trajectories_per_s": len(planned) / wall,
             "frames_per_s": frames / wall,
+            "cpu_ms_per_trajectory": 1000 * cpu / len(planned),
             "resolution": [cfg.render.width, cfg.render.height],
         }
     )
@@ -89,13 +102,18 @@ def bench_rendering(cfg: GenerateConfig, prepared, planned) -> None:
 def bench_complete(cfg: GenerateConfig, root: Path) -> None:
     from openfly_agent.toolchain.generate import generate
 
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), _cpu_s()
     summary = generate(cfg, progress=False)
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, _cpu_s() - cpu
+    n = max(1, summary["trajectories"])
     _emit(
         {
             "stage": "complete",
             "trajectories_per_s": summary["trajectories"] / wall,
+            # all processes' CPU time (workers, parent, llvmpipe threads) per written trajectory, scene
+            # preparation included; 2 / this = what 2 otherwise idle cores would sustain
+            "cpu_s_per_trajectory": cpu / n,
+            "trajectories_per_s_2_idle_cores": 2.0 / (cpu / n),
             "trajectories": summary["trajectories"],
             "attempts": summary["attempts"],
             "wall_s": wall,

@@ -12,7 +12,7 @@ from openfly_agent.data.labels import (
     check_action_sequence,
     move_merged_forward_to_start,
 )
-from openfly_agent.data.openfly_reader import read_annotation_file
+from openfly_agent.data.openfly_reader import ReadReport, read_annotation_file
 from openfly_agent.data.schema import Episode, SchemaError
 from openfly_agent.sim.dynamics import rollout_array
 from openfly_agent.utils.geometry import Pose
@@ -73,9 +73,11 @@ def test_merged_forward_start_leaves_non_pure_moves_unresolved():
 def test_merged_forward_start_on_eval_test_record_0(openfly_fixtures):
     episode = read_annotation_file(openfly_fixtures / "eval_test.json", ReaderOptions())[0]
     assert episode.actions.tolist() == [9, 9, 9, 9, 9, 9, 9, 3, 9, 1, 2, 9, 9, 9, 9, 0]
+    report = ReadReport()
     start = read_annotation_file(
-        openfly_fixtures / "eval_test.json", ReaderOptions(merged_forward_position="start")
+        openfly_fixtures / "eval_test.json", ReaderOptions(merged_forward_position="start"), report=report
     )[0]
+    assert (report.forward_relabelled, report.forward_unresolved) == (724, 21)  # of 2405 forward frames
     # frame _20 is 3 m before the turn frame _21; _24 is 3 m before _25; _38 is 3 m before the STOP frame _39
     assert start.actions.tolist() == [9, 9, 9, 9, 9, 9, 1, 3, 1, 1, 2, 9, 9, 9, 1, 0]
 

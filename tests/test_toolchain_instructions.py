@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from toolchain_scene import synthetic_scene
 
@@ -109,3 +111,28 @@ def test_describe_landmark_grammar():
     )
     unnamed = type(lm)("y", "building", "test", "test", "test", "test", (0, 0, 0))
     assert describe_landmark(unnamed, rng) == "the building"
+
+
+def test_jogs_fold_into_net_turns():
+    from openfly_agent.toolchain.instructions.segments import merge_short_segments
+
+    segs = split_at_transitions([9, 9, 2, 1, 3, 9, 9, 3, 8, 3, 9, 0])
+    merged = merge_short_segments(segs, 9.0)
+    assert [(s.kind, s.start, s.end, s.primitives) for s in merged] == [
+        ("forward", 0, 7, 12),  # 18 m + a cancelled left-3 m-right jog + 18 m (the jog's 3 m is dropped)
+        ("right", 7, 10, 2),  # right, 6 m, right -> two turns right
+        ("forward", 10, 11, 3),
+    ]
+    assert merge_short_segments(segs, 0.0) == segs  # 0 keeps every transition, as the paper splits
+    climbs = split_at_transitions([4, 4, 1, 4, 1, 5, 9, 9, 0])  # up 6, 3 m, up 3, 3 m, down 3, fly on
+    assert [(s.kind, s.primitives) for s in merge_short_segments(climbs, 9.0)] == [("up", 2), ("forward", 6)]
+    long_jog = split_at_transitions([2, 9, 3, 0])  # a 9 m leg is not a jog
+    assert merge_short_segments(long_jog, 9.0) == long_jog
+
+
+def test_merging_shortens_zigzag_instructions():
+    zigzag = [2, 1, 3, 1, 3, 9, 2, 9, 3, 9, 3, 9, 8, 3, 1, 0]
+    full = template_instruction(dataclasses.replace(_request(zigzag), merge_short_m=0.0))
+    merged = template_instruction(_request(zigzag))
+    assert len(merged.split()) < len(full.split())
+    assert "red tower" in merged and "spire" in merged

@@ -15,7 +15,7 @@ from openfly_agent import constants as C
 from openfly_agent.sim import dynamics
 from openfly_agent.sim.city import generate_city
 from openfly_agent.sim.occupancy import OccupancyGrid
-from openfly_agent.sim.pointcloud import write_pcd
+from openfly_agent.sim.pointcloud import write_points
 from openfly_agent.sim.real_scene import read_landmark_list, read_scene_config
 from openfly_agent.sim.scene import SceneBounds
 from openfly_agent.toolchain.config import (
@@ -238,10 +238,13 @@ def _small_env_yaml(path, name="env_airsim_77", ratio=1.0):
     return path
 
 
-def test_real_scene_from_pcd_segmentation_and_landmark_list_round_trip(tmp_path):
+@pytest.mark.parametrize("suffix,binary", [(".pcd", True), (".pcd", False), (".ply", True), (".ply", False)])
+def test_real_scene_from_a_point_cloud_file_segmentation_and_landmark_list_round_trip(
+    tmp_path, suffix, binary
+):
     points = np.concatenate([box_surface_points(lo, hi) for _, lo, hi, *_ in BUILDINGS]) / 2.0  # ratio 2
-    pcd = tmp_path / "env_airsim_77.pcd"
-    write_pcd(pcd, points, binary=True)
+    pcd = tmp_path / f"env_airsim_77{suffix}"
+    write_points(pcd, points, binary=binary)
     yaml_path = _small_env_yaml(tmp_path / "env_airsim_77.yaml", ratio=2.0)
     cfg = generate_config_for_real_scene(yaml_path, segment=True)
     prepared = prepare_scene(real_scene(yaml_path, pcd), cfg)
@@ -274,3 +277,14 @@ def test_landmarks_without_height_take_it_from_the_point_cloud(tmp_path):
     prepared = prepare_scene(real_scene(yaml_path, pcd, listing), generate_config_for_real_scene(yaml_path))
     tops = sorted(lm.position[2] for lm in prepared.landmarks.values())
     assert tops == pytest.approx(sorted(hi[2] for _, _, hi, *_ in BUILDINGS))
+
+
+def test_ledger_appends_after_a_torn_line_stay_readable(tmp_path):
+    ledger = UnitLedger(tmp_path)
+    ledger.append("s", {"index": 0})
+    with ledger.path("s").open("a") as f:
+        f.write('{"index": 1, "ki')  # the process died here
+    ledger.append("s", {"index": 2})
+    ledger.append("s", {"index": 3})
+    assert [r["index"] for r in ledger.read("s")] == [0, 2, 3]
+    assert ledger.path("s").read_text().count("\n") == 4

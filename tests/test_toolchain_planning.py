@@ -176,6 +176,7 @@ def test_routes_respect_ring_height_footprint_and_are_plannable(scene):
         assert 60 <= np.linalg.norm(route.start.position[:2] - centre) <= 90
         assert 10 <= route.flight_z <= 30 and route.start.z == route.flight_z == leg.goal[2]
         assert not pmap.bev_blocked(leg.goal[None, :2])[0] and pmap.is_free(leg.goal[None])[0]
+        assert np.linalg.norm(leg.goal - route.start.position) >= cfg.min_goal_dist_m
         assert not truth.is_occupied(leg.goal[None])[0]
         result = astar.plan(route.start, leg.goal)
         seq = build_action_sequence(route.start, result.primitives)

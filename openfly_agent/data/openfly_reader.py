@@ -14,9 +14,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tqdm.auto import tqdm
+
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
-from openfly_agent.data.labels import apply_reader_options
+from openfly_agent.data.labels import (
+    apply_takeoff_landing,
+    check_action_sequence,
+    move_merged_forward_to_start,
+)
 from openfly_agent.data.records import episode_from_record
 from openfly_agent.data.schema import Episode, SchemaError
 
@@ -27,11 +33,14 @@ SPLIT_OF_FILE = {name: split for split, name in C.ANNOTATION_FILES.items()}  # "
 
 @dataclass
 class ReadReport:
-    """What a non-strict read skipped: one `SchemaError` per bad record."""
+    """What a read saw: records, episodes kept, one `SchemaError` per skipped record (non-strict), and how
+    many forward labels `merged_forward_position="start"` changed or left unresolved."""
 
     records: int = 0
     episodes: int = 0
     errors: list[SchemaError] = field(default_factory=list)
+    forward_relabelled: int = 0
+    forward_unresolved: int = 0
 
     def add(self, error: SchemaError) -> None:
         self.errors.append(error)
@@ -75,7 +84,8 @@ def read_annotation_file(
     report = report if report is not None else ReadReport()
     split = split if split is not None else SPLIT_OF_FILE.get(path.name)
     episodes, seen_ids = [], {}
-    for index, record in enumerate(_load_json_list(path)):
+    records = _load_json_list(path)
+    for index, record in enumerate(tqdm(records, desc=path.name, leave=False, disable=len(records) < 10_000)):
         report.records += 1
         try:
             episode = episode_from_record(record, str(path), index, split)
@@ -83,7 +93,12 @@ def read_annotation_file(
                 raise SchemaError(
                     str(path), index, "image_path", f"duplicate of record {seen_ids[episode.episode_id]}"
                 )
-            episode = apply_reader_options(episode, options, str(path), index)
+            check_action_sequence(episode.actions, str(path), index)
+            episode = apply_takeoff_landing(episode, options.takeoff_landing)
+            if options.merged_forward_position == "start":
+                episode, changed, unresolved = move_merged_forward_to_start(episode)
+                report.forward_relabelled += changed
+                report.forward_unresolved += unresolved
         except SchemaError as err:
             if options.strict:
                 raise
@@ -92,6 +107,11 @@ def read_annotation_file(
         seen_ids[episode.episode_id] = index
         episodes.append(episode)
     report.episodes += len(episodes)
+    if options.merged_forward_position == "start":
+        logger.info(
+            "%s: %d forward labels moved to where their motion starts, %d left as released (not a pure move)",
+            path, report.forward_relabelled, report.forward_unresolved,
+        )  # fmt: skip
     if report.errors:
         logger.warning(
             "%s: kept %d of %d records (%d bad)", path, len(episodes), report.records, len(report.errors)

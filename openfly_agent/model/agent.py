@@ -7,7 +7,6 @@ A `transformers.PreTrainedModel`, so save / load (safetensors, sharding), AutoMo
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -35,16 +34,13 @@ from openfly_agent.constants import (
     PIXEL_VALUES,
 )
 
-from .action_tokenizer import ActionTokenizer, select_action_stats
 from .config import (
     HEAD_DISCRETE,
-    LLAMA2_PADDED_VOCAB,
-    LLM_LLAMA2_7B,
     MODE_OPENVLA_COMPAT,
-    NUM_ACTION_SLOTS,
     ModelConfig,
 )
 from .configuration import OpenFlyAgentConfig
+from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, grounding_loss
 from .inference import StepResult, predict_step, reset_episodes
@@ -90,7 +86,7 @@ class OpenFlyAgent(PreTrainedModel):
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         self.grounding_head = GroundingHead(llm_dim, cfg.grounding) if cfg.grounding.enabled else None
-        self.action_tokenizer = _make_action_tokenizer(cfg, config.norm_stats)
+        self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)
         config.action_tokenizer = self.action_tokenizer.to_dict()
         self.keyframe_selector = KeyframeSelector(
             capacity=cfg.memory.capacity,
@@ -119,7 +115,7 @@ class OpenFlyAgent(PreTrainedModel):
             from .tokenizer import load_tokenizer
 
             tokenizer = load_tokenizer(cfg.llm.tokenizer_path)
-        cfg = _resolve_vocabulary(cfg, tokenizer)
+        cfg = resolve_vocabulary(cfg, tokenizer)
         return cls(OpenFlyAgentConfig.from_model_config(cfg, norm_stats), tokenizer=tokenizer)
 
     @torch.no_grad()
@@ -349,6 +345,12 @@ class OpenFlyAgent(PreTrainedModel):
         """Apply a named freeze stage (`full`, `frozen_vision`, `heads_only`, `lora`); see model/freeze.py."""
         return freeze(self, stage)
 
+    def _set_gradient_checkpointing(self, enable: bool = True, **kwargs) -> None:
+        """transformers' activation checkpointing on the Llama layers, plus timm's on both ViTs."""
+        super()._set_gradient_checkpointing(enable=enable, **kwargs)
+        self.vision_backbone.featurizer.set_grad_checkpointing(enable)
+        self.vision_backbone.fused_featurizer.set_grad_checkpointing(enable)
+
     def get_optim_params(self, weight_decay: float = 0.0) -> list[dict]:
         """Trainable parameters in two AdamW groups: decay on matrices, none on biases / norms / tokens."""
         decay, no_decay = [], []
@@ -366,6 +368,9 @@ class OpenFlyAgent(PreTrainedModel):
                 "LoRA is attached: merge it first (model.lora.merge_lora) or save the adapter "
                 "(model.lora.save_lora_adapter); the merged agent saves in the plain key layout"
             )
+        # transformers would upload before the extra files exist: push the finished folder afterwards instead
+        push = kwargs.pop("push_to_hub", False)
+        hub = {k: kwargs.pop(k) for k in ("repo_id", "commit_message", "create_pr", "private") if k in kwargs}
         super().save_pretrained(save_directory, *args, **kwargs)
         if not kwargs.get("is_main_process", True):
             return
@@ -375,6 +380,9 @@ class OpenFlyAgent(PreTrainedModel):
             (folder / NORM_STATS_NAME).write_text(json.dumps(self.config.norm_stats, indent=2) + "\n")
         if self.tokenizer is not None:
             self.tokenizer.save_pretrained(str(folder))
+        if push:
+            hub.update({k: kwargs[k] for k in ("token", "max_shard_size") if k in kwargs})
+            self.push_to_hub(hub.pop("repo_id", folder.name), **hub)
 
     @classmethod
     def from_pretrained(cls, pretrained_model_name_or_path, *args, tokenizer=None, **kwargs):
@@ -388,51 +396,6 @@ class OpenFlyAgent(PreTrainedModel):
             tokenizer = load_tokenizer(folder)
         model.tokenizer = tokenizer
         return loaded
-
-
-def _make_action_tokenizer(cfg: ModelConfig, norm_stats: dict | None) -> ActionTokenizer:
-    head = cfg.action_head
-    stats = select_action_stats(norm_stats, head.unnorm_key) if head.type != HEAD_DISCRETE else None
-    return ActionTokenizer(
-        head=head.type,
-        vocab_end=head.vocab_end or cfg.llm.vocab_size,
-        eos_token_id=cfg.llm.eos_token_id,
-        action_stats=stats,
-        decode_rule=head.decode_rule,
-    )
-
-
-def _resolve_vocabulary(cfg: ModelConfig, tokenizer) -> ModelConfig:
-    """Fill llm.vocab_size, special ids and action_head.vocab_end from the preset / tokenizer."""
-    llm = cfg.llm
-    vocab = llm.vocab_size
-    if vocab is None:
-        if llm.preset == LLM_LLAMA2_7B:
-            vocab = LLAMA2_PADDED_VOCAB
-        elif tokenizer is None:
-            raise ValueError(
-                "the tiny LLM sizes its vocabulary from the tokenizer: pass tokenizer= or set llm.vocab_size"
-            )
-        else:
-            vocab = len(tokenizer) + NUM_ACTION_SLOTS
-    ids = {}
-    if tokenizer is not None:
-        if len(tokenizer) > vocab:
-            raise ValueError(f"tokenizer has {len(tokenizer)} tokens but llm.vocab_size is {vocab}")
-        for name in ("bos_token_id", "eos_token_id", "pad_token_id"):
-            if getattr(tokenizer, name, None) is not None:
-                ids[name] = int(getattr(tokenizer, name))
-    llm = dataclasses.replace(llm, vocab_size=vocab, **ids)
-    head = cfg.action_head
-    if head.vocab_end is None:
-        head = dataclasses.replace(head, vocab_end=vocab)
-    if tokenizer is not None and len(tokenizer) > head.vocab_end - NUM_ACTION_SLOTS:
-        logger.info(
-            "action ids %d..%d overlap the tokenizer's vocabulary (OpenVLA's convention for Llama-2)",
-            head.vocab_end - NUM_ACTION_SLOTS,
-            head.vocab_end - 1,
-        )
-    return dataclasses.replace(cfg, llm=llm, action_head=head)
 
 
 def register_auto_classes() -> None:

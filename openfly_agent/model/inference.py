@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from openfly_agent.constants import OBS_INSTRUCTION, OBS_RGB
+from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
 
 from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT
 from .memory import MemoryBank
@@ -23,8 +23,6 @@ from .sequence import left_pad, position_ids_from_mask
 
 if TYPE_CHECKING:
     from .agent import OpenFlyAgent
-
-OBS_EPISODE_ID = "episode_id"
 
 
 @dataclass
@@ -122,17 +120,17 @@ def predict_step(agent: OpenFlyAgent, observations: list[dict[str, Any]]) -> lis
 def _checked(observations: list[dict[str, Any]]) -> list[dict[str, Any]]:
     ids = []
     for index, obs in enumerate(observations):
-        missing = {OBS_EPISODE_ID, OBS_INSTRUCTION, OBS_RGB} - set(obs)
+        missing = {EPISODE_ID, OBS_INSTRUCTION, OBS_RGB} - set(obs)
         if missing:
             raise ValueError(f"observation {index} lacks {sorted(missing)} (episode_id, instruction, rgb)")
-        ids.append(obs[OBS_EPISODE_ID])
+        ids.append(obs[EPISODE_ID])
     if len(set(ids)) != len(ids):
         raise ValueError(f"an episode appears twice in one select_action call: {ids}")
     return observations
 
 
 def _episode_state(agent: OpenFlyAgent, obs: dict[str, Any]) -> EpisodeState:
-    episode_id, instruction = obs[OBS_EPISODE_ID], obs[OBS_INSTRUCTION]
+    episode_id, instruction = obs[EPISODE_ID], obs[OBS_INSTRUCTION]
     state = agent.episodes.get(episode_id)
     if state is not None:
         if state.instruction != instruction:

@@ -41,9 +41,10 @@ class CameraModel:
 def camera_axes(yaw: float, pitch_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(forward, right, up) unit vectors (3,) in the world frame."""
     pitch = math.radians(pitch_deg)
-    forward = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch), math.sin(pitch)])
-    right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
-    up = np.cross(right, forward)
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    forward = np.array([cy * cp, sy * cp, sp])
+    right = np.array([sy, -cy, 0.0])
+    up = np.array([-cy * sp, -sy * sp, cp])  # right x forward
     return forward, right, up
 
 

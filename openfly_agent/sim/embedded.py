@@ -8,8 +8,12 @@ No network, no GPU needed; the GL context is created lazily in the process that 
 from __future__ import annotations
 
 import logging
+import weakref
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
@@ -35,7 +39,8 @@ class EmbeddedSimConfig:
     render_depth: bool = False  # fill Observation.depth (metres along the view axis)
     min_box_pixels: int = 16  # a landmark needs this many visible pixels to get a box
     return_instance_ids: bool = False  # put the (H, W) int32 instance image in Observation.extra
-    max_cached_scenes: int = 4  # cities (and their GPU buffers) kept per process
+    max_batch: int = 16  # views rendered per framebuffer flush (lockstep envs, trajectories)
+    max_cached_scenes: int = 4  # cities (and GPU buffers) kept per process; >= scenes run at once
     egl_device: int | None = None  # EGL device index on multi-GPU machines; None = default
 
     def __post_init__(self) -> None:
@@ -44,6 +49,8 @@ class EmbeddedSimConfig:
             raise ValueError(f"EmbeddedSimConfig.width/height must be >= 8, got {self.width} x {self.height}")
         if self.voxel_size <= 0:
             raise ValueError(f"EmbeddedSimConfig.voxel_size must be > 0, got {self.voxel_size}")
+        if self.max_batch < 1:
+            raise ValueError(f"EmbeddedSimConfig.max_batch must be >= 1, got {self.max_batch}")
         if self.min_box_pixels < 1:
             raise ValueError(f"EmbeddedSimConfig.min_box_pixels must be >= 1, got {self.min_box_pixels}")
 
@@ -58,18 +65,48 @@ class _Backend:
             cfg.height,
             cfg.hfov_deg,
             min_box_pixels=cfg.min_box_pixels,
+            max_batch=cfg.max_batch,
             max_cached_scenes=cfg.max_cached_scenes,
             egl_device=cfg.egl_device,
         )
         self.generated: OrderedDict[str, City] = OrderedDict()
+        self.alive: weakref.WeakValueDictionary[str, City] = weakref.WeakValueDictionary()  # still in use
         self.registered: dict[str, City] = {}
         self.users = 0
+
+    def observe(self, requests: Sequence[tuple[City, Pose, float]]) -> list[Observation]:
+        """Observations of (city, pose, pitch) requests, rendered in batches per city, in request order."""
+        by_city: dict[str, list[int]] = {}
+        for i, (city, _, _) in enumerate(requests):
+            by_city.setdefault(city.scene_id, []).append(i)
+        out: list[Observation | None] = [None] * len(requests)
+        for indices in by_city.values():
+            city = requests[indices[0]][0]
+            poses = [requests[i][1] for i in indices]
+            pitches = [requests[i][2] for i in indices]
+            frames = self.renderer.render_batch(
+                city, poses, pitches, depth=self.cfg.render_depth, ids=self.cfg.return_instance_ids
+            )
+            for i, pose, pitch, frame in zip(indices, poses, pitches, frames):
+                extra = {
+                    "pixel_counts": frame.pixel_counts,
+                    "scene_id": city.scene_id,
+                    "pitch_deg": float(pitch),
+                }
+                if frame.instance_ids is not None:
+                    extra["instance_ids"] = frame.instance_ids
+                out[i] = Observation(
+                    rgb=frame.rgb, pose=pose, boxes=frame.boxes, depth=frame.depth, extra=extra
+                )
+        return out
 
     def city(self, scene_id: str) -> City:
         if scene_id in self.registered:
             return self.registered[scene_id]
         if scene_id not in self.generated:
-            self.generated[scene_id] = generate_city(parse_scene_id(scene_id), self.cfg.city)
+            # a city evicted from the cache but still held by a running episode is reused, not rebuilt
+            city = self.alive.get(scene_id) or generate_city(parse_scene_id(scene_id), self.cfg.city)
+            self.generated[scene_id] = self.alive[scene_id] = city
             while len(self.generated) > self.cfg.max_cached_scenes:
                 self.generated.popitem(last=False)
         self.generated.move_to_end(scene_id)
@@ -140,6 +177,45 @@ class EmbeddedSimulator:
 
     def reset(self, episode: EpisodeSpec) -> Observation:
         """Start `episode` at its start pose and return the first observation."""
+        return self.reset_batch([self], [episode])[0]
+
+    def step(self, action_id: int) -> tuple[Observation, StepInfo]:
+        """Execute one action; under collision policy `end` a colliding step leaves the pose unchanged."""
+        return self.step_batch([self], [action_id])[0]
+
+    def render(self, scene_id: str, pose: Pose, pitch_deg: float = 0.0) -> Observation:
+        """A frame of `scene_id` from `pose`, without touching the episode state (used by the toolchain)."""
+        return self.render_many(scene_id, [pose], pitch_deg)[0]
+
+    def render_many(self, scene_id: str, poses: Sequence[Pose], pitch_deg: float | Sequence[float] = 0.0):
+        """Frames of many poses of one scene (e.g. a trajectory), rendered in batches; no state change."""
+        if self._closed:
+            raise RuntimeError("this EmbeddedSimulator is closed")
+        pitches = [float(pitch_deg)] * len(poses) if np.isscalar(pitch_deg) else [float(p) for p in pitch_deg]
+        city = self._backend.city(scene_id)
+        return self._backend.observe(
+            [(city, pose, pitch) for pose, pitch in zip(poses, pitches, strict=True)]
+        )
+
+    # --- lockstep entry points (VectorSimulator) --------------------------------------------------------
+
+    @staticmethod
+    def reset_batch(sims: Sequence[EmbeddedSimulator], episodes: Sequence[EpisodeSpec]) -> list[Observation]:
+        """`reset` of many simulators; the first frames are rendered together where they share a context."""
+        starts = [sim._begin(episode) for sim, episode in zip(sims, episodes, strict=True)]
+        return _observe_all(sims, starts)
+
+    @staticmethod
+    def step_batch(
+        sims: Sequence[EmbeddedSimulator], actions: Sequence[int]
+    ) -> list[tuple[Observation, StepInfo]]:
+        """`step` of many simulators; frames are rendered together where they share a context."""
+        moves = [sim._advance(int(a)) for sim, a in zip(sims, actions, strict=True)]
+        observations = _observe_all(sims, [pose for _, pose in moves])
+        return [(obs, info) for obs, (info, _) in zip(observations, moves)]
+
+    def _begin(self, episode: EpisodeSpec) -> Pose:
+        """Episode bookkeeping of `reset`; returns the start pose (to be rendered)."""
         if self._closed:
             raise RuntimeError("this EmbeddedSimulator is closed")
         self._city = self._backend.city(episode.scene_id)
@@ -151,17 +227,16 @@ class EmbeddedSimulator:
                 "episode %s starts inside an obstacle or the ground at %s", episode.episode_id, start
             )
         self._poses, self._collided, self._done = [start], [], False
-        self._last_obs = self._observe(start)
-        return self._last_obs
+        self._last_obs = None
+        return start
 
-    def step(self, action_id: int) -> tuple[Observation, StepInfo]:
-        """Execute one action; under collision policy `end` a colliding step leaves the pose unchanged."""
+    def _advance(self, action: int) -> tuple[StepInfo, Pose | None]:
+        """Dynamics + collision of one step; returns its info and the new pose, or None if it did not move."""
         self._require_episode()
         if self._done:
             raise RuntimeError(
                 f"episode {self._episode.episode_id} has ended (STOP or collision); call reset()"
             )
-        action = int(action_id)
         motion = step_motion(self._poses[-1], action)
         collided = False
         if self.cfg.collision != "ignore":
@@ -171,38 +246,14 @@ class EmbeddedSimulator:
         self._done = action == C.ACTION_STOP or blocked
         self._poses.append(pose)
         self._collided.append(collided)
-        if pose != motion.start:
-            self._last_obs = self._observe(pose)
-        info = StepInfo(
-            action=action,
-            collided=collided,
-            done=self._done,
-            extra={
-                "step": len(self._collided),
-                "attempted_pose": motion.end,
-                "out_of_bounds": not bool(self._city.bounds.contains(motion.end.position[None])[0]),
-                "collisions": sum(self._collided),
-            },
-        )
-        return self._last_obs, info
-
-    def render(self, scene_id: str, pose: Pose, pitch_deg: float = 0.0) -> Observation:
-        """A frame of `scene_id` from `pose`, without touching the episode state (used by the toolchain)."""
-        if self._closed:
-            raise RuntimeError("this EmbeddedSimulator is closed")
-        return self._render(self._backend.city(scene_id), pose, pitch_deg)
-
-    def _observe(self, pose: Pose) -> Observation:
-        return self._render(self._city, pose, self._episode.pitch_deg)
-
-    def _render(self, city: City, pose: Pose, pitch_deg: float) -> Observation:
-        out = self._backend.renderer.render(
-            city, pose, pitch_deg, depth=self.cfg.render_depth, ids=self.cfg.return_instance_ids
-        )
-        extra = {"pixel_counts": out.pixel_counts, "scene_id": city.scene_id, "pitch_deg": float(pitch_deg)}
-        if out.instance_ids is not None:
-            extra["instance_ids"] = out.instance_ids
-        return Observation(rgb=out.rgb, pose=pose, boxes=out.boxes, depth=out.depth, extra=extra)
+        extra = {
+            "step": len(self._collided),
+            "attempted_pose": motion.end,
+            "out_of_bounds": not bool(self._city.bounds.contains(motion.end.position[None])[0]),
+            "collisions": sum(self._collided),
+        }
+        info = StepInfo(action=action, collided=collided, done=self._done, extra=extra)
+        return info, (None if pose == motion.start else pose)
 
     def close(self) -> None:
         """Release this simulator; the GL context goes when the last sibling closes."""
@@ -218,3 +269,17 @@ class EmbeddedSimulator:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _observe_all(sims: Sequence[EmbeddedSimulator], poses: Sequence[Pose | None]) -> list[Observation]:
+    """New observations where a pose is given (rendered per backend in batches), else each sim's last one."""
+    by_backend: dict[int, list[int]] = {}
+    for i, pose in enumerate(poses):
+        if pose is not None:
+            by_backend.setdefault(id(sims[i]._backend), []).append(i)
+    for indices in by_backend.values():
+        backend = sims[indices[0]]._backend
+        requests = [(sims[i]._city, poses[i], sims[i]._episode.pitch_deg) for i in indices]
+        for i, obs in zip(indices, backend.observe(requests)):
+            sims[i]._last_obs = obs
+    return [sim._last_obs for sim in sims]

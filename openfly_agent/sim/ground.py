@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 KIND_OUTER, KIND_ROAD, KIND_SIDEWALK, KIND_PARK, KIND_WATER, KIND_PLAZA = range(6)
@@ -55,6 +56,25 @@ def _paint(
     rgba[j0:j1, i0:i1][inside] = value
 
 
+def _value_noise(rng: np.random.Generator, shape: tuple[int, int], cell: int) -> np.ndarray:
+    """(H, W) float32 smooth noise in [0, 1] with features about `cell` texels wide (bilinear value noise)."""
+    coarse = rng.random((shape[0] // cell + 2, shape[1] // cell + 2), dtype=np.float32)
+    return cv2.resize(
+        coarse, (coarse.shape[1] * cell, coarse.shape[0] * cell), interpolation=cv2.INTER_LINEAR
+    )[: shape[0], : shape[1]]
+
+
+def _add_grain(rgba: np.ndarray, seed: int) -> None:
+    """Multiply RGB by two octaves of noise (grass, asphalt and paving are never flat; motion shows)."""
+    rng = np.random.default_rng(seed)
+    shape = rgba.shape[:2]
+    grain = 0.5 * _value_noise(rng, shape, 2) + 0.5 * _value_noise(rng, shape, 8)  # (H, W)
+    kind = rgba[..., 3] // 32
+    strength = np.where(kind == KIND_PARK, 0.5, np.where(kind == KIND_WATER, 0.1, 0.25)).astype(np.float32)
+    scale = 1.0 + strength * (grain - 0.5)  # (H, W)
+    rgba[..., :3] = np.clip(rgba[..., :3] * scale[..., None], 0, 255).astype(np.uint8)
+
+
 def rasterize_ground(city, texel_m: float = 1.0, margin_m: float = 24.0) -> GroundMap:
     """The ground map of `city` (any object with bounds, roads, blocks, parks, water, plazas)."""
     b = city.bounds
@@ -74,6 +94,7 @@ def rasterize_ground(city, texel_m: float = 1.0, margin_m: float = 24.0) -> Grou
         _paint(rgba, origin, texel_m, (cx - 1.5, park.lo[1]), (cx + 1.5, park.hi[1]), KIND_PLAZA, PATH_COLOR)
     for pond in city.water:
         _paint(rgba, origin, texel_m, pond.lo, pond.hi, KIND_WATER, ellipse=pond.shape == "ellipse")
+    _add_grain(rgba, seed=int(getattr(city, "seed", 0)) % (2**32))
     # the outermost texel ring stays 'outer' so clamp-to-edge sampling continues it beyond the map
     rgba[[0, -1], :] = (*KIND_COLORS[KIND_OUTER], 0)
     rgba[:, [0, -1]] = (*KIND_COLORS[KIND_OUTER], 0)

@@ -165,11 +165,10 @@ float road_offset(float c) {    // distance to the nearest road centre line alon
 
 void main() {
     vec2 uv = (v_world.xy - u_map_origin) / u_map_size;
-    vec4 texel = texture(u_ground, uv);
-    int kind = int(textureLod(u_ground, uv, 0.0).a * 255.0 / 32.0 + 0.5);
+    vec4 texel = texture(u_ground, uv);     // colour with baked grain (ground.py)
+    int kind = int(texel.a * 255.0 / 32.0 + 0.5);
     vec3 color = texel.rgb;
     vec2 p = v_world.xy;
-    float grain = value_noise(p * 0.9) * 0.5 + value_noise(p * 0.13) * 0.5;
     if (kind == 1 && u_roads.x > 0.0) {                    // road: dashed centre lines
         float dx = road_offset(p.x), dy = road_offset(p.y);
         float half_road = 0.5 * u_roads.z;
@@ -177,16 +176,11 @@ void main() {
         bool along_x = dy < 0.2 && dx > half_road;
         float dash = step(0.5, fract((along_y ? p.y : p.x) / 6.0));
         if ((along_x || along_y) && dash > 0.5) color = vec3(0.88, 0.82, 0.45);
-        color *= 0.9 + 0.2 * grain;
-    } else if (kind == 3) {                                // park grass
-        color *= 0.75 + 0.5 * grain;
     } else if (kind == 4) {                                // water ripples
-        color *= 0.92 + 0.16 * sin(p.x * 0.35 + 2.0 * value_noise(p * 0.05) * 6.0);
+        color *= 0.92 + 0.16 * sin(p.x * 0.35 + 0.6 * sin(p.y * 0.05));
     } else if (kind == 5 || kind == 2) {                   // plaza / sidewalk tiles
         vec2 f = abs(fract(p / 4.0) - 0.5);
-        color *= (max(f.x, f.y) > 0.46 ? 0.85 : 1.0) * (0.93 + 0.14 * grain);
-    } else {
-        color *= 0.8 + 0.4 * grain;
+        color *= max(f.x, f.y) > 0.46 ? 0.85 : 1.0;
     }
     float light = 0.50 + 0.55 * SUN.z;
     f_color = vec4(apply_fog(color * light, v_world), 1.0);

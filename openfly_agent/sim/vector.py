@@ -60,6 +60,9 @@ class VectorSimulator:
             raise ValueError("VectorSimulator needs at least one simulator")
         self.sims: list[Simulator] = list(sims)
         self.records: list[EpisodeRecord | None] = [None] * len(self.sims)
+        # Simulators of one class that offers reset_batch / step_batch (the embedded one) render together.
+        kind = type(self.sims[0])
+        self._batched = all(type(s) is kind for s in self.sims) and hasattr(kind, "step_batch")
 
     @classmethod
     def embedded(cls, cfg=None, num_envs: int = 1, cities: Sequence = ()) -> VectorSimulator:
@@ -90,13 +93,17 @@ class VectorSimulator:
         """Start one episode per slot (`None` leaves a slot idle); len(episodes) must equal num_envs."""
         if len(episodes) != self.num_envs:
             raise ValueError(f"reset got {len(episodes)} episodes for {self.num_envs} environments")
-        out: list[Observation | None] = []
-        for i, episode in enumerate(episodes):
-            if episode is None:
-                self.records[i] = None
-                out.append(None)
-            else:
-                out.append(self.reset_env(i, episode))
+        out: list[Observation | None] = [None] * self.num_envs
+        started = [i for i, episode in enumerate(episodes) if episode is not None]
+        if self._batched:
+            sims = [self.sims[i] for i in started]
+            observations = type(self.sims[0]).reset_batch(sims, [episodes[i] for i in started])
+        else:
+            observations = [self.sims[i].reset(episodes[i]) for i in started]
+        self.records = [None] * self.num_envs
+        for i, obs in zip(started, observations):
+            self.records[i] = EpisodeRecord(episodes[i].episode_id, episodes[i].scene_id, poses=[obs.pose])
+            out[i] = obs
         return out
 
     def step(self, actions: Sequence[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]:
@@ -109,10 +116,14 @@ class VectorSimulator:
                 raise ValueError(f"environment {i} has no running episode (it is idle or done); pass None")
         observations: list[Observation | None] = [None] * self.num_envs
         infos: list[StepInfo | None] = [None] * self.num_envs
-        for i, action in enumerate(actions):
-            if action is None:
-                continue
-            obs, info = self.sims[i].step(int(action))
+        stepping = [i for i, action in enumerate(actions) if action is not None]
+        if self._batched:
+            sims = [self.sims[i] for i in stepping]
+            results = type(self.sims[0]).step_batch(sims, [int(actions[i]) for i in stepping])
+        else:
+            results = [self.sims[i].step(int(actions[i])) for i in stepping]
+        for i, (obs, info) in zip(stepping, results):
+            action = actions[i]
             record = self.records[i]
             record.poses.append(obs.pose)
             record.actions.append(int(action))

@@ -1,1 +1,39 @@
-"""Level-2 data toolchain: voxel map, landmarks, A* routes, rendering, instructions, generate pipeline."""
+"""Level-2 data toolchain: voxel map, landmarks, A* routes, rendering, instructions, generate pipeline.
+
+Public names are re-exported lazily (importing the package imports nothing heavy); see docs/TOOLCHAIN.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "GenerateConfig": "config",
+    "generate": "generate",
+    "build_planning_map": "voxel_map",
+    "PlanningMap": "voxel_map",
+    "segment_landmarks": "landmarks",
+    "RouteSampler": "routes",
+    "ActionSpaceAStar": "astar",
+    "PlanningFailed": "astar",
+    "build_action_sequence": "actions",
+    "merge_forward": "actions",
+    "prepare_scene": "pipeline",
+    "plan_trajectory": "pipeline",
+    "embedded_scene": "scenes",
+    "real_scene": "scenes",
+    "render_poses": "render",
+    "make_instruction_backend": "instructions",
+    "template_instruction": "instructions",
+    "AStarExpert": "dagger",
+    "rollout_with_relabel": "dagger",
+    "write_summary": "summary",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)

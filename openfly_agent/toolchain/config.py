@@ -68,6 +68,9 @@ class RouteConfig:
     height_max_m: float = 10.0  # height_max
     min_dist_m: float = 150.0  # min_dis: start ring inner radius around the landmark
     max_dist_m: float = 180.0  # max_dis: start ring outer radius
+    min_goal_dist_m: float = (
+        30.0  # straight start -> goal distance at least this (big footprints eat the ring)
+    )
     landmark_top_slack_m: float = 15.0  # a landmark qualifies when its top is above flight height - this
     max_landmark_tries: int = 200  # landmarks tried per route before giving up
     max_start_tries: int = 20  # start candidates on the ring per landmark (official: 20)
@@ -75,11 +78,14 @@ class RouteConfig:
     chain_prob: float = 0.0  # probability of a 2-landmark route (aimlandmark_nums = 2)
     chain_bearing_deg: list[float] = field(default_factory=lambda: [30.0, 150.0])  # 2nd leg bearing change
     takeoff_landing_prob: float = 0.0  # add_takeoff_land: probability of -1 / -2 phases
-    start_yaw_jitter_deg: float = 90.0  # start yaw = bearing to the goal +- U(jitter)
+    start_yaw_jitter_deg: float = 45.0  # start yaw = bearing to the goal +- U(jitter)
 
     def __post_init__(self) -> None:
         _check(0 <= self.height_min_m <= self.height_max_m, "route.height_min_m must be in [0, height_max_m]")
         _check(0 < self.min_dist_m <= self.max_dist_m, "route.min_dist_m must be in (0, max_dist_m]")
+        _check(
+            0 <= self.min_goal_dist_m < self.max_dist_m, "route.min_goal_dist_m must be in [0, max_dist_m)"
+        )
         for name in ("with_turn_prob", "chain_prob", "takeoff_landing_prob"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"route.{name} must be a probability in [0, 1], got {value}")
@@ -172,8 +178,12 @@ class InstructionConfig:
     vlm: VLMConfig = field(default_factory=VLMConfig)
     min_box_area: float = 0.002  # a landmark is 'seen' in a frame when its box covers this image fraction
     mention_distance: bool = True  # template: say distances of long straight legs ("about 60 meters")
+    # jogs (a forward run shorter than this between two turns) fold into one net turn; 0 = a clause per
+    # action transition, exactly as the paper splits
+    merge_short_m: float = 9.0
 
     def __post_init__(self) -> None:
+        _check(self.merge_short_m >= 0, "instructions.merge_short_m must be >= 0")
         _check(
             self.backend in ("template", "vlm"),
             f"instructions.backend must be 'template' or 'vlm', got {self.backend!r}",
@@ -221,7 +231,6 @@ class SceneConfig:
     city_size_m: float = 1000.0  # embedded city size
     city_buildings: int | None = None  # None = the city generator's default
     point_spacing_m: float = 2.0  # point cloud sampling of the embedded city
-    collision_voxel_m: float = 2.0  # simulator occupancy voxel (what tests check collisions against)
 
     def __post_init__(self) -> None:
         overlap = set(self.train_seeds) & set(self.unseen_seeds)

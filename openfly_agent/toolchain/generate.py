@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import queue
 import traceback
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +92,8 @@ def _assign_scenes(todo: dict[int, list[WorkUnit]], workers: int) -> list[list[i
 
 def _worker_main(cfg, sim_factory, seeds, units, results) -> None:
     """Worker process: one simulator, scenes in turn, one result per unit; ('error', text) on a crash."""
+    # Mesa llvmpipe rasterises with one thread per core by default; share the cores between workers.
+    os.environ.setdefault("LP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // max(1, cfg.workers))))
     try:
         worker = SceneWorker(cfg, sim_factory)
         try:
@@ -161,39 +165,56 @@ def _ledger_record(result: UnitResult, scene_id: str, status: str, reason: str |
 
 
 class _Sink:
-    """Parent side: instructions in batches, then writer + ledger."""
+    """Parent side: instructions in batches, then writer + ledger, on one background thread.
+
+    Collecting results (main thread) overlaps with writing the previous batch (PNG encoding and parquet
+    writing release the GIL); at most two batches are held in memory. The writer and the ledger are only
+    touched by the background thread.
+    """
 
     def __init__(self, cfg: GenerateConfig, writer: OpenFlyDatasetWriter, ledger: UnitLedger):
         self.cfg, self.writer, self.ledger = cfg, writer, ledger
         self.backend = make_instruction_backend(cfg.instructions)
         self.pending: list[UnitResult] = []
         self.written = 0
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="toolchain-writer")
+        self._running: Future | None = None
 
     def add(self, result: UnitResult) -> None:
-        scene_id = scene_id_of(result.unit.scene_seed)
-        if result.reason is not None:
-            self.ledger.append(scene_id, _ledger_record(result, scene_id, STATUS_REJECTED, result.reason))
-            return
         self.pending.append(result)
-        if len(self.pending) >= self.cfg.instruction_batch:
-            self.flush()
+        if sum(r.reason is None for r in self.pending) >= self.cfg.instruction_batch:
+            self.flush(wait=False)
 
-    def flush(self) -> None:
-        if not self.pending:
-            return
-        texts = self.backend.generate([r.request for r in self.pending])
-        for result, text in zip(self.pending, texts):
+    def flush(self, wait: bool = True) -> None:
+        """Hand the pending results to the writer thread (after the previous batch is done)."""
+        if self._running is not None:
+            self._running.result()  # re-raises a writer error here
+            self._running = None
+        batch, self.pending = self.pending, []
+        if batch:
+            self._running = self._pool.submit(self._write, batch)
+        if wait and self._running is not None:
+            self._running.result()
+            self._running = None
+
+    def close(self) -> None:
+        self.flush(wait=True)
+        self._pool.shutdown()
+
+    def _write(self, batch: list[UnitResult]) -> None:
+        done = [r for r in batch if r.reason is None]
+        texts = iter(self.backend.generate([r.request for r in done]) if done else [])
+        for result in batch:
             scene_id = scene_id_of(result.unit.scene_seed)
-            if not text:
-                self.ledger.append(
-                    scene_id, _ledger_record(result, scene_id, STATUS_REJECTED, "instruction_failed")
-                )
+            text = next(texts) if result.reason is None else None
+            if result.reason is not None or not text:
+                reason = result.reason or "instruction_failed"
+                self.ledger.append(scene_id, _ledger_record(result, scene_id, STATUS_REJECTED, reason))
                 continue
             result.episode.instruction = text
             self.writer.write_episode(result.episode, result.frames)
             self.ledger.append(scene_id, _ledger_record(result, scene_id, STATUS_OK))
             self.written += 1
-        self.pending = []
 
 
 def generate(
@@ -221,18 +242,19 @@ def generate(
     todo = {seed: units for seed, units in pending_units(cfg, ledger, writer, kinds).items() if units}
     total = sum(len(units) for units in todo.values())
     logger.info("generate %s (shard %s): %d units to do in %d scenes", root, cfg.shard, total, len(todo))
-    sink = _Sink(cfg, writer, ledger)
     if total:
         if cfg.workers > 0 and policy is None:
             stream = _results_from_workers(cfg, sim_factory, todo)
         else:
             stream = _results_in_process(cfg, sim_factory, todo, policy)
-        bar = tqdm(total=total, desc="trajectories", unit="traj", disable=not progress)
-        for result in stream:
-            sink.add(result)
-            bar.update(1)
-            bar.set_postfix(written=sink.written, refresh=False)
-        bar.close()
-        sink.flush()
+        sink = _Sink(cfg, writer, ledger)
+        try:
+            with tqdm(total=total, desc="trajectories", unit="traj", disable=not progress) as bar:
+                for result in stream:
+                    sink.add(result)
+                    bar.update(1)
+                    bar.set_postfix(written=sink.written, refresh=False)
+        finally:
+            sink.close()  # what arrived is written (and recorded) even when a worker failed
     writer.finalize()
     return write_summary(root, plots=cfg.plots)

@@ -47,8 +47,14 @@ class UnitLedger:
         return [r for path in sorted(self.dir.glob("*.jsonl")) for r in self.read(path.stem)]
 
     def append(self, scene_id: str, record: dict) -> None:
+        """Append one record; a torn last line (no newline) is closed first so the new record stays whole."""
         path = self.path(scene_id)
         path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("a", encoding="utf-8") as handle:
-            handle.write(json.dumps(record, sort_keys=True) + "\n")
+        line = (json.dumps(record, sort_keys=True) + "\n").encode("utf-8")
+        with path.open("ab+") as handle:
+            if handle.seek(0, 2) > 0:
+                handle.seek(-1, 2)
+                if handle.read(1) != b"\n":
+                    line = b"\n" + line
+            handle.write(line)
             handle.flush()

@@ -224,6 +224,7 @@ def instruction_request(
         seed=seed,
         frames=rendered.frames if cfg.instructions.backend == "vlm" else None,
         min_box_area=cfg.instructions.min_box_area,
+        merge_short_m=cfg.instructions.merge_short_m,
     )
 
 

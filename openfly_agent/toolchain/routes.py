@@ -123,7 +123,7 @@ class RouteSampler:
         ok = ~self.pmap.bev_blocked(starts_xy) & self.pmap.is_free(starts)
         for start in starts[ok]:
             goal = _walk_out_of_footprint(self.pmap, centre, start[:2], z)
-            if goal is None:
+            if goal is None or np.linalg.norm(goal - start) < cfg.min_goal_dist_m:
                 continue
             if with_turn and _straight_line_free(self.pmap, start, goal):
                 continue

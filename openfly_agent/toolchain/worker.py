@@ -33,12 +33,18 @@ def default_simulator(cfg: GenerateConfig) -> Simulator:
 
 
 class SceneWorker:
-    """Holds one simulator (created lazily, in the process that uses it) and the current prepared scene."""
+    """Holds one simulator (created lazily, in the process that uses it) and the current prepared scene.
+
+    `policy` (a dagger.Policy) flies the `dagger_policy` units; `dagger` units use the noisy expert.
+    """
 
     def __init__(
-        self, cfg: GenerateConfig, sim_factory: Callable[[GenerateConfig], Simulator] = default_simulator
+        self,
+        cfg: GenerateConfig,
+        sim_factory: Callable[[GenerateConfig], Simulator] = default_simulator,
+        policy=None,
     ):
-        self.cfg, self.sim_factory = cfg, sim_factory
+        self.cfg, self.sim_factory, self.policy = cfg, sim_factory, policy
         self._sim: Simulator | None = None
         self._scene: tuple[int, PreparedScene] | None = None
 

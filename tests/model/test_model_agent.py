@@ -146,3 +146,36 @@ def test_grounding_head_outputs_unit_boxes():
     hidden2 = hidden.clone()
     hidden2[1, 3:] = 1e3  # masked positions do not matter
     torch.testing.assert_close(head(hidden2, mask)[0][1], boxes[1])
+
+
+def test_activation_checkpointing_gives_the_same_gradients(make_agent, make_batch):
+    agent = make_agent().train()
+    batch = make_batch(agent)
+    agent(batch)[0].backward()
+    plain = {n: p.grad.clone() for n, p in agent.named_parameters()}
+    agent.zero_grad()
+    agent.activation_checkpointing_enable()
+    assert agent.vision_backbone.featurizer.grad_checkpointing
+    agent(batch)[0].backward()
+    for name, param in agent.named_parameters():
+        torch.testing.assert_close(param.grad, plain[name], rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_bfloat16_forward(make_agent, make_batch):
+    agent = make_agent().to(torch.bfloat16)
+    loss, logs = agent(make_batch(agent))
+    assert loss.dtype == torch.float32 and torch.isfinite(loss)
+
+
+def test_tiny_preset_forward(tiny_tokenizer, make_batch):
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import tiny_config
+
+    agent = OpenFlyAgent.from_model_config(tiny_config(), tokenizer=tiny_tokenizer)
+    assert agent.model_cfg.llm.vocab_size == len(tiny_tokenizer) + 256
+    assert agent.action_tokenizer.discrete_token_ids[0] == len(tiny_tokenizer)  # first reserved id
+    batch = make_batch(agent, batch_size=2)
+    visual, _ = agent.encode_visual(batch)
+    assert visual.shape == (2, 64 + 2, 128)  # 8x8 patches + K = 2 sets of (8 / 8)^2 tokens
+    loss, _ = agent(batch)
+    assert torch.isfinite(loss)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -111,3 +112,8 @@ def test_pose_classes_match_the_actions_that_made_them():
     assert classes[: len(actions)] == [motion_class(a) for a in actions]
     assert classes[-1] == 0
     assert change_points(classes[: len(actions)]) == change_points(actions)
+
+
+def test_numpy_histories_are_accepted():
+    actions = np.array([9, 9, 9, 2, 9, 9, 9, 9, 0])
+    assert KeyframeSelector().select(actions[:7], None, 7) == [[1, 2, 3, 4, 5], [2, 3, 4, 5, 6]]

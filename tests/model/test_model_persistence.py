@@ -162,3 +162,17 @@ def test_auto_model_registration(make_agent, tmp_path):
     register_auto_classes()
     loaded = AutoModel.from_pretrained(tmp_path)
     assert isinstance(loaded, OpenFlyAgent)
+
+
+def test_save_with_push_uploads_the_complete_folder(make_agent, tmp_path, monkeypatch):
+    agent = make_agent()
+    calls = []
+
+    def fake_push(repo_id, **kwargs):  # the network is off: record what would be pushed
+        calls.append((repo_id, kwargs, sorted(p.name for p in tmp_path.iterdir())))
+
+    monkeypatch.setattr(agent, "push_to_hub", fake_push)
+    agent.save_pretrained(tmp_path, push_to_hub=True, repo_id="me/agent", max_shard_size="1GB")
+    (repo_id, kwargs, files) = calls[0]
+    assert repo_id == "me/agent" and kwargs == {"max_shard_size": "1GB"}
+    assert {"action_tokenizer.json", "tokenizer.json", "model.safetensors"} <= set(files)

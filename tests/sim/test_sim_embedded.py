@@ -85,3 +85,12 @@ def test_a_context_from_another_process_is_refused(monkeypatch):
         s.render("embedded-1", Pose(0, 0, 50, 0))
     monkeypatch.undo()
     s.close()
+
+
+def test_a_city_in_use_is_not_rebuilt_after_eviction():
+    s = EmbeddedSimulator(EmbeddedSimConfig(width=16, height=16, city=TINY, max_cached_scenes=1))
+    s.reset(EpisodeSpec("e", "embedded-1", Pose(0, 0, 60, 0)))
+    held = s.city("embedded-1")
+    s.render("embedded-2", Pose(0, 0, 60, 0))  # evicts embedded-1 from the cache of one
+    assert s.city("embedded-1") is held  # the running episode's city comes back, not a rebuilt copy
+    s.close()

@@ -2,6 +2,9 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from openfly_agent.sim.instance_boxes import instance_boxes
 
@@ -24,3 +27,25 @@ def test_empty_and_out_of_range():
     assert len(visible) == 0 and boxes.shape == (0, 4)
     with pytest.raises(ValueError, match="instance ids must lie in"):
         instance_boxes(np.full((2, 2), 9, np.int32), 3)
+
+
+@settings(max_examples=40, deadline=None)
+@given(ids=arrays(np.int32, st.tuples(st.integers(1, 12), st.integers(1, 12)), elements=st.integers(0, 5)))
+def test_matches_a_per_id_loop(ids):
+    visible, boxes, counts = instance_boxes(ids, num_ids=5, min_pixels=2)
+    expected = []
+    for k in range(1, 6):
+        rows, cols = np.nonzero(ids == k)
+        if len(rows) >= 2:
+            h, w = ids.shape
+            i0, i1, j0, j1 = cols.min(), cols.max(), rows.min(), rows.max()
+            expected.append(
+                (
+                    k,
+                    [(i0 + i1 + 1) / 2 / w, (j0 + j1 + 1) / 2 / h, (i1 + 1 - i0) / w, (j1 + 1 - j0) / h],
+                    len(rows),
+                )
+            )
+    assert visible.tolist() == [e[0] for e in expected]
+    assert counts.tolist() == [e[2] for e in expected]
+    np.testing.assert_allclose(boxes.reshape(-1, 4), np.array([e[1] for e in expected]).reshape(-1, 4))

@@ -11,7 +11,7 @@ from openfly_agent.sim.city import CityConfig, generate_city
 from openfly_agent.sim.instance_boxes import instance_boxes
 from openfly_agent.utils.geometry import Pose
 
-from .scenes import TOWER_HI, TOWER_LO, pixel_box, tower_city, west_face
+from .scenes import TOWER_HI, TOWER_LO, assert_same_frame, pixel_box, tower_city, west_face
 
 CAM = CameraModel(224, 224, 90.0)
 EYE = Pose(0.0, 0.0, 50.0, 0.0)  # 50 m up, looking east at the tower
@@ -123,3 +123,25 @@ def test_missing_egl_fails_with_what_to_install(monkeypatch):
     monkeypatch.setattr(moderngl, "create_standalone_context", broken)
     with pytest.raises(RuntimeError, match="apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri"):
         R.CityRenderer(32, 32).render(tower_city(), EYE)
+
+
+def test_a_batch_renders_what_single_frames_render(renderer):
+    city = generate_city(2, CityConfig(size_m=300.0, n_buildings=30, n_trees=40))
+    rng = np.random.default_rng(0)
+    poses = [Pose(*rng.uniform(-140, 140, 2), rng.uniform(10, 80), rng.uniform(-3, 3)) for _ in range(18)]
+    pitches = [0.0 if k % 3 else -45.0 for k in range(18)]  # 18 views: a full batch of 16, then 2
+    batch = renderer.render_batch(city, poses, pitches, depth=True, ids=True)
+    assert len(batch) == 18
+    for pose, pitch, out in zip(poses, pitches, batch):
+        single = renderer.render(city, pose, pitch, depth=True, ids=True)
+        assert_same_frame(out, single)
+        assert np.mean(out.instance_ids != single.instance_ids) <= 0.005
+        finite = np.isfinite(single.depth) & np.isfinite(out.depth)
+        assert finite.mean() > 0.3
+        np.testing.assert_allclose(out.depth[finite], single.depth[finite], rtol=2e-3)
+        for key, count in single.pixel_counts.items():
+            assert abs(out.pixel_counts[key] - count) <= max(3, 0.02 * count)
+    assert not np.array_equal(batch[0].rgb, batch[1].rgb)
+    again = renderer.render_batch(city, poses, pitches)  # same slots: bit-identical
+    for first, second in zip(batch, again):
+        np.testing.assert_array_equal(first.rgb, second.rgb)

@@ -65,6 +65,7 @@ class InstructionRequest:
     seed: int = 0
     frames: list[np.ndarray] | None = None  # (H, W, 3) uint8, used by the VLM backend
     min_box_area: float = 0.002
+    merge_short_m: float = 9.0  # see merge_short_segments; 0 = one clause per action transition
     extra: dict = field(default_factory=dict)
 
 
@@ -88,6 +89,60 @@ def split_at_transitions(actions: np.ndarray) -> list[Segment]:
         else:
             segments.append(Segment(kind, t, t + 1, units))
     return segments
+
+
+# Opposite action pairs that cancel: (positive kind, negative kind).
+_AXES = ((LEFT, RIGHT), (UP, DOWN))
+
+
+def _axis(seg: Segment) -> tuple[str, str] | None:
+    return next((axis for axis in _AXES if seg.kind in axis), None)
+
+
+def _signed(seg: Segment) -> int:
+    """Turns (left +) or climbs (up +) of a turn / vertical segment."""
+    return seg.primitives if seg.kind == _axis(seg)[0] else -seg.primitives
+
+
+def _net(axis: tuple[str, str], start: int, end: int, net: int) -> list[Segment]:
+    return [Segment(axis[0] if net > 0 else axis[1], start, end, abs(net))] if net else []
+
+
+def _fuse_neighbours(segments: list[Segment]) -> list[Segment]:
+    """Join consecutive forward runs, and consecutive turns (climbs) into their net turn (climb)."""
+    out: list[Segment] = []
+    for seg in segments:
+        last = out[-1] if out else None
+        if last is not None and last.kind == seg.kind == FORWARD:
+            out[-1] = Segment(FORWARD, last.start, seg.end, last.primitives + seg.primitives)
+        elif last is not None and _axis(last) is not None and _axis(last) == _axis(seg):
+            out[-1:] = _net(_axis(seg), last.start, seg.end, _signed(last) + _signed(seg))
+        else:
+            out.append(seg)
+    return out
+
+
+def merge_short_segments(segments: list[Segment], min_forward_m: float) -> list[Segment]:
+    """Fold jogs into the legs around them: a forward run shorter than `min_forward_m` between two turns
+    (or two climbs / descents) is dropped and they become their net turn (climb), nothing when they
+    cancel, so each remaining sub-trajectory is a maneuver worth a clause. `min_forward_m` = 0 keeps every
+    transition (as the paper splits).
+
+    >>> segs = split_at_transitions([9, 9, 2, 1, 3, 9, 9, 3, 8, 3, 9, 4, 1, 4, 0])
+    >>> [(s.kind, s.primitives) for s in merge_short_segments(segs, 9.0)]
+    [('forward', 12), ('right', 2), ('forward', 3), ('up', 2)]
+    """
+    out = _fuse_neighbours(list(segments))
+    i = 1
+    while i < len(out) - 1:
+        prev, mid, nxt = out[i - 1], out[i], out[i + 1]
+        axis = _axis(prev)
+        if mid.kind == FORWARD and mid.metres < min_forward_m and axis is not None and axis == _axis(nxt):
+            out[i - 1 : i + 2] = _net(axis, prev.start, nxt.end, _signed(prev) + _signed(nxt))
+            out, i = _fuse_neighbours(out), 1
+        else:
+            i += 1
+    return out
 
 
 def box_area(box) -> float:

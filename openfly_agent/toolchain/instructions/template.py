@@ -22,6 +22,7 @@ from openfly_agent.toolchain.instructions.segments import (
     InstructionRequest,
     Segment,
     assign_landmarks,
+    merge_short_segments,
     split_at_transitions,
 )
 
@@ -153,7 +154,8 @@ def _clause(seg: Segment, name, rng: np.random.Generator, mention_distance: bool
 def template_instruction(request: InstructionRequest, mention_distance: bool = True) -> str:
     """One instruction for one trajectory (see the module docstring)."""
     rng = np.random.default_rng(request.seed)
-    segments = assign_landmarks(request, split_at_transitions(request.actions))
+    segments = merge_short_segments(split_at_transitions(request.actions), request.merge_short_m)
+    segments = assign_landmarks(request, segments)
     name = _Mentions(request.landmarks, rng)
     nav = [s for s in segments if s.kind not in (TAKEOFF, LANDING)]
     clauses = []

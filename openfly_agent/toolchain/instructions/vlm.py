@@ -26,6 +26,7 @@ from openfly_agent.toolchain.instructions.segments import (
     TAKEOFF,
     InstructionRequest,
     image_side,
+    merge_short_segments,
     split_at_transitions,
 )
 from openfly_agent.toolchain.instructions.template import action_phrase
@@ -136,7 +137,8 @@ class VLMInstructionBackend:
         if request.frames is None:
             raise ValueError("the VLM backend needs the rendered frames in InstructionRequest.frames")
         rng = np.random.default_rng(request.seed)
-        nav = [s for s in split_at_transitions(request.actions) if s.kind not in (TAKEOFF, LANDING)]
+        segments = merge_short_segments(split_at_transitions(request.actions), request.merge_short_m)
+        nav = [s for s in segments if s.kind not in (TAKEOFF, LANDING)]
         stop_frame = request.leg_end_frames[-1]
         items: list[tuple[str, dict | None]] = []
         for seg in nav[:-1]:

@@ -1,0 +1,165 @@
+"""Visual tokens per step and milliseconds per `select_action` call, keyframe memory vs uniform history.
+
+    python bench/step_latency.py                      # tiny on CPU; 7B on CUDA when present
+    python bench/step_latency.py --presets tiny --batches 1 16 --steps 20
+
+Configurations (one JSON line each):
+- history `keyframe`: the model as configured: the current frame's P tokens + K memory sets pooled to
+  (sqrt(P) / g)^2 tokens each (256 + 2 = 258 for the 7B preset);
+- history `uniform`: the baseline with K full frames of history (g = 1, no merging): P + K * P tokens.
+Every episode's memory is filled with K sets before timing, so each step carries the full history.
+The 7B preset (random init, bf16) needs CUDA; elsewhere its line has the token count and `ms_per_step: null`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+
+import numpy as np
+import torch
+
+from openfly_agent.model.config import MemoryConfig, MergingConfig, ModelConfig, make_model_config
+
+INSTRUCTIONS = [
+    "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower.",
+    "Ascend above the white house and stop near the blue dome on the right.",
+    "Turn right after the park and go straight until you reach the tall spire.",
+]
+
+
+def history_variant(cfg: ModelConfig, history: str) -> ModelConfig:
+    """The configured keyframe memory, or the uniform baseline with K full-resolution frames."""
+    if history == "keyframe":
+        return cfg
+    return dataclasses.replace(
+        cfg, memory=MemoryConfig(capacity=cfg.memory.capacity, grid=1), merging=MergingConfig(enabled=False)
+    )
+
+
+def build_agent(cfg: ModelConfig, device: str, dtype: torch.dtype):
+    """A randomly initialised agent on `device` (7B: created on meta, materialised once, init there)."""
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    tokenizer = train_bpe_tokenizer(INSTRUCTIONS * 8, vocab_size=512)
+    if cfg.llm.preset == "tiny":
+        return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device=device, dtype=dtype).eval()
+    with torch.device("meta"):
+        agent = OpenFlyAgent.from_model_config(cfg)
+    agent.to_empty(device=device)
+    agent.to(dtype)
+    with torch.no_grad():
+        for module in agent.modules():
+            if type(module).__name__.endswith("RotaryEmbedding"):
+                agent.language_model._init_weights(module)
+        for name, param in agent.named_parameters():
+            if param.ndim >= 2:
+                param.normal_(0.0, 0.02)
+            else:  # norm weights 1, biases 0, LayerScale small
+                param.fill_(1.0 if name.endswith("weight") else 1e-5 if name.endswith("gamma") else 0.0)
+    agent.tokenizer = tokenizer  # prompt length stand-in for the Llama tokenizer (same order of tokens)
+    return agent.eval()
+
+
+def fill_memory(agent, episode_ids: list[str]) -> None:
+    """Push K keyframe sets (tokens of random frames through the real merge / pool / projector path)."""
+    cfg = agent.model_cfg
+    device = agent.projector.fc1.weight.device
+    for episode_id in episode_ids:
+        state = agent.episodes[episode_id]
+        for k in range(cfg.memory.capacity):
+            s = cfg.keyframes.set_size
+            pixels = torch.randint(
+                0, 256, (s, 3, cfg.vision.image_size, cfg.vision.image_size), dtype=torch.uint8
+            )
+            with torch.no_grad():
+                features = agent.vision_backbone(pixels.to(device))[None]  # (1, S, P, D_v)
+                mask = torch.ones(1, s, dtype=torch.bool, device=device)
+                boxes = torch.full((1, s, 4), 0.5, device=device)
+                state.memory.push(("bench", k), agent.memory_set_tokens(features, mask, boxes, mask)[0])
+
+
+def time_steps(agent, batch: int, steps: int, warmup: int) -> tuple[float, float]:
+    """Median and mean milliseconds per `select_action` over `steps` calls with a full memory."""
+    size = agent.model_cfg.vision.image_size
+    rng = np.random.default_rng(0)
+    ids = [f"ep{i}" for i in range(batch)]
+
+    def observations():
+        frames = rng.integers(0, 256, (batch, size, size, 3), np.uint8)
+        return [
+            {"episode_id": e, "instruction": INSTRUCTIONS[i % len(INSTRUCTIONS)], "rgb": frames[i]}
+            for i, e in enumerate(ids)
+        ]
+
+    agent.reset()
+    agent.select_action(observations())
+    fill_memory(agent, ids)
+    for _ in range(warmup):
+        agent.select_action(observations())
+    sync = torch.cuda.synchronize if agent.projector.fc1.weight.is_cuda else (lambda: None)
+    times = []
+    for _ in range(steps):
+        obs = observations()
+        sync()
+        start = time.perf_counter()
+        agent.select_action(obs)
+        sync()
+        times.append(1000.0 * (time.perf_counter() - start))
+    for i in ids:  # memory must still be full (K sets) for the numbers to mean what they say
+        assert len(agent.episodes[i].memory) == agent.model_cfg.memory.capacity
+    return float(np.median(times)), float(np.mean(times))
+
+
+def run(presets: list[str], batches: list[int], steps: int, warmup: int) -> None:
+    """Print one JSON line per (preset, history, batch)."""
+    cuda = torch.cuda.is_available()
+    machine = torch.cuda.get_device_name(0) if cuda else f"{platform.processor() or platform.machine()} CPU"
+    for preset in presets:
+        big = preset != "tiny"
+        device = "cuda" if big else "cpu"  # the tiny preset is the CPU configuration
+        dtype = torch.bfloat16 if big else torch.float32
+        for history in ("keyframe", "uniform"):
+            cfg = history_variant(make_model_config(preset), history)
+            agent = build_agent(cfg, device, dtype) if (not big or cuda) else None
+            for batch in batches:
+                row = {
+                    "preset": preset,
+                    "history": history,
+                    "device": device if agent is not None else "cuda (absent)",
+                    "dtype": str(dtype).removeprefix("torch."),
+                    "batch": batch,
+                    "visual_tokens_per_step": cfg.visual_tokens_per_step(),
+                    "ms_per_step": None,
+                    "machine": machine,
+                    "threads": torch.get_num_threads(),
+                }
+                if agent is not None:
+                    median, mean = time_steps(agent, batch, steps, warmup)
+                    row.update(ms_per_step=round(median, 2), ms_mean=round(mean, 2), steps=steps)
+                    row["load_avg_1m"] = round(os.getloadavg()[0], 2)  # other processes sharing the CPU
+                else:
+                    row["skipped"] = "needs CUDA (7B in bf16)"
+                print(json.dumps(row), flush=True)
+            del agent
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", nargs="+", default=["tiny", "openfly-7b"])
+    parser.add_argument("--batches", nargs="+", type=int, default=[1, 16])
+    parser.add_argument("--steps", type=int, default=20, help="timed calls; ms_per_step is their median")
+    parser.add_argument("--warmup", type=int, default=3)
+    args = parser.parse_args()
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    torch.manual_seed(0)
+    run(args.presets, args.batches, args.steps, args.warmup)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,23 @@
+"""bench/step_latency.py: the token counts it reports and one timed step with a full memory."""
+
+from __future__ import annotations
+
+import importlib
+
+from openfly_agent.model.config import make_model_config
+
+
+def test_history_variants_token_counts():
+    bench = importlib.import_module("bench.step_latency")
+    seven_b = make_model_config("openfly-7b")
+    assert bench.history_variant(seven_b, "keyframe").visual_tokens_per_step() == 258
+    assert bench.history_variant(seven_b, "uniform").visual_tokens_per_step() == 256 + 2 * 256
+    assert bench.history_variant(make_model_config("tiny"), "uniform").visual_tokens_per_step() == 64 + 2 * 64
+
+
+def test_time_steps_runs_with_a_full_memory(make_agent):
+    bench = importlib.import_module("bench.step_latency")
+    agent = make_agent()
+    median, mean = bench.time_steps(agent, batch=2, steps=1, warmup=0)
+    assert median > 0 and mean > 0
+    assert all(len(state.memory) == 2 for state in agent.episodes.values())
