@@ -162,8 +162,9 @@ def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
         city = dataclasses.replace(city, n_buildings=int(generated["city_buildings"]))
     voxel = float(generated.get("collision_voxel_m", 2.0))
     return EmbeddedSimConfig(
-        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel
-    )
+        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel,
+        max_cached_scenes=max(4, cfg.batch_size),  # lockstep slots may fly in as many cities at once
+    )  # fmt: skip
 
 
 def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True) -> SlotEnv:
