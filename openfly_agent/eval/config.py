@@ -99,8 +99,9 @@ class EvalConfig:
     )  # more policies through the same runner, e.g. [random,stop]
     dataset_root: str = "outputs/datasets/embedded-small"
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
-    # Released data: keep take-off / landing so the goal is the landed point, as in the official evaluation.
-    reader: ReaderOptions = field(default_factory=lambda: ReaderOptions(takeoff_landing="keep"))
+    # Label handling, as in training (take-off / landing trimmed: start at flight height, goal = the STOP
+    # pose). Released-data parity: takeoff_landing=keep (start on the ground, goal = the landed point).
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
     max_episodes: int | None = None  # per split, N evenly spaced over the sorted ids (quick runs); None = all
     sim: SimSettings = field(default_factory=SimSettings)
     agent: AgentSettings = field(default_factory=AgentSettings)

@@ -242,21 +242,17 @@ def _failed_start(episode: Episode, split: str, policy_name: str, err: Exception
 
 
 def teleport_record(episode: Episode, split: str, policy_name: str, max_steps: int) -> EpisodeRecord:
-    """The oracle's record for an episode whose actions do not replay: it moves along the ground-truth poses.
+    """The oracle's record for an episode whose actions do not replay: it moves along the recorded poses.
 
-    Poses are the recorded poses (then the goal, if it lies beyond them), cut after `max_steps` moves; the
-    actions are the recorded labels of those moves, for reference only, then STOP. No simulator is stepped.
+    Poses are the recorded ones, cut after `max_steps` moves, then STOP (when within the step budget); the
+    actions are the recorded labels of those moves, for reference only. No simulator is stepped.
     """
-    yaws = np.asarray(episode.yaws, dtype=np.float64)
-    path = reference_path(episode)  # (G, 3)
-    yaw_of = np.concatenate([yaws, yaws[-1:]])[: len(path)]
-    poses = np.concatenate([path, yaw_of[:, None]], axis=1)[: max_steps + 1]  # (M + 1, 4)
+    poses = episode.poses[: max_steps + 1]  # (M + 1, 4)
     moves = len(poses) - 1
-    labels = [int(a) for a in episode.actions[:moves]] + [0] * max(0, moves - len(episode.actions))
-    stopped = len(path) - 1 <= max_steps
+    stopped = len(episode) <= max_steps  # T - 1 moves, then the STOP: T actions in the budget
     obs = Observation(rgb=np.zeros((1, 1, 3), dtype=np.uint8), pose=episode_spec(episode).start)
     record = _new_record(episode, split, policy_name, obs)
     record.poses = poses.tolist() + ([poses[-1].tolist()] if stopped else [])
-    record.actions = labels + ([C.ACTION_STOP] if stopped else [])
+    record.actions = [int(a) for a in episode.actions[:moves]] + ([C.ACTION_STOP] if stopped else [])
     record.stopped, record.end_reason = stopped, "teleport" if stopped else "max_steps"
     return record
