@@ -6,8 +6,10 @@
 #   4. evaluate it closed-loop on test_seen and test_unseen next to the random / stop / forward / oracle
 #      baselines, print the table, and say where the plots are (python eval.py; resumable)
 # Every step picks up where it stopped, so re-running the script after an interruption finishes the job.
-# Knobs (environment): DATA, RUN (output folders), TRAIN_STEPS, EVAL_EPISODES (per split; 0 = all),
-# EVAL_BATCH (lockstep width), THREADS (torch CPU threads in eval; 1 never thrashes on a shared machine).
+# Knobs (environment): DATA, RUN (output folders), TRAIN_MINUTES / TRAIN_STEPS (training stops at the first),
+# EVAL_EPISODES (per split, evenly spaced; 0 = all), EVAL_BATCH (lockstep width), THREADS (torch CPU threads
+# in eval; 1 never thrashes on a shared machine). Budget on 2 idle cores: set-up ~1 min, data ~2-4 min,
+# training TRAIN_MINUTES + ~1 min, evaluation ~4 min (docs/BENCHMARKS.md).
 # SKIP_SETUP=1 uses an existing environment (VENV) as it is.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -17,8 +19,9 @@ VENV=${VENV:-.venv}
 PY="$VENV/bin/python"
 DATA=${DATA:-outputs/datasets/embedded-small}
 RUN=${RUN:-outputs/main_job}
-TRAIN_STEPS=${TRAIN_STEPS:-600}
-EVAL_EPISODES=${EVAL_EPISODES:-60}
+TRAIN_MINUTES=${TRAIN_MINUTES:-9}
+TRAIN_STEPS=${TRAIN_STEPS:-1500}
+EVAL_EPISODES=${EVAL_EPISODES:-50}
 EVAL_BATCH=${EVAL_BATCH:-16}
 THREADS=${THREADS:-1}
 start=$(date +%s)
@@ -27,18 +30,24 @@ say() { echo "[main_job $(( $(date +%s) - start ))s] $*"; }
 say "1/3 dataset: $DATA (configs/toolchain/embedded-small.yaml)"
 "$PY" -m openfly_agent.toolchain generate --config configs/toolchain/embedded-small.yaml --output_dir="$DATA"
 
-say "2/3 training the tiny preset for $TRAIN_STEPS steps into $RUN/train"
-resume=false
-[ -f "$RUN/train/checkpoints/last" ] && resume=true
-"$VENV/bin/accelerate" launch --cpu --num_processes 1 --num_machines 1 --mixed_precision no --dynamo_backend no \
-  train.py --data.root="$DATA" --output_dir="$RUN/train" --steps="$TRAIN_STEPS" --resume="$resume"
+say "2/3 training the tiny preset into $RUN/train ($TRAIN_MINUTES min or $TRAIN_STEPS steps)"
+if [ -f "$RUN/train/.main_job_trained" ]; then
+  say "already trained (delete $RUN/train to train again)"
+else
+  resume=false
+  [ -f "$RUN/train/checkpoints/last" ] && resume=true  # an interrupted run continues
+  "$VENV/bin/accelerate" launch --cpu --num_processes 1 --num_machines 1 --mixed_precision no \
+    --dynamo_backend no train.py --data.root="$DATA" --output_dir="$RUN/train" --steps="$TRAIN_STEPS" \
+    --time_limit_minutes="$TRAIN_MINUTES" --validation.final_max_samples=1024 --resume="$resume"
+  touch "$RUN/train/.main_job_trained"
+fi
 
 say "3/3 closed-loop evaluation (test_seen, test_unseen; $EVAL_EPISODES episodes per split, 0 = all)"
 episodes=()
 [ "$EVAL_EPISODES" -gt 0 ] && episodes=(--max_episodes "$EVAL_EPISODES")
 "$PY" eval.py --checkpoint "$RUN/train" --split test_seen test_unseen --sim embedded \
   --baselines random stop forward oracle --dataset_root "$DATA" --output_dir "$RUN/eval" \
-  --batch_size "$EVAL_BATCH" --torch_threads "$THREADS" "${episodes[@]}"
+  --batch_size "$EVAL_BATCH" --torch_threads "$THREADS" ${episodes[@]+"${episodes[@]}"}
 
 say "done. Table: $RUN/eval/summary.md; per-scene tables: $RUN/eval/<policy>/results.md"
 say "top-down plots (ground truth vs agent): $RUN/eval/agent/plots/<split>/*.png (baselines: $RUN/eval/<baseline>/plots/)"

@@ -123,6 +123,17 @@ def checkpoint_folder(checkpoint: str) -> Path:
     return Path(snapshot_download(repo_id=checkpoint))
 
 
+def checkpoint_fingerprint(checkpoint: str) -> dict:
+    """What identifies the weights behind `checkpoint`: the resolved folder and its weight files' sizes and
+    modification times (a training run folder keeps its name while its newest checkpoint changes)."""
+    folder = checkpoint_folder(checkpoint)
+    files = sorted(folder.glob("*.safetensors"))
+    return {
+        "folder": str(folder.resolve()),
+        "weights": {f.name: [f.stat().st_size, f.stat().st_mtime_ns] for f in files},
+    }
+
+
 def checkpoint_kind(folder: Path) -> str:
     """`openfly_agent` (ours) or `openvla` (a released OpenVLA / OpenFly-Agent folder), from config.json."""
     config = folder / C.CONFIG_NAME

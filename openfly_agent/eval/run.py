@@ -58,6 +58,16 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
     info.wait()
 
 
+def result_identity(cfg: EvalConfig, policy: str) -> dict:
+    """`cfg.result_identity(policy)`, plus the fingerprint of the agent's weights."""
+    identity = cfg.result_identity(policy)
+    if policy == "agent":
+        from openfly_agent.eval.agent_policy import checkpoint_fingerprint
+
+        identity["weights"] = checkpoint_fingerprint(cfg.checkpoint)
+    return identity
+
+
 def gif_path(folder: Path, split: str, episode_id: str) -> Path:
     """Where the GIF of one episode goes."""
     from openfly_agent.eval.plots import safe_name
@@ -134,7 +144,7 @@ def run(cfg: EvalConfig) -> dict:
     try:
         for name in cfg.policies:
             folder = root / name
-            prepare_output(folder, cfg.result_identity(name), cfg.overwrite, info)
+            prepare_output(folder, result_identity(cfg, name), cfg.overwrite, info)
             policy = make_policy(name, cfg, all_episodes, info)
             render = bool(policy.needs_frames or cfg.gif_episodes)
             if render not in envs:
