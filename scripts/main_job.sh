@@ -31,14 +31,16 @@ say "1/3 dataset: $DATA (configs/toolchain/embedded-small.yaml)"
 "$PY" -m openfly_agent.toolchain generate --config configs/toolchain/embedded-small.yaml --output_dir="$DATA"
 
 say "2/3 training the tiny preset into $RUN/train ($TRAIN_MINUTES min or $TRAIN_STEPS steps)"
+fresh_eval=false
 if [ -f "$RUN/train/.main_job_trained" ]; then
   say "already trained (delete $RUN/train to train again)"
 else
+  fresh_eval=true  # new weights: earlier evaluation results of the agent no longer apply
   resume=false
   [ -f "$RUN/train/checkpoints/last" ] && resume=true  # an interrupted run continues
   "$VENV/bin/accelerate" launch --cpu --num_processes 1 --num_machines 1 --mixed_precision no \
     --dynamo_backend no train.py --data.root="$DATA" --output_dir="$RUN/train" --steps="$TRAIN_STEPS" \
-    --time_limit_minutes="$TRAIN_MINUTES" --validation.final_max_samples=1024 --resume="$resume"
+    --time_limit_minutes="$TRAIN_MINUTES" --validation.final_max_samples=512 --resume="$resume"
   touch "$RUN/train/.main_job_trained"
 fi
 
@@ -47,7 +49,7 @@ episodes=()
 [ "$EVAL_EPISODES" -gt 0 ] && episodes=(--max_episodes "$EVAL_EPISODES")
 "$PY" eval.py --checkpoint "$RUN/train" --split test_seen test_unseen --sim embedded \
   --baselines random stop forward oracle --dataset_root "$DATA" --output_dir "$RUN/eval" \
-  --batch_size "$EVAL_BATCH" --torch_threads "$THREADS" ${episodes[@]+"${episodes[@]}"}
+  --batch_size "$EVAL_BATCH" --torch_threads "$THREADS" --overwrite="$fresh_eval" ${episodes[@]+"${episodes[@]}"}
 
 say "done. Table: $RUN/eval/summary.md; per-scene tables: $RUN/eval/<policy>/results.md"
 say "top-down plots (ground truth vs agent): $RUN/eval/agent/plots/<split>/*.png (baselines: $RUN/eval/<baseline>/plots/)"

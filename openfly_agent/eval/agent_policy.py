@@ -14,7 +14,7 @@ import logging
 from pathlib import Path
 
 from openfly_agent import constants as C
-from openfly_agent.eval.config import AgentSettings
+from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
 
 logger = logging.getLogger(__name__)
@@ -144,7 +144,7 @@ def checkpoint_kind(folder: Path) -> str:
         return C.MODEL_TYPE
     if model_type == "openvla":
         return "openvla"
-    raise ValueError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
+    raise EvalInputError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
 
 
 def _released_model_config(settings: AgentSettings):

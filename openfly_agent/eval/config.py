@@ -14,6 +14,12 @@ from openfly_agent.sim.bridges.airsim import AirSimConfig
 from openfly_agent.sim.bridges.gs_http import GSHttpConfig
 from openfly_agent.sim.bridges.unrealcv import UnrealCVConfig
 
+
+class EvalInputError(ValueError):
+    """Input that cannot be evaluated (settings that clash with an output folder, an empty split, an unknown
+    checkpoint type); raised before any episode runs, with a message that says what to change."""
+
+
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
 PROFILE_NAMES = ("openfly", "standard")

@@ -12,7 +12,7 @@ import numpy as np
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.baselines import make_baseline
-from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.eval.config import EvalConfig, EvalInputError, SimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
 from openfly_agent.utils.errors import RecordError
@@ -49,7 +49,7 @@ def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
             ) from err
         episodes = subsample(sorted(episodes, key=lambda e: e.episode_id), cfg.max_episodes)
         if not episodes:
-            raise ValueError(f"{cfg.dataset_root}: split {split!r} has no episodes")
+            raise EvalInputError(f"{cfg.dataset_root}: split {split!r} has no episodes")
         out[split] = episodes
         logger.info("%s: %d episodes from %s", split, len(episodes), cfg.dataset_root)
     return out

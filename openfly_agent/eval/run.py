@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
     log_name,
@@ -44,7 +44,7 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
         changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
         if changed:
             details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
-            raise ValueError(
+            raise EvalInputError(
                 f"{folder} holds results of other settings ({details}); pass another --output_dir "
                 "or --overwrite=true to discard them"
             )
