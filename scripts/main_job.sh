@@ -10,6 +10,9 @@
 # EVAL_EPISODES (per split, evenly spaced; 0 = all), EVAL_BATCH (lockstep width), THREADS (torch CPU threads
 # in eval; 1 never thrashes on a shared machine). Budget on 2 idle cores: set-up ~1 min, data ~2-4 min,
 # training TRAIN_MINUTES + ~1 min, evaluation ~4 min (docs/BENCHMARKS.md).
+# One experiment = one command: TRAIN_CONFIG picks the training preset (e.g. an ablation of
+# configs/train/ablations/), TRAIN_ARGS adds draccus overrides, RUN keeps its outputs apart:
+#   RUN=outputs/exp/uniform TRAIN_CONFIG=configs/train/ablations/uniform_history.yaml bash scripts/main_job.sh
 # SKIP_SETUP=1 uses an existing environment (VENV) as it is.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -19,6 +22,8 @@ VENV=${VENV:-.venv}
 PY="$VENV/bin/python"
 DATA=${DATA:-outputs/datasets/embedded-small}
 RUN=${RUN:-outputs/main_job}
+TRAIN_CONFIG=${TRAIN_CONFIG:-configs/train/tiny.yaml}
+TRAIN_ARGS=${TRAIN_ARGS:-}
 TRAIN_MINUTES=${TRAIN_MINUTES:-9}
 TRAIN_STEPS=${TRAIN_STEPS:-1500}
 EVAL_EPISODES=${EVAL_EPISODES:-50}
@@ -30,7 +35,7 @@ say() { echo "[main_job $(( $(date +%s) - start ))s] $*"; }
 say "1/3 dataset: $DATA (configs/toolchain/embedded-small.yaml)"
 "$PY" -m openfly_agent.toolchain generate --config configs/toolchain/embedded-small.yaml --output_dir="$DATA"
 
-say "2/3 training the tiny preset into $RUN/train ($TRAIN_MINUTES min or $TRAIN_STEPS steps)"
+say "2/3 training $TRAIN_CONFIG into $RUN/train ($TRAIN_MINUTES min or $TRAIN_STEPS steps)"
 fresh_eval=false
 if [ -f "$RUN/train/.main_job_trained" ]; then
   say "already trained (delete $RUN/train to train again)"
@@ -39,8 +44,9 @@ else
   resume=false
   [ -f "$RUN/train/checkpoints/last" ] && resume=true  # an interrupted run continues
   "$VENV/bin/accelerate" launch --cpu --num_processes 1 --num_machines 1 --mixed_precision no \
-    --dynamo_backend no train.py --data.root="$DATA" --output_dir="$RUN/train" --steps="$TRAIN_STEPS" \
-    --time_limit_minutes="$TRAIN_MINUTES" --validation.final_max_samples=512 --resume="$resume"
+    --dynamo_backend no train.py --config_path "$TRAIN_CONFIG" --data.root="$DATA" --output_dir="$RUN/train" \
+    --steps="$TRAIN_STEPS" --time_limit_minutes="$TRAIN_MINUTES" --validation.final_max_samples=512 \
+    --resume="$resume" $TRAIN_ARGS
   touch "$RUN/train/.main_job_trained"
 fi
 
