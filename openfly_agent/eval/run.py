@@ -132,7 +132,7 @@ def run(cfg: EvalConfig) -> dict:
     """
     from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
 
-    info = process_info()
+    info = process_info(cpu=True if cfg.device == "cpu" else None)
     if cfg.torch_threads is not None:
         import torch
 
