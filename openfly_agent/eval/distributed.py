@@ -29,6 +29,7 @@ class ProcessInfo:
 
     @property
     def is_main(self) -> bool:
+        """Rank 0: the process that merges logs and writes reports."""
         return self.rank == 0
 
     def wait(self) -> None:

@@ -52,6 +52,7 @@ class EpisodeRecord:
 
     @property
     def key(self) -> tuple[str, str]:
+        """(split, episode id): what makes a record unique in a run."""
         return (self.split, self.episode_id)
 
     @property
@@ -69,6 +70,7 @@ class EpisodeRecord:
         return np.asarray(self.poses, dtype=np.float64).reshape(-1, 4)[:, :3]
 
     def to_json(self) -> str:
+        """One compact JSON line (no NaN allowed)."""
         return json.dumps(asdict(self), separators=(",", ":"), allow_nan=False)
 
     @classmethod
@@ -151,6 +153,7 @@ class EpisodeLog:
         self.existing = read_jsonl(self.path, truncate_partial=True)
 
     def append(self, record: EpisodeRecord) -> None:
+        """Append one line and fsync it, so a kill loses at most the line being written."""
         line = record.to_json() + "\n"
         with open(self.path, "a", encoding="utf-8") as handle:
             handle.write(line)

@@ -39,6 +39,7 @@ class RolloutStats:
     policy_s: float = 0.0
 
     def add(self, other: RolloutStats) -> None:
+        """Accumulate `other` into these counters."""
         for name in ("episodes", "steps", "policy_calls", "sim_s", "policy_s"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
 

@@ -27,11 +27,17 @@ class SlotEnv(Protocol):
 
     num_slots: int
 
-    def reset_slot(self, slot: int, spec: EpisodeSpec) -> Observation: ...
+    def reset_slot(self, slot: int, spec: EpisodeSpec) -> Observation:
+        """Start `spec` in `slot` (whatever the slot was doing) and return its first observation."""
+        ...
 
-    def step(self, actions: list[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]: ...
+    def step(self, actions: list[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]:
+        """Execute one action per slot (`None`: leave the slot alone); per slot (observation, info) or None."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the simulators."""
+        ...
 
 
 class SimulatorSlots:
