@@ -52,7 +52,7 @@ class BlindEmbeddedSimulator:
         return Observation(rgb=_NO_FRAME, pose=self._pose, boxes={})
 
     def step(self, action_id: int) -> tuple[Observation, StepInfo]:
-        """Move through `sim/dynamics.py`; `collided` if the segment hits the city or the ground (counted only)."""
+        """Move through `sim/dynamics.py`; `collided`: the segment hits the city or the ground (counted)."""
         if self._pose is None or self._done:
             raise RuntimeError("BlindEmbeddedSimulator.step() needs a running episode: call reset() first")
         motion = step_motion(self._pose, int(action_id))

@@ -32,7 +32,7 @@ class SlotEnv(Protocol):
         ...
 
     def step(self, actions: list[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]:
-        """Execute one action per slot (`None`: leave the slot alone); per slot (observation, info) or None."""
+        """One action per slot (`None` leaves the slot alone); per slot (observation, info), or None."""
         ...
 
     def close(self) -> None:
