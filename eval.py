@@ -18,19 +18,37 @@ from openfly_agent.eval.config import EvalConfig
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.logging_utils import setup_logging
 
+EXIT_BAD_INPUT = 2
 
-def main(argv: list[str] | None = None) -> dict:
+
+def root_cause(err: BaseException) -> str:
+    """draccus wraps a config's ValueError; the innermost cause says what to change."""
+    while err.__cause__ is not None:
+        err = err.__cause__
+    return str(err)
+
+
+def main(argv: list[str] | None = None) -> int:
     """Parse the command line, run the evaluation, print the comparison table (rank 0)."""
-    setup_logging()
-    cfg = parse_config(EvalConfig, normalize_argv(list(sys.argv[1:] if argv is None else argv)))
-    from openfly_agent.eval.run import run
+    from draccus.utils import ParsingError
 
-    outcome = run(cfg)
+    from openfly_agent.data.schema import SchemaError
+    from openfly_agent.eval.config import EvalInputError
+    from openfly_agent.eval.run import run
+    from openfly_agent.utils.errors import RecordError
+
+    setup_logging()
+    try:
+        cfg = parse_config(EvalConfig, normalize_argv(list(sys.argv[1:] if argv is None else argv)))
+        outcome = run(cfg)
+    except (ParsingError, EvalInputError, FileNotFoundError, SchemaError, RecordError) as err:
+        print(f"eval.py: {root_cause(err) if isinstance(err, ParsingError) else err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if outcome:
         print(outcome["summary_markdown"])
         print(f"Results, per-scene tables and plots: {outcome['output_dir']}/")
-    return outcome
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

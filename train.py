@@ -79,9 +79,7 @@ def root_cause(err: BaseException) -> str:
 def main(argv: list[str] | None = None) -> int:
     from draccus.utils import ParsingError
 
-    from openfly_agent.training.builder import build_run
-    from openfly_agent.training.loop import fit
-    from openfly_agent.training.preflight import PreflightError
+    from openfly_agent.training import PreflightError, build_run, fit
     from openfly_agent.utils.logging_utils import setup_logging
 
     setup_logging()

@@ -1,4 +1,4 @@
-"""`--checkpoint` resolution: a checkpoint folder, a training run, its `checkpoints/` folder or `last` pointer."""
+"""`--checkpoint` resolution: a checkpoint folder, a training run, its `checkpoints/` folder or pointer."""
 
 from __future__ import annotations
 
@@ -20,3 +20,18 @@ def test_training_run_paths_resolve_to_the_newest_checkpoint(tmp_path):
     (step / "config.json").write_text('{"model_type": "llama"}')
     with pytest.raises(ValueError, match="model_type 'llama'"):
         checkpoint_kind(step)
+
+
+def test_fingerprint_follows_the_newest_weights(tmp_path):
+    from openfly_agent.eval.agent_policy import checkpoint_fingerprint
+
+    checkpoints = tmp_path / "run" / "checkpoints"
+    for name in ("step-000010", "step-000020"):
+        (checkpoints / name).mkdir(parents=True)
+        (checkpoints / name / "config.json").write_text('{"model_type": "openfly_agent"}')
+        (checkpoints / name / "model.safetensors").write_bytes(b"x" * len(name))
+    (checkpoints / "last").write_text("step-000010")
+    before = checkpoint_fingerprint(str(tmp_path / "run"))
+    assert before["folder"].endswith("step-000010") and list(before["weights"]) == ["model.safetensors"]
+    (checkpoints / "last").write_text("step-000020")  # the run trained on: same --checkpoint, new weights
+    assert checkpoint_fingerprint(str(tmp_path / "run")) != before

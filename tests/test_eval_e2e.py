@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -49,12 +50,17 @@ def _cfg(dataset, out, **kw):
 
 def test_oracle_and_stop_at_start_on_a_generated_split(dataset, tmp_path):
     outcome = run(_cfg(dataset, tmp_path, policy="oracle", baselines=["stop"]))
+    # Every oracle episode replays its actions through the simulator (no teleport) and stops.
+    assert {r.end_reason for r in read_all_logs(tmp_path / "oracle")} == {"stop"}
     for split in SPLITS:
-        episodes = load_openfly_dataset(dataset, split)
+        episodes = load_openfly_dataset(dataset, split)  # the default reader options, as eval's
         distances = [np.linalg.norm(e.goal - e.positions[0]) for e in episodes]
+        # The planner stops within 3.1 m of its goal: the oracle's NE is that leftover.
+        leftover = [np.linalg.norm(e.goal - e.positions[-1]) for e in episodes]
+        assert max(leftover) < 3.2
         for profile in ("openfly", "standard"):
             oracle = outcome["results"]["oracle"]["splits"][split][profile]["overall"]
-            assert oracle["sr_pct"] == 100.0 and oracle["ne_m"] == pytest.approx(0.0, abs=1e-6)
+            assert oracle["sr_pct"] == 100.0 and oracle["ne_m"] == pytest.approx(np.mean(leftover))
             stop = outcome["results"]["stop"]["splits"][split][profile]["overall"]
             assert stop["episodes"] == len(episodes)
             assert stop["sr_pct"] == pytest.approx(100.0 * np.mean([d < 20.0 for d in distances]))
@@ -94,9 +100,9 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
     common = {
         "policy": "agent",
         "checkpoint": str(tmp_path / "ckpt"),
-        "max_steps": 6,
+        "max_steps": 5,
         "plots": 0,
-        "max_episodes": 3,
+        "max_episodes": 2,
     }
     gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # (sorted ids: within max_episodes)
     outcomes = [
@@ -104,11 +110,21 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
         for b in (1, 4)
     ]
     one, many = (read_all_logs(tmp_path / f"b{b}" / "agent") for b in (1, 4))
-    assert one == many and len(one) == 6
+    assert len(one) == len(many) == 4
+    for a, b in zip(one, many):
+        assert (a.actions, a.poses, a.keyframes, a.collision_steps) == (
+            b.actions,
+            b.poses,
+            b.keyframes,
+            b.collision_steps,
+        )
+        assert [x is None for x in a.boxes] == [x is None for x in b.boxes]
+        np.testing.assert_allclose([x for x in a.boxes if x], [x for x in b.boxes if x], atol=1e-4)
     assert outcomes[0]["results"]["agent"]["splits"] == outcomes[1]["results"]["agent"]["splits"]
     boxes = [b for r in one for b in r.boxes]
     assert len(boxes) == sum(len(r.actions) for r in one)
     assert all(b is None or (len(b) == 4 and all(0.0 <= v <= 1.0 for v in b)) for b in boxes)
+    assert all(isinstance(k, list) and len(r.keyframes) == len(r.actions) for r in one for k in r.keyframes)
     (gif_file,) = (tmp_path / "b1" / "agent" / "gifs").glob("*.gif")
     record = next(r for r in one if r.episode_id == gif)
     assert Image.open(gif_file).n_frames == len(record.actions)  # one frame per decision
@@ -171,6 +187,11 @@ def test_two_processes_split_and_merge(dataset, reference, tmp_path):
     )
     assert double.returncode == 0, double.stdout[-3000:] + double.stderr[-6000:]
     assert sorted(p.name for p in (tmp_path / "random").glob("episodes*.jsonl")) == [C.EPISODES_JSONL]
+    # Each process ran its own shard (not the whole split), and only rank 0 printed the table.
+    total = len(load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN))
+    shards = [int(n) for n in re.findall(r"random / test_seen: (\d+) episodes in this shard", double.stderr)]
+    assert sorted(shards) == [total // 2, total - total // 2]
+    assert double.stdout.count("| random |") == 4  # 2 splits x 2 profiles, once
     _same_results(reference, tmp_path)
 
 
@@ -204,5 +225,8 @@ def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
         )
         env.close()
         runs.append(records)
-    assert runs[0] == runs[1]
+    # Same actions and poses; the boxes differ: the grounding head is not in a released checkpoint and is
+    # initialised afresh on load.
+    for a, b in zip(*runs):
+        assert (a.actions, a.poses, a.collision_steps) == (b.actions, b.poses, b.collision_steps)
     assert all(0 <= a <= 9 for r in runs[0] for a in r.actions)

@@ -216,3 +216,11 @@ def test_policy_output_is_validated():
     with pytest.raises(ValueError, match="policy 'bad' returned action 12"):
         _run(BadPolicy("bad", 0), _episodes()[:1], batch=1)
     assert StepInfo(action=1).extra == {}
+
+
+def test_max_episodes_subsample_is_evenly_spaced():
+    from openfly_agent.eval.factory import subsample
+
+    episodes = [make_episode(f"s/a/b/t{i}", [1, 0]) for i in range(10)]
+    assert [e.episode_id for e in subsample(episodes, 3)] == ["s/a/b/t0", "s/a/b/t4", "s/a/b/t9"]
+    assert subsample(episodes, None) == episodes and subsample(episodes, 50) == episodes

@@ -14,7 +14,7 @@ import logging
 from pathlib import Path
 
 from openfly_agent import constants as C
-from openfly_agent.eval.config import AgentSettings
+from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
 
 logger = logging.getLogger(__name__)
@@ -37,9 +37,12 @@ class AgentPolicy:
     def __init__(self, agent, name: str = "agent"):
         self.agent = agent
         self.name = name
+        self._details: dict[str, dict] = {}
 
     def reset(self, episode_ids: list[str]) -> None:
         self.agent.reset(list(episode_ids))
+        for episode_id in episode_ids:
+            self._details.pop(episode_id, None)
 
     def act(self, observations: list[dict]) -> list[int]:
         import torch
@@ -49,26 +52,27 @@ class AgentPolicy:
             for obs in observations
         ]
         with torch.inference_mode():
-            return [int(a) for a in self.agent.select_action(inputs)]
+            if not hasattr(self.agent, "predict_step"):
+                return [int(a) for a in self.agent.select_action(inputs)]
+            results = self.agent.predict_step(inputs)
+        for obs, result in zip(inputs, results):
+            self._details[obs[OBS_EPISODE_ID]] = _details(self.agent, obs[OBS_EPISODE_ID], result)
+        return [int(result.action) for result in results]
 
     def step_details(self, episode_ids: list[str]) -> list[dict]:
-        """The predicted landmark box and keyframe decision of the last step, per episode (if exposed)."""
-        info = getattr(self.agent, "last_step_info", None)
-        if not info:
-            return [{} for _ in episode_ids]
-        return [_details(info.get(episode_id)) for episode_id in episode_ids]
+        """The predicted landmark box (None when predicted invisible) and the keyframe sets in memory."""
+        return [self._details.get(episode_id, {}) for episode_id in episode_ids]
 
 
-def _details(step: dict | None) -> dict:
-    if not step:
-        return {}
-    out = {}
-    box = step.get("box")
-    if box is not None:
-        out["box"] = [float(v) for v in box]
-    if "keyframe" in step:
-        out["keyframe"] = bool(step["keyframe"])
-    return out
+def _details(agent, episode_id: str, result) -> dict:
+    """`box`: (cx, cy, w, h) or None; `keyframes`: frame indices of the keyframe sets in the agent memory."""
+    box = [float(v) for v in result.box] if getattr(result, "box_visible", False) else None
+    state = getattr(agent, "episodes", {}).get(episode_id)
+    memory = getattr(state, "memory", None)
+    if memory is None:
+        return {"box": box, "keyframes": None}
+    sets = memory.keys()  # MemoryBank keys: one tuple of frame indices per keyframe set, oldest first
+    return {"box": box, "keyframes": [[int(i) for i in frames] for frames in sets]}
 
 
 def resolve_device(device: str, info_device=None) -> str:
@@ -119,6 +123,17 @@ def checkpoint_folder(checkpoint: str) -> Path:
     return Path(snapshot_download(repo_id=checkpoint))
 
 
+def checkpoint_fingerprint(checkpoint: str) -> dict:
+    """What identifies the weights behind `checkpoint`: the resolved folder and its weight files' sizes and
+    modification times (a training run folder keeps its name while its newest checkpoint changes)."""
+    folder = checkpoint_folder(checkpoint)
+    files = sorted(folder.glob("*.safetensors"))
+    return {
+        "folder": str(folder.resolve()),
+        "weights": {f.name: [f.stat().st_size, f.stat().st_mtime_ns] for f in files},
+    }
+
+
 def checkpoint_kind(folder: Path) -> str:
     """`openfly_agent` (ours) or `openvla` (a released OpenVLA / OpenFly-Agent folder), from config.json."""
     config = folder / C.CONFIG_NAME
@@ -129,7 +144,7 @@ def checkpoint_kind(folder: Path) -> str:
         return C.MODEL_TYPE
     if model_type == "openvla":
         return "openvla"
-    raise ValueError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
+    raise EvalInputError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
 
 
 def _released_model_config(settings: AgentSettings):

@@ -45,12 +45,14 @@ class BlindEmbeddedSimulator:
         self._done = True
 
     def reset(self, episode: EpisodeSpec) -> Observation:
+        """Start at the episode's start pose (1 x 1 black frame)."""
         self._city = self.cities(episode.scene_id)
         self._pose = Pose(*(float(v) for v in episode.start.as_array()))
         self._done = False
         return Observation(rgb=_NO_FRAME, pose=self._pose, boxes={})
 
     def step(self, action_id: int) -> tuple[Observation, StepInfo]:
+        """Move through `sim/dynamics.py`; `collided`: the segment hits the city or the ground (counted)."""
         if self._pose is None or self._done:
             raise RuntimeError("BlindEmbeddedSimulator.step() needs a running episode: call reset() first")
         motion = step_motion(self._pose, int(action_id))

@@ -14,6 +14,12 @@ from openfly_agent.sim.bridges.airsim import AirSimConfig
 from openfly_agent.sim.bridges.gs_http import GSHttpConfig
 from openfly_agent.sim.bridges.unrealcv import UnrealCVConfig
 
+
+class EvalInputError(ValueError):
+    """Input that cannot be evaluated (settings that clash with an output folder, an empty split, an unknown
+    checkpoint type); raised before any episode runs, with a message that says what to change."""
+
+
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
 PROFILE_NAMES = ("openfly", "standard")
@@ -97,11 +103,12 @@ class EvalConfig:
     baselines: list[str] = field(
         default_factory=list
     )  # more policies through the same runner, e.g. [random,stop]
-    dataset_root: str = "data/generated/embedded-small"
+    dataset_root: str = "outputs/datasets/embedded-small"
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
-    # Released data: keep take-off / landing so the goal is the landed point, as in the official evaluation.
-    reader: ReaderOptions = field(default_factory=lambda: ReaderOptions(takeoff_landing="keep"))
-    max_episodes: int | None = None  # per split, the first N by episode id (quick runs); None = all
+    # Label handling, as in training (take-off / landing trimmed: start at flight height, goal = the STOP
+    # pose). Released-data parity: takeoff_landing=keep (start on the ground, goal = the landed point).
+    reader: ReaderOptions = field(default_factory=ReaderOptions)
+    max_episodes: int | None = None  # per split, N evenly spaced over the sorted ids (quick runs); None = all
     sim: SimSettings = field(default_factory=SimSettings)
     agent: AgentSettings = field(default_factory=AgentSettings)
     batch_size: int = 16  # episodes stepped in lockstep (the policy's batch)

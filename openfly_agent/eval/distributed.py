@@ -29,6 +29,7 @@ class ProcessInfo:
 
     @property
     def is_main(self) -> bool:
+        """Rank 0: the process that merges logs and writes reports."""
         return self.rank == 0
 
     def wait(self) -> None:
@@ -37,11 +38,20 @@ class ProcessInfo:
             self.state.wait_for_everyone()
 
 
-def process_info() -> ProcessInfo:
-    """Rank and world size from accelerate (initialises the process group under a launcher)."""
+def process_info(cpu: bool | None = None) -> ProcessInfo:
+    """Rank and world size from accelerate (initialises the process group under a launcher).
+
+    Args:
+        cpu: processes run on the CPU; None = when CUDA is absent. accelerate forms a multi-process CPU group
+            (gloo) only when asked for the CPU: without it, `accelerate launch --multi_gpu` or torchrun on a
+            CPU machine would start processes that each believe they are alone.
+    """
+    import torch
     from accelerate import PartialState
 
-    state = PartialState()
+    if cpu is None:
+        cpu = not torch.cuda.is_available()
+    state = PartialState(cpu=cpu)
     return ProcessInfo(rank=int(state.process_index), world_size=int(state.num_processes), state=state)
 
 

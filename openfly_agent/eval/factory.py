@@ -7,10 +7,12 @@ import json
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.baselines import make_baseline
-from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.eval.config import EvalConfig, EvalInputError, SimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
 from openfly_agent.utils.errors import RecordError
@@ -20,8 +22,16 @@ logger = logging.getLogger(__name__)
 DEFAULT_FRAME_SIZE = 224
 
 
+def subsample(episodes: list[Episode], count: int | None) -> list[Episode]:
+    """`count` episodes evenly spaced over `episodes` (all when None), so every scene and category is kept."""
+    if count is None or count >= len(episodes):
+        return list(episodes)
+    picks = np.unique(np.linspace(0, len(episodes) - 1, count).round().astype(int))
+    return [episodes[i] for i in picks]
+
+
 def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
-    """{split: episodes sorted by id} for every split of `cfg` (the first `max_episodes` when set).
+    """{split: episodes sorted by id} for every split of `cfg` (`max_episodes` evenly spaced ones when set).
 
     Raises:
         FileNotFoundError: the dataset root or a split's annotation is missing, with the path and a hint.
@@ -37,11 +47,9 @@ def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
                 f"{err}. Generate a dataset first (python -m openfly_agent.toolchain generate "
                 "--config configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
             ) from err
-        episodes = sorted(episodes, key=lambda e: e.episode_id)
-        if cfg.max_episodes is not None:
-            episodes = episodes[: cfg.max_episodes]
+        episodes = subsample(sorted(episodes, key=lambda e: e.episode_id), cfg.max_episodes)
         if not episodes:
-            raise ValueError(f"{cfg.dataset_root}: split {split!r} has no episodes")
+            raise EvalInputError(f"{cfg.dataset_root}: split {split!r} has no episodes")
         out[split] = episodes
         logger.info("%s: %d episodes from %s", split, len(episodes), cfg.dataset_root)
     return out
@@ -154,8 +162,9 @@ def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
         city = dataclasses.replace(city, n_buildings=int(generated["city_buildings"]))
     voxel = float(generated.get("collision_voxel_m", 2.0))
     return EmbeddedSimConfig(
-        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel
-    )
+        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel,
+        max_cached_scenes=max(4, cfg.batch_size),  # lockstep slots may fly in as many cities at once
+    )  # fmt: skip
 
 
 def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True) -> SlotEnv:

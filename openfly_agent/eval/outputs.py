@@ -27,6 +27,7 @@ SUMMARY_MD = "summary.md"
 
 
 def write_text_atomic(path: Path, text: str) -> None:
+    """Write `text` through a temporary file and a rename."""
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
     os.replace(tmp, path)

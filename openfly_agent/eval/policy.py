@@ -40,8 +40,8 @@ class Policy(Protocol):
 def step_details(policy: Policy, episode_ids: list[str]) -> list[dict]:
     """What `policy` predicted besides the action at its last `act` call, one dict per episode id.
 
-    Policies may implement `step_details(episode_ids) -> list[dict]` (keys such as `box`, `keyframe`);
-    for the others every dict is empty.
+    Policies may implement `step_details(episode_ids) -> list[dict]` (keys `box`: (cx, cy, w, h) or None,
+    `keyframes`: the keyframe sets in memory); for the others every dict is empty.
     """
     method = getattr(policy, "step_details", None)
     if method is None:

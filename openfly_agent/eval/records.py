@@ -29,7 +29,8 @@ class EpisodeRecord:
 
     `poses[k]` is the pose after `k` actions (`poses[0]` = start), so `len(poses) == len(actions) + 1`;
     STOP leaves the pose unchanged. `collision_steps` are the steps whose motion hit occupied space.
-    `boxes[k]` / `keyframes[k]` are what the policy predicted at step k (None where it predicts nothing).
+    `boxes[k]` is the landmark box the policy predicted at step k (None: predicted invisible, or a policy
+    without boxes); `keyframes[k]` the frame indices of the keyframe sets in its memory after step k.
     """
 
     split: str
@@ -45,12 +46,13 @@ class EpisodeRecord:
     end_reason: str
     collision_steps: list[int] = field(default_factory=list)
     boxes: list[list[float] | None] = field(default_factory=list)  # (cx, cy, w, h) per step or None
-    keyframes: list[bool | None] = field(default_factory=list)
+    keyframes: list[list[list[int]] | None] = field(default_factory=list)
     error: str | None = None
     version: int = RECORD_VERSION
 
     @property
     def key(self) -> tuple[str, str]:
+        """(split, episode id): what makes a record unique in a run."""
         return (self.split, self.episode_id)
 
     @property
@@ -68,6 +70,7 @@ class EpisodeRecord:
         return np.asarray(self.poses, dtype=np.float64).reshape(-1, 4)[:, :3]
 
     def to_json(self) -> str:
+        """One compact JSON line (no NaN allowed)."""
         return json.dumps(asdict(self), separators=(",", ":"), allow_nan=False)
 
     @classmethod
@@ -150,6 +153,7 @@ class EpisodeLog:
         self.existing = read_jsonl(self.path, truncate_partial=True)
 
     def append(self, record: EpisodeRecord) -> None:
+        """Append one line and fsync it, so a kill loses at most the line being written."""
         line = record.to_json() + "\n"
         with open(self.path, "a", encoding="utf-8") as handle:
             handle.write(line)

@@ -22,7 +22,7 @@ from openfly_agent.data.schema import Episode
 from openfly_agent.eval.episodes import episode_spec, goal_of, reference_path, target_landmark
 from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP, Policy, check_actions, step_details
 from openfly_agent.eval.records import EpisodeRecord
-from openfly_agent.eval.slots import ERROR_KEY, SlotEnv
+from openfly_agent.eval.slots import ENGINE_ERRORS, ERROR_KEY, SlotEnv
 from openfly_agent.sim.base import Observation
 
 logger = logging.getLogger(__name__)
@@ -39,6 +39,7 @@ class RolloutStats:
     policy_s: float = 0.0
 
     def add(self, other: RolloutStats) -> None:
+        """Accumulate `other` into these counters."""
         for name in ("episodes", "steps", "policy_calls", "sim_s", "policy_s"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
 
@@ -166,7 +167,7 @@ class LockstepRunner:
         t0 = time.perf_counter()
         try:
             obs = self.env.reset_slot(slot, episode_spec(episode))
-        except (OSError, RuntimeError, TimeoutError, ConnectionError) as err:
+        except ENGINE_ERRORS as err:
             logger.warning(
                 "episode %s: simulator reset failed (%s); scored from its start", episode.episode_id, err
             )
@@ -192,7 +193,7 @@ class LockstepRunner:
         for slot, action, detail in zip(active, actions, details):
             running = slots[slot]
             running.record.boxes.append(_box_list(detail.get("box")))
-            running.record.keyframes.append(detail.get("keyframe"))
+            running.record.keyframes.append(detail.get("keyframes"))
             if running.frames is not None:
                 _log_frame(running, detail)
             if action != C.ACTION_STOP:
@@ -242,21 +243,17 @@ def _failed_start(episode: Episode, split: str, policy_name: str, err: Exception
 
 
 def teleport_record(episode: Episode, split: str, policy_name: str, max_steps: int) -> EpisodeRecord:
-    """The oracle's record for an episode whose actions do not replay: it moves along the ground-truth poses.
+    """The oracle's record for an episode whose actions do not replay: it moves along the recorded poses.
 
-    Poses are the recorded poses (then the goal, if it lies beyond them), cut after `max_steps` moves; the
-    actions are the recorded labels of those moves, for reference only, then STOP. No simulator is stepped.
+    Poses are the recorded ones, cut after `max_steps` moves, then STOP (when within the step budget); the
+    actions are the recorded labels of those moves, for reference only. No simulator is stepped.
     """
-    yaws = np.asarray(episode.yaws, dtype=np.float64)
-    path = reference_path(episode)  # (G, 3)
-    yaw_of = np.concatenate([yaws, yaws[-1:]])[: len(path)]
-    poses = np.concatenate([path, yaw_of[:, None]], axis=1)[: max_steps + 1]  # (M + 1, 4)
+    poses = episode.poses[: max_steps + 1]  # (M + 1, 4)
     moves = len(poses) - 1
-    labels = [int(a) for a in episode.actions[:moves]] + [0] * max(0, moves - len(episode.actions))
-    stopped = len(path) - 1 <= max_steps
+    stopped = len(episode) <= max_steps  # T - 1 moves, then the STOP: T actions in the budget
     obs = Observation(rgb=np.zeros((1, 1, 3), dtype=np.uint8), pose=episode_spec(episode).start)
     record = _new_record(episode, split, policy_name, obs)
     record.poses = poses.tolist() + ([poses[-1].tolist()] if stopped else [])
-    record.actions = labels + ([C.ACTION_STOP] if stopped else [])
+    record.actions = [int(a) for a in episode.actions[:moves]] + ([C.ACTION_STOP] if stopped else [])
     record.stopped, record.end_reason = stopped, "teleport" if stopped else "max_steps"
     return record

@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
     log_name,
@@ -34,24 +34,38 @@ RUN_IDENTITY_NAME = "run_identity.json"
 
 
 def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessInfo) -> None:
-    """Make `folder` ready for this run: refuse to mix results of different settings unless `overwrite`."""
+    """Make `folder` ready for this run: refuse to mix results of different settings unless `overwrite`.
+
+    Every process checks (so all of them fail together, none waits at a barrier alone); rank 0 writes.
+    """
     path = folder / RUN_IDENTITY_NAME
+    if path.is_file() and not overwrite:
+        stored = json.loads(path.read_text())
+        changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
+        if changed:
+            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+            raise EvalInputError(
+                f"{folder} holds results of other settings ({details}); pass another --output_dir "
+                "or --overwrite=true to discard them"
+            )
+    info.wait()
     if info.is_main:
         if overwrite and folder.exists():
             shutil.rmtree(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        if path.is_file():
-            stored = json.loads(path.read_text())
-            changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
-            if changed:
-                details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
-                raise ValueError(
-                    f"{folder} holds results of other settings ({details}); pass another --output_dir "
-                    "or --overwrite=true to discard them"
-                )
-        else:
+        if not path.is_file():
             path.write_text(json.dumps(identity, indent=2, sort_keys=True) + "\n")
     info.wait()
+
+
+def result_identity(cfg: EvalConfig, policy: str) -> dict:
+    """`cfg.result_identity(policy)`, plus the fingerprint of the agent's weights."""
+    identity = cfg.result_identity(policy)
+    if policy == "agent":
+        from openfly_agent.eval.agent_policy import checkpoint_fingerprint
+
+        identity["weights"] = checkpoint_fingerprint(cfg.checkpoint)
+    return identity
 
 
 def gif_path(folder: Path, split: str, episode_id: str) -> Path:
@@ -118,7 +132,7 @@ def run(cfg: EvalConfig) -> dict:
     """
     from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
 
-    info = process_info()
+    info = process_info(cpu=True if cfg.device == "cpu" else None)
     if cfg.torch_threads is not None:
         import torch
 
@@ -130,7 +144,7 @@ def run(cfg: EvalConfig) -> dict:
     try:
         for name in cfg.policies:
             folder = root / name
-            prepare_output(folder, cfg.result_identity(name), cfg.overwrite, info)
+            prepare_output(folder, result_identity(cfg, name), cfg.overwrite, info)
             policy = make_policy(name, cfg, all_episodes, info)
             render = bool(policy.needs_frames or cfg.gif_episodes)
             if render not in envs:

@@ -13,10 +13,13 @@ import logging
 from typing import Protocol
 
 from openfly_agent.sim.base import EpisodeSpec, Observation, Simulator, StepInfo
+from openfly_agent.sim.bridges.base import BridgeError
 
 logger = logging.getLogger(__name__)
 
 ERROR_KEY = "error"  # StepInfo.extra key holding the engine error message
+# What an engine failure looks like: the bridges' error (after their one reconnect) or a socket / file error.
+ENGINE_ERRORS = (BridgeError, OSError)
 
 
 class SlotEnv(Protocol):
@@ -24,11 +27,17 @@ class SlotEnv(Protocol):
 
     num_slots: int
 
-    def reset_slot(self, slot: int, spec: EpisodeSpec) -> Observation: ...
+    def reset_slot(self, slot: int, spec: EpisodeSpec) -> Observation:
+        """Start `spec` in `slot` (whatever the slot was doing) and return its first observation."""
+        ...
 
-    def step(self, actions: list[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]: ...
+    def step(self, actions: list[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]:
+        """One action per slot (`None` leaves the slot alone); per slot (observation, info), or None."""
+        ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        """Release the simulators."""
+        ...
 
 
 class SimulatorSlots:
@@ -54,7 +63,7 @@ class SimulatorSlots:
                 continue
             try:
                 observations[slot], infos[slot] = self.sims[slot].step(int(action))
-            except (OSError, RuntimeError, TimeoutError, ConnectionError) as err:
+            except ENGINE_ERRORS as err:
                 logger.warning("slot %d: simulator step failed (%s); ending its episode", slot, err)
                 observations[slot] = self._last[slot]
                 infos[slot] = StepInfo(

@@ -23,6 +23,7 @@ from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
 from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
+from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.engine import assemble_run, make_accelerator
 from openfly_agent.training.export import export_merged_lora, make_exporter
@@ -51,6 +52,8 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)
+    if accelerator.is_main_process:
+        CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last).remove_stale_staging()
     splits = dict.fromkeys((cfg.data.train_split, cfg.data.val_split, cfg.data.test_split))
     episodes = {split: load_split(cfg.data, split) for split in splits}
     frames = FrameStore(
@@ -67,18 +70,7 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
     set_seed(cfg.seed)  # the same initial weights on every process and on resume
     agent = build_agent(cfg, tokenizer, norm_stats, init_format)
     apply_training_mode(agent, cfg)
-    datasets = {
-        split: NavigationStepDataset(
-            episodes[split],
-            frames,
-            keyframe_selector=agent.keyframe_selector,
-            history=cfg.data.history.mode,
-            capacity=cfg.data.history.capacity,
-            set_size=cfg.data.history.set_size,
-            seed=cfg.seed,
-        )
-        for split in splits
-    }
+    datasets = {split: make_dataset(cfg, agent, episodes[split], frames) for split in splits}
     collator = make_collator(agent, cfg)
     if accelerator.is_main_process:
         save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
@@ -101,6 +93,21 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
 def merge_lora_at_end(run: TrainingRun) -> None:
     """The `lora.merge_at_end` step: full merged weights in `<output_dir>/merged` (rank 0, CPU)."""
     export_merged_lora(run.accelerator, run.model, run.cfg.output_dir)
+
+
+def make_dataset(
+    cfg: TrainConfig, agent: OpenFlyAgent, episodes: list, frames: FrameStore
+) -> NavigationStepDataset:
+    """Per-step samples of `episodes` with the history mode of `cfg` and the agent's keyframe selector."""
+    return NavigationStepDataset(
+        episodes,
+        frames,
+        keyframe_selector=agent.keyframe_selector,
+        history=cfg.data.history.mode,
+        capacity=cfg.data.history.capacity,
+        set_size=cfg.data.history.set_size,
+        seed=cfg.seed,
+    )
 
 
 def make_collator(agent: OpenFlyAgent, cfg: TrainConfig) -> NavigationCollator:

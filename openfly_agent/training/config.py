@@ -172,10 +172,13 @@ class ValidationConfig:
     max_samples: int | None = 256  # evenly spaced subset of the validation split (None: all)
     final_max_samples: int | None = None  # the final pass on data.test_split (None: all)
     final_eval: bool = True  # evaluate data.test_split at the end and print the figures
+    per_device_batch_size: int | None = (
+        None  # evaluation batch per process (None: batch.per_device_batch_size)
+    )
 
     def __post_init__(self) -> None:
         _require(self.interval >= 0, f"validation.interval must be >= 0, got {self.interval}")
-        for name in ("max_samples", "final_max_samples"):
+        for name in ("max_samples", "final_max_samples", "per_device_batch_size"):
             value = getattr(self, name)
             _require(value is None or value > 0, f"validation.{name} must be > 0 or null, got {value}")
 

@@ -134,17 +134,18 @@ def assemble_run(
     )
     model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
     register_state_hooks(accelerator)
+    eval_batch = cfg.validation.per_device_batch_size or per_device
     val_loader = test_loader = None
     test_indices: list[int] = []
     if val_dataset is not None and cfg.validation.interval:
         val_loader, _ = make_eval_loader(
-            val_dataset, cfg.validation.max_samples, per_device, accelerator, collate_fn, cfg.data.num_workers
+            val_dataset, cfg.validation.max_samples, eval_batch, accelerator, collate_fn, cfg.data.num_workers
         )
     if test_dataset is not None and cfg.validation.final_eval:
         test_loader, test_indices = make_eval_loader(
             test_dataset,
             cfg.validation.final_max_samples,
-            per_device,
+            eval_batch,
             accelerator,
             collate_fn,
             cfg.data.num_workers,

@@ -75,7 +75,7 @@ class FitResult:
 
 
 class _StopFlags:
-    """Stop conditions every process agrees on (time limits are decided on rank 0 and broadcast)."""
+    """Stop conditions every process agrees on (the time limit ends the run when any process hits it)."""
 
     def __init__(self, cfg: TrainConfig, accelerator: Accelerator) -> None:
         self.accelerator = accelerator
@@ -104,7 +104,7 @@ def fit(run: TrainingRun) -> FitResult:
     progress = tqdm(total=run.total_steps, initial=state.step, disable=not acc.is_main_process, desc="train")
     run.model.train()
     stopped_early = False
-    last_checkpoint = None
+    last_checkpoint, saved_step = None, None
     while state.step < run.total_steps and not stopped_early:
         for batch in _epoch_batches(run):
             step_done = _train_micro_batch(run, batch, means)
@@ -118,7 +118,7 @@ def fit(run: TrainingRun) -> FitResult:
             if cfg.validation.interval and state.step % cfg.validation.interval == 0 and run.val_loader:
                 _log_metrics(run, "val", evaluate(run.model, run.val_loader, acc))
             if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
-                last_checkpoint = save_checkpoint(run)
+                last_checkpoint, saved_step = save_checkpoint(run), state.step
             if flags.stop_after is not None and state.step >= flags.stop_after:
                 logger.warning(
                     "stop_after_steps=%d reached: exiting without the final save", flags.stop_after
@@ -132,7 +132,7 @@ def fit(run: TrainingRun) -> FitResult:
                 stopped_early = True
                 break
     progress.close()
-    if last_checkpoint is None or TrainerState.load(last_checkpoint).step != state.step:
+    if saved_step != state.step:
         last_checkpoint = save_checkpoint(run)
     if run.after_training is not None:
         run.after_training(run)
@@ -189,11 +189,7 @@ def _finish_step(run: TrainingRun) -> None:
 def _log_train(run: TrainingRun, means: RunningMeans, meter: ThroughputMeter, progress) -> None:
     """Average the interval's logs over processes and send them to the trackers."""
     acc = run.accelerator
-    local = means.pop()
-    keys = sorted(local)
-    values = torch.tensor([local[k] for k in keys], dtype=torch.float64, device=acc.device)
-    averaged = acc.reduce(values, reduction="mean") if acc.num_processes > 1 else values
-    metrics = {k: float(v) for k, v in zip(keys, averaged.tolist())}
+    metrics = means.pop(acc)
     metrics.update(meter.report(acc))
     metrics.update(memory_stats(acc.device))
     metrics["lr"] = float(run.scheduler.get_last_lr()[0])

@@ -52,25 +52,42 @@ def memory_stats(device: torch.device) -> dict[str, float]:
 
 
 class RunningMeans:
-    """Means of logged floats accumulated over micro-batches and steps, emptied by `pop`."""
+    """Weighted means of logged floats over micro-batches, steps and (with `reduce`) processes.
+
+    `box_iou` is a mean over the visible boxes of its micro-batch, so it is weighted by `num_visible_boxes`;
+    everything else counts once per micro-batch. NaN values add nothing. Keys are never dropped, so every
+    process reduces the same vector.
+    """
+
+    WEIGHTS = {"box_iou": "num_visible_boxes"}
 
     def __init__(self) -> None:
         self._sums: dict[str, float] = defaultdict(float)
-        self._counts: dict[str, int] = defaultdict(int)
+        self._counts: dict[str, float] = defaultdict(float)
 
     def add(self, values: dict[str, float]) -> None:
-        """Add one micro-batch's logs (NaN values, e.g. an IoU with no visible box, are skipped)."""
+        """Add one micro-batch's logs."""
         for key, value in values.items():
             value = float(value)
-            if value == value:  # not NaN
-                self._sums[key] += value
-                self._counts[key] += 1
+            weight = float(values.get(self.WEIGHTS[key], 1.0)) if key in self.WEIGHTS else 1.0
+            if value != value:  # NaN
+                value, weight = 0.0, 0.0
+            self._sums[key] += value * weight
+            self._counts[key] += weight
 
-    def pop(self) -> dict[str, float]:
-        """The means so far, then reset."""
-        means = {k: self._sums[k] / self._counts[k] for k in self._sums}
+    def pop(self, accelerator=None) -> dict[str, float]:
+        """The means so far (summed over processes when an `accelerator` is given), then reset.
+
+        With an `accelerator`, every process must call this at the same step (it all-reduces).
+        """
+        keys = sorted(self._sums)
+        totals = torch.tensor(
+            [[self._sums[k] for k in keys], [self._counts[k] for k in keys]], dtype=torch.float64
+        )
+        if accelerator is not None and accelerator.num_processes > 1:
+            totals = accelerator.reduce(totals.to(accelerator.device), reduction="sum").cpu()
         self.__init__()
-        return means
+        return {k: float(s / c) if c > 0 else float("nan") for k, s, c in zip(keys, *totals.tolist())}
 
 
 def count_llm_tokens(batch: dict, model_cfg) -> int:

@@ -29,7 +29,7 @@ def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:
     Non-reentrant checkpointing, so frozen inputs (LoRA, frozen vision) need no `requires_grad` tricks.
     Returns the names of the modules switched on.
     """
-    agent.gradient_checkpointing_enable(gradient_checkpointing_kwargs={"use_reentrant": False})
+    agent.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
     switched = [name for name, m in agent.named_modules() if getattr(m, "gradient_checkpointing", False)]
     for name, module in agent.named_modules():
         if hasattr(module, "set_grad_checkpointing") and hasattr(module, "blocks"):  # a timm ViT

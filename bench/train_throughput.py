@@ -1,0 +1,238 @@
+"""Training throughput: samples/s, tokens/s and model FLOPs utilisation (MFU) of one optimizer step.
+
+    python bench/train_throughput.py                  # tiny on CPU; 7B + LoRA + bf16 on CUDA when present
+    python bench/train_throughput.py --configs tiny-cpu --batch 8 --steps 10
+
+Configurations (one JSON line each):
+- `tiny-cpu`: the tiny preset, full fine-tune, fp32, on the CPU (the embedded default of train.py);
+- `7b-lora-bf16`: the OpenFly-Agent 7B shape (random init) with LoRA r=32 on every LLM linear layer, the
+  vision backbone frozen, bf16 autocast, gradient checkpointing (configs/train/openfly-7b-lora.yaml, 1 GPU).
+Batches are synthetic but shaped like training: random 128 px frames resized by the agent's transform,
+~90-token instructions, and every memory slot filled (K sets of S frames), the most expensive case.
+FLOPs are counted by `torch.utils.flop_counter` over forward + backward (matmuls and attention). MFU divides
+them by the step time and the device peak: a measured fp32 matmul rate on the CPU (so CPU MFU is relative to
+what this machine achieves, not a datasheet), the bf16 dense datasheet peak on known GPUs (--peak_tflops to
+override). Wall-clock figures depend on other load: `load_avg_1m` is reported with each CPU line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+from contextlib import nullcontext
+
+import numpy as np
+import torch
+
+from openfly_agent import constants as C
+from openfly_agent.model.config import LoraSettings, make_model_config
+from openfly_agent.training.metrics import count_llm_tokens
+
+WORDS = (
+    "fly forward to the red skyscraper with a rooftop billboard then turn left at the tower ascend above the "
+    "white house and stop near the blue dome descend next to the grey tower go straight until the spire"
+).split()
+GPU_BF16_PEAK_TFLOPS = {
+    "H100": 989.0,
+    "H200": 989.0,
+    "A100": 312.0,
+    "L40S": 362.0,
+    "A10": 125.0,
+    "4090": 165.0,
+}
+
+
+def instructions(count: int, words: int = 70, seed: int = 0) -> list[str]:
+    """Template-like instructions of `words` words (about 90 BPE tokens, like the generated data)."""
+    rng = np.random.default_rng(seed)
+    return [" ".join(rng.choice(WORDS, size=words)) for _ in range(count)]
+
+
+def build_agent(preset: str, device: str):
+    """A randomly initialised agent of `preset` on `device` (7B: built on meta, materialised once there)."""
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    tokenizer = train_bpe_tokenizer(instructions(64), vocab_size=1024)
+    cfg = make_model_config(preset)
+    if cfg.llm.preset == "tiny":
+        return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device)
+    with torch.device("meta"):
+        agent = OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer)
+    agent.to_empty(device=device)
+    with torch.no_grad():
+        for module in agent.modules():
+            if type(module).__name__.endswith("RotaryEmbedding"):
+                agent.language_model._init_weights(module)
+        for name, param in agent.named_parameters():
+            if param.ndim >= 2:
+                param.normal_(0.0, 0.02)
+            else:
+                param.fill_(1.0 if name.endswith("weight") else 1e-5 if name.endswith("gamma") else 0.0)
+    agent.tokenizer = tokenizer
+    return agent
+
+
+def synthetic_batch(agent, batch: int, frame_px: int = 128, seed: int = 0) -> dict:
+    """A collated training batch with every memory slot filled (K sets x S frames)."""
+    from openfly_agent.data.collator import NavigationCollator
+
+    cfg = agent.model_cfg
+    k, s = cfg.memory.capacity, cfg.keyframes.set_size
+    rng = np.random.default_rng(seed)
+
+    def frame():
+        return rng.integers(0, 256, (frame_px, frame_px, 3), dtype=np.uint8)
+
+    def box():
+        return np.array([0.5, 0.5, 0.6, 0.6], dtype=np.float32)
+
+    samples = [
+        {
+            C.OBS_INSTRUCTION: text,
+            C.OBS_RGB: frame(),
+            C.MEMORY: [[(frame(), box(), True) for _ in range(s)] for _ in range(k)],
+            C.ACTION: int(rng.integers(0, C.NUM_ACTIONS)),
+            C.BOX: box(),
+            C.BOX_VISIBLE: True,
+        }
+        for text in instructions(batch, seed=seed)
+    ]
+    collate = NavigationCollator(
+        agent.tokenizer,
+        agent.action_tokenizer,
+        agent.image_transform,
+        agent.build_prompt,
+        capacity=k,
+        set_size=s,
+    )
+    return collate(samples)
+
+
+def step_flops(agent, batch: dict, autocast) -> float:
+    """FLOPs of one forward + backward, counted by PyTorch's FLOP counter."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    counter = FlopCounterMode(display=False)
+    with counter, autocast():
+        loss, _ = agent(batch)
+    with counter:
+        loss.backward()
+    agent.zero_grad(set_to_none=True)
+    return float(counter.get_total_flops())
+
+
+def cpu_peak_flops(size: int = 1024, repeats: int = 5) -> float:
+    """The best fp32 matmul rate of this CPU (all threads), FLOP/s."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    best = 0.0
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ b
+        best = max(best, 2 * size**3 / (time.perf_counter() - start))
+    return best
+
+
+def gpu_peak_flops(override_tflops: float | None) -> float | None:
+    """The bf16 dense datasheet peak of the current GPU (None when unknown and not given)."""
+    if override_tflops:
+        return override_tflops * 1e12
+    name = torch.cuda.get_device_name(0)
+    for key, tflops in GPU_BF16_PEAK_TFLOPS.items():
+        if key in name:
+            return tflops * 1e12
+    return None
+
+
+def time_steps(agent, batch: dict, steps: int, warmup: int, autocast, device: str) -> float:
+    """Median seconds per optimizer step (forward, backward, clip, AdamW)."""
+    from openfly_agent.training.optim import make_optimizer
+
+    optimizer = make_optimizer(agent, lr=1e-4, weight_decay=0.0, betas=(0.9, 0.95))
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    times = []
+    for i in range(warmup + steps):
+        sync()
+        start = time.perf_counter()
+        with autocast():
+            loss, _ = agent(batch)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_([p for p in agent.parameters() if p.requires_grad], 1.0)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        sync()
+        if i >= warmup:
+            times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def measure(name: str, batch_size: int, steps: int, warmup: int, peak_tflops: float | None) -> dict:
+    """One configuration's JSON row (or the reason it was skipped)."""
+    from openfly_agent.model.freeze import freeze
+    from openfly_agent.model.lora import attach_lora
+    from openfly_agent.training.modes import enable_gradient_checkpointing
+
+    big = name.startswith("7b")
+    row = {"config": name, "batch": batch_size}
+    if big and not torch.cuda.is_available():
+        return {**row, "device": "cuda (absent)", "skipped": "needs CUDA (7B, bf16)"}
+    device = "cuda" if big else "cpu"
+    torch.manual_seed(0)
+    agent = build_agent("openfly-7b" if big else "tiny", device).train()
+    if big:
+        attach_lora(agent, dataclasses.replace(LoraSettings(), rank=32, alpha=16))
+        enable_gradient_checkpointing(agent)
+        autocast = lambda: torch.autocast("cuda", dtype=torch.bfloat16)
+    else:
+        freeze(agent, "full")
+        autocast = nullcontext
+    batch = {
+        k: v.to(device) if torch.is_tensor(v) else v for k, v in synthetic_batch(agent, batch_size).items()
+    }
+    flops = step_flops(agent, batch, autocast)
+    seconds = time_steps(agent, batch, steps, warmup, autocast, device)
+    peak = gpu_peak_flops(peak_tflops) if big else cpu_peak_flops()
+    row.update(
+        device=device,
+        machine=torch.cuda.get_device_name(0) if big else f"{platform.processor() or platform.machine()} CPU",
+        threads=torch.get_num_threads(),
+        trainable_params=sum(p.numel() for p in agent.parameters() if p.requires_grad),
+        params=sum(p.numel() for p in agent.parameters()),
+        llm_tokens_per_sample=count_llm_tokens(batch, agent.model_cfg) / batch_size,
+        step_s=round(seconds, 4),
+        samples_per_s=round(batch_size / seconds, 2),
+        tokens_per_s=round(count_llm_tokens(batch, agent.model_cfg) / seconds, 1),
+        tflop_per_step=round(flops / 1e12, 4),
+        achieved_tflops=round(flops / seconds / 1e12, 4),
+        peak_tflops=round(peak / 1e12, 3) if peak else None,
+        mfu=round(flops / seconds / peak, 4) if peak else None,
+        peak_source="measured fp32 matmul"
+        if not big
+        else ("--peak_tflops" if peak_tflops else "bf16 datasheet"),
+    )
+    if big:
+        row["max_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+    else:
+        row["load_avg_1m"] = round(os.getloadavg()[0], 2)
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--configs", nargs="+", default=["tiny-cpu", "7b-lora-bf16"])
+    parser.add_argument("--batch", type=int, default=8, help="samples per optimizer step (one micro-batch)")
+    parser.add_argument("--steps", type=int, default=5, help="timed steps; step_s is their median")
+    parser.add_argument("--warmup", type=int, default=2)
+    parser.add_argument("--peak_tflops", type=float, default=None, help="GPU peak for MFU (bf16 dense)")
+    args = parser.parse_args()
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    for name in args.configs:
+        print(json.dumps(measure(name, args.batch, args.steps, args.warmup, args.peak_tflops)), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,132 @@
+"""Fixtures of the training tests: a real generated dataset, train configs and in-process runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+TINY_DATASET_YAML = Path(__file__).with_name("tiny_dataset.yaml")
+STEPS = 4  # optimizer steps of the reference run (global batch 4 = 2 micro-batches of 2)
+
+
+@pytest.fixture(scope="session")
+def generated_dataset(tmp_path_factory) -> Path:
+    """A dataset root written by the toolchain from embedded cities (train / test_seen / test_unseen)."""
+    from openfly_agent.toolchain.config import GenerateConfig
+    from openfly_agent.toolchain.generate import generate
+    from openfly_agent.utils.config import load_yaml_config
+
+    root = tmp_path_factory.mktemp("dataset") / "tiny"
+    cfg = load_yaml_config(GenerateConfig, TINY_DATASET_YAML, [f"--output_dir={root}"])
+    summary = generate(cfg, progress=False)
+    assert all(summary["per_split"].get(split, 0) > 0 for split in ("train", "test_seen", "test_unseen"))
+    return root
+
+
+@pytest.fixture(scope="session")
+def reference_run(generated_dataset, tmp_path_factory):
+    """An uninterrupted in-process run of STEPS steps, a checkpoint every 2: (output_dir, run, result).
+
+    The vision backbone is frozen, so resuming must rebuild frozen weights and restore only trainable ones.
+    """
+    out = tmp_path_factory.mktemp("reference")
+    run, result = train_in_process(make_config(generated_dataset, out, steps=STEPS))
+    return out, run, result
+
+
+def train_args(dataset: Path, output_dir: Path, **overrides) -> list[str]:
+    """Command-line overrides of configs/train/tiny.yaml for a test run (small batches, no TensorBoard)."""
+    args = {
+        "data.root": str(dataset),
+        "output_dir": str(output_dir),
+        "steps": 4,
+        "batch.global_batch_size": 4,
+        "batch.per_device_batch_size": 2,
+        "optim.warmup_steps": 1,
+        "logging.tracker": "none",
+        "logging.log_interval": 1,
+        "validation.interval": 0,
+        "validation.final_max_samples": 8,
+        "validation.per_device_batch_size": 4,
+        "checkpoint.save_interval": 2,
+        "checkpoint.keep_last": 5,
+        "data.generate_if_missing": "false",
+        "freeze_stage": "frozen_vision",
+    }
+    args.update({k.replace("__", "."): v for k, v in overrides.items()})
+    return ["--config_path", str(REPO_ROOT / "configs/train/tiny.yaml")] + [
+        f"--{k}={v}" for k, v in args.items()
+    ]
+
+
+def make_config(dataset: Path, output_dir: Path, **overrides):
+    """The `TrainConfig` of `train_args` (use `a__b=value` for `--a.b=value`)."""
+    from openfly_agent.training.config import TrainConfig
+    from openfly_agent.utils.config import parse_config
+
+    return parse_config(TrainConfig, train_args(dataset, output_dir, **overrides))
+
+
+def reset_accelerate() -> None:
+    """Forget accelerate's process-wide singletons so the next run starts clean (in-process runs only)."""
+    from accelerate.state import AcceleratorState, GradientState
+
+    AcceleratorState._reset_state(reset_partial_state=True)
+    GradientState._reset_state()
+
+
+def train_in_process(cfg):
+    """Build and fit a run in this process; returns (run, result)."""
+    from openfly_agent.training.builder import build_run
+    from openfly_agent.training.loop import fit
+
+    reset_accelerate()
+    try:
+        run = build_run(cfg)
+        return run, fit(run)
+    finally:
+        reset_accelerate()
+
+
+def _script_env() -> dict[str, str]:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "TOKENIZERS_PARALLELISM": "false"}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")])
+    return env
+
+
+def run_script(args: list[str], launcher: list[str] | None = None, timeout: float = 300):
+    """Run train.py to the end in a subprocess (optionally under a launcher such as torchrun)."""
+    command = (launcher or [sys.executable]) + [str(REPO_ROOT / "train.py"), *args]
+    return subprocess.run(
+        command, cwd=REPO_ROOT, env=_script_env(), capture_output=True, text=True, timeout=timeout
+    )
+
+
+def start_script(args: list[str]) -> subprocess.Popen:
+    """Start train.py in a subprocess and return at once (its output is discarded)."""
+    command = [sys.executable, str(REPO_ROOT / "train.py"), *args]
+    return subprocess.Popen(
+        command, cwd=REPO_ROOT, env=_script_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+
+
+def train_losses(output_dir: Path) -> dict[int, float]:
+    """step -> train/loss from a run's metrics.jsonl (the last record of a step wins, as after a resume)."""
+    losses = {}
+    for line in (Path(output_dir) / "logs" / "metrics.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if "train/loss" in record:
+            losses[record["step"]] = record["train/loss"]
+    return losses
+
+
+def checkpoint_weights(folder: Path) -> dict:
+    from safetensors.torch import load_file
+
+    return load_file(str(Path(folder) / "model.safetensors"))

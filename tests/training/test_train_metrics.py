@@ -1,0 +1,74 @@
+"""Logged means, token counts, evaluation subsets and the JSON-lines tracker, checked by hand."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from openfly_agent import constants as C
+from openfly_agent.model.config import tiny_config
+from openfly_agent.training.evaluate import eval_indices
+from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens
+from openfly_agent.training.trackers import JsonlTracker, make_trackers, read_metrics
+
+
+def test_running_means_weight_box_iou_by_visible_boxes():
+    means = RunningMeans()
+    means.add({"loss": 2.0, "box_iou": 0.5, "num_visible_boxes": 3.0})
+    means.add({"loss": 4.0, "box_iou": 0.0, "num_visible_boxes": 0.0})  # no visible box: IoU does not count
+    means.add({"loss": float("nan"), "box_iou": 0.9, "num_visible_boxes": 1.0})
+    result = means.pop()
+    assert result["loss"] == 3.0
+    assert math.isclose(result["box_iou"], (0.5 * 3 + 0.9) / 4)
+    assert means.pop() == {}
+
+
+def test_running_means_keep_all_nan_keys():
+    means = RunningMeans()
+    means.add({"x": float("nan")})
+    assert math.isnan(means.pop()["x"])
+
+
+def test_llm_token_count_hand_checked():
+    cfg = tiny_config()  # 112 px / 14 = 8 x 8 = 64 patches; g = 8 -> 1 token per memory set
+    mask = torch.zeros(2, 2, 5, dtype=torch.bool)  # (B, K, S)
+    mask[0, 0, :3] = True
+    mask[0, 1, 4] = True
+    mask[1, 1, 0] = True
+    batch = {
+        C.INPUT_IDS: torch.zeros(2, 10, dtype=torch.long),
+        C.ATTENTION_MASK: torch.tensor([[1] * 10, [1] * 6 + [0] * 4]),
+        C.MEMORY_FRAME_MASK: mask,
+    }
+    assert count_llm_tokens(batch, cfg) == 16 + 2 * 64 + 3 * 1
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(1, 500), st.one_of(st.none(), st.integers(1, 600)), st.integers(1, 16))
+def test_eval_indices_are_distinct_sorted_and_a_whole_multiple(num_samples, max_samples, multiple):
+    indices = eval_indices(num_samples, max_samples, multiple)
+    wanted = num_samples if max_samples is None else min(num_samples, max_samples)
+    assert len(indices) % multiple == 0 and wanted - multiple < len(indices) <= wanted
+    assert indices == sorted(set(indices)) and all(0 <= i < num_samples for i in indices)
+
+
+def test_throughput_meter_counts(monkeypatch):
+    clock = iter([0.0, 2.0, 2.0])
+    monkeypatch.setattr("openfly_agent.training.metrics.time.perf_counter", lambda: next(clock))
+    meter = ThroughputMeter()
+    meter.update(8, 1000)
+    meter.update(8, 1000)
+    assert meter.report() == {"samples_per_s": 8.0, "tokens_per_s": 1000.0}
+
+
+def test_jsonl_tracker_round_trip(tmp_path):
+    tracker = JsonlTracker("run", tmp_path)
+    tracker.store_init_configuration({"optim.lr": 0.1})
+    tracker.log({"train/loss": 1.5, "train/box_iou": float("nan")}, step=3)
+    assert read_metrics(tmp_path) == [{"step": 3, "train/loss": 1.5, "train/box_iou": "nan"}]
+    kinds = make_trackers("tensorboard", "run", tmp_path)
+    assert isinstance(kinds[0], JsonlTracker) and kinds[1] == "tensorboard"
+    assert len(make_trackers("none", "run", tmp_path)) == 1

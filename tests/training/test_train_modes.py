@@ -1,0 +1,93 @@
+"""LoRA runs (adapter checkpoints, rank-0 CPU merge), gradient checkpointing, init checkpoints and checks."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import make_config, train_in_process
+
+from openfly_agent import constants as C
+from openfly_agent.training.builder import build_run
+from openfly_agent.training.preflight import PreflightError
+
+
+def _test_batch(run, size: int = 4) -> dict:
+    from openfly_agent.data.collator import NavigationCollator
+
+    dataset = run.test_loader.dataset if run.test_loader is not None else run.train_loader.dataset
+    collate: NavigationCollator = run.train_loader.collate_fn
+    return collate([dataset[i] for i in range(size)])
+
+
+def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_path):
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.lora import TRAINABLES_NAME
+
+    cfg = make_config(
+        generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__enabled="true", lora__rank=4,
+        lora__alpha=8, optim__lr=1e-2, validation__final_eval="false",
+    )  # fmt: skip
+    run, result = train_in_process(cfg)
+    adapter = result.checkpoint / C.ADAPTER_DIR_NAME
+    assert (adapter / "adapter_config.json").is_file() and (adapter / TRAINABLES_NAME).is_file()
+    assert not (result.checkpoint / C.WEIGHTS_NAME).exists()  # base weights are not copied into checkpoints
+    assert (result.checkpoint / C.CONFIG_NAME).is_file() and (
+        result.checkpoint / C.ACTION_TOKENIZER_NAME
+    ).is_file()
+    merged = OpenFlyAgent.from_pretrained(str(tmp_path / "merged")).eval()
+    assert not any("lora_" in k for k in merged.state_dict())
+    lora_agent = run.accelerator.unwrap_model(run.model).eval()
+    batch = _test_batch(run)
+    with torch.no_grad():
+        expected, _ = lora_agent(batch)
+        found, _ = merged(batch)
+    torch.testing.assert_close(found, expected, rtol=1e-4, atol=1e-5)
+    b = lora_agent.language_model.base_model.model.model.layers[0].self_attn.q_proj.lora_B["default"].weight
+    assert b.abs().max() > 0  # the adapter trained, so the merge really changed the weights
+
+
+def test_gradient_checkpointing_gives_the_same_loss_and_gradients(generated_dataset, tmp_path):
+    from openfly_agent.training.modes import enable_gradient_checkpointing
+
+    cfg = make_config(generated_dataset, tmp_path, freeze_stage="full", validation__final_eval="false")
+    run = _built(cfg)
+    agent = run.accelerator.unwrap_model(run.model).train()
+    batch = _test_batch(run, size=2)
+    loss, _ = agent(batch)
+    loss.backward()
+    plain = {n: p.grad.clone() for n, p in agent.named_parameters() if p.grad is not None}
+    agent.zero_grad()
+    switched = enable_gradient_checkpointing(agent)
+    assert any("layers" in n for n in switched) and any("featurizer" in n for n in switched)
+    again, _ = agent(batch)
+    again.backward()
+    torch.testing.assert_close(again, loss)
+    for name, grad in plain.items():
+        torch.testing.assert_close(agent.get_parameter(name).grad, grad, rtol=1e-4, atol=1e-6, msg=name)
+
+
+def test_init_checkpoint_of_another_architecture_fails_before_training(
+    reference_run, generated_dataset, tmp_path
+):
+    _, _, result = reference_run
+    cfg = make_config(
+        generated_dataset, tmp_path, init__checkpoint=str(result.checkpoint), model__llm__hidden_size=64
+    )
+    with pytest.raises(PreflightError, match=r"model\.llm\.hidden_size: checkpoint 128, config 64"):
+        _built(cfg)
+
+
+def test_init_from_our_checkpoint_starts_from_its_weights(reference_run, generated_dataset, tmp_path):
+    _, reference, result = reference_run
+    cfg = make_config(generated_dataset, tmp_path, init__checkpoint=str(result.checkpoint))
+    run = _built(cfg)
+    trained = reference.accelerator.unwrap_model(reference.model).state_dict()
+    for key, value in run.accelerator.unwrap_model(run.model).state_dict().items():
+        torch.testing.assert_close(value, trained[key], rtol=0, atol=0, msg=key)
+
+
+def _built(cfg):
+    from conftest import reset_accelerate
+
+    reset_accelerate()
+    return build_run(cfg)

@@ -1,0 +1,109 @@
+"""End to end on the real tiny preset and generated data: learning, checkpoints, resume, reload and act."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import STEPS, checkpoint_weights, make_config, train_in_process, train_losses
+
+from openfly_agent import constants as C
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.state import ACCELERATE_STATE_DIR, TRAINER_STATE_NAME
+
+
+def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path):
+    from openfly_agent.training.builder import make_collator
+    from openfly_agent.training.optim import make_optimizer
+
+    cfg = make_config(generated_dataset, tmp_path)
+    from openfly_agent.data.dataset import NavigationStepDataset
+    from openfly_agent.data.frames import FrameStore
+    from openfly_agent.data.openfly_reader import load_openfly_dataset
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    episodes = load_openfly_dataset(generated_dataset, C.SPLIT_TRAIN, cfg.data.reader)
+    tokenizer = train_bpe_tokenizer([e.instruction for e in episodes], cfg.tokenizer.train_vocab_size)
+    torch.manual_seed(0)
+    agent = OpenFlyAgent.from_model_config(cfg.model, tokenizer=tokenizer).train()
+    dataset = NavigationStepDataset(episodes, FrameStore(generated_dataset), agent.keyframe_selector)
+    batch = make_collator(agent, cfg)([dataset[i] for i in range(0, len(dataset), len(dataset) // 4)][:4])
+    optimizer = make_optimizer(agent, lr=1e-3, weight_decay=0.0, betas=(0.9, 0.95))
+    losses = []
+    for _ in range(6):
+        loss, logs = agent(batch)
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad()
+        losses.append(logs["loss"])
+    assert losses[-1] < 0.7 * losses[0], losses
+
+
+def test_run_writes_checkpoints_in_the_hf_layout(reference_run):
+    out, run, result = reference_run
+    manager = CheckpointManager(out, keep_last=5)
+    assert [p.name for p in manager.complete_checkpoints()] == ["step-000002", "step-000004"]
+    final = manager.latest()
+    assert result.checkpoint == final and result.state.step == STEPS
+    for name in (
+        C.CONFIG_NAME, C.WEIGHTS_NAME, C.ACTION_TOKENIZER_NAME, C.TRAIN_CONFIG_NAME, TRAINER_STATE_NAME,
+        "tokenizer.json", "tokenizer_config.json",
+    ):  # fmt: skip
+        assert (final / name).is_file(), name
+    assert (final / ACCELERATE_STATE_DIR / "optimizer.bin").is_file()
+    state_keys = checkpoint_weights(final / ACCELERATE_STATE_DIR).keys()  # trainable tensors only
+    assert state_keys and not any(k.startswith("vision_backbone.") for k in state_keys)
+    assert any(k.startswith("vision_backbone.") for k in checkpoint_weights(final))
+    assert json.loads((final / C.TRAIN_CONFIG_NAME).read_text())["steps"] == STEPS
+    assert sorted(train_losses(out)) == list(range(1, STEPS + 1))
+    assert set(result.final_metrics) >= {"action_accuracy", "box_iou", "majority_class_rate", "samples"}
+    assert 0.0 <= result.final_metrics["majority_class_rate"] <= 1.0
+
+
+def test_saved_checkpoint_loads_and_acts(reference_run, generated_dataset):
+    from openfly_agent.data.frames import FrameStore
+    from openfly_agent.data.openfly_reader import load_openfly_dataset
+    from openfly_agent.model.agent import OpenFlyAgent
+
+    out, run, result = reference_run
+    agent = OpenFlyAgent.from_pretrained(str(result.checkpoint)).eval()
+    trained = run.accelerator.unwrap_model(run.model).state_dict()
+    for key, value in agent.state_dict().items():
+        torch.testing.assert_close(value, trained[key], rtol=0, atol=0, msg=key)
+    episode = load_openfly_dataset(generated_dataset, C.SPLIT_TEST_UNSEEN)[0]
+    frames = FrameStore(generated_dataset).frames(episode)
+    observations = [
+        {
+            C.EPISODE_ID: episode.episode_id,
+            C.OBS_INSTRUCTION: episode.instruction,
+            C.OBS_RGB: frames[t],
+            C.OBS_POSE: np.array([*episode.positions[t], episode.yaws[t]]),
+        }
+        for t in range(2)
+    ]
+    actions = [agent.select_action([obs])[0] for obs in observations]
+    assert all(a in C.MODEL_ACTION_IDS for a in actions)
+
+
+def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, generated_dataset, tmp_path):
+    out, _, _ = reference_run
+    _, stopped = train_in_process(
+        make_config(generated_dataset, tmp_path, steps=STEPS, stop_after_steps=3)
+    )  # no final eval
+    assert stopped.stopped_early and stopped.state.step == 3
+    assert CheckpointManager(tmp_path, 5).latest().name == "step-000002"  # step 3 was never saved
+    resume = make_config(
+        generated_dataset, tmp_path, steps=STEPS, resume="true", validation__final_eval="false"
+    )
+    _, resumed = train_in_process(resume)
+    assert resumed.state.step == STEPS
+    expected = checkpoint_weights(out / "checkpoints" / "step-000004")
+    found = checkpoint_weights(tmp_path / "checkpoints" / "step-000004")
+    assert expected.keys() == found.keys()
+    for key in expected:
+        torch.testing.assert_close(found[key], expected[key], rtol=0, atol=0, msg=key)
+    reference, again = train_losses(out), train_losses(tmp_path)
+    assert again == pytest.approx(reference, rel=0, abs=0)
