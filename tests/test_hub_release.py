@@ -287,7 +287,7 @@ def test_card_usage_code_runs_against_the_hub(pushed, source, tmp_path):
     """The card's Python block, verbatim, downloads the pushed repo anonymously and acts like the source."""
     body = pushed.received["README.md"].decode()
     [usage] = [b for b in re.findall(r"```python\n(.*?)```", body, flags=re.DOTALL) if "from_pretrained" in b]
-    assert 'snapshot_download("me/openfly-tiny")' in usage
+    assert 'AutoModel.from_pretrained("me/openfly-tiny", trust_remote_code=True)' in usage
     result = run_python(usage, tmp_path, HF_ENDPOINT=pushed.hub.url, HF_HUB_OFFLINE="0")
     printed = last_json_line(result)
     namespace = {"agent": source.agent, "np": np}
