@@ -32,10 +32,46 @@ from openfly_agent import constants as C
 from openfly_agent.model.config import LoraSettings, make_model_config
 from openfly_agent.training.metrics import count_llm_tokens
 
-WORDS = (
-    "fly forward to the red skyscraper with a rooftop billboard then turn left at the tower ascend above the "
-    "white house and stop near the blue dome descend next to the grey tower go straight until the spire"
-).split()
+WORDS = [
+    "fly",
+    "forward",
+    "to",
+    "the",
+    "red",
+    "skyscraper",
+    "with",
+    "a",
+    "rooftop",
+    "billboard",
+    "then",
+    "turn",
+    "left",
+    "at",
+    "the",
+    "tower",
+    "ascend",
+    "above",
+    "the",
+    "white",
+    "house",
+    "and",
+    "stop",
+    "near",
+    "the",
+    "blue",
+    "dome",
+    "descend",
+    "next",
+    "to",
+    "the",
+    "grey",
+    "tower",
+    "go",
+    "straight",
+    "until",
+    "the",
+    "spire",
+]
 GPU_BF16_PEAK_TFLOPS = {
     "H100": 989.0,
     "H200": 989.0,

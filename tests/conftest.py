@@ -18,7 +18,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 def _find_openfly_fixtures() -> Path | None:
     env = os.environ.get("OPENFLY_FIXTURES")
     candidates = [Path(env)] if env else []
-    candidates += [REPO_ROOT / "shared" / "fixtures" / "openfly", REPO_ROOT.parent / "shared" / "fixtures" / "openfly"]
+    candidates += [
+        REPO_ROOT / "shared" / "fixtures" / "openfly",
+        REPO_ROOT.parent / "shared" / "fixtures" / "openfly",
+    ]
     for path in candidates:
         if (path / "eval_test.json").is_file():
             return path

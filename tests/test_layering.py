@@ -6,7 +6,17 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "openfly_agent"
-LEVEL = {"constants": 0, "utils": 0, "model": 1, "data": 1, "sim": 1, "toolchain": 2, "training": 2, "eval": 2, "hub": 3}
+LEVEL = {
+    "constants": 0,
+    "utils": 0,
+    "model": 1,
+    "data": 1,
+    "sim": 1,
+    "toolchain": 2,
+    "training": 2,
+    "eval": 2,
+    "hub": 3,
+}
 SIBLINGS_FORBIDDEN = {"model", "data", "sim"}  # L1 parts never import each other
 
 

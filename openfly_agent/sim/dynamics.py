@@ -36,9 +36,7 @@ class Motion:
 
 
 def _forward(pose: Pose, metres: float) -> Pose:
-    return Pose(
-        pose.x + metres * math.cos(pose.yaw), pose.y + metres * math.sin(pose.yaw), pose.z, pose.yaw
-    )
+    return Pose(pose.x + metres * math.cos(pose.yaw), pose.y + metres * math.sin(pose.yaw), pose.z, pose.yaw)
 
 
 def _lateral(pose: Pose, metres_left: float) -> Pose:

@@ -82,7 +82,9 @@ class OccupancyGrid:
         """A copy with obstacles inflated by ceil(radius / voxel) voxels (a cube, as the official planner)."""
         r = int(math.ceil(radius_m / self.voxel_size))
         if r <= 0:
-            return OccupancyGrid(self.origin.copy(), self.voxel_size, self.occupied.copy(), self.outside_occupied)
+            return OccupancyGrid(
+                self.origin.copy(), self.voxel_size, self.occupied.copy(), self.outside_occupied
+            )
         occ = self.occupied
         for axis in range(3):  # separable max filter
             padded = np.pad(occ, [(r, r) if a == axis else (0, 0) for a in range(3)])

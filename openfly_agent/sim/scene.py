@@ -53,7 +53,10 @@ class SceneBounds:
         """(N, 3) -> (N,) bool."""
         p = np.atleast_2d(points)
         return (
-            (p[:, 0] >= self.xmin) & (p[:, 0] <= self.xmax)
-            & (p[:, 1] >= self.ymin) & (p[:, 1] <= self.ymax)
-            & (p[:, 2] >= self.zmin) & (p[:, 2] <= self.zmax)
+            (p[:, 0] >= self.xmin)
+            & (p[:, 0] <= self.xmax)
+            & (p[:, 1] >= self.ymin)
+            & (p[:, 1] <= self.ymax)
+            & (p[:, 2] >= self.zmin)
+            & (p[:, 2] <= self.zmax)
         )

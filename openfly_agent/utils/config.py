@@ -15,7 +15,9 @@ from typing import Any, TypeVar
 T = TypeVar("T")
 
 
-def parse_config(config_class: type[T], args: list[str] | None = None, config_path: str | Path | None = None) -> T:
+def parse_config(
+    config_class: type[T], args: list[str] | None = None, config_path: str | Path | None = None
+) -> T:
     """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus)."""
     import draccus
 
