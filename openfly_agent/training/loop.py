@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,8 +76,15 @@ class FitResult:
     stopped_early: bool
 
 
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)  # cluster preemption notices (SLURM `--signal`)
+
+
 class _StopFlags:
-    """Stop conditions every process agrees on (the time limit ends the run when any process hits it)."""
+    """Stop conditions every process agrees on: the time limit or a stop signal, on any process.
+
+    SIGTERM / SIGUSR1 do not kill the run: the loop finishes the current optimizer step, saves a checkpoint and
+    returns (without the final evaluation), so `--resume` continues from exactly there.
+    """
 
     def __init__(self, cfg: TrainConfig, accelerator: Accelerator) -> None:
         self.accelerator = accelerator
@@ -83,12 +92,36 @@ class _StopFlags:
         if cfg.time_limit_minutes is not None:
             self.deadline = time.monotonic() + 60.0 * cfg.time_limit_minutes
         self.stop_after = cfg.stop_after_steps
+        self.signal_name: str | None = None
+        self._previous: dict[int, Any] = {}
 
-    def time_is_up(self) -> bool:
-        if self.deadline is None:
-            return False
-        flag = torch.tensor([float(time.monotonic() >= self.deadline)], device=self.accelerator.device)
-        return bool(self.accelerator.reduce(flag, reduction="sum").item() > 0)  # any process
+    def install(self) -> None:
+        """Catch the stop signals (main thread only; a no-op elsewhere, e.g. in a notebook worker thread)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in STOP_SIGNALS:
+            self._previous[sig] = signal.signal(sig, self._on_signal)
+
+    def restore(self) -> None:
+        """Put back the handlers that were there before `install`."""
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
+
+    def _on_signal(self, signum: int, frame) -> None:
+        self.signal_name = signal.Signals(signum).name
+        logger.warning(
+            "%s received: stopping after this optimizer step and saving a checkpoint", self.signal_name
+        )
+
+    def stop_reason(self) -> str | None:
+        """'signal' or 'time' when any process must stop now, else None (one all-reduce per call)."""
+        time_up = self.deadline is not None and time.monotonic() >= self.deadline
+        flags = torch.tensor(
+            [float(self.signal_name is not None), float(time_up)], device=self.accelerator.device
+        )
+        signalled, timed_out = (self.accelerator.reduce(flags, reduction="sum") > 0).tolist()
+        return "signal" if signalled else "time" if timed_out else None
 
 
 def fit(run: TrainingRun) -> FitResult:
@@ -96,14 +129,23 @@ def fit(run: TrainingRun) -> FitResult:
 
     Each optimizer step consumes one global batch: `accumulation_steps` micro-batches on each process.
     Checkpoints are written every `checkpoint.save_interval` steps and at the end; `stop_after_steps` ends the
-    process without the final save (how tests simulate a crash).
+    process without the final save (how tests simulate a crash). SIGTERM / SIGUSR1 end the run after the current
+    step with a checkpoint and no final evaluation.
     """
+    flags = _StopFlags(run.cfg, run.accelerator)
+    flags.install()
+    try:
+        return _fit(run, flags)
+    finally:
+        flags.restore()
+
+
+def _fit(run: TrainingRun, flags: _StopFlags) -> FitResult:
     cfg, acc, state = run.cfg, run.accelerator, run.state
-    flags = _StopFlags(cfg, acc)
     means, meter = RunningMeans(), ThroughputMeter()
     progress = tqdm(total=run.total_steps, initial=state.step, disable=not acc.is_main_process, desc="train")
     run.model.train()
-    stopped_early = False
+    stopped_early, reason = False, None
     last_checkpoint, saved_step = None, None
     while state.step < run.total_steps and not stopped_early:
         for batch in _epoch_batches(run):
@@ -127,13 +169,20 @@ def fit(run: TrainingRun) -> FitResult:
                 return FitResult(state, last_checkpoint, {}, stopped_early=True)
             if state.step >= run.total_steps:
                 break
-            if flags.time_is_up():
+            reason = flags.stop_reason()
+            if reason == "time":
                 logger.info("time_limit_minutes=%s reached at step %d", cfg.time_limit_minutes, state.step)
+            if reason is not None:
                 stopped_early = True
                 break
     progress.close()
     if saved_step != state.step:
         last_checkpoint = save_checkpoint(run)
+    if reason == "signal":
+        logger.warning(
+            "stopped by a signal at step %d; `--resume` continues from %s", state.step, last_checkpoint
+        )
+        return FitResult(state, last_checkpoint, {}, stopped_early=True)
     if run.after_training is not None:
         run.after_training(run)
     final = _final_evaluation(run)

@@ -3,11 +3,21 @@
 from __future__ import annotations
 
 import json
+import signal
+import time
 
 import numpy as np
 import pytest
 import torch
-from conftest import STEPS, checkpoint_weights, make_config, train_in_process, train_losses
+from conftest import (
+    STEPS,
+    checkpoint_weights,
+    make_config,
+    start_script,
+    train_args,
+    train_in_process,
+    train_losses,
+)
 
 from openfly_agent import constants as C
 from openfly_agent.training.checkpoint import CheckpointManager
@@ -107,3 +117,29 @@ def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, gen
         torch.testing.assert_close(found[key], expected[key], rtol=0, atol=0, msg=key)
     reference, again = train_losses(out), train_losses(tmp_path)
     assert again == pytest.approx(reference, rel=0, abs=0)
+
+
+def test_sigterm_saves_a_checkpoint_and_resume_finishes(generated_dataset, tmp_path):
+    """A preemption notice (SIGTERM) ends the run after the current step with a resumable checkpoint."""
+    args = train_args(
+        generated_dataset, tmp_path, steps=10_000, checkpoint__save_interval=0, validation__final_eval="false"
+    )
+    process = start_script(args)
+    metrics = tmp_path / "logs" / "metrics.jsonl"
+    deadline = time.monotonic() + 240
+    while not (metrics.is_file() and train_losses(tmp_path)):  # the first logged step: training is under way
+        assert process.poll() is None, "train.py exited before training started"
+        assert time.monotonic() < deadline, "no training step logged within 240 s"
+        time.sleep(0.5)
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=120) == 0
+    latest = CheckpointManager(tmp_path, 5).latest()
+    assert latest is not None, "no checkpoint after SIGTERM"
+    stopped_at = int(latest.name.split("-")[1])
+    assert 1 <= stopped_at < 10_000
+    assert (latest / "model.safetensors").is_file()
+    resume = make_config(
+        generated_dataset, tmp_path, steps=stopped_at + 2, resume="true", validation__final_eval="false"
+    )
+    _, resumed = train_in_process(resume)
+    assert resumed.state.step == stopped_at + 2
