@@ -189,3 +189,29 @@ def test_writer_rejects_bad_episodes_and_writes_nothing(tmp_path, change, field)
         OpenFlyDatasetWriter(tmp_path).write_episode(episode, frames)
     assert info.value.field_name == field
     assert not any(tmp_path.rglob("*.parquet")) and not any(tmp_path.rglob("*.json"))
+
+
+def test_part_files_roll_over_and_replace_in_place(tmp_path):
+    ids = [f"embedded-1/astar_data/low_short/traj_{i}" for i in range(5)]
+    episodes = [make_episode(eid, [9, 2, 0], "train", seed=i) for i, eid in enumerate(ids)]
+    writer = OpenFlyDatasetWriter(tmp_path, part_max_records=2)
+    for episode in episodes:
+        writer.write_episode(episode, make_frames(len(episode)))
+    folder = tmp_path / "Annotation/parts/train"
+    sizes = {p.name: len(json.loads(p.read_text())) for p in folder.glob("*.json")}
+    assert sizes == {"embedded-1.json": 2, "embedded-1.part-1.json": 2, "embedded-1.part-2.json": 1}
+    episodes[0].instruction = "a new instruction"
+    writer.write_episode(episodes[0], make_frames(3))  # rewritten: stays in the first part, no duplicate
+    first = json.loads((folder / "embedded-1.json").read_text())
+    assert len(first) == 2 and "a new instruction" in {r["gpt_instruction"] for r in first}
+    reopened = OpenFlyDatasetWriter(tmp_path, part_max_records=2)  # a resumed process continues the last part
+    assert all(reopened.has_episode(eid) for eid in ids)
+    extra = make_episode("embedded-1/astar_data/low_short/traj_5", [9, 0], "train", seed=9)
+    reopened.write_episode(extra, make_frames(2))
+    assert len(json.loads((folder / "embedded-1.part-2.json").read_text())) == 2
+    info = reopened.finalize()
+    assert info["num_episodes"] == 6
+    read = load_openfly_dataset(tmp_path, "train", KEEP)
+    assert sorted(e.episode_id for e in read) == sorted(ids + [extra.episode_id])
+    with pytest.raises(ValueError, match="part_max_records"):
+        OpenFlyDatasetWriter(tmp_path, part_max_records=0)

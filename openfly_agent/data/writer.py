@@ -2,7 +2,8 @@
 
 Layout of a dataset root (the release's, so one reader serves both):
     traj/<scene>/astar_data/<category>/<folder>.parquet   one per trajectory, one row per kept frame
-    Annotation/parts/<split>/<scene>.json                 records, rewritten as trajectories finish
+    Annotation/parts/<split>/<scene>[.part-<k>].json      records, rewritten as trajectories finish
+                                                          (at most PART_MAX_RECORDS per file)
     Annotation/{train,seen,unseen}.json                   merged from the parts by finalize()
     meta/info.json, meta/stats.json, meta/data_files.json counts and scenes; action statistics; file lists
 Parts make generation resumable (`has_episode`) and shardable (writers on several machines write
@@ -31,6 +32,7 @@ logger = logging.getLogger(__name__)
 
 IMAGE_FORMATS = {"png": "png", "jpeg": "jpg", "jpg": "jpg"}
 DATA_FILES_JSON = "meta/data_files.json"
+PART_MAX_RECORDS = 256  # records per part file: a write rewrites at most this many (not the whole scene)
 
 
 def write_json_atomic(path: Path, data) -> None:
@@ -59,14 +61,18 @@ class OpenFlyDatasetWriter:
     Args:
         root: dataset root (created if needed).
         image_format: "png" (lossless, as released) or "jpeg" (quality 95).
+        part_max_records: records per annotation part file before a new one is started.
     """
 
-    def __init__(self, root: str | Path, image_format: str = "png"):
+    def __init__(self, root: str | Path, image_format: str = "png", part_max_records: int = PART_MAX_RECORDS):
+        if part_max_records < 1:
+            raise ValueError(f"part_max_records={part_max_records}: must be >= 1")
         if image_format not in IMAGE_FORMATS:
             raise ValueError(f"image_format={image_format!r}: choose one of {sorted(IMAGE_FORMATS)}")
         self.root = Path(root)
         self.image_format = image_format
         self._ext = IMAGE_FORMATS[image_format]
+        self.part_max_records = part_max_records
         self._part_of: dict[str, Path] | None = None  # episode id -> part file, loaded on first use
         # part file -> {episode id: record as JSON text}; a part is rewritten without re-encoding old records
         self._part_text: dict[Path, dict[str, str]] = {}
@@ -78,8 +84,24 @@ class OpenFlyDatasetWriter:
         return self.root / C.DATASET_TRAJ_DIR / f"{episode_id}.parquet"
 
     def part_path(self, split: str, scene_id: str) -> Path:
-        """`<root>/Annotation/parts/<split>/<scene_id>.json`."""
-        return self.root / C.DATASET_PARTS_DIR / split / f"{scene_id}.json"
+        """The part file a new record of (split, scene) goes to.
+
+        `<root>/Annotation/parts/<split>/<scene_id>.json`, then `<scene_id>.part-<k>.json` (k = 1, 2, ...) once
+        the previous one holds `part_max_records` records, so each write rewrites a bounded file.
+        """
+        folder = self.root / C.DATASET_PARTS_DIR / split
+        path, k = folder / f"{scene_id}.json", 0
+        while len(self._records_text(path)) >= self.part_max_records:
+            k += 1
+            path = folder / f"{scene_id}.part-{k}.json"
+        return path
+
+    def _part_for(self, episode: Episode) -> Path:
+        """The episode's existing part file when it stays in its split (replaced in place), else a new slot."""
+        existing = self._part_index().get(episode.episode_id)
+        if existing is not None and existing.parent.name == episode.split:
+            return existing
+        return self.part_path(episode.split, episode.scene_id)
 
     def _part_index(self) -> dict[str, Path]:
         if self._part_of is None:
@@ -113,7 +135,7 @@ class OpenFlyDatasetWriter:
         table = trajectory_table(episode, encoded, self._ext)
         path = self.trajectory_path(episode.episode_id)
         write_table_atomic(table, path)
-        self._put_record(record_from_episode(episode), self.part_path(episode.split, episode.scene_id))
+        self._put_record(record_from_episode(episode), self._part_for(episode))
         return path
 
     def _check_episode(self, episode: Episode, frames: Sequence[np.ndarray]) -> None:
