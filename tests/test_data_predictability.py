@@ -50,6 +50,7 @@ def test_step_features_by_hand():
     np.testing.assert_allclose(col["cx"], [0.5, 0.0, 0.25, 0.5], atol=1e-6)
     np.testing.assert_allclose(col["altitude"], [0.6] * 4, atol=1e-6)
     np.testing.assert_allclose(col["step"], [0, 0.05, 0.1, 0.15], atol=1e-6)
+    np.testing.assert_allclose(col["previous_action"], [0, 0.2, 0.3, 0.2], atol=1e-6)
 
 
 def test_majority_rate():

@@ -24,7 +24,7 @@ logger = logging.getLogger(__name__)
 
 BOX_FEATURES = ("visible", "cx", "cy", "w", "h", "area")
 GOAL_FEATURES = ("goal_distance", "goal_bearing", "altitude", "goal_altitude")
-FEATURE_NAMES = BOX_FEATURES + GOAL_FEATURES + ("step",)
+FEATURE_NAMES = BOX_FEATURES + GOAL_FEATURES + ("step", "previous_action")
 DISTANCE_SCALE_M = 50.0  # features are divided by this to keep them near unit scale
 
 
@@ -39,6 +39,7 @@ def step_features(episode: Episode) -> np.ndarray:
     The goal is the episode's last position (where the expert stops). `goal_bearing` is the goal's direction
     relative to the current heading, counter-clockwise positive (a goal on the left is > 0), in radians.
     Box features are zero where the target landmark is not visible (or the episode has no boxes).
+    `previous_action` is (a[t-1] + 1) / 10, 0 at the first step (an expert quantity the model never sees).
     """
     n = len(episode.actions)
     positions = np.asarray(episode.positions, dtype=np.float64)[:n]  # (T, 3)
@@ -60,6 +61,7 @@ def step_features(episode: Episode) -> np.ndarray:
         positions[:, 2] / DISTANCE_SCALE_M,
         np.full(n, goal[2] / DISTANCE_SCALE_M),
         np.arange(n) / 20.0,
+        np.concatenate([[0.0], (np.asarray(episode.actions[:-1], dtype=np.float64) + 1.0) / 10.0]),
     ]
     return np.stack(columns, axis=1).astype(np.float32)
 
@@ -131,6 +133,7 @@ PROBES: dict[str, tuple[str, ...]] = {
     "target box + step index": BOX_FEATURES + ("step",),
     "goal distance + bearing (perfect localisation)": ("goal_distance", "goal_bearing"),
     "goal distance + bearing + altitudes": GOAL_FEATURES,
+    "previous expert action": ("previous_action",),
 }
 
 
