@@ -16,16 +16,10 @@ import sys
 from openfly_agent.eval.cli import normalize_argv
 from openfly_agent.eval.config import EvalConfig
 from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.errors import RecordError, root_cause
 from openfly_agent.utils.logging_utils import setup_logging
 
 EXIT_BAD_INPUT = 2
-
-
-def root_cause(err: BaseException) -> str:
-    """draccus wraps a config's ValueError; the innermost cause says what to change."""
-    while err.__cause__ is not None:
-        err = err.__cause__
-    return str(err)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,7 +29,6 @@ def main(argv: list[str] | None = None) -> int:
     from openfly_agent.data.schema import SchemaError
     from openfly_agent.eval.config import EvalInputError
     from openfly_agent.eval.run import run
-    from openfly_agent.utils.errors import RecordError
 
     setup_logging()
     try:

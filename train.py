@@ -69,17 +69,11 @@ def report(result, cfg) -> None:
         )
 
 
-def root_cause(err: BaseException) -> str:
-    """draccus wraps a config's ValueError in a ParsingError; the innermost cause says what to change."""
-    while err.__cause__ is not None:
-        err = err.__cause__
-    return str(err)
-
-
 def main(argv: list[str] | None = None) -> int:
     from draccus.utils import ParsingError
 
     from openfly_agent.training import PreflightError, build_run, fit
+    from openfly_agent.utils.errors import root_cause
     from openfly_agent.utils.logging_utils import setup_logging
 
     setup_logging()

@@ -17,3 +17,11 @@ class RecordError(ValueError):
         self.file, self.line, self.field_name, self.problem = str(file), line, field_name, problem
         where = f"{self.file}:{line}" if line is not None else self.file
         super().__init__(f"{where}: field '{field_name}': {problem}")
+
+
+def root_cause(err: BaseException) -> str:
+    """The innermost cause's message: draccus wraps a config's ValueError in a ParsingError, and the innermost
+    error is the one that says what to change."""
+    while err.__cause__ is not None:
+        err = err.__cause__
+    return str(err)

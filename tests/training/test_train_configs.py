@@ -10,6 +10,7 @@ from accelerate.commands.config.config_args import load_config_from_file
 from openfly_agent.training.config import BatchConfig, BatchSizeError, OptimConfig, TrainConfig
 from openfly_agent.training.engine import flat_config
 from openfly_agent.utils.config import config_from_dict, config_to_dict, parse_config
+from openfly_agent.utils.errors import root_cause
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 TRAIN_CONFIGS = sorted((CONFIGS / "train").glob("*.yaml")) + sorted(
@@ -96,21 +97,14 @@ def test_bad_values_are_rejected_with_the_field_named(changes, message):
             data[key] = value
     with pytest.raises(Exception) as err:
         config_from_dict(TrainConfig, data)
-    assert message in _root_cause(err.value)
+    assert message in root_cause(err.value)
 
 
 def test_batch_config_rejects_non_multiple():
     with pytest.raises(Exception) as err:
         parse_config(TrainConfig, ["--batch.global_batch_size=12", "--batch.per_device_batch_size=8"])
-    assert "not a positive multiple" in _root_cause(err.value)
+    assert "not a positive multiple" in root_cause(err.value)
     with pytest.raises(BatchSizeError):
         BatchConfig(global_batch_size=12, per_device_batch_size=8)
     with pytest.raises(ValueError, match="optim.lr"):
         OptimConfig(lr=0.0)
-
-
-def _root_cause(err: BaseException) -> str:
-    """draccus wraps a dataclass's ValueError in a ParsingError; the first cause holds our message."""
-    while err.__cause__ is not None:
-        err = err.__cause__
-    return str(err)
