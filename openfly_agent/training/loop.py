@@ -117,6 +117,8 @@ class _StopFlags:
     def stop_reason(self) -> str | None:
         """'signal' or 'time' when any process must stop now, else None (one all-reduce per call)."""
         time_up = self.deadline is not None and time.monotonic() >= self.deadline
+        if self.accelerator.num_processes == 1:  # nothing to agree on: no tensor, no device sync per step
+            return "signal" if self.signal_name is not None else "time" if time_up else None
         flags = torch.tensor(
             [float(self.signal_name is not None), float(time_up)], device=self.accelerator.device
         )
