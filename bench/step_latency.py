@@ -44,6 +44,7 @@ def history_variant(cfg: ModelConfig, history: str) -> ModelConfig:
 def build_agent(cfg: ModelConfig, device: str, dtype: torch.dtype):
     """A randomly initialised agent on `device` (7B: created on meta, materialised once, init there)."""
     from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.random_init import materialize_random_
     from openfly_agent.model.tokenizer import train_bpe_tokenizer
 
     tokenizer = train_bpe_tokenizer(INSTRUCTIONS * 8, vocab_size=512)
@@ -51,17 +52,7 @@ def build_agent(cfg: ModelConfig, device: str, dtype: torch.dtype):
         return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device=device, dtype=dtype).eval()
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(cfg)
-    agent.to_empty(device=device)
-    agent.to(dtype)
-    with torch.no_grad():
-        for module in agent.modules():
-            if type(module).__name__.endswith("RotaryEmbedding"):
-                agent.language_model._init_weights(module)
-        for name, param in agent.named_parameters():
-            if param.ndim >= 2:
-                param.normal_(0.0, 0.02)
-            else:  # norm weights 1, biases 0, LayerScale small
-                param.fill_(1.0 if name.endswith("weight") else 1e-5 if name.endswith("gamma") else 0.0)
+    materialize_random_(agent, device, dtype)
     agent.tokenizer = tokenizer  # prompt length stand-in for the Llama tokenizer (same order of tokens)
     return agent.eval()
 

@@ -91,6 +91,7 @@ def instructions(count: int, words: int = 70, seed: int = 0) -> list[str]:
 def build_agent(preset: str, device: str):
     """A randomly initialised agent of `preset` on `device` (7B: built on meta, materialised once there)."""
     from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.random_init import materialize_random_
     from openfly_agent.model.tokenizer import train_bpe_tokenizer
 
     tokenizer = train_bpe_tokenizer(instructions(64), vocab_size=1024)
@@ -99,16 +100,7 @@ def build_agent(preset: str, device: str):
         return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device)
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer)
-    agent.to_empty(device=device)
-    with torch.no_grad():
-        for module in agent.modules():
-            if type(module).__name__.endswith("RotaryEmbedding"):
-                agent.language_model._init_weights(module)
-        for name, param in agent.named_parameters():
-            if param.ndim >= 2:
-                param.normal_(0.0, 0.02)
-            else:
-                param.fill_(1.0 if name.endswith("weight") else 1e-5 if name.endswith("gamma") else 0.0)
+    materialize_random_(agent, device)
     agent.tokenizer = tokenizer
     return agent
 
