@@ -5,7 +5,7 @@ Public names are re-exported lazily (importing the package imports nothing heavy
 
 from __future__ import annotations
 
-import importlib
+from openfly_agent.utils.imports import lazy_exports
 
 _EXPORTS = {
     "GenerateConfig": "config",
@@ -32,8 +32,4 @@ _EXPORTS = {
 
 __all__ = sorted(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+__getattr__ = lazy_exports(__name__, _EXPORTS)
