@@ -11,6 +11,7 @@ Transforms, `ops.misc` and timm then work; compiled ops (nms, roi_align, image d
 It does nothing when torchvision's extension loads (a CUDA torch) or when torchvision is absent.
 """
 
+import contextlib
 import glob
 import importlib.abc
 import importlib.machinery
@@ -48,10 +49,8 @@ class _TorchvisionFinder(importlib.abc.MetaPathFinder):
         _DONE = True
         spec = importlib.machinery.PathFinder.find_spec("torchvision")
         if spec is not None and spec.submodule_search_locations:
-            try:
+            with contextlib.suppress(Exception):  # never break interpreter start-up
                 _define_missing_schemas(list(spec.submodule_search_locations)[0])
-            except Exception:  # never break interpreter start-up
-                pass
         return None  # let the normal finders import torchvision
 
 

@@ -7,6 +7,8 @@
 #      baselines, print the table, and say where the plots are (python eval.py; resumable)
 # Every step picks up where it stopped, so re-running the script after an interruption finishes the job.
 # Knobs (environment): DATA, RUN (output folders), TRAIN_MINUTES / TRAIN_STEPS (training stops at the first),
+# TRAIN_PROCS (training processes of one torch thread each, data parallel over gloo; 2 uses 2 cores ~1.5-2x
+# faster than one 2-thread process, docs/BENCHMARKS.md "Training"; 1 = a single process),
 # EVAL_EPISODES (per split, evenly spaced; 0 = all), EVAL_BATCH (lockstep width), THREADS (torch CPU threads
 # in eval; 1 never thrashes on a shared machine). Budget on 2 idle cores: set-up ~1 min, data ~2-4 min,
 # training TRAIN_MINUTES + ~1 min, evaluation ~4 min (docs/BENCHMARKS.md).
@@ -26,6 +28,7 @@ TRAIN_CONFIG=${TRAIN_CONFIG:-configs/train/tiny.yaml}
 TRAIN_ARGS=${TRAIN_ARGS:-}
 TRAIN_MINUTES=${TRAIN_MINUTES:-9}
 TRAIN_STEPS=${TRAIN_STEPS:-1500}
+TRAIN_PROCS=${TRAIN_PROCS:-2}
 EVAL_EPISODES=${EVAL_EPISODES:-50}
 EVAL_BATCH=${EVAL_BATCH:-16}
 THREADS=${THREADS:-1}
@@ -43,8 +46,15 @@ else
   fresh_eval=true  # new weights: earlier evaluation results of the agent no longer apply
   resume=false
   [ -f "$RUN/train/checkpoints/last" ] && resume=true  # an interrupted run continues
-  "$VENV/bin/accelerate" launch --cpu --num_processes 1 --num_machines 1 --mixed_precision no \
-    --dynamo_backend no train.py --config_path "$TRAIN_CONFIG" --data.root="$DATA" --output_dir="$RUN/train" \
+  if [ "$TRAIN_PROCS" -gt 1 ]; then
+    # the multi-process CPU launcher (configs/accelerate/cpu_2proc.yaml explains the accelerate quirk)
+    launcher=(env OMP_NUM_THREADS=1 "$VENV/bin/accelerate" launch --config_file configs/accelerate/cpu_2proc.yaml
+      --num_processes "$TRAIN_PROCS")
+  else
+    launcher=("$VENV/bin/accelerate" launch --cpu --num_processes 1 --num_machines 1 --mixed_precision no
+      --dynamo_backend no)
+  fi
+  "${launcher[@]}" train.py --config_path "$TRAIN_CONFIG" --data.root="$DATA" --output_dir="$RUN/train" \
     --steps="$TRAIN_STEPS" --time_limit_minutes="$TRAIN_MINUTES" --validation.final_max_samples=512 \
     --resume="$resume" $TRAIN_ARGS
   touch "$RUN/train/.main_job_trained"
