@@ -83,7 +83,13 @@ def test_missing_checkpoint_folder_is_named(tmp_path, capsys):
     assert "is not a checkpoint folder" in capsys.readouterr().err
 
 
-def test_fake_hub_command_serves_until_interrupted(tmp_path):
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # how a shell starts a background job
+
+
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_fake_hub_command_serves_until_interrupted(tmp_path, stop_signal):
+    """It stops and prints its summary on Ctrl-C / SIGTERM, even when started with SIGINT ignored."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"],
@@ -91,6 +97,7 @@ def test_fake_hub_command_serves_until_interrupted(tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         env=env,
+        preexec_fn=_ignore_sigint,
     )
     try:
         line = proc.stdout.readline()
@@ -102,6 +109,11 @@ def test_fake_hub_command_serves_until_interrupted(tmp_path):
         )
         assert json.loads(urllib.request.urlopen(request, timeout=10).read())["url"] == f"{url}/me/x"
     finally:
-        proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
+        proc.send_signal(stop_signal)
+        try:
+            out, _ = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            raise
     assert proc.returncode == 0 and "model me/x@main: 0 files, 0 bytes" in out

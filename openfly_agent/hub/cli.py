@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 
@@ -76,9 +77,20 @@ def _release_dataset(cfg: DatasetReleaseConfig) -> int:
     return 0
 
 
+def _raise_keyboard_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def _serve_fake_hub(token: str) -> int:
+    """Serve until SIGINT (Ctrl-C) or SIGTERM, then print what each repository received.
+
+    The handlers are installed explicitly: a shell starts background jobs with SIGINT ignored, and a Python
+    started that way would never see Ctrl-C / `kill -INT` and serve forever.
+    """
     from openfly_agent.hub.fake_hub import FakeHub
 
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _raise_keyboard_interrupt)
     with FakeHub(token=token) as hub:
         print(f"fake Hub listening: export HF_ENDPOINT={hub.url}  (Ctrl-C to stop)", flush=True)
         try:
