@@ -8,25 +8,61 @@ import numpy as np
 import torch
 from accelerate import Accelerator
 from accelerate.utils import send_to_device
-from torch.utils.data import DataLoader, Dataset, Subset
+from torch.utils.data import DataLoader, Dataset
 
 from openfly_agent import constants as C
 
 logger = logging.getLogger(__name__)
 
 
-def eval_indices(num_samples: int, max_samples: int | None, multiple: int) -> list[int]:
-    """Evenly spaced sample indices, as many as possible up to `max_samples`, a whole multiple of `multiple`.
-
-    A multiple of (processes x per-device batch) gives every process the same number of full batches, so the
-    figures need no padding (exact) and sharded models (FSDP, ZeRO-3) run the same number of forwards
-    everywhere. At most `multiple - 1` samples of the split are left out.
-    """
-    wanted = num_samples if max_samples is None else min(max_samples, num_samples)
-    count = (wanted // multiple) * multiple
-    if count == 0:
+def eval_indices(num_samples: int, max_samples: int | None) -> list[int]:
+    """`min(max_samples, num_samples)` distinct, evenly spaced sample indices (all of them when None)."""
+    count = num_samples if max_samples is None else min(max_samples, num_samples)
+    if count <= 0:
         return []
     return ((np.arange(count) * num_samples) // count).tolist()  # distinct, evenly spaced, starts at 0
+
+
+def shard_eval_batches(
+    indices: list[int], world: int, rank: int, batch_size: int
+) -> list[tuple[list[int], float]]:
+    """Process `rank`'s evaluation batches as (sample indices, weight), covering `indices` exactly once overall.
+
+    Whole groups of `world x batch_size` samples are dealt round-robin; the remainder (fewer than
+    `world x batch_size`) is split across processes in one last batch each. A process whose share of the
+    remainder is empty evaluates `indices[0]` with weight 0, so every process runs the same number of
+    forwards (sharded models, FSDP / ZeRO-3, need that) and the weighted figures are exact.
+    """
+    if not indices:
+        return []
+    group = world * batch_size
+    full = (len(indices) // group) * group
+    mine = indices[:full][rank::world]
+    batches = [(mine[i : i + batch_size], 1.0) for i in range(0, len(mine), batch_size)]
+    remainder = indices[full:]
+    if remainder:
+        share = remainder[rank::world]
+        batches.append((share, 1.0) if share else ([indices[0]], 0.0))
+    return batches
+
+
+class EvalBatches:
+    """One process's evaluation batches; iterating yields (collated batch, weight), weight 0 for padding."""
+
+    def __init__(self, dataset: Dataset, batches: list[tuple[list[int], float]], collate_fn, num_workers=0):
+        self.weights = [weight for _, weight in batches]
+        self.loader = DataLoader(
+            dataset,
+            batch_sampler=[sample_indices for sample_indices, _ in batches],
+            collate_fn=collate_fn,
+            num_workers=num_workers,
+        )
+
+    def __len__(self) -> int:
+        return len(self.weights)
+
+    def __iter__(self):
+        return zip(self.loader, self.weights)
 
 
 def make_eval_loader(
@@ -36,46 +72,39 @@ def make_eval_loader(
     accelerator: Accelerator,
     collate_fn,
     num_workers=0,
-) -> tuple[DataLoader | None, list[int]]:
-    """This process's shard of an evenly spaced evaluation subset (see `eval_indices`), in a plain DataLoader.
+) -> tuple[EvalBatches | None, list[int]]:
+    """This process's shard (`shard_eval_batches`) of an evenly spaced evaluation subset (`eval_indices`).
 
     Returns:
-        The loader (None when the split is smaller than one batch per process) and the subset's indices (all
-        processes).
+        The batches (None when the split is empty) and the subset's indices (all processes).
     """
-    world, rank = accelerator.num_processes, accelerator.process_index
-    indices = eval_indices(len(dataset), max_samples, batch_size * world)
+    indices = eval_indices(len(dataset), max_samples)
     if not indices:
-        logger.warning(
-            "evaluation split has %d samples, fewer than one batch per process: skipped", len(dataset)
-        )
+        logger.warning("evaluation split is empty: skipped")
         return None, []
-    shard = Subset(dataset, indices[rank::world])
-    loader = DataLoader(
-        shard, batch_size=batch_size, shuffle=False, collate_fn=collate_fn, num_workers=num_workers
-    )
-    return loader, indices
+    batches = shard_eval_batches(indices, accelerator.num_processes, accelerator.process_index, batch_size)
+    return EvalBatches(dataset, batches, collate_fn, num_workers), indices
 
 
 @torch.no_grad()
-def evaluate(model: torch.nn.Module, loader: DataLoader, accelerator: Accelerator) -> dict[str, float]:
+def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerator) -> dict[str, float]:
     """Loss, action accuracy (per sample) and box IoU (per visible box) over every process's shard.
 
     Batch means from `model(batch) -> (loss, logs)` are weighted by the batch size (loss, accuracy) and by the
-    number of visible boxes (IoU), then summed over processes, so the figures equal a single pass over the
-    whole subset.
+    number of visible boxes (IoU), times the batch's weight (0 for a padding batch), then summed over
+    processes, so the figures equal a single pass over the whole subset.
     """
     was_training = model.training
     model.eval()
     # samples, loss x B, accuracy x B, IoU x visible, visible
     sums = torch.zeros(5, dtype=torch.float64, device=accelerator.device)
-    for batch in loader:
+    for batch, weight in loader:
         batch = send_to_device(batch, accelerator.device)
         loss, logs = model(batch)
         size = float(batch[C.INPUT_IDS].shape[0])
         visible = float(batch[C.BOX_VISIBLE].sum()) if C.BOX_VISIBLE in batch else 0.0
         iou = float(logs.get("box_iou", float("nan")))
-        sums += torch.tensor(
+        sums += weight * torch.tensor(
             [
                 size,
                 float(loss) * size,

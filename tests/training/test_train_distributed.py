@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -21,11 +23,18 @@ from conftest import (
 )
 
 from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.evaluate import evaluate, make_eval_loader
+
+
+def _final_test_metrics(output_dir) -> dict[str, float]:
+    records = [json.loads(line) for line in (output_dir / "logs" / "metrics.jsonl").read_text().splitlines()]
+    return {k: v for record in records for k, v in record.items() if k.startswith("test/")}
 
 
 def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, generated_dataset, tmp_path):
-    reference_dir, _, _ = reference_run
-    args = train_args(generated_dataset, tmp_path, steps=STEPS, validation__final_eval="false")
+    reference_dir, reference, _ = reference_run
+    # 9 test samples over 2 processes x 4: one round-robin group of 8, then rank 1 pads with a weight-0 batch
+    args = train_args(generated_dataset, tmp_path, steps=STEPS, validation__final_max_samples=9)
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
     done = run_script(args, launcher=torchrun)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -36,6 +45,16 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, ge
     found = checkpoint_weights(tmp_path / "checkpoints" / f"step-{STEPS:06d}")
     for key in expected:  # float reduction order differs; Adam's 1/sqrt(v) amplifies it on tiny gradients
         torch.testing.assert_close(found[key], expected[key], rtol=1e-4, atol=1e-5, msg=key)
+
+    # the final offline evaluation covers exactly the 9 samples, as one process over the same 9 does
+    single = SimpleNamespace(device=torch.device("cpu"), num_processes=1, process_index=0)
+    test_set, collate = reference.test_loader.loader.dataset, reference.test_loader.loader.collate_fn
+    loader, indices = make_eval_loader(test_set, 9, 4, single, collate)
+    one_process = evaluate(reference.model, loader, single)
+    two_processes = _final_test_metrics(tmp_path)
+    assert len(indices) == 9 and two_processes["test/samples"] == one_process["samples"] == 9
+    assert two_processes["test/action_accuracy"] == pytest.approx(one_process["action_accuracy"])
+    assert two_processes["test/box_iou"] == pytest.approx(one_process["box_iou"], rel=1e-3)
 
 
 def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from openfly_agent import constants as C
 from openfly_agent.model.config import tiny_config
-from openfly_agent.training.evaluate import eval_indices
+from openfly_agent.training.evaluate import eval_indices, shard_eval_batches
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens
 from openfly_agent.training.trackers import JsonlTracker, make_trackers, read_metrics
 
@@ -47,12 +47,34 @@ def test_llm_token_count_hand_checked():
 
 
 @settings(max_examples=80, deadline=None)
-@given(st.integers(1, 500), st.one_of(st.none(), st.integers(1, 600)), st.integers(1, 16))
-def test_eval_indices_are_distinct_sorted_and_a_whole_multiple(num_samples, max_samples, multiple):
-    indices = eval_indices(num_samples, max_samples, multiple)
+@given(st.integers(1, 500), st.one_of(st.none(), st.integers(1, 600)))
+def test_eval_indices_are_distinct_sorted_and_as_many_as_asked(num_samples, max_samples):
+    indices = eval_indices(num_samples, max_samples)
     wanted = num_samples if max_samples is None else min(num_samples, max_samples)
-    assert len(indices) % multiple == 0 and wanted - multiple < len(indices) <= wanted
+    assert len(indices) == wanted and indices[0] == 0
     assert indices == sorted(set(indices)) and all(0 <= i < num_samples for i in indices)
+
+
+@settings(max_examples=120, deadline=None)
+@given(st.integers(1, 300), st.integers(1, 4), st.integers(1, 16))
+def test_eval_shards_cover_every_sample_once_with_equal_forwards(num_samples, world, batch_size):
+    indices = eval_indices(num_samples, None)
+    shards = [shard_eval_batches(indices, world, rank, batch_size) for rank in range(world)]
+    assert len({len(shard) for shard in shards}) == 1  # the same number of forwards on every process
+    weighted = [i for shard in shards for batch, weight in shard if weight == 1.0 for i in batch]
+    assert sorted(weighted) == indices  # every sample exactly once
+    for shard in shards:
+        assert all(0 < len(batch) <= batch_size for batch, _ in shard)
+        assert all(weight in (0.0, 1.0) for _, weight in shard)
+        assert all(batch == [indices[0]] for batch, weight in shard if weight == 0.0)
+
+
+def test_eval_shards_by_hand():
+    # 11 samples, 2 processes, batches of 4: one group of 8 dealt round-robin, the remainder 8, 9, 10 split
+    assert shard_eval_batches(list(range(11)), 2, 0, 4) == [([0, 2, 4, 6], 1.0), ([8, 10], 1.0)]
+    assert shard_eval_batches(list(range(11)), 2, 1, 4) == [([1, 3, 5, 7], 1.0), ([9], 1.0)]
+    # 9 samples: rank 1 has no share of the remainder [8] and pads with a weight-0 forward of sample 0
+    assert shard_eval_batches(list(range(9)), 2, 1, 4) == [([1, 3, 5, 7], 1.0), ([0], 0.0)]
 
 
 def test_throughput_meter_counts(monkeypatch):
