@@ -77,10 +77,6 @@ def _release_dataset(cfg: DatasetReleaseConfig) -> int:
     return 0
 
 
-def _raise_keyboard_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
-
-
 def _serve_fake_hub(token: str) -> int:
     """Serve until SIGINT (Ctrl-C) or SIGTERM, then print what each repository received.
 
@@ -90,7 +86,7 @@ def _serve_fake_hub(token: str) -> int:
     from openfly_agent.hub.fake_hub import FakeHub
 
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, _raise_keyboard_interrupt)
+        signal.signal(sig, signal.default_int_handler)  # raises KeyboardInterrupt
     with FakeHub(token=token) as hub:
         print(f"fake Hub listening: export HF_ENDPOINT={hub.url}  (Ctrl-C to stop)", flush=True)
         try:
