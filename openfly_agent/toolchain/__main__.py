@@ -4,6 +4,8 @@
     python -m openfly_agent.toolchain summarize --root outputs/datasets/embedded-small
     python -m openfly_agent.toolchain dagger --config <yaml> --checkpoint DIR [--dagger.episodes_per_scene=4]
     python -m openfly_agent.toolchain segment --env_yaml env_x.yaml --point_cloud x.pcd --out seg_map_x.jsonl
+    python -m openfly_agent.toolchain grounding --source_root outputs/datasets/embedded-small \
+        --output_dir outputs/datasets/grounding-small
 
 `generate` / `dagger` take every GenerateConfig field as a dotted override (`--render.width=96`).
 """
@@ -18,7 +20,7 @@ from pathlib import Path
 
 from openfly_agent.utils.logging_utils import setup_logging
 
-COMMANDS = ("generate", "summarize", "dagger", "segment")
+COMMANDS = ("generate", "summarize", "dagger", "segment", "grounding")
 
 
 def _config_args(args: list[str]) -> list[str]:
@@ -109,14 +111,28 @@ def cmd_segment(args: list[str]) -> None:
     print(json.dumps({"landmarks": len(prepared.landmarks), "out": ns.out}))
 
 
+def cmd_grounding(args: list[str]) -> None:
+    from openfly_agent.toolchain.config import GroundingDataConfig
+    from openfly_agent.toolchain.grounding import generate_grounding
+    from openfly_agent.utils.config import parse_config
+
+    info = generate_grounding(parse_config(GroundingDataConfig, _config_args(args)))
+    print(json.dumps(info["splits"]))
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in COMMANDS:
         raise SystemExit(f"usage: python -m openfly_agent.toolchain {{{','.join(COMMANDS)}}} ...\n{__doc__}")
     setup_logging()
-    {"generate": cmd_generate, "summarize": cmd_summarize, "dagger": cmd_dagger, "segment": cmd_segment}[
-        argv[0]
-    ](argv[1:])
+    commands = {
+        "generate": cmd_generate,
+        "summarize": cmd_summarize,
+        "dagger": cmd_dagger,
+        "segment": cmd_segment,
+        "grounding": cmd_grounding,
+    }
+    commands[argv[0]](argv[1:])
 
 
 if __name__ == "__main__":

@@ -273,6 +273,33 @@ class GenerateConfig:
         )
 
 
+@dataclass
+class GroundingDataConfig:
+    """`python -m openfly_agent.toolchain grounding`: referring expressions on rendered frames of a dataset's cities.
+
+    The frame size and city parameters come from the source dataset's toolchain config, so the grounding
+    frames look exactly like the navigation frames.
+    """
+
+    source_root: str = (
+        "outputs/datasets/embedded-small"  # navigation dataset whose trajectory poses are rendered
+    )
+    output_dir: str = "outputs/datasets/grounding-small"
+    splits: list[str] = field(default_factory=lambda: [C.SPLIT_TRAIN])  # test splits: evaluation sets only
+    yaw_copies: int = 1  # extra views per pose, yaw turned by U(-yaw_jitter_deg, yaw_jitter_deg)
+    yaw_jitter_deg: float = 60.0
+    min_box_area: float = 0.002  # a landmark is described when its box covers this fraction of the frame
+    frames_per_part: int = 2048  # rows per parquet part
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for split in self.splits:
+            _check(split in C.SPLITS, f"grounding splits: {split!r} is not one of {C.SPLITS}")
+        _check(self.yaw_copies >= 0, "yaw_copies must be >= 0")
+        _check(0.0 <= self.min_box_area < 1.0, "min_box_area must be in [0, 1)")
+        _check(self.frames_per_part >= 1, "frames_per_part must be >= 1")
+
+
 def parse_shard(shard: str) -> tuple[int, int]:
     """'i/N' -> (i, N) with 0 <= i < N."""
     try:

@@ -66,11 +66,18 @@ STOP = ["stop in front of", "stop next to", "stop near", "halt beside", "come to
 CONNECTORS = [", then ", ", and then ", ". Then ", ". After that, ", ". Next, ", ", after which "]
 
 
-def _named(value: str) -> bool:
+def is_named(value: str) -> bool:
+    """Whether an attribute value is a real name (not empty, "none", "unknown", ...)."""
     return bool(value) and value.strip().lower() not in _UNNAMED
 
 
-def _with_feature(feature: str, rng: np.random.Generator) -> str:
+def size_word(landmark: Landmark) -> str | None:
+    """'tall' / 'low' / ... for the landmark's size class, None when it has no size word (mid-rise)."""
+    return _SIZE_WORDS.get(landmark.size.strip().lower()) if landmark.size else None
+
+
+def feature_phrase(feature: str, rng: np.random.Generator) -> str:
+    """'with a spire', 'that has an antenna', 'featuring a dome' (one draw of `rng`)."""
     plural = feature.endswith("s") and not feature.endswith("ss")
     article = "" if plural else ("an " if feature[0].lower() in "aeiou" else "a ")
     lead = ["with", "with", "that has", "featuring"][rng.integers(4)]
@@ -80,22 +87,22 @@ def _with_feature(feature: str, rng: np.random.Generator) -> str:
 def describe_landmark(landmark: Landmark, rng: np.random.Generator) -> str:
     """Noun phrase naming colour, type, feature (size sometimes): 'the tall red tower with a spire'."""
     words = []
-    size = _SIZE_WORDS.get(landmark.size.strip().lower()) if landmark.size else None
+    size = size_word(landmark)
     if size and rng.random() < 0.5:
         words.append(size)
-    if _named(landmark.color):
+    if is_named(landmark.color):
         words.append(landmark.color)
-    words.append(landmark.type if _named(landmark.type) else "building")
+    words.append(landmark.type if is_named(landmark.type) else "building")
     text = "the " + " ".join(words)
-    if _named(landmark.feature):
-        text += " " + _with_feature(landmark.feature, rng)
+    if is_named(landmark.feature):
+        text += " " + feature_phrase(landmark.feature, rng)
     return text
 
 
 def short_name(landmark: Landmark) -> str:
     """'the red tower': what a repeated (not immediately repeated) mention uses."""
-    color = f"{landmark.color} " if _named(landmark.color) else ""
-    return f"the {color}{landmark.type if _named(landmark.type) else 'building'}"
+    color = f"{landmark.color} " if is_named(landmark.color) else ""
+    return f"the {color}{landmark.type if is_named(landmark.type) else 'building'}"
 
 
 class _Mentions:
