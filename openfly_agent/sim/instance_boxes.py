@@ -21,6 +21,10 @@ def _row_runs(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return starts, np.diff(starts, append=flat.size), flat[starts].astype(np.int64)
 
 
+class InstanceIdError(ValueError):
+    """The instance image holds ids outside [0, num_ids] (a bad read-back, never a valid render)."""
+
+
 def instance_boxes(
     ids: np.ndarray, num_ids: int, min_pixels: int = 1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -35,7 +39,9 @@ def instance_boxes(
         return np.zeros(0, dtype=np.int64), np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
     starts, lengths, run_id = _row_runs(ids)
     if run_id.min() < 0 or run_id.max() > num_ids:
-        raise ValueError(f"instance ids must lie in [0, {num_ids}], got [{run_id.min()}, {run_id.max()}]")
+        raise InstanceIdError(
+            f"instance ids must lie in [0, {num_ids}], got [{run_id.min()}, {run_id.max()}]"
+        )
     counts = np.bincount(run_id, weights=lengths, minlength=num_ids + 1).astype(np.int64)  # (N + 1,)
     visible = np.flatnonzero(counts[1:] >= max(1, min_pixels)) + 1  # (K,)
     k = len(visible)

@@ -19,13 +19,14 @@ import numpy as np
 from openfly_agent.sim import shaders
 from openfly_agent.sim.camera import CameraModel, frustum_planes, linear_depth, projection_matrix, view_matrix
 from openfly_agent.sim.ground import rasterize_ground
-from openfly_agent.sim.instance_boxes import instance_boxes
+from openfly_agent.sim.instance_boxes import InstanceIdError, instance_boxes
 from openfly_agent.utils.geometry import Pose
 
 logger = logging.getLogger(__name__)
 
 EGL_INSTALL_HINT = "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri"
 SKY_RGB = (0.62, 0.76, 0.90)
+_DRAW_ATTEMPTS = 2  # a batch whose instance ids read back invalid is drawn once more
 _GROUND_EXTENT_M = 4000.0  # the ground quad reaches this far beyond the city bounds
 _INSTANCE_DTYPE = np.dtype(
     [("lo", "<f4", 3), ("hi", "<f4", 3), ("color", "<f4", 3), ("material", "<i4"), ("instance", "<i4")]
@@ -263,8 +264,17 @@ class CityRenderer:
                 zip(poses[first : first + self.max_batch], pitches_deg[first : first + self.max_batch])
             )
             targets = self._targets_for(len(views))
-            self._draw(scene, targets, views)
-            out += self._read_back(scene, targets, len(views), depth, ids)
+            for attempt in range(_DRAW_ATTEMPTS):
+                self._draw(scene, targets, views)
+                try:
+                    out += self._read_back(scene, targets, len(views), depth, ids)
+                    break
+                except InstanceIdError as err:  # seen once in ~10^5 llvmpipe frames: draw the batch again
+                    if attempt == _DRAW_ATTEMPTS - 1:
+                        raise
+                    logger.warning(
+                        "%s: invalid instance ids read back (%s); drawing the batch again", city.scene_id, err
+                    )
         return out
 
     def _tile(self, grid: int, k: int) -> tuple[int, int, int, int]:

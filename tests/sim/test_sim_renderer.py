@@ -145,3 +145,27 @@ def test_a_batch_renders_what_single_frames_render(renderer):
     again = renderer.render_batch(city, poses, pitches)  # same slots: bit-identical
     for first, second in zip(batch, again):
         np.testing.assert_array_equal(first.rgb, second.rgb)
+
+
+def test_an_invalid_instance_read_back_is_drawn_again_once(renderer, monkeypatch):
+    from openfly_agent.sim.instance_boxes import InstanceIdError
+
+    city = tower_city()
+    expected = renderer.render(city, EYE, 0.0)
+    real, failures = renderer._read_back, []
+
+    def flaky(*args, **kwargs):
+        if len(failures) < budget[0]:
+            failures.append(1)
+            raise InstanceIdError("instance ids must lie in [0, 1], got [-2147483648, 5]")
+        return real(*args, **kwargs)
+
+    budget = [1]
+    monkeypatch.setattr(renderer, "_read_back", flaky)
+    again = renderer.render(city, EYE, 0.0)
+    assert failures == [1] and again.boxes.keys() == expected.boxes.keys()
+    np.testing.assert_array_equal(again.rgb, expected.rgb)
+    failures.clear()
+    budget[0] = 2  # fails twice in a row: the error reaches the caller
+    with pytest.raises(InstanceIdError):
+        renderer.render(city, EYE, 0.0)
