@@ -274,6 +274,34 @@ class GenerateConfig:
 
 
 @dataclass
+class DaggerRoundConfig:
+    """One DAgger round with the trained agent in the loop (toolchain/dagger_rounds.py).
+
+    Rollouts start from train episodes of `source_root` (start pose, instruction, goal); the planning maps and
+    frame size come from its saved toolchain config. The written dataset joins the training data.
+    """
+
+    source_root: str = "outputs/datasets/embedded-small"
+    output_dir: str = "outputs/datasets/dagger-r1"
+    round_name: str = "r1"  # part of the written episode ids
+    episodes: int = 400  # rollouts (train episodes drawn without replacement)
+    expert_mix: float = 0.0  # probability that the expert's action is flown instead of the agent's
+    max_policy_steps: int = 60  # agent-flown states at most; then the expert flies to the goal
+    max_steps: int = 150  # states at most (a rollout without a STOP by then is dropped)
+    num_envs: int = 16  # rollouts in lockstep (the agent's batch)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check(self.episodes >= 1, "dagger round: episodes must be >= 1")
+        _check(0.0 <= self.expert_mix <= 1.0, "dagger round: expert_mix must be in [0, 1]")
+        _check(
+            0 <= self.max_policy_steps <= self.max_steps,
+            "dagger round: need 0 <= max_policy_steps <= max_steps",
+        )
+        _check(self.num_envs >= 1, "dagger round: num_envs must be >= 1")
+
+
+@dataclass
 class GroundingDataConfig:
     """`python -m openfly_agent.toolchain grounding`: referring expressions on rendered frames of a dataset's cities.
 

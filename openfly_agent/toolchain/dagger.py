@@ -60,11 +60,13 @@ class AStarExpert:
     """Next codebook action from any pose: the first label of the A* plan to the current leg's goal.
 
     Legs are passed in order; reaching a leg's goal (within tolerance) moves on to the next one, STOP at
-    the last. Plans are reused while the executed actions follow them, re-planned after a deviation.
+    the last. Plans are reused while the executed actions follow them (`reuse_plans`), re-planned after a
+    deviation.
     """
 
-    def __init__(self, astar: ActionSpaceAStar, goals: list[np.ndarray]):
+    def __init__(self, astar: ActionSpaceAStar, goals: list[np.ndarray], reuse_plans: bool = True):
         self.astar, self.goals, self.leg = astar, [np.asarray(g, dtype=np.float64) for g in goals], 0
+        self.reuse_plans = reuse_plans  # False: plan afresh at every pose (labels depend on the pose only)
         self.tolerance = astar.cfg.goal_tolerance_m
         self._labels: list[int] = []
         self._poses: list[Pose] = []
@@ -75,7 +77,7 @@ class AStarExpert:
             self.leg, self._labels, self._poses = self.leg + 1, [], []
         if self._reached(pose, self.leg):
             return C.ACTION_STOP
-        if not (self._poses and self._poses[0] == pose):
+        if not (self.reuse_plans and self._poses and self._poses[0] == pose):
             primitives = self.astar.plan(pose, self.goals[self.leg]).primitives
             if not primitives:  # within the planner's tolerance by its own float arithmetic
                 return C.ACTION_STOP
