@@ -124,15 +124,17 @@ def test_sigterm_saves_a_checkpoint_and_resume_finishes(generated_dataset, tmp_p
     args = train_args(
         generated_dataset, tmp_path, steps=10_000, checkpoint__save_interval=0, validation__final_eval="false"
     )
-    process = start_script(args)
     metrics = tmp_path / "logs" / "metrics.jsonl"
-    deadline = time.monotonic() + 240
-    while not (metrics.is_file() and train_losses(tmp_path)):  # the first logged step: training is under way
-        assert process.poll() is None, "train.py exited before training started"
-        assert time.monotonic() < deadline, "no training step logged within 240 s"
-        time.sleep(0.5)
-    process.send_signal(signal.SIGTERM)
-    assert process.wait(timeout=120) == 0
+    with start_script(args) as process:
+        deadline = time.monotonic() + 240
+        while not (
+            metrics.is_file() and train_losses(tmp_path)
+        ):  # the first logged step: training is under way
+            assert process.poll() is None, "train.py exited before training started"
+            assert time.monotonic() < deadline, "no training step logged within 240 s"
+            time.sleep(0.5)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=120) == 0
     latest = CheckpointManager(tmp_path, 5).latest()
     assert latest is not None, "no checkpoint after SIGTERM"
     stopped_at = int(latest.name.split("-")[1])
