@@ -69,7 +69,8 @@ def report(result, cfg) -> None:
         )
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str]) -> int:
+    """Parse, check, train and report; the exit code."""
     from draccus.utils import ParsingError
 
     from openfly_agent.training import PreflightError, build_run, fit
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
 
     setup_logging()
     try:
-        cfg = parse_args(sys.argv[1:] if argv is None else argv)
+        cfg = parse_args(argv)
         ensure_dataset(cfg)
         run = build_run(cfg)
     except (ParsingError, PreflightError) as err:
@@ -88,6 +89,19 @@ def main(argv: list[str] | None = None) -> int:
     if run.accelerator.is_main_process:
         report(result, cfg)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code.
+
+    The process group is closed here, after `run` has returned and released the model, optimizer and loaders
+    (utils/distributed.py explains why the order matters).
+    """
+    from openfly_agent.utils.distributed import close_process_group
+
+    code = run(list(sys.argv[1:] if argv is None else argv))
+    close_process_group(synchronize=code == 0)
+    return code
 
 
 if __name__ == "__main__":
