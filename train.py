@@ -73,11 +73,13 @@ def run(argv: list[str]) -> int:
     """Parse, check, train and report; the exit code."""
     from draccus.utils import ParsingError
 
+    from openfly_agent.data.schema import SchemaError
     from openfly_agent.training import PreflightError, build_run, fit
-    from openfly_agent.utils.errors import root_cause
+    from openfly_agent.utils.errors import RecordError, one_line, root_cause, worker_error_name
     from openfly_agent.utils.logging_utils import setup_logging
 
     setup_logging()
+    data_errors = (SchemaError, RecordError)
     try:
         cfg = parse_args(argv)
         ensure_dataset(cfg)
@@ -85,7 +87,19 @@ def run(argv: list[str]) -> int:
     except (ParsingError, PreflightError) as err:
         print(f"train.py: {root_cause(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    result = fit(run)
+    except data_errors as err:
+        print(f"train.py: {one_line(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        result = fit(run)
+    except data_errors as err:  # a frame or file that fails to read mid-training
+        print(f"train.py: {one_line(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RuntimeError as err:  # the same, raised inside a DataLoader worker
+        if worker_error_name(err) not in {e.__name__ for e in data_errors}:
+            raise
+        print(f"train.py: {one_line(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     if run.accelerator.is_main_process:
         report(result, cfg)
     return 0
