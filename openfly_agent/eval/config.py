@@ -20,6 +20,11 @@ class EvalInputError(ValueError):
     checkpoint type); raised before any episode runs, with a message that says what to change."""
 
 
+class EngineUnreachableError(EvalInputError):
+    """The simulator engine of `--sim` cannot be reached; raised before the first episode, naming the engine,
+    host and port."""
+
+
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
 PROFILE_NAMES = ("openfly", "standard")
