@@ -25,7 +25,7 @@ from openfly_agent.eval.distributed import (
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
 from openfly_agent.eval.policy import Policy
 from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
-from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, teleport_record
+from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, groups, teleport_record
 from openfly_agent.eval.slots import SlotEnv
 
 logger = logging.getLogger(__name__)
@@ -113,17 +113,30 @@ def evaluate_policy(
         if replays is not None:  # the oracle: episodes whose actions do not replay follow the recorded poses
             for episode in [e for e in todo if not replays(e.episode_id)]:
                 log.append(teleport_record(episode, split, policy.name, cfg.max_steps))
-            todo = [e for e in todo if replays(e.episode_id)]
-        runner.run(todo, split, on_finish=log.append, on_frames=save_gif)
-        missing = [
-            e
+            mine = [e for e in mine if replays(e.episode_id)]
+
+        def unfinished(record: EpisodeRecord, split: str = split) -> None:
+            if (split, record.episode_id) not in done:  # an already logged companion recomputed identically
+                log.append(record)
+
+        # Resume by whole lockstep groups: a group that lost episodes to a kill runs again with the same
+        # companions, so its records are bit-identical to an uninterrupted run's (docs/EVAL.md).
+        pending = [
+            g for g in groups(mine, env.num_slots) if any((split, e.episode_id) not in done for e in g)
+        ]
+        runner.run([e for g in pending for e in g], split, on_finish=unfinished, on_frames=save_gif)
+        missing = {
+            e.episode_id
             for e in mine
             if e.episode_id in gif_ids
             and (split, e.episode_id) in done
             and not gif_path(folder, split, e.episode_id).is_file()
-        ]
-        if missing:  # finished in an earlier run: replay them (results are deterministic) to get frames
-            runner.run(missing, split, on_finish=lambda record: None, on_frames=save_gif)
+        }
+        replay = [g for g in groups(mine, env.num_slots) if missing & {e.episode_id for e in g}]
+        if replay:  # finished in an earlier run: replay their groups (bit-identical) to get the frames
+            runner.run(
+                [e for g in replay for e in g], split, on_finish=lambda record: None, on_frames=save_gif
+            )
     return runner.stats
 
 
