@@ -6,6 +6,7 @@ import json
 import os
 import re
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -24,7 +25,7 @@ from openfly_agent.eval.factory import make_env
 from openfly_agent.eval.report import policy_results
 from openfly_agent.eval.rollout import LockstepRunner
 from openfly_agent.eval.run import run
-from openfly_agent.utils.processes import run_group, running
+from openfly_agent.utils.processes import communicate_group, run_group, running
 
 REPO = Path(__file__).resolve().parents[1]
 SPLITS = [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN]
@@ -193,6 +194,27 @@ def test_sigkilled_run_resumes_to_the_same_table(dataset, reference, tmp_path):
     resumed = run_group(_eval_cmd(dataset, tmp_path), timeout=300, env=env)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "| random |" in resumed.stdout
+    _same_results(reference, tmp_path)
+
+
+def test_ctrl_c_ends_with_one_line_and_130_then_the_same_command_resumes(dataset, reference, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    log = tmp_path / "random" / C.EPISODES_JSONL
+    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # slows the run down (frames)
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    with running(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env, **pipes) as proc:
+        deadline = time.monotonic() + 240
+        while (
+            time.monotonic() < deadline and proc.poll() is None and not (log.is_file() and log.read_bytes())
+        ):
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)  # what Ctrl-C sends to the foreground process
+        _, err = communicate_group(proc, timeout=60)
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1] == "eval.py: interrupted; run the same command again to resume"
+    resumed = run_group(_eval_cmd(dataset, tmp_path), timeout=300, env=env)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
     _same_results(reference, tmp_path)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import time
 
 import numpy as np
@@ -22,6 +23,7 @@ from conftest import (
 from openfly_agent import constants as C
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import ACCELERATE_STATE_DIR, TRAINER_STATE_NAME
+from openfly_agent.utils.processes import communicate_group
 
 
 def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path):
@@ -117,6 +119,24 @@ def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, gen
         torch.testing.assert_close(found[key], expected[key], rtol=0, atol=0, msg=key)
     reference, again = train_losses(out), train_losses(tmp_path)
     assert again == pytest.approx(reference, rel=0, abs=0)
+
+
+def test_ctrl_c_ends_with_one_line_and_130(generated_dataset, tmp_path):
+    """SIGINT (Ctrl-C): no traceback, one line saying how to go on from the last checkpoint, exit code 130."""
+    args = train_args(generated_dataset, tmp_path, steps=10_000, checkpoint__save_interval=1)
+    with start_script(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
+        deadline = time.monotonic() + 240
+        while CheckpointManager(tmp_path, 5).latest() is None:  # a checkpoint to resume from
+            assert process.poll() is None, "train.py exited before its first checkpoint"
+            assert time.monotonic() < deadline, "no checkpoint within 240 s"
+            time.sleep(0.2)
+        process.send_signal(signal.SIGINT)
+        _, err = communicate_group(process, timeout=120)
+    assert process.returncode == 130, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("train.py: interrupted; run the same command with --resume to resume from "), last
+    assert str(tmp_path / "checkpoints" / "step-") in last
 
 
 def test_sigterm_saves_a_checkpoint_and_resume_finishes(generated_dataset, tmp_path):
