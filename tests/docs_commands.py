@@ -116,7 +116,10 @@ def parse_command(file: str, line: int, text: str, block: int | None = None) -> 
     """Resolve `text` to its entry point and arguments."""
     command = DocCommand(file, line, text, block=block)
     tokens = _tokens(text)
-    while tokens and (re.match(r"^[A-Z_][A-Z0-9_]*=", tokens[0]) or tokens[0] == "env"):
+    while tokens and (re.match(r"^[A-Z_][A-Z0-9_]*=", tokens[0]) or tokens[0] in ("env", "nice")):
+        if tokens[0] == "nice":
+            tokens = tokens[3:] if tokens[1:2] == ["-n"] else tokens[1:]
+            continue
         if tokens[0] != "env":
             key, _, value = tokens[0].partition("=")
             command.env[key] = value
