@@ -136,16 +136,32 @@ def fit(run: TrainingRun) -> FitResult:
     """
     flags = _StopFlags(run.cfg, run.accelerator)
     flags.install()
+    acc = run.accelerator
+    progress = tqdm(
+        total=run.total_steps, initial=run.state.step, disable=not acc.is_main_process, desc="train"
+    )
     try:
-        return _fit(run, flags)
+        return _fit(run, flags, progress)
     finally:
+        progress.close()  # also on an error, so its message starts on a line of its own
         flags.restore()
+        finish_trackers(acc)
 
 
-def _fit(run: TrainingRun, flags: _StopFlags) -> FitResult:
+def finish_trackers(accelerator: Accelerator) -> None:
+    """Close the trackers (flush TensorBoard / W&B), on every way out of `fit`.
+
+    Not `accelerator.end_training()`: that also destroys the process group while the prepared model is alive,
+    which leaves DDP's Reducer as the group's last holder and can deadlock the rank at exit. The entry point
+    closes the group once the run is released (`utils.distributed.close_process_group`).
+    """
+    for tracker in accelerator.trackers:
+        tracker.finish()
+
+
+def _fit(run: TrainingRun, flags: _StopFlags, progress: tqdm) -> FitResult:
     cfg, acc, state = run.cfg, run.accelerator, run.state
     means, meter = RunningMeans(), ThroughputMeter()
-    progress = tqdm(total=run.total_steps, initial=state.step, disable=not acc.is_main_process, desc="train")
     run.model.train()
     stopped_early, reason = False, None
     last_checkpoint, saved_step = None, None
@@ -188,7 +204,6 @@ def _fit(run: TrainingRun, flags: _StopFlags) -> FitResult:
     if run.after_training is not None:
         run.after_training(run)
     final = _final_evaluation(run)
-    acc.end_training()
     return FitResult(state, last_checkpoint, final, stopped_early)
 
 
