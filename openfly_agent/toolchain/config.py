@@ -316,16 +316,15 @@ class GroundingDataConfig:
     frames look exactly like the navigation frames.
     """
 
-    source_root: str = (
-        "outputs/datasets/embedded-small"  # navigation dataset whose trajectory poses are rendered
-    )
-    output_dir: str = "outputs/datasets/grounding-small"
-    splits: list[str] = field(default_factory=lambda: [C.SPLIT_TRAIN])  # test splits: evaluation sets only
-    yaw_copies: int = 1  # extra views per pose, yaw turned by U(-yaw_jitter_deg, yaw_jitter_deg)
-    yaw_jitter_deg: float = 60.0
+    # navigation dataset whose trajectory poses are rendered
+    source_root: str = "outputs/datasets/embedded-small"
+    output_dir: str = "outputs/datasets/grounding-small"  # where the grounding dataset is written
+    splits: list[str] = field(default_factory=lambda: [C.SPLIT_TRAIN])  # source splits (test: eval sets)
+    yaw_copies: int = 1  # extra views per pose, its yaw turned by a random angle in +- yaw_jitter_deg
+    yaw_jitter_deg: float = 60.0  # largest yaw offset of the extra views (degrees)
     min_box_area: float = 0.002  # a landmark is described when its box covers this fraction of the frame
     frames_per_part: int = 2048  # rows per parquet part
-    seed: int = 0
+    seed: int = 0  # seed of the yaw offsets and of the optional words of the expressions
 
     def __post_init__(self) -> None:
         for split in self.splits:
