@@ -57,3 +57,51 @@ def test_policy_refuses_observations_without_the_target_box():
 def test_settings_are_checked(kwargs):
     with pytest.raises(ValueError):
         BoxServoSettings(**kwargs)
+
+
+def test_box_servo_runs_on_the_true_target_boxes_through_eval(tmp_path):
+    """Through the runner, the policy sees the simulator's box of the episode's target landmark each step."""
+    from eval_helpers import generate_tiny_dataset
+
+    from openfly_agent.data.openfly_reader import load_openfly_dataset
+    from openfly_agent.eval import rollout
+    from openfly_agent.eval.config import EvalConfig
+    from openfly_agent.eval.run import run
+
+    dataset = tmp_path / "data"
+    generate_tiny_dataset(dataset)
+    seen: list = []
+    real = rollout._policy_obs
+
+    def spy(running, with_target_box=False):
+        obs = real(running, with_target_box)
+        seen.append(
+            (running.obs.boxes or {}, running.episode.landmark_ids[-1], obs.get(OBS_TARGET_BOX, "absent"))
+        )
+        return obs
+
+    cfg = EvalConfig(
+        policy="box_servo", dataset_root=str(dataset), output_dir=str(tmp_path / "out"), progress=False, plots=0,
+        batch_size=2, split=[C.SPLIT_TEST_UNSEEN],
+    )  # fmt: skip
+    rollout._policy_obs = spy
+    try:
+        outcome = run(cfg)
+    finally:
+        rollout._policy_obs = real
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)
+    standard = outcome["results"]["box_servo"]["splits"][C.SPLIT_TEST_UNSEEN]["standard"]["overall"]
+    assert standard["episodes"] == len(episodes)
+    assert seen and all(box != "absent" for _, _, box in seen)
+    for boxes, target, box in seen:
+        expected = boxes.get(target)
+        assert (box is None) == (expected is None)
+        if box is not None:
+            assert box == pytest.approx(list(expected))
+
+
+def test_box_servo_needs_the_embedded_simulator():
+    from openfly_agent.eval.config import EvalConfig, SimSettings
+
+    with pytest.raises(ValueError, match="embedded simulator"):
+        EvalConfig(policy="random", baselines=["box_servo"], sim=SimSettings(type="unrealcv"))

@@ -6,6 +6,7 @@
 - `stop`: STOP at the first step (scored from the start pose).
 - `forward`: `forward` (3 m) at every step until the step cap; never stops.
 - `oracle`: the episode's ground-truth actions (`episodes.oracle_actions`), ending with STOP.
+- `box_servo`: the reflex reference policy on the true target box (eval/box_servo.py; embedded simulator only).
 """
 
 from __future__ import annotations
@@ -16,10 +17,11 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
+from openfly_agent.eval.box_servo import BoxServoPolicy, BoxServoSettings
 from openfly_agent.eval.episodes import oracle_actions, oracle_replays_exactly
 from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP
 
-BASELINE_NAMES = ("random", "stop", "forward", "oracle")
+BASELINE_NAMES = ("random", "stop", "forward", "oracle", "box_servo")
 ORACLE_MODES = ("auto", "replay", "teleport")
 
 
@@ -111,7 +113,13 @@ class OraclePolicy:
         return out
 
 
-def make_baseline(name: str, episodes: list[Episode], seed: int = 0, oracle_mode: str = "auto"):
+def make_baseline(
+    name: str,
+    episodes: list[Episode],
+    seed: int = 0,
+    oracle_mode: str = "auto",
+    box_servo: BoxServoSettings | None = None,
+):
     """Build the baseline called `name` (one of BASELINE_NAMES)."""
     if name == "random":
         return RandomPolicy(seed)
@@ -121,6 +129,8 @@ def make_baseline(name: str, episodes: list[Episode], seed: int = 0, oracle_mode
         return ConstantPolicy("forward", C.ACTION_FORWARD)
     if name == "oracle":
         return OraclePolicy(episodes, oracle_mode)
+    if name == "box_servo":
+        return BoxServoPolicy(box_servo)
     raise ValueError(
         f"unknown baseline {name!r}; choose one of {BASELINE_NAMES} (or 'agent' with a checkpoint)"
     )

@@ -6,10 +6,12 @@ bridges' own config dataclasses (`--sim.unrealcv.port=9001`), so no setting is d
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
+from openfly_agent.eval.box_servo import BoxServoSettings
 from openfly_agent.sim.bridges.airsim import AirSimConfig
 from openfly_agent.sim.bridges.gs_http import GSHttpConfig
 from openfly_agent.sim.bridges.unrealcv import UnrealCVConfig
@@ -25,7 +27,7 @@ class EngineUnreachableError(EvalInputError):
     host and port."""
 
 
-POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
+POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
 PROFILE_NAMES = ("openfly", "standard")
 ORACLE_MODES = ("auto", "replay", "teleport")
@@ -100,7 +102,7 @@ class EvalConfig:
     `<output_dir>/summary.md` (every policy side by side).
     """
 
-    policy: str = "agent"  # agent | random | stop | forward | oracle
+    policy: str = "agent"  # agent | random | stop | forward | oracle | box_servo
     # policy agent: our checkpoint folder (or its run folder / `last` pointer), an OpenVLA / OpenFly-Agent
     # folder, or a Hub id
     checkpoint: str | None = None
@@ -120,6 +122,8 @@ class EvalConfig:
     max_steps: int = C.MAX_EPISODE_STEPS  # actions per episode at most, STOP included
     profiles: list[str] = field(default_factory=lambda: list(PROFILE_NAMES))  # metric profiles reported
     oracle_mode: str = "auto"  # auto | replay | teleport (docs/EVAL.md)
+    # the reflex reference policy on the true target box (embedded simulator only; docs/EVAL.md)
+    box_servo: BoxServoSettings = field(default_factory=BoxServoSettings)
     # results: <output_dir>/summary.md and <output_dir>/<policy>/ (relative to the working directory)
     output_dir: str = "outputs/eval"
     plots: int = 6  # top-down plots per policy and split (evenly spaced over the episode ids)
@@ -139,6 +143,11 @@ class EvalConfig:
                 raise ValueError(f"policy / baselines entry {name!r}: choose from {POLICY_NAMES}")
         if len({self.policy, *self.baselines}) != 1 + len(self.baselines):
             raise ValueError(f"policy {self.policy!r} and baselines {self.baselines} must not repeat a name")
+        if "box_servo" in (self.policy, *self.baselines) and self.sim.type != "embedded":
+            raise ValueError(
+                "box_servo reads the true target box, which only the embedded simulator gives: drop it from "
+                f"--baselines with --sim.type={self.sim.type}"
+            )
         if "agent" in (self.policy, *self.baselines) and not self.checkpoint:
             raise ValueError(
                 "policy 'agent' needs --checkpoint=<folder or Hub id> (or pick a baseline with --policy)"
@@ -189,4 +198,6 @@ class EvalConfig:
             identity["seed"] = self.seed
         if policy == "oracle":
             identity["oracle_mode"] = self.oracle_mode
+        if policy == "box_servo":
+            identity["box_servo"] = dataclasses.asdict(self.box_servo)
         return identity

@@ -201,7 +201,9 @@ def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render
 def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: ProcessInfo):
     """The policy called `name`: the agent of `cfg.checkpoint`, or a baseline."""
     if name != "agent":
-        return make_baseline(name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode)
+        return make_baseline(
+            name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode, box_servo=cfg.box_servo
+        )
     from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
 
     device = resolve_device(cfg.device, getattr(info.state, "device", None))

@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
+from openfly_agent.eval.box_servo import OBS_TARGET_BOX
 from openfly_agent.eval.episodes import episode_spec, goal_of, reference_path, target_landmark
 from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP, Policy, check_actions, step_details
 from openfly_agent.eval.records import EpisodeRecord
@@ -80,14 +81,19 @@ def _new_record(episode: Episode, split: str, policy_name: str, obs: Observation
     )
 
 
-def _policy_obs(running: _Running) -> dict:
-    return {
+def _policy_obs(running: _Running, with_target_box: bool = False) -> dict:
+    obs = {
         OBS_EPISODE_ID: running.episode.episode_id,
         C.OBS_INSTRUCTION: running.episode.instruction,
         C.OBS_RGB: running.obs.rgb,
         C.OBS_POSE: running.obs.pose.as_array(),
         OBS_STEP: len(running.record.actions),
     }
+    if with_target_box:  # privileged: the simulator's box of the target landmark (None when not visible)
+        landmark = target_landmark(running.episode)
+        box = (running.obs.boxes or {}).get(landmark) if landmark else None
+        obs[OBS_TARGET_BOX] = _box_list(box)
+    return obs
 
 
 def _box_list(box) -> list[float] | None:
@@ -190,7 +196,8 @@ class LockstepRunner:
 
     def _step(self, slots: list[_Running | None], active: list[int], stats: RolloutStats) -> list[int]:
         """One lockstep step over the `active` slots; returns the slots whose episode just ended."""
-        observations = [_policy_obs(slots[i]) for i in active]
+        with_box = bool(getattr(self.policy, "needs_target_box", False))
+        observations = [_policy_obs(slots[i], with_box) for i in active]
         episode_ids = [o[OBS_EPISODE_ID] for o in observations]
         t0 = time.perf_counter()
         actions = check_actions(self.policy.name, self.policy.act(observations), len(observations))

@@ -1,0 +1,76 @@
+"""The `tiny-cnn` vision backbone: a small timm ResNet that yields the same token grid as the ViT presets.
+
+A from-scratch ViT learns slowly at the tiny scale on a CPU; a convolutional network has the locality prior
+built in (docs/BENCHMARKS.md, "Tiny preset"). The ResNet's four stages downsample by 16 (the last stage is
+dilated instead of strided), so a 128 px frame gives an 8 x 8 grid, the patch grid of a ViT with patch 16; a
+learned position embedding is added to every cell (convolution features alone say little about *where* a cell
+is, and the LLM's rotary positions only give relative offsets). The output (N, P, C) goes into the same
+projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+CNN_STRIDE = 16  # total downsampling of the ResNet (output_stride): one token per 16 x 16 pixels
+
+
+def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
+    """A timm ResNet of BasicBlocks, one block per stage, output stride 16, no pooling or classifier."""
+    from timm.models.resnet import BasicBlock, ResNet
+
+    if len(channels) != 4:
+        raise ValueError(f"vision.cnn_channels needs 4 stage widths, got {list(channels)}")
+    return ResNet(
+        BasicBlock,
+        [1, 1, 1, 1],
+        channels=tuple(channels),
+        stem_width=stem_width,
+        output_stride=CNN_STRIDE,
+        num_classes=0,
+        global_pool="",
+    )
+
+
+class ConvVisionBackbone(nn.Module):
+    """`featurizer` (a small ResNet) + `pos_embed`: uint8 pixels -> (N, P, C) cell features.
+
+    Args:
+        image_size: square input side in pixels (a multiple of 16).
+        channels: the four stage widths; the last is the feature width C.
+        stem_width: channels of the stem convolution.
+    """
+
+    def __init__(self, image_size: int, channels: tuple[int, ...], stem_width: int) -> None:
+        super().__init__()
+        if image_size % CNN_STRIDE:
+            raise ValueError(f"vision.image_size={image_size} must be a multiple of {CNN_STRIDE} for tiny-cnn")
+        self.image_size = image_size
+        self.featurizer = build_resnet(tuple(channels), stem_width).to(memory_format=torch.channels_last)
+        self.grid_side = image_size // CNN_STRIDE
+        self.pos_embed = nn.Parameter(torch.zeros(self.grid_side**2, channels[-1]))
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    @property
+    def feature_dim(self) -> int:
+        """C, the width of each cell feature."""
+        return self.pos_embed.shape[-1]
+
+    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) uint8 RGB -> (N, P, C) features of the (H / 16) x (W / 16) cells, row-major."""
+        size = self.image_size
+        if pixels.dtype != torch.uint8 or pixels.ndim != 4 or tuple(pixels.shape[1:]) != (3, size, size):
+            raise ValueError(
+                f"vision backbone expects uint8 RGB pixels of shape (N, 3, {size}, {size}); got "
+                f"{pixels.dtype} {tuple(pixels.shape)}"
+            )
+        dtype = self.pos_embed.dtype
+        x = ((pixels.to(dtype) / 255.0 - self.mean.to(dtype)) / self.std.to(dtype)).contiguous(
+            memory_format=torch.channels_last
+        )
+        features = self.featurizer.forward_features(x)  # (N, C, g, g)
+        return features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
