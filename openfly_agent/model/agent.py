@@ -39,7 +39,7 @@ from .config import (
     MODE_OPENVLA_COMPAT,
     ModelConfig,
 )
-from .configuration import OpenFlyAgentConfig
+from .pretrained_config import OpenFlyAgentConfig
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, grounding_loss
