@@ -124,7 +124,7 @@ def main() -> None:
 
         for history in ("none", "keyframes"):
             store = FrameStore(root, cache_episodes=args.episodes, cache_frames=args.episodes * args.steps)
-            dataset = NavigationStepDataset(episodes, store, EveryChangeSelector(), history=history)
+            dataset = NavigationStepDataset(episodes, store, history, 2, 5, keyframe_selector=EveryChangeSelector())
             for label in ("cold", "warm"):
                 start = time.perf_counter()
                 samples = [dataset[i] for i in range(len(dataset))]

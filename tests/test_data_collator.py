@@ -75,7 +75,7 @@ def dataset(tmp_path):
     writer = OpenFlyDatasetWriter(tmp_path)
     for i, episode in enumerate(episodes):
         writer.write_episode(episode, make_frames(len(episode), seed=i))
-    return NavigationStepDataset(episodes, FrameStore(tmp_path), history="uniform", capacity=2)
+    return NavigationStepDataset(episodes, FrameStore(tmp_path), "uniform", capacity=2, set_size=5)
 
 
 def _collator(tokenizer, **kwargs):

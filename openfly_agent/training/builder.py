@@ -86,7 +86,7 @@ def build_run(cfg: TrainConfig) -> TrainingRun:
         test_dataset=test,
         resume_from=resume_from,
         majority_rate=lambda indices: majority_class_rate(datasets[cfg.data.train_split], test, indices),
-        after_training=merge_lora_at_end if cfg.lora.enabled and cfg.lora.merge_at_end else None,
+        after_training=merge_lora_at_end if cfg.use_lora and cfg.lora.merge_at_end else None,
     )
 
 
@@ -104,8 +104,8 @@ def make_dataset(
         frames,
         keyframe_selector=agent.keyframe_selector,
         history=cfg.data.history.mode,
-        capacity=cfg.data.history.capacity,
-        set_size=cfg.data.history.set_size,
+        capacity=cfg.model.memory.capacity,
+        set_size=cfg.model.keyframes.set_size,
         seed=cfg.seed,
     )
 
@@ -117,8 +117,8 @@ def make_collator(agent: OpenFlyAgent, cfg: TrainConfig) -> NavigationCollator:
         action_tokenizer=agent.action_tokenizer,
         image_transform=agent.image_transform,
         prompt_builder=agent.build_prompt,
-        capacity=cfg.data.history.capacity,
-        set_size=cfg.data.history.set_size,
+        capacity=cfg.model.memory.capacity,
+        set_size=cfg.model.keyframes.set_size,
         max_length=cfg.model.llm.max_length - cfg.model.visual_tokens_per_step(),
         append_eos=cfg.model.action_head.type == HEAD_OPENVLA_BINS,
     )

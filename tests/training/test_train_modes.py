@@ -24,7 +24,7 @@ def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_p
     from openfly_agent.model.lora import TRAINABLES_NAME
 
     cfg = make_config(
-        generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__enabled="true", lora__rank=4,
+        generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__rank=4,
         lora__alpha=8, optim__lr=1e-2, validation__final_eval="false",
     )  # fmt: skip
     run, result = train_in_process(cfg)

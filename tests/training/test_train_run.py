@@ -39,7 +39,9 @@ def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path
     tokenizer = train_bpe_tokenizer([e.instruction for e in episodes], cfg.tokenizer.train_vocab_size)
     torch.manual_seed(0)
     agent = OpenFlyAgent.from_model_config(cfg.model, tokenizer=tokenizer).train()
-    dataset = NavigationStepDataset(episodes, FrameStore(generated_dataset), agent.keyframe_selector)
+    dataset = NavigationStepDataset(
+        episodes, FrameStore(generated_dataset), "keyframes", 2, 5, keyframe_selector=agent.keyframe_selector
+    )
     batch = make_collator(agent, cfg)([dataset[i] for i in range(0, len(dataset), len(dataset) // 4)][:4])
     optimizer = make_optimizer(agent, lr=1e-3, weight_decay=0.0, betas=(0.9, 0.95))
     losses = []
