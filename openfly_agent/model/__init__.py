@@ -13,6 +13,8 @@ _LAZY = {
     "OpenFlyAgent": ".agent",
     "register_auto_classes": ".agent",
     "OpenFlyAgentConfig": ".pretrained_config",
+    "OpenFlyProcessor": ".processor",
+    "ImageTransform": ".image_transform",
     "ActionTokenizer": ".action_tokenizer",
     "KeyframeSelector": ".keyframes",
     "MemoryBank": ".memory",

@@ -111,17 +111,8 @@ def make_dataset(
 
 
 def make_collator(agent: OpenFlyAgent, cfg: TrainConfig) -> NavigationCollator:
-    """The collator wired to the agent's tokenizer, action tokenizer, image transform and prompt."""
-    return NavigationCollator(
-        tokenizer=agent.tokenizer,
-        action_tokenizer=agent.action_tokenizer,
-        image_transform=agent.image_transform,
-        prompt_builder=agent.build_prompt,
-        capacity=cfg.model.memory.capacity,
-        set_size=cfg.model.keyframes.set_size,
-        max_length=cfg.model.llm.max_length - cfg.model.visual_tokens_per_step(),
-        append_eos=cfg.model.action_head.type == HEAD_OPENVLA_BINS,
-    )
+    """The collator around the agent's processor (which prepares text, action targets and frames)."""
+    return NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size)
 
 
 def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accelerator):
