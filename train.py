@@ -6,8 +6,8 @@
     accelerate launch --config_file configs/accelerate/fsdp.yaml train.py \
         --config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b
 
-Parses the config, generates the dataset when it is missing, builds the run (all input checks first) and
-calls `training.fit`. Prints the final offline action accuracy next to the majority-class rate.
+Parses the config, generates the dataset when it is missing and calls `training.train` (all input checks
+come first). Prints the final offline action accuracy next to the majority-class rate.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def ensure_dataset(cfg) -> None:
     from accelerate import PartialState
 
     from openfly_agent.data.openfly_reader import annotation_path
-    from openfly_agent.training.engine import use_cpu
+    from openfly_agent.training.accelerator import use_cpu
 
     if annotation_path(cfg.data.root, cfg.data.train_split).is_file() or not cfg.data.generate_if_missing:
         return
@@ -72,7 +72,7 @@ def report(result, cfg) -> None:
 def main(argv: list[str] | None = None) -> int:
     from draccus.utils import ParsingError
 
-    from openfly_agent.training import PreflightError, build_run, fit
+    from openfly_agent.training import PreflightError, train
     from openfly_agent.utils.errors import root_cause
     from openfly_agent.utils.logging_utils import setup_logging
 
@@ -80,12 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cfg = parse_args(sys.argv[1:] if argv is None else argv)
         ensure_dataset(cfg)
-        run = build_run(cfg)
+        result = train(cfg)
     except (ParsingError, PreflightError) as err:
         print(f"train.py: {root_cause(err)}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    result = fit(run)
-    if run.accelerator.is_main_process:
+    if result.is_main_process:
         report(result, cfg)
     return 0
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import os
 import shutil
-from collections.abc import Callable
 from pathlib import Path
 
 from accelerate import Accelerator
@@ -30,21 +29,18 @@ MERGED_DIR = "merged"
 MAX_SHARD_SIZE = "5GB"
 
 
-def make_exporter(accelerator: Accelerator, model: nn.Module, cfg: TrainConfig) -> Callable[[Path], None]:
-    """`export(folder)`: write the model folder of the current weights (call on every process)."""
-
-    def export(folder: Path) -> None:
-        state_dict = accelerator.get_state_dict(model)
-        if not accelerator.is_main_process:
-            return
-        agent = accelerator.unwrap_model(model)
-        if has_lora(agent):
-            write_lora_folder(agent, state_dict, folder)
-        else:
-            agent.save_pretrained(str(folder), state_dict=state_dict, safe_serialization=True)
-        save_config(cfg, Path(folder) / C.TRAIN_CONFIG_NAME)
-
-    return export
+def export_model_folder(accelerator: Accelerator, model: nn.Module, folder: Path, cfg: TrainConfig) -> None:
+    """Write the model folder of the current weights into `folder` (call on every process: the state-dict
+    gather is a collective under FSDP / ZeRO-3; rank 0 writes)."""
+    state_dict = accelerator.get_state_dict(model)
+    if not accelerator.is_main_process:
+        return
+    agent = accelerator.unwrap_model(model)
+    if has_lora(agent):
+        write_lora_folder(agent, state_dict, folder)
+    else:
+        agent.save_pretrained(str(folder), state_dict=state_dict, safe_serialization=True)
+    save_config(cfg, Path(folder) / C.TRAIN_CONFIG_NAME)
 
 
 def write_model_metadata(agent: nn.Module, folder: Path) -> None:

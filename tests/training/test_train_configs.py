@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from accelerate.commands.config.config_args import load_config_from_file
 
+from openfly_agent.training.accelerator import flat_config
 from openfly_agent.training.config import BatchConfig, BatchSizeError, OptimConfig, TrainConfig
-from openfly_agent.training.engine import flat_config
 from openfly_agent.utils.config import config_from_dict, config_to_dict, parse_config
 from openfly_agent.utils.errors import root_cause
 

@@ -22,6 +22,8 @@ from conftest import (
     train_losses,
 )
 
+from openfly_agent.data.collator import NavigationCollator
+from openfly_agent.training.builder import load_splits
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
 
@@ -32,7 +34,7 @@ def _final_test_metrics(output_dir) -> dict[str, float]:
 
 
 def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, generated_dataset, tmp_path):
-    reference_dir, reference, _ = reference_run
+    reference_dir, reference = reference_run
     # 9 test samples over 2 processes x 4: one round-robin group of 8, then rank 1 pads with a weight-0 batch
     args = train_args(generated_dataset, tmp_path, steps=STEPS, validation__final_max_samples=9)
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
@@ -48,9 +50,13 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, ge
 
     # the final offline evaluation covers exactly the 9 samples, as one process over the same 9 does
     single = SimpleNamespace(device=torch.device("cpu"), num_processes=1, process_index=0)
-    test_set, collate = reference.test_loader.loader.dataset, reference.test_loader.loader.collate_fn
+    cfg = make_config(generated_dataset, reference_dir)
+    test_set = load_splits(cfg).dataset(cfg.data.test_split, cfg, reference.agent)
+    collate = NavigationCollator(
+        reference.agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size
+    )
     loader, indices = make_eval_loader(test_set, 9, 4, single, collate)
-    one_process = evaluate(reference.model, loader, single)
+    one_process = evaluate(reference.agent, loader, single)
     two_processes = _final_test_metrics(tmp_path)
     assert len(indices) == 9 and two_processes["test/samples"] == one_process["samples"] == 9
     assert two_processes["test/action_accuracy"] == pytest.approx(one_process["action_accuracy"])
@@ -60,7 +66,7 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, ge
 def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
     reference_run, generated_dataset, tmp_path
 ):
-    reference_dir, _, _ = reference_run
+    reference_dir, _ = reference_run
     args = train_args(generated_dataset, tmp_path, steps=STEPS, checkpoint__save_interval=1)
     env_cmd = run_script.__defaults__  # noqa: F841  (the same environment as run_script)
     process = _start(args)
@@ -74,7 +80,7 @@ def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
     process.wait()
     latest = CheckpointManager(tmp_path, keep_last=5).latest()
     assert latest is not None and (latest / "trainer_state.json").is_file()
-    _, resumed = train_in_process(
+    resumed = train_in_process(
         make_config(generated_dataset, tmp_path, steps=STEPS, resume="true", validation__final_eval="false")
     )
     assert resumed.state.step == STEPS
@@ -93,3 +99,4 @@ def _start(args: list[str]) -> subprocess.Popen:
         [sys.executable, str(REPO_ROOT / "train.py"), *args],
         cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
+
