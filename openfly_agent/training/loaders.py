@@ -38,8 +38,13 @@ def make_train_loader(
 def epoch_batches(
     loader: DataLoader, dataset: NavigationStepDataset, state: TrainerState, accelerator: Accelerator
 ) -> Iterable[dict]:
-    """The prepared train loader for `state.epoch`, skipping the micro-batches of this epoch already consumed."""
+    """The prepared train loader for `state.epoch`, skipping the micro-batches of this epoch already consumed.
+
+    The epoch goes to the sampler (through the prepared loader) and to the dataset directly: accelerate's loader
+    forwards it to the dataset only when it has no sharded batch sampler, i.e. with one process.
+    """
     loader.set_epoch(state.epoch)
+    dataset.set_epoch(state.epoch)  # the "random" history draws of this epoch, under every launcher
     skip = state.step_in_epoch * accelerator.gradient_accumulation_steps
     if not skip:
         return loader

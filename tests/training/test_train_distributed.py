@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -100,3 +101,39 @@ def _start(args: list[str]) -> subprocess.Popen:
         cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
 
+
+def test_each_epoch_reaches_the_dataset_with_two_processes(generated_dataset, tmp_path):
+    """`random` history draws change with the epoch under a 2-process launch, and every process sees the draws
+    of the current epoch (accelerate's loader alone forwards the epoch to the dataset with one process only)."""
+    from epoch_worker import describe, make_dataset
+
+    args = train_args(generated_dataset, tmp_path / "run", data__history__mode="random")
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+    command = [*torchrun, str(Path(__file__).with_name("epoch_worker.py")), str(tmp_path), *args]
+    done = subprocess.run(command, cwd=REPO_ROOT, env=_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    seen = [tuple(r) for rank in (0, 1) for r in json.loads((tmp_path / f"rank{rank}.json").read_text())]
+    assert {r[0] for r in seen} == {0, 1} and len(seen) > 20  # (epoch, episode, step, memory digest)
+    # what one process computes for the same samples, epoch by epoch
+    dataset = make_dataset(make_config(generated_dataset, tmp_path / "run", data__history__mode="random"))
+    index = {(e.episode_id, t): i for i in range(len(dataset)) for e, t in [dataset.locate(i)]}
+    samples = sorted({index[(episode_id, step)] for _, episode_id, step, _ in seen})
+    expected = {}
+    for epoch in (0, 1):
+        dataset.set_epoch(epoch)
+        for episode_id, step, digest in describe([dataset[i] for i in samples]):
+            expected[(epoch, episode_id, step)] = digest
+    wrong = [r for r in seen if expected[r[:3]] != r[3]]
+    assert not wrong, f"{len(wrong)} of {len(seen)} samples carry another epoch's draws, e.g. {wrong[:2]}"
+    changed = [key for key in expected if key[0] == 0 and expected[key] != expected[(1, *key[1:])]]
+    assert len(changed) > len(samples) // 4  # the draws really change between epochs
+
+
+def _env() -> dict[str, str]:
+    import os
+
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "TOKENIZERS_PARALLELISM": "false"}
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(REPO_ROOT), str(Path(__file__).parent), env.get("PYTHONPATH", "")]
+    )
+    return env
