@@ -75,3 +75,17 @@ def test_tiny_only_fields_are_filled_for_tiny_and_rejected_for_7b():
     with pytest.raises(ValueError, match=r"vision.depth=24 is read by the tiny preset only"):
         VisionConfig(preset="dinosiglip-224px", image_size=224, depth=24)
     assert VisionConfig(width=64, num_heads=2).fused_width == TINY_VISION["fused_width"]  # unset: the default
+
+
+def test_config_json_of_older_7b_checkpoints_still_loads():
+    """Before the tiny-only sizes became optional, a 7B config.json held the tiny sizes too; those exact values
+    are dropped on load, anything else still fails."""
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    old = config_to_dict(openfly_7b_config())
+    old["vision"].update(TINY_VISION)
+    old["llm"].update(TINY_LLM)
+    assert OpenFlyAgentConfig(agent=old).model_config == openfly_7b_config()
+    old["llm"]["hidden_size"] = 64
+    with pytest.raises(ValueError, match="llm.hidden_size=64 is read by the tiny preset only"):
+        OpenFlyAgentConfig(agent=old)
