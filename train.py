@@ -7,32 +7,30 @@
         --config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b
 
 Parses the config, generates the dataset when it is missing and calls `training.train` (all input checks
-come first). Prints the final offline action accuracy next to the majority-class rate.
+come first). Prints the final offline action accuracy next to the majority-class rate. Exit codes: 0 done
+(or stopped by SIGTERM / SIGUSR1 with a checkpoint), 2 bad input or unreadable data (one line on stderr),
+130 interrupted (Ctrl-C). `python train.py --help` lists every option with the value a plain run uses; the
+help, the did-you-mean and the one-line messages come from `training/cli.py`.
 """
 
 from __future__ import annotations
 
 import logging
 import sys
-from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent
-DEFAULT_CONFIG = REPO_ROOT / "configs" / "train" / "tiny.yaml"
+from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_default_config: tests/test_docs.py)
+    DEFAULT_CONFIG,
+    data_error_message,
+    help_text,
+    interrupted_message,
+    parse_args,
+    with_default_config,
+)
+
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 logger = logging.getLogger("train")
-
-
-def parse_args(argv: list[str]):
-    """`TrainConfig` from `--config_path` (default: the tiny preset) and dotted overrides; `--resume` alone
-    means `--resume=true`."""
-    from openfly_agent.training.config import TrainConfig
-    from openfly_agent.utils.config import parse_config
-
-    argv = ["--resume=true" if arg == "--resume" else arg for arg in argv]
-    if not any(arg == "--config_path" or arg.startswith("--config_path=") for arg in argv):
-        argv = ["--config_path", str(DEFAULT_CONFIG), *argv]
-    return parse_config(TrainConfig, argv)
 
 
 def ensure_dataset(cfg) -> None:
@@ -69,24 +67,54 @@ def report(result, cfg) -> None:
         )
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str], state: dict) -> int:
+    """Parse, check, train and report; `state["output_dir"]` is set as soon as it is known."""
     from draccus.utils import ParsingError
 
     from openfly_agent.training import PreflightError, train
+    from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
     from openfly_agent.utils.errors import root_cause
     from openfly_agent.utils.logging_utils import setup_logging
 
+    if wants_help(argv):
+        print(help_text(argv), end="")
+        return 0
     setup_logging()
     try:
-        cfg = parse_args(sys.argv[1:] if argv is None else argv)
+        cfg = parse_args(argv)
+        state["output_dir"] = cfg.output_dir
         ensure_dataset(cfg)
         result = train(cfg)
-    except (ParsingError, PreflightError) as err:
+    except (ParsingError, PreflightError, UnknownOptionError) as err:
         print(f"train.py: {root_cause(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as err:  # data that fails to read, before or during training (also in a loader worker)
+        message = data_error_message(err)
+        if message is None:
+            raise
+        print(f"train.py: {message}", file=sys.stderr)
         return EXIT_BAD_INPUT
     if result.is_main_process:
         report(result, cfg)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code (Ctrl-C: one line and 130, no traceback).
+
+    The process group is closed here, after `run` has returned and released the model, optimizer and loaders
+    (utils/distributed.py explains why the order matters).
+    """
+    from openfly_agent.utils.distributed import close_process_group
+
+    state: dict = {}
+    try:
+        code = run(list(sys.argv[1:] if argv is None else argv), state)
+    except KeyboardInterrupt:
+        print(interrupted_message(state.get("output_dir")), file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    close_process_group(synchronize=code == 0)
+    return code
 
 
 if __name__ == "__main__":

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import subprocess
 import sys
 
 import numpy as np
@@ -20,6 +19,7 @@ from openfly_agent.sim.bridges.airsim import (
 )
 from openfly_agent.sim.bridges.base import BridgeError
 from openfly_agent.utils.geometry import Pose
+from openfly_agent.utils.processes import run_group
 
 R2 = math.sqrt(0.5)
 
@@ -127,10 +127,8 @@ def test_rpc_error_is_reported_without_reconnect():
 
 def test_msgpack_is_imported_lazily_and_named_when_missing(monkeypatch):
     code = "import sys, openfly_agent.sim.bridges.airsim; print('msgpack' in sys.modules)"
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
-    )
-    assert out.stdout.strip() == "False"
+    out = run_group([sys.executable, "-c", code], timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "False", out.stderr
     monkeypatch.setitem(sys.modules, "msgpack", None)  # makes `import msgpack` fail
     with pytest.raises(ImportError, match=r"openfly-agent\[bridges\]"):
         AirSimBridge(AirSimConfig(port=free_port())).reset(_episode())

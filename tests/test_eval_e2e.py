@@ -25,6 +25,7 @@ from openfly_agent.eval.factory import make_env
 from openfly_agent.eval.report import policy_results
 from openfly_agent.eval.rollout import LockstepRunner
 from openfly_agent.eval.run import run
+from openfly_agent.utils.processes import communicate_group, run_group, running
 
 REPO = Path(__file__).resolve().parents[1]
 SPLITS = [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN]
@@ -130,6 +131,25 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
     assert Image.open(gif_file).n_frames == len(record.actions)  # one frame per decision
 
 
+def test_agent_resumed_after_a_kill_equals_an_uninterrupted_run_bit_for_bit(dataset, tmp_path):
+    """A kill after some episodes, then the same command: every record, predicted boxes included, is exactly
+    the uninterrupted run's (lockstep groups are recomputed whole, with the same companions)."""
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TRAIN)
+    save_small_agent(tmp_path / "ckpt", [e.instruction for e in episodes])
+    common = {"policy": "agent", "checkpoint": str(tmp_path / "ckpt"), "max_steps": 12, "plots": 0}
+    common.update(batch_size=3, split=[C.SPLIT_TEST_UNSEEN])
+    run(_cfg(dataset, tmp_path / "clean", **common))
+    clean = read_all_logs(tmp_path / "clean" / "agent")
+    assert len(clean) > 3 and any(b is not None for r in clean for b in r.boxes)
+    finished = (tmp_path / "clean" / "agent" / C.EPISODES_JSONL).read_text().splitlines(keepends=True)
+    killed = tmp_path / "killed" / "agent"
+    killed.mkdir(parents=True)
+    # What SIGKILL leaves after 2 episodes finished: their lines, in finishing order, and half of the third.
+    (killed / C.EPISODES_JSONL).write_text("".join(finished[:2]) + finished[2][:40])
+    run(_cfg(dataset, tmp_path / "killed", **common))
+    assert read_all_logs(killed) == clean  # boxes compared exactly, not to a tolerance
+
+
 def _eval_cmd(dataset, out, *extra):
     return [
         sys.executable, str(REPO / "eval.py"), "--policy", "random", "--baselines", "forward",
@@ -161,30 +181,47 @@ def test_sigkilled_run_resumes_to_the_same_table(dataset, reference, tmp_path):
     log = tmp_path / "random" / C.EPISODES_JSONL
     # Frames are rendered for the GIF episode, which slows the run enough to kill it half way.
     gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id
-    proc = subprocess.Popen(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env)
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and proc.poll() is None:
-        if log.is_file() and len(log.read_bytes().splitlines()) >= 2:
-            break
-        time.sleep(0.005)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
+    with running(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env) as proc:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:
+            if log.is_file() and len(log.read_bytes().splitlines()) >= 2:
+                break
+            time.sleep(0.005)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
     done = len(log.read_bytes().splitlines())
     assert 2 <= done < total
-    resumed = subprocess.run(
-        _eval_cmd(dataset, tmp_path), env=env, capture_output=True, text=True, timeout=300
-    )
+    resumed = run_group(_eval_cmd(dataset, tmp_path), timeout=300, env=env)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "| random |" in resumed.stdout
+    _same_results(reference, tmp_path)
+
+
+def test_ctrl_c_ends_with_one_line_and_130_then_the_same_command_resumes(dataset, reference, tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    log = tmp_path / "random" / C.EPISODES_JSONL
+    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # slows the run down (frames)
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    with running(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env, **pipes) as proc:
+        deadline = time.monotonic() + 240
+        while (
+            time.monotonic() < deadline and proc.poll() is None and not (log.is_file() and log.read_bytes())
+        ):
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGINT)  # what Ctrl-C sends to the foreground process
+        _, err = communicate_group(proc, timeout=60)
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1] == "eval.py: interrupted; run the same command again to resume"
+    resumed = run_group(_eval_cmd(dataset, tmp_path), timeout=300, env=env)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
     _same_results(reference, tmp_path)
 
 
 def test_two_processes_split_and_merge(dataset, reference, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    double = subprocess.run(
-        launcher + _eval_cmd(dataset, tmp_path)[1:], env=env, capture_output=True, text=True, timeout=300
-    )
+    double = run_group(launcher + _eval_cmd(dataset, tmp_path)[1:], timeout=300, env=env)
     assert double.returncode == 0, double.stdout[-3000:] + double.stderr[-6000:]
     assert sorted(p.name for p in (tmp_path / "random").glob("episodes*.jsonl")) == [C.EPISODES_JSONL]
     # Each process ran its own shard (not the whole split), and only rank 0 printed the table.

@@ -15,6 +15,7 @@ import pytest
 from openfly_agent.hub.cli import build_parser, main
 from openfly_agent.hub.cli_args import build_dataclass, field_docs
 from openfly_agent.hub.config import CardConfig, DatasetReleaseConfig, ModelReleaseConfig
+from openfly_agent.utils.processes import communicate_group, running
 
 
 def parse_model(argv: list[str]) -> ModelReleaseConfig:
@@ -91,29 +92,19 @@ def _ignore_sigint() -> None:
 def test_fake_hub_command_serves_until_interrupted(tmp_path, stop_signal):
     """It stops and prints its summary on Ctrl-C / SIGTERM, even when started with SIGINT ignored."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        preexec_fn=_ignore_sigint,
-    )
-    try:
-        line = proc.stdout.readline()
-        url = line.split("HF_ENDPOINT=")[1].split()[0]
-        request = urllib.request.Request(
-            f"{url}/api/repos/create",
-            data=json.dumps({"name": "x", "organization": "me"}).encode(),
-            headers={"Authorization": "Bearer tok", "Content-Type": "application/json"},
-        )
-        assert json.loads(urllib.request.urlopen(request, timeout=10).read())["url"] == f"{url}/me/x"
-    finally:
-        proc.send_signal(stop_signal)
+    command = [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"]
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    with running(command, env=env, preexec_fn=_ignore_sigint, **pipes) as proc:
         try:
-            out, _ = proc.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
-            raise
+            line = proc.stdout.readline()
+            url = line.split("HF_ENDPOINT=")[1].split()[0]
+            request = urllib.request.Request(
+                f"{url}/api/repos/create",
+                data=json.dumps({"name": "x", "organization": "me"}).encode(),
+                headers={"Authorization": "Bearer tok", "Content-Type": "application/json"},
+            )
+            assert json.loads(urllib.request.urlopen(request, timeout=10).read())["url"] == f"{url}/me/x"
+        finally:
+            proc.send_signal(stop_signal)
+        out, _ = communicate_group(proc, timeout=30)
     assert proc.returncode == 0 and "model me/x@main: 0 files, 0 bytes" in out

@@ -12,6 +12,7 @@ from test_hub_dataset import CARD, make_dataset_root  # tests/ is on sys.path (p
 
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.push import PushError, push_folder
+from openfly_agent.utils.processes import run_group
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "hf_fakeTokenThatMustNeverBePrinted0123"
@@ -34,14 +35,7 @@ def hub_env(hub: FakeHub, home: Path, token: str = TOKEN) -> dict[str, str]:
 
 
 def run_cli(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "openfly_agent.hub", *args],
-        env=env,
-        cwd=REPO_ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    return run_group([sys.executable, "-m", "openfly_agent.hub", *args], timeout=300, env=env, cwd=REPO_ROOT)
 
 
 def files_containing(folder: Path, needle: str) -> list[Path]:
@@ -112,3 +106,29 @@ def test_push_without_token_says_how_to_log_in(tmp_path, monkeypatch):
 def test_push_needs_the_folder(tmp_path):
     with pytest.raises(PushError, match="does not exist"):
         push_folder(tmp_path / "missing", "me/x")
+
+
+@pytest.mark.parametrize("command", ["release-dataset", "release"])
+@pytest.mark.parametrize("hub_state", ["unreachable", "offline"])
+def test_push_without_a_hub_fails_before_writing_anything(command, hub_state, tmp_path):
+    """`--push` with the Hub unreachable (or offline mode on) stops at once, in one line, with no folder."""
+    from bridge_fakes import free_port
+
+    out = tmp_path / "release"
+    args = [command, "--repo-id", "me/x", "--push", "--output-dir", str(out)]
+    if command == "release-dataset":
+        root, _ = make_dataset_root(tmp_path / "data")
+        args += ["--dataset-root", str(root), "--card", str(CARD)]
+    else:  # checked after the Hub: the folder does not even need to exist
+        args += ["--checkpoint", str(tmp_path / "checkpoint")]
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGINGFACE_"))}
+    env.update(HF_TOKEN=TOKEN, HF_HOME=str(tmp_path / "hf_home"), PYTHONPATH=str(REPO_ROOT))
+    env.update(HF_ENDPOINT=f"http://127.0.0.1:{free_port()}", HF_HUB_DISABLE_TELEMETRY="1")
+    env["HF_HUB_OFFLINE"] = "1" if hub_state == "offline" else "0"
+    result = run_cli(args, env)
+    assert result.returncode == 2
+    errors = result.stderr.strip().splitlines()
+    assert len(errors) == 1 and errors[0].startswith("error: "), result.stderr[-2000:]
+    expected = "unset HF_HUB_OFFLINE" if hub_state == "offline" else f"{env['HF_ENDPOINT']} cannot be reached"
+    assert expected in errors[0] and TOKEN not in result.stderr
+    assert not out.exists()  # nothing written: the same command works once the Hub is back

@@ -23,6 +23,7 @@ from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import build_model_release, resolve_checkpoint
 from openfly_agent.model.remote_code import AUTO_MAP
+from openfly_agent.utils.processes import run_group
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "hf_releaseTestTokenNeverShown42"
@@ -80,15 +81,7 @@ def run_python(code: str, cwd: Path, **env_overrides: str) -> subprocess.Complet
     env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGINGFACE_"))}
     env.update({"HF_HOME": str(cwd / "hf_home"), "HF_HUB_OFFLINE": "1", "PYTHONPATH": str(REPO_ROOT)})
     env.update(env_overrides)
-    return subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        stdin=subprocess.DEVNULL,
-    )
+    return run_group([sys.executable, "-c", code], timeout=300, cwd=cwd, env=env, stdin=subprocess.DEVNULL)
 
 
 def last_json_line(result: subprocess.CompletedProcess):
@@ -263,15 +256,8 @@ def _run_cli(work: Path, endpoint: str, online: dict, results: Path, source) -> 
     args = ["release", "--checkpoint", str(source.checkpoint), "--repo-id", "me/openfly-tiny", "--push"]
     args += ["--results", str(results), "--output-dir", str(work / "release"), "--max-shard-size", "2MB"]
     args += ["--card.base-model", "openvla/openvla-7b", "--card.eval-dataset", "me/openfly-embedded"]
-    return subprocess.run(
-        [sys.executable, "-m", "openfly_agent.hub", *args],
-        cwd=REPO_ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        stdin=subprocess.DEVNULL,
-    )
+    command = [sys.executable, "-m", "openfly_agent.hub", *args]
+    return run_group(command, timeout=300, cwd=REPO_ROOT, env=env, stdin=subprocess.DEVNULL)
 
 
 def _results_json() -> dict:

@@ -296,3 +296,40 @@ def test_cli_generate_writes_a_dataset(tmp_path, capsys):
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert printed["trajectories"] == sum(printed["per_split"].values()) > 0
     assert (tmp_path / "cli" / C.DATASET_INFO_JSON).is_file()
+
+
+def test_a_rerun_with_other_settings_is_refused_unless_overwrite(dataset, tmp_path, capsys):
+    import yaml
+
+    from openfly_agent.toolchain.__main__ import main
+    from openfly_agent.toolchain.settings import GenerateSettingsError
+    from openfly_agent.utils.config import config_to_dict
+
+    cfg, root, summary = dataset
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    bigger = dataclasses.replace(cfg, output_dir=str(copy), render=RenderConfig(width=96, height=96))
+    with pytest.raises(GenerateSettingsError, match=r"render\.height: 64 -> 96; render\.width: 64 -> 96"):
+        generate(bigger, progress=False)
+    assert json.loads((copy / C.TOOLCHAIN_CONFIG_JSON).read_text())["render"]["width"] == 64  # record kept
+    # The command line says the same in one line, exit code 2.
+    config = tmp_path / "small.yaml"
+    config.write_text(yaml.safe_dump(config_to_dict(dataclasses.replace(cfg, output_dir=str(copy)))))
+    assert main(["generate", "--config", str(config), "--render.width=96", "--render.height=96"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "render.width: 64 -> 96" in err[0] and "--overwrite=true" in err[0]
+    # Settings that do not change the data (workers, plots, shard) still resume, to the same dataset.
+    assert (
+        generate(dataclasses.replace(cfg, output_dir=str(copy), workers=1, plots=False), progress=False)
+        == summary
+    )
+    # --overwrite discards the old dataset: only 96 px trajectories remain.
+    fresh = dataclasses.replace(
+        bigger, overwrite=True, scenes=dataclasses.replace(cfg.scenes, trajectories_per_scene=2),
+        dagger=DaggerConfig(episodes_per_scene=0),
+    )  # fmt: skip
+    generate(fresh, progress=False)
+    episodes = [e for eps in _episodes(copy).values() for e in eps]
+    assert episodes and len(episodes) < summary["trajectories"]
+    assert all(FrameStore(copy).frame(e, 0).shape == (96, 96, 3) for e in episodes)
+    assert json.loads((copy / C.TOOLCHAIN_CONFIG_JSON).read_text())["render"]["width"] == 96

@@ -77,7 +77,8 @@ class DataConfig:
     """Where the dataset lives, its splits, and how samples are read and drawn from it.
 
     Attributes:
-        root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated.
+        root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated; relative to the
+            working directory.
         train_split: the split training reads (one of constants.SPLITS).
         val_split: periodic validation.
         test_split: the final offline evaluation.
@@ -87,10 +88,12 @@ class DataConfig:
         cache_episodes: episodes whose encoded frames stay in memory per process (LRU).
         cache_frames: decoded frames kept per process (LRU).
         generate_if_missing: train.py runs the toolchain when `root` holds no dataset.
-        toolchain_config: the toolchain YAML it runs then.
+        toolchain_config: the toolchain YAML it runs then; a relative path not found in the working
+            directory is read from the repository.
     """
 
-    root: str = "outputs/datasets/embedded-small"  # where the toolchain writes embedded-small
+    # dataset root (relative to the working directory); the toolchain writes embedded-small there
+    root: str = "outputs/datasets/embedded-small"
     train_split: str = C.SPLIT_TRAIN
     val_split: str = C.SPLIT_TEST_SEEN
     test_split: str = C.SPLIT_TEST_UNSEEN

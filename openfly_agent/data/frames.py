@@ -12,6 +12,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from openfly_agent import constants as C
@@ -144,8 +145,7 @@ class FrameStore:
 
     @staticmethod
     def _read_parquet_frames(path: Path, episode: Episode) -> tuple[list[bytes], list[int]]:
-        table = pq.read_table(path, columns=[c for c in FRAME_KEY_COLUMNS if c in pq.read_schema(path).names])
-        rows = table.to_pylist()
+        rows = read_parquet_rows(path, episode.episode_id)
         by_key = {}
         for r, row in enumerate(rows):
             for key in row_frame_keys(row):
@@ -170,6 +170,21 @@ class FrameStore:
         )
 
 
+def read_parquet_rows(path: Path, record: str) -> list[dict]:
+    """The frame rows of a trajectory parquet; a truncated or corrupt file is a SchemaError naming it."""
+    try:
+        table = pq.read_table(path, columns=[c for c in FRAME_KEY_COLUMNS if c in pq.read_schema(path).names])
+        return table.to_pylist()
+    except (pa.ArrowException, OSError) as err:
+        problem = " ".join(str(err).split()) or type(err).__name__
+        raise SchemaError(
+            str(path),
+            record,
+            "<parquet>",
+            f"not a readable parquet file ({problem}); regenerate or re-download it",
+        ) from err
+
+
 def _read_image_file(folder: Path, frame_id: str) -> bytes:
     for ext in IMAGE_EXTENSIONS:
         path = folder / f"{frame_id}{ext}"
@@ -186,10 +201,15 @@ def _index_parquet_folder(folder: Path) -> dict[str, Path]:
     files = sorted(folder.glob("*.parquet"))
     logger.info("indexing %d trajectory files in %s by env_id/traj_id", len(files), folder)
     for path in files:
-        names = pq.read_schema(path).names
-        if "env_id" not in names or "traj_id" not in names:
-            continue
-        first = pq.read_table(path, columns=["env_id", "traj_id"]).slice(0, 1).to_pylist()
+        try:
+            names = pq.read_schema(path).names
+            if "env_id" not in names or "traj_id" not in names:
+                continue
+            first = pq.read_table(path, columns=["env_id", "traj_id"]).slice(0, 1).to_pylist()
+        except (pa.ArrowException, OSError) as err:
+            raise SchemaError(
+                str(path), "<file>", "<parquet>", f"not a readable parquet file ({err})"
+            ) from err
         if first and first[0]["env_id"] and first[0]["traj_id"]:
             index[first[0]["env_id"].replace("\\", "/").strip("/") + "/" + first[0]["traj_id"]] = path
     return index

@@ -20,6 +20,11 @@ class EvalInputError(ValueError):
     checkpoint type); raised before any episode runs, with a message that says what to change."""
 
 
+class EngineUnreachableError(EvalInputError):
+    """The simulator engine of `--sim` cannot be reached; raised before the first episode, naming the engine,
+    host and port."""
+
+
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle")
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
 PROFILE_NAMES = ("openfly", "standard")
@@ -75,9 +80,8 @@ class AgentSettings:
     unnorm_key: str | None = None  # openvla_bins head: norm-stats key (released model: vlnv1 or vln_norm)
     decode_rule: str | None = None  # openvla_bins head: exact | nearest; None = the checkpoint's setting
     dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on CUDA) | float32 | bfloat16 | float16
-    model_config: str | None = (
-        None  # released (OpenVLA-format) folders: ModelConfig YAML; None = 7B compat preset
-    )
+    # released (OpenVLA-format) folders: the ModelConfig YAML to build; None = the 7B compat preset
+    model_config: str | None = None
 
     def __post_init__(self) -> None:
         if self.decode_rule is not None and self.decode_rule not in DECODE_RULES:
@@ -97,13 +101,14 @@ class EvalConfig:
     """
 
     policy: str = "agent"  # agent | random | stop | forward | oracle
-    checkpoint: str | None = (
-        None  # agent: our checkpoint folder, an OpenVLA / OpenFly-Agent folder, or a Hub id
-    )
-    baselines: list[str] = field(
-        default_factory=list
-    )  # more policies through the same runner, e.g. [random,stop]
+    # policy agent: our checkpoint folder (or its run folder / `last` pointer), an OpenVLA / OpenFly-Agent
+    # folder, or a Hub id
+    checkpoint: str | None = None
+    # more policies run through the same runner after `policy`, e.g. --baselines random stop
+    baselines: list[str] = field(default_factory=list)
+    # the dataset (relative to the working directory): Annotation/*.json and traj/ parquet files
     dataset_root: str = "outputs/datasets/embedded-small"
+    # splits to evaluate, e.g. --split test_seen test_unseen
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
     # Label handling, as in training (take-off / landing trimmed: start at flight height, goal = the STOP
     # pose). Released-data parity: takeoff_landing=keep (start on the ground, goal = the landed point).
@@ -112,20 +117,21 @@ class EvalConfig:
     sim: SimSettings = field(default_factory=SimSettings)
     agent: AgentSettings = field(default_factory=AgentSettings)
     batch_size: int = 16  # episodes stepped in lockstep (the policy's batch)
-    max_steps: int = C.MAX_EPISODE_STEPS
-    profiles: list[str] = field(default_factory=lambda: list(PROFILE_NAMES))
+    max_steps: int = C.MAX_EPISODE_STEPS  # actions per episode at most, STOP included
+    profiles: list[str] = field(default_factory=lambda: list(PROFILE_NAMES))  # metric profiles reported
     oracle_mode: str = "auto"  # auto | replay | teleport (docs/EVAL.md)
+    # results: <output_dir>/summary.md and <output_dir>/<policy>/ (relative to the working directory)
     output_dir: str = "outputs/eval"
     plots: int = 6  # top-down plots per policy and split (evenly spaced over the episode ids)
-    gif_episodes: list[str] = field(
-        default_factory=list
-    )  # episode ids to save as GIFs with the predicted box
-    seed: int = 0
+    # episode ids to save as GIFs with the predicted box
+    gif_episodes: list[str] = field(default_factory=list)
+    seed: int = 0  # the random baseline's seed (per episode: seed + SHA-256 of the episode id)
     device: str = "auto"  # auto | cpu | cuda | cuda:<k>
-    torch_threads: int | None = None  # CPU threads of the model (None = torch's default); 1 avoids thrashing
-    # when other processes share few cores (docs/BENCHMARKS.md)
+    # CPU threads of the model (None = torch's default); 1 avoids thrashing when other processes share few
+    # cores (docs/BENCHMARKS.md)
+    torch_threads: int | None = None
     overwrite: bool = False  # discard existing logs in output_dir instead of resuming
-    progress: bool = True
+    progress: bool = True  # draw a progress bar per policy and split
 
     def __post_init__(self) -> None:
         for name in [self.policy, *self.baselines]:

@@ -83,12 +83,14 @@ def read_all_logs(folder: str | Path) -> list[EpisodeRecord]:
 
 
 def merge_logs(folder: str | Path) -> list[EpisodeRecord]:
-    """Rank 0, after the barrier: fold the rank logs into `episodes.jsonl` (atomic) and delete them."""
+    """Rank 0, after the barrier: fold the rank logs into `episodes.jsonl` (atomic) and delete them; a log
+    that holds retried episodes is rewritten with one record per episode (the retry replaces the error)."""
     folder = Path(folder)
     files = log_files(folder)
-    records = merge_records([read_jsonl(p) for p in files])
+    logs = [read_jsonl(p) for p in files]
+    records = merge_records(logs)
     rank_logs = [p for p in files if p.name != C.EPISODES_JSONL]
-    if rank_logs:
+    if rank_logs or sum(map(len, logs)) != len(records):
         write_jsonl_atomic(folder / C.EPISODES_JSONL, records)
         for path in rank_logs:
             path.unlink()

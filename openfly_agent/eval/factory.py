@@ -12,9 +12,10 @@ import numpy as np
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.baselines import make_baseline
-from openfly_agent.eval.config import EvalConfig, EvalInputError, SimSettings
+from openfly_agent.eval.config import EngineUnreachableError, EvalConfig, EvalInputError, SimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
+from openfly_agent.sim.bridges.base import BridgeError
 from openfly_agent.utils.errors import RecordError
 
 logger = logging.getLogger(__name__)
@@ -125,7 +126,12 @@ class _BridgeSlots(SimulatorSlots):
 
 
 def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
-    """One engine bridge per process (`port + rank` when `port_per_rank`), as lockstep slots of width 1."""
+    """One engine bridge per process (`port + rank` when `port_per_rank`), as lockstep slots of width 1.
+
+    Raises:
+        EngineUnreachableError: the engine does not answer (connection and handshake are tried at once, so
+            a wrong host or port, or an engine that is not running, ends the run before any episode).
+    """
     from openfly_agent.sim.bridges.airsim import AirSimBridge
     from openfly_agent.sim.bridges.gs_http import GSHttpBridge
     from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
@@ -137,7 +143,12 @@ def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
         port = (config.port or bridge_cls.default_port) + info.rank
         config = dataclasses.replace(config, port=port)
     logger.info("%s bridge at %s:%s", settings.type, config.host, config.port or bridge_cls.default_port)
-    return _BridgeSlots(bridge_cls(config), settings)
+    bridge = bridge_cls(config)
+    try:
+        bridge.connect()
+    except BridgeError as err:
+        raise EngineUnreachableError(str(err)) from err
+    return _BridgeSlots(bridge, settings)
 
 
 def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):

@@ -56,6 +56,11 @@ class EpisodeRecord:
         return (self.split, self.episode_id)
 
     @property
+    def errored(self) -> bool:
+        """The episode ended in an engine error: it is not scored, and a resumed run tries it again."""
+        return self.end_reason == "error"
+
+    @property
     def stop_step(self) -> int | None:
         """Index of the STOP action, or None when the episode ended otherwise."""
         return len(self.actions) - 1 if self.stopped else None
@@ -162,11 +167,13 @@ class EpisodeLog:
 
 
 def merge_records(groups: list[list[EpisodeRecord]]) -> list[EpisodeRecord]:
-    """Union of several logs keyed by (split, episode id); the first occurrence wins. Sorted by key."""
+    """Union of several logs keyed by (split, episode id), sorted by key. The first finished record of an
+    episode wins; a record that ended in an engine error is replaced by any later one (the retry)."""
     merged: dict[tuple[str, str], EpisodeRecord] = {}
     for records in groups:
         for record in records:
-            merged.setdefault(record.key, record)
+            if record.key not in merged or merged[record.key].errored:
+                merged[record.key] = record
     return [merged[k] for k in sorted(merged)]
 
 

@@ -17,6 +17,7 @@ RESULTS_VERSION = 1
 # (summary key, column title, decimals)
 COLUMNS = (
     ("episodes", "Episodes", 0),
+    ("errors", "Errors", 0),
     ("ne_m", "NE (m)", 1),
     ("sr_pct", "SR (%)", 1),
     ("osr_pct", "OSR (%)", 1),
@@ -52,13 +53,34 @@ def episode_rows(records: Sequence[EpisodeRecord], profile: str) -> list[dict]:
 
 
 def split_tables(records: Sequence[EpisodeRecord], profiles: Sequence[str]) -> dict[str, dict[str, dict]]:
-    """{split: {profile: aggregate by scene}} over `records` (splits in order of first appearance)."""
+    """{split: {profile: aggregate by scene}} over `records` (splits in order of first appearance).
+
+    Episodes that ended in an engine error are not scored: the metrics cover the others, and `errors` (in
+    `overall` and per scene) counts them.
+    """
     splits = list(dict.fromkeys(r.split for r in records))
     tables: dict[str, dict[str, dict]] = {}
     for split in splits:
         subset = [r for r in records if r.split == split]
-        tables[split] = {p: aggregate(episode_rows(subset, p), by="scene") for p in profiles}
+        tables[split] = {p: _profile_table(subset, p) for p in profiles}
     return tables
+
+
+def _profile_table(records: Sequence[EpisodeRecord], profile: str) -> dict:
+    scored = [r for r in records if not r.errored]
+    if scored:
+        table = aggregate(episode_rows(scored, profile), by="scene")
+    else:  # every episode failed: nothing to average
+        table = {"profile": profile, "overall": {"episodes": 0}, "per_scene": {}}
+    errors_by_scene: dict[str, int] = {}
+    for record in records:
+        if record.errored:
+            errors_by_scene[record.scene_id] = errors_by_scene.get(record.scene_id, 0) + 1
+    table["overall"]["errors"] = sum(errors_by_scene.values())
+    for scene in sorted(set(errors_by_scene) | set(table["per_scene"])):
+        table["per_scene"].setdefault(scene, {"episodes": 0})["errors"] = errors_by_scene.get(scene, 0)
+    table["per_scene"] = dict(sorted(table["per_scene"].items()))
+    return table
 
 
 def policy_results(
@@ -67,8 +89,9 @@ def policy_results(
     """The `results.json` of one policy.
 
     Shape: {"version", "policy", "meta": {...}, "profiles": {name: profile fields},
-    "splits": {split: {profile: {"profile", "overall", "per_scene", "scene_mean"}}}} with the summary keys
-    of `eval.metrics.aggregate` (`ne_m`, `sr_pct`, `osr_pct`, `spl_pct`, ...).
+    "splits": {split: {profile: {"profile", "overall", "per_scene", "scene_mean"}}}, "errors": {split: n}}
+    with the summary keys of `eval.metrics.aggregate` (`ne_m`, `sr_pct`, `osr_pct`, `spl_pct`, ...) plus
+    `errors`, the episodes that ended in an engine error and are left out of every metric.
     """
     return {
         "version": RESULTS_VERSION,
@@ -76,6 +99,10 @@ def policy_results(
         "meta": dict(meta or {}),
         "profiles": {p: asdict(get_profile(p)) for p in profiles},
         "splits": split_tables(records, profiles),
+        "errors": {
+            split: sum(r.errored for r in records if r.split == split)
+            for split in dict.fromkeys(r.split for r in records)
+        },
     }
 
 

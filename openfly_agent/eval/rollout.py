@@ -1,9 +1,12 @@
-"""The closed-loop runner: episodes in lockstep batches, one batched policy call per step.
+"""The closed-loop runner: episodes in lockstep groups, one batched policy call per step.
 
-Each slot of a `SlotEnv` holds one running episode; at every step the policy gets the observations of
-all running episodes at once, the environment executes the actions, and an episode that stops, hits the
-step cap or meets an engine error is written out (`on_finish`) and its slot restarted with the next
-episode. Episodes never influence each other, so results do not depend on the batch size.
+Episodes run in consecutive groups of `num_slots` (the batch size): a group starts together, and at every
+step the policy gets the observations of the group's running episodes at once, the environment executes
+the actions, and an episode that stops, hits the step cap or meets an engine error is written out
+(`on_finish`); the next group starts when the last episode of this one has ended. Episodes never share
+state, so results do not depend on the batch size beyond float rounding, and because an episode's batch
+companions at every step depend only on the episode list and the batch size, a group recomputed after a
+kill gives bit-identical results (eval/run.py resumes by whole groups; docs/EVAL.md).
 """
 
 from __future__ import annotations
@@ -124,7 +127,11 @@ class LockstepRunner:
         on_finish: Callable[[EpisodeRecord], None],
         on_frames: Callable[[EpisodeRecord, FrameLog], None] | None = None,
     ) -> RolloutStats:
-        """Run every episode of `episodes` to its end, calling `on_finish(record)` as each one finishes."""
+        """Run every episode of `episodes` to its end, calling `on_finish(record)` as each one finishes.
+
+        Episodes run in groups of `num_slots`, in list order (`groups`); a slot whose episode ended waits for
+        the rest of its group, so no episode's batch depends on which other episodes were run before.
+        """
         stats = RolloutStats()
         queue = deque(episodes)
         slots: list[_Running | None] = [None] * self.env.num_slots
@@ -147,13 +154,16 @@ class LockstepRunner:
 
         try:
             while True:
-                for slot in range(self.env.num_slots):
-                    while slots[slot] is None and queue:
-                        slots[slot] = self._start(slot, queue.popleft(), split, stats)
-                        if slots[slot].record.end_reason == "error":
-                            finish(slot)
+                if all(running is None for running in slots):  # the previous group is over: start the next
+                    for slot in range(self.env.num_slots):
+                        if queue:
+                            slots[slot] = self._start(slot, queue.popleft(), split, stats)
+                            if slots[slot].record.end_reason == "error":
+                                finish(slot)
                 active = [i for i, running in enumerate(slots) if running is not None]
                 if not active:
+                    if queue:
+                        continue
                     break
                 for slot in self._step(slots, active, stats):
                     finish(slot)
@@ -224,6 +234,11 @@ class LockstepRunner:
             elif len(record.actions) >= self.max_steps:
                 ended.append(slot)
         return ended
+
+
+def groups(episodes: list[Episode], size: int) -> list[list[Episode]]:
+    """The lockstep groups `LockstepRunner.run` forms: consecutive runs of `size` episodes, in list order."""
+    return [episodes[i : i + size] for i in range(0, len(episodes), size)]
 
 
 def _log_frame(running: _Running, detail: dict) -> None:

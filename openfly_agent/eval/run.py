@@ -25,7 +25,7 @@ from openfly_agent.eval.distributed import (
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
 from openfly_agent.eval.policy import Policy
 from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
-from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, teleport_record
+from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, groups, teleport_record
 from openfly_agent.eval.slots import SlotEnv
 
 logger = logging.getLogger(__name__)
@@ -86,7 +86,10 @@ def evaluate_policy(
     """Run this process' shard of every split not yet in the logs of `folder`; append as they finish."""
     from openfly_agent.eval.plots import write_gif
 
-    done = {r.key for r in read_all_logs(folder)}
+    # Errored episodes (an engine that failed) are not done: this run tries them again.
+    logged = read_all_logs(folder)
+    done = {r.key for r in logged if not r.errored}
+    errored = {r.key for r in logged if r.errored}
     log = EpisodeLog(folder / log_name(info))
     gif_ids = set(cfg.gif_episodes)
 
@@ -97,30 +100,43 @@ def evaluate_policy(
     for split, episodes in episodes_by_split.items():
         mine = shard(episodes, info.rank, info.world_size)
         todo = [e for e in mine if (split, e.episode_id) not in done]
+        retried = sum((split, e.episode_id) in errored for e in todo)
         logger.info(
-            "%s / %s: %d episodes in this shard, %d already done",
+            "%s / %s: %d episodes in this shard, %d already done%s",
             policy.name,
             split,
             len(mine),
             len(mine) - len(todo),
+            f", {retried} that ended in an engine error tried again" if retried else "",
         )
         replays = getattr(policy, "replays", None)
-        if (
-            replays is not None
-        ):  # the oracle: episodes whose actions do not replay follow the ground-truth poses
+        if replays is not None:  # the oracle: episodes whose actions do not replay follow the recorded poses
             for episode in [e for e in todo if not replays(e.episode_id)]:
                 log.append(teleport_record(episode, split, policy.name, cfg.max_steps))
-            todo = [e for e in todo if replays(e.episode_id)]
-        runner.run(todo, split, on_finish=log.append, on_frames=save_gif)
-        missing = [
-            e
+            mine = [e for e in mine if replays(e.episode_id)]
+
+        def unfinished(record: EpisodeRecord, split: str = split) -> None:
+            if (split, record.episode_id) not in done:  # an already logged companion recomputed identically
+                log.append(record)
+
+        # Resume by whole lockstep groups: a group that lost episodes to a kill runs again with the same
+        # companions, so its records are bit-identical to an uninterrupted run's (docs/EVAL.md).
+        pending = [
+            g for g in groups(mine, env.num_slots) if any((split, e.episode_id) not in done for e in g)
+        ]
+        runner.run([e for g in pending for e in g], split, on_finish=unfinished, on_frames=save_gif)
+        missing = {
+            e.episode_id
             for e in mine
             if e.episode_id in gif_ids
             and (split, e.episode_id) in done
             and not gif_path(folder, split, e.episode_id).is_file()
-        ]
-        if missing:  # finished in an earlier run: replay them (results are deterministic) to get frames
-            runner.run(missing, split, on_finish=lambda record: None, on_frames=save_gif)
+        }
+        replay = [g for g in groups(mine, env.num_slots) if missing & {e.episode_id for e in g}]
+        if replay:  # finished in an earlier run: replay their groups (bit-identical) to get the frames
+            runner.run(
+                [e for g in replay for e in g], split, on_finish=lambda record: None, on_frames=save_gif
+            )
     return runner.stats
 
 
@@ -141,6 +157,8 @@ def run(cfg: EvalConfig) -> dict:
     episodes_by_split = load_splits(cfg)
     all_episodes = [e for eps in episodes_by_split.values() for e in eps]
     envs: dict[bool, SlotEnv] = {}  # rendering or blind (baselines never look at frames)
+    if cfg.sim.type != "embedded":  # connect now: an engine that cannot be reached fails before any output
+        envs[True] = envs[False] = make_env(cfg, info, all_episodes)
     try:
         for name in cfg.policies:
             folder = root / name
@@ -156,7 +174,7 @@ def run(cfg: EvalConfig) -> dict:
             )  # fmt: skip
             del policy
     finally:
-        for env in envs.values():
+        for env in {id(env): env for env in envs.values()}.values():
             env.close()
     info.wait()
     if not info.is_main:
@@ -172,7 +190,13 @@ def run(cfg: EvalConfig) -> dict:
             )
         all_results[name] = write_policy_outputs(cfg, name, records, root / name, episodes_by_split, city)
     summary = write_summary(cfg, list(all_results.values()), root)
-    return {"summary_markdown": summary, "results": all_results, "output_dir": str(root)}
+    errors = {name: results_errors(results) for name, results in all_results.items()}
+    return {"summary_markdown": summary, "results": all_results, "output_dir": str(root), "errors": errors}
+
+
+def results_errors(results: dict) -> int:
+    """Episodes of a policy's results that ended in an engine error (not scored), over all splits."""
+    return sum(results.get("errors", {}).values())
 
 
 def expected_keys(episodes_by_split: dict[str, list[Episode]]) -> set[tuple[str, str]]:

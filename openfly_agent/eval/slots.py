@@ -1,7 +1,7 @@
 """Lockstep environments with independently restartable slots, over any simulator.
 
-The runner keeps `num_slots` episodes in flight and starts the next episode in a slot as soon as the
-previous one finishes. `SimulatorSlots` drives one `Simulator` per slot (bridges, or embedded
+The runner keeps a group of up to `num_slots` episodes in flight and starts the next group when the last
+episode of the current one has finished. `SimulatorSlots` drives one `Simulator` per slot (bridges, or embedded
 simulators); `VectorSlots` drives the embedded `VectorSimulator`, which steps all its environments in
 one call. Engine failures while stepping end only the episode they hit (as in the official
 evaluation, which scores it from the current pose).

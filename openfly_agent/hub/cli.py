@@ -11,17 +11,55 @@ from openfly_agent.hub.cli_args import add_dataclass_arguments, build_dataclass
 from openfly_agent.hub.config import DatasetReleaseConfig, ModelReleaseConfig
 from openfly_agent.utils.logging_utils import setup_logging
 
+PROG = "python -m openfly_agent.hub"
+EXAMPLES = {
+    "release": (
+        f"{PROG} release --checkpoint outputs/train/tiny --repo-id my-user/openfly-agent-tiny "
+        "--results outputs/eval                    # writes outputs/releases/openfly-agent-tiny",
+        f"HF_HUB_OFFLINE=0 {PROG} release --checkpoint outputs/train/tiny --repo-id my-user/openfly-agent-tiny "
+        "--results outputs/eval --overwrite --push",
+    ),
+    "release-dataset": (
+        f"{PROG} release-dataset --dataset-root outputs/datasets/embedded-small --repo-id my-user/openfly-embedded "
+        "--card data_cards/embedded.md",
+    ),
+    "fake-hub": (f'{PROG} fake-hub --token "$HF_TOKEN"      # then HF_ENDPOINT=<printed url> ... --push',),
+}
+
+
+def _epilog(*commands: str) -> str:
+    return "examples:\n" + "\n".join(f"  {line}" for name in commands for line in EXAMPLES[name])
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser with one sub-command per release kind."""
-    parser = argparse.ArgumentParser(prog="python -m openfly_agent.hub", description=__doc__)
+    raw = argparse.RawDescriptionHelpFormatter
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=__doc__, epilog=_epilog(*EXAMPLES), formatter_class=raw
+    )
     commands = parser.add_subparsers(dest="command", required=True)
-    model = commands.add_parser("release", help="release a model checkpoint (folder, card, optional push)")
+    model = commands.add_parser(
+        "release",
+        help="release a model checkpoint (folder, card, optional push)",
+        description="Build the release folder of a checkpoint (weights, card, remote code); --push uploads it.",
+        epilog=_epilog("release"),
+        formatter_class=raw,
+    )
     add_dataclass_arguments(model, ModelReleaseConfig)
-    dataset = commands.add_parser("release-dataset", help="release a generated dataset as a Hub dataset repo")
+    dataset = commands.add_parser(
+        "release-dataset",
+        help="release a generated dataset as a Hub dataset repo",
+        description="Build the release folder of a generated dataset (parquet, annotations, card); --push uploads it.",
+        epilog=_epilog("release-dataset"),
+        formatter_class=raw,
+    )
     add_dataclass_arguments(dataset, DatasetReleaseConfig)
     fake = commands.add_parser(
-        "fake-hub", help="serve a loopback stand-in for the Hub upload API (rehearsal)"
+        "fake-hub",
+        help="serve a loopback stand-in for the Hub upload API (rehearsal)",
+        description="Serve the Hub upload and download endpoints on 127.0.0.1 until Ctrl-C (docs/RELEASE.md).",
+        epilog=_epilog("fake-hub"),
+        formatter_class=raw,
     )
     fake.add_argument(
         "--token", required=True, help="the token clients must send (use the value of HF_TOKEN)"
@@ -46,8 +84,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _release_model(cfg: ModelReleaseConfig) -> int:
     from openfly_agent.hub.model_release import build_model_release
-    from openfly_agent.hub.push import push_folder
+    from openfly_agent.hub.push import check_push_ready, push_folder
 
+    if cfg.push:  # offline, no token or no Hub: fail before anything is written
+        check_push_ready(cfg.repo_id)
     folder = build_model_release(cfg)
     print(f"release folder: {folder}")
     if cfg.push:
@@ -60,8 +100,10 @@ def _release_model(cfg: ModelReleaseConfig) -> int:
 
 def _release_dataset(cfg: DatasetReleaseConfig) -> int:
     from openfly_agent.hub.dataset_release import build_dataset_release
-    from openfly_agent.hub.push import push_folder
+    from openfly_agent.hub.push import check_push_ready, push_folder
 
+    if cfg.push:
+        check_push_ready(cfg.repo_id)
     folder = build_dataset_release(cfg)
     print(f"release folder: {folder}")
     if cfg.push:

@@ -47,7 +47,7 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: 
             continue
         flag = "--" + (prefix + field.name).replace("_", "-")
         dest = (prefix + field.name).replace(".", "__")
-        help_text = docs.get(field.name, "")
+        help_text = _with_default(docs.get(field.name, ""), field).replace("%", "%%")  # argparse formats help
         base, is_list = _base_type(hint)
         if base is bool:
             parser.add_argument(
@@ -59,6 +59,25 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, prefix: 
         parser.add_argument(
             flag, dest=dest, type=base, nargs=nargs, default=None, metavar=metavar, help=help_text
         )
+
+
+def _with_default(text: str, field: dataclasses.Field) -> str:
+    """`text (default: X)` with the dataclass default (argparse's own default stays None: "not given")."""
+    if field.default is not dataclasses.MISSING:
+        value = field.default
+    elif field.default_factory is not dataclasses.MISSING:
+        value = field.default_factory()
+    else:
+        return text
+    if value in (None, "", []):  # no default, or one the text describes (e.g. a folder derived from others)
+        return text
+    if isinstance(value, bool):
+        shown = "on" if value else "off"
+    elif isinstance(value, list):
+        shown = " ".join(map(str, value))
+    else:
+        shown = str(value)
+    return f"{text} (default: {shown})".strip()
 
 
 def build_dataclass(cls: type[T], namespace: argparse.Namespace, prefix: str = "") -> T:

@@ -20,6 +20,7 @@ from openfly_agent.data.writer import DATA_FILES_JSON
 from openfly_agent.hub.config import DatasetReleaseConfig
 from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, link_or_copy, prepare_output_dir, read_json
 from openfly_agent.hub.model_card import split_front_matter
+from openfly_agent.utils.config import resolve_config_path
 
 logger = logging.getLogger(__name__)
 
@@ -53,8 +54,8 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
     for rel in (DATASET_INFO_JSON, DATASET_STATS_JSON, DATA_FILES_JSON):
         if (root / rel).is_file():
             link_or_copy(root / rel, out / rel)
-    card = render_dataset_card(
-        Path(cfg.card), splits, num_frames=_count_frames(root, splits), repo_id=cfg.repo_id
+    card = render_dataset_card(  # a shipped card (data_cards/...) is found from any working directory
+        resolve_config_path(cfg.card), splits, num_frames=_count_frames(root, splits), repo_id=cfg.repo_id
     )
     (out / MODEL_CARD_NAME).write_text(card)
     logger.info("dataset release folder %s: %d trajectories", out, sum(len(f) for f in splits.values()))

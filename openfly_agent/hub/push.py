@@ -14,6 +14,39 @@ class PushError(RuntimeError):
     """The upload cannot start (offline mode, no token, missing folder); the message says what to change."""
 
 
+def check_push_ready(repo_id: str) -> None:
+    """Everything a push needs, checked before the release folder is built: online mode, a token, and a Hub
+    that answers and accepts the token (`whoami`). Nothing is written, so a rerun needs no `--overwrite`.
+
+    Raises:
+        PushError: offline mode is on, no token is available, the Hub cannot be reached, or it refuses the
+            token; one line naming the endpoint and what to change.
+    """
+    from huggingface_hub import HfApi, constants, get_token
+    from huggingface_hub.errors import HfHubHTTPError
+
+    if constants.is_offline_mode():
+        raise PushError("HF_HUB_OFFLINE is set: unset HF_HUB_OFFLINE (and TRANSFORMERS_OFFLINE) to push")
+    if get_token() is None:
+        raise PushError("no Hugging Face token: set HF_TOKEN or run `hf auth login` before pushing")
+    endpoint = constants.ENDPOINT
+    try:
+        user = HfApi().whoami().get("name")
+    except HfHubHTTPError as err:  # the Hub answered: the token (or the endpoint) is wrong
+        status = err.response.status_code if err.response is not None else "?"
+        raise PushError(
+            f"the Hub at {endpoint} refused the token (HTTP {status}); check HF_TOKEN / `hf auth login` "
+            f"before pushing {repo_id} (nothing was written)"
+        ) from None
+    except Exception as err:  # no answer at all: network, DNS, proxy, a wrong HF_ENDPOINT
+        reason = " ".join(str(err).split()) or type(err).__name__
+        raise PushError(
+            f"the Hub at {endpoint} cannot be reached ({type(err).__name__}: {reason}); check the network "
+            f"or HF_ENDPOINT, then run the same command again (nothing was written)"
+        ) from None
+    logger.info("pushing to %s as %s", endpoint, user)
+
+
 def push_folder(
     folder: str | Path,
     repo_id: str,

@@ -64,7 +64,8 @@ def load_results(path: str | Path) -> EvalResults:
                                                           "osr_pct": 20.0, "spl_pct": 11.0, ...}, ...}}}}
 
     Raises:
-        ResultsError: not JSON, results of a baseline, or a split / profile / metric missing or not finite.
+        ResultsError: not JSON, results of a baseline, episodes that ended in an engine error (not scored),
+            or a split / profile / metric missing or not finite.
     """
     path = resolve_results_path(path)
     try:
@@ -80,6 +81,12 @@ def parse_results(data: dict[str, Any], source: str = "<results>") -> EvalResult
     if policy != AGENT_POLICY:
         raise ResultsError(
             f"{source}: holds results of policy {policy!r}, not of the agent ('{AGENT_POLICY}')"
+        )
+    errored = {split: n for split, n in (data.get("errors") or {}).items() if n}
+    if errored:
+        raise ResultsError(
+            f"{source}: {sum(errored.values())} episodes ended in an engine error and were not scored "
+            f"({errored}); run the same eval.py command again to retry them before releasing"
         )
     splits = _child(data, "splits", source, "")
     rows = []

@@ -65,29 +65,59 @@ def _landmarks(args: argparse.Namespace) -> None:
     print(f"wrote {args.out}: {len(city.landmarks)} landmarks of {city.scene_id}")
 
 
-def main(argv: list[str] | None = None) -> None:
+PROG = "python -m openfly_agent.sim.cli"
+COMMANDS = {
+    "render": (
+        "render one frame of a city (PNG), optionally with its landmark boxes",
+        f"{PROG} render --seed 0 --pose -200 -100 40 0.3 --pitch -45 --out frame.png --boxes",
+    ),
+    "export": (
+        "export a city's surface as a point cloud (.ply / .pcd)",
+        f"{PROG} export --seed 0 --out city.ply --spacing 2",
+    ),
+    "landmarks": (
+        "write a city's landmark list (JSON lines)",
+        f"{PROG} landmarks --seed 0 --out landmarks.jsonl",
+    ),
+}
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults in every option's help, examples kept as written."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """One sub-command per output; every option shows its default, every help ends with an example."""
+    examples = "examples:\n" + "\n".join(f"  {example}" for _, example in COMMANDS.values())
     parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog=PROG, description=__doc__.split("\n\n")[0], epilog=examples, formatter_class=_HelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("render", "export", "landmarks"):
-        p = sub.add_parser(name)
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument("--size-m", type=float, default=1000.0)
-        p.add_argument("--out", type=Path, required=True)
+    for name, (text, example) in COMMANDS.items():
+        p = sub.add_parser(
+            name, help=text, description=text, epilog=f"example:\n  {example}", formatter_class=_HelpFormatter
+        )
+        p.add_argument("--seed", type=int, default=0, help="city seed (scene id embedded-<seed>)")
+        p.add_argument("--size-m", type=float, default=1000.0, help="city side in metres")
+        p.add_argument("--out", type=Path, required=True, help="file to write")
         if name == "render":
             p.add_argument(
-                "--pose", type=float, nargs=4, default=[0.0, 0.0, 60.0, 0.0], metavar=("X", "Y", "Z", "YAW")
-            )
+                "--pose", type=float, nargs=4, default=[0.0, 0.0, 60.0, 0.0], metavar=("X", "Y", "Z", "YAW"),
+                help="camera position in metres and yaw in radians (counter-clockwise from +x)",
+            )  # fmt: skip
             p.add_argument("--pitch", type=float, default=0.0, help="degrees, negative = down")
-            p.add_argument("--width", type=int, default=224)
-            p.add_argument("--height", type=int, default=224)
+            p.add_argument("--width", type=int, default=224, help="frame width in pixels")
+            p.add_argument("--height", type=int, default=224, help="frame height in pixels")
             p.add_argument("--boxes", action="store_true", help="draw the landmark boxes")
         elif name == "export":
             p.add_argument("--spacing", type=float, default=2.0, help="metres between surface samples")
             p.add_argument("--ascii", action="store_true", help="ASCII instead of binary")
             p.add_argument("--ground", action="store_true", help="also sample the ground plane")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     setup_logging()
     {"render": _render, "export": _export, "landmarks": _landmarks}[args.command](args)
 

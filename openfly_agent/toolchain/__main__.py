@@ -1,11 +1,8 @@
-"""Command line of the data toolchain.
+"""Command line of the data toolchain (`python -m openfly_agent.toolchain`, or `openfly-generate`).
 
-    python -m openfly_agent.toolchain generate --config configs/toolchain/embedded-small.yaml [--shard 0/4]
-    python -m openfly_agent.toolchain summarize --root outputs/datasets/embedded-small
-    python -m openfly_agent.toolchain dagger --config <yaml> --checkpoint DIR [--dagger.episodes_per_scene=4]
-    python -m openfly_agent.toolchain segment --env_yaml env_x.yaml --point_cloud x.pcd --out seg_map_x.jsonl
-
-`generate` / `dagger` take every GenerateConfig field as a dotted override (`--render.width=96`).
+`generate` / `dagger` take every GenerateConfig field as a dotted override (`--render.width=96`); `<command>
+--help` lists them with the values a plain run uses. Exit codes: 0 done, 2 bad input (one line on stderr,
+e.g. a folder that holds a dataset of other settings), 130 interrupted (rerun the same command to resume).
 """
 
 from __future__ import annotations
@@ -18,7 +15,43 @@ from pathlib import Path
 
 from openfly_agent.utils.logging_utils import setup_logging
 
-COMMANDS = ("generate", "summarize", "dagger", "segment")
+PROG = "python -m openfly_agent.toolchain"
+COMMANDS = {
+    "generate": "scenes -> an OpenFly-format dataset (resumable, sharded with --shard i/N)",
+    "summarize": "merge copied shards into one dataset and write its summary",
+    "dagger": "DAgger episodes flown by a trained agent, relabelled by the A* expert, added to a dataset",
+    "segment": "BEV landmark segmentation of a real scene's point cloud into an official landmark list",
+}
+EXAMPLES = {
+    "generate": (
+        f"{PROG} generate --config configs/toolchain/embedded-small.yaml        # ~4 min on 2 cores",
+        f"{PROG} generate --config configs/toolchain/embedded-100k.yaml --shard 3/16",
+        f"{PROG} generate --config configs/toolchain/embedded-small.yaml --render.width=96 "
+        "--render.height=96 --output_dir=outputs/datasets/small-96",
+    ),
+    "summarize": (
+        f"{PROG} summarize --root outputs/datasets/embedded-100k    # after copying the shards together",
+    ),
+    "dagger": (
+        f"{PROG} dagger --config configs/toolchain/embedded-small.yaml --checkpoint outputs/train/tiny "
+        "--dagger.episodes_per_scene=4",
+    ),
+    "segment": (f"{PROG} segment --env_yaml env_x.yaml --point_cloud x.pcd --out seg_map_x.jsonl",),
+}
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class InputError(Exception):
+    """Bad input of a command; the message is printed as one line and the exit code is 2."""
+
+
+def _usage() -> str:
+    lines = [f"usage: {PROG} {{{','.join(COMMANDS)}}} [options]   (<command> --help for its options)", ""]
+    lines += ["The OpenFly data toolchain (docs/TOOLCHAIN.md).", "", "commands:"]
+    lines += [f"  {name:<10} {text}" for name, text in COMMANDS.items()]
+    lines += ["", "examples:", *(f"  {example}" for examples in EXAMPLES.values() for example in examples)]
+    return "\n".join(lines) + "\n"
 
 
 def _config_args(args: list[str]) -> list[str]:
@@ -34,36 +67,89 @@ def _config_args(args: list[str]) -> list[str]:
 
 
 def _parse_generate(args: list[str]):
-    """GenerateConfig from YAML + overrides; a bad value exits with the message that names the field."""
+    """GenerateConfig from YAML + overrides; a bad value or option is an InputError naming the field."""
     import draccus
 
     from openfly_agent.toolchain.config import GenerateConfig
+    from openfly_agent.utils.cli_help import UnknownOptionError
     from openfly_agent.utils.config import parse_config
+    from openfly_agent.utils.errors import root_cause
 
     try:
         return parse_config(GenerateConfig, _config_args(args))
+    except UnknownOptionError as err:
+        raise InputError(str(err)) from None
     except draccus.utils.ParsingError as err:
-        cause = err.__cause__
-        while cause is not None and cause.__cause__ is not None and not isinstance(cause, ValueError):
-            cause = cause.__cause__
-        raise SystemExit(f"bad generate config: {cause or err}") from None
+        raise InputError(f"bad generate config: {root_cause(err)}") from None
+
+
+def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] = ()) -> str:
+    from openfly_agent.toolchain.config import GenerateConfig
+    from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
+
+    args = _config_args(without_help(args))
+    config = config_path_of(args)
+    try:
+        cfg = _parse_generate(args)
+    except InputError:
+        cfg = None
+    note = f"Defaults below are the values of {config} (and of the overrides given)." if config else None
+    description = COMMANDS[command] + (
+        ". --config is an alias of --config_path. Relative paths are relative to the working directory; "
+        "a --config under configs/ not found there is read from the repository."
+    )
+    return config_help(GenerateConfig, cfg, f"{PROG} {command}", description, EXAMPLES[command], note, extra)
 
 
 def cmd_generate(args: list[str]) -> None:
     from openfly_agent.toolchain.generate import generate
+    from openfly_agent.toolchain.settings import GenerateSettingsError
+    from openfly_agent.utils.cli_help import wants_help
 
-    summary = generate(_parse_generate(args))
+    if wants_help(args):
+        print(_generate_help("generate", args), end="")
+        return
+    cfg = _parse_generate(args)
+    setup_logging()
+    try:
+        summary = generate(cfg)
+    except GenerateSettingsError as err:
+        raise InputError(str(err)) from None
     print(json.dumps({k: summary[k] for k in ("trajectories", "per_split", "rejected", "vocabulary_size")}))
+
+
+def _parser(command: str, description: str) -> argparse.ArgumentParser:
+    return argparse.ArgumentParser(
+        prog=f"{PROG} {command}",
+        description=description,
+        epilog="examples:\n" + "\n".join(f"  {example}" for example in EXAMPLES[command]),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+
+
+def summarize_parser() -> argparse.ArgumentParser:
+    """Options of `summarize`."""
+    parser = _parser("summarize", COMMANDS["summarize"])
+    parser.add_argument("--root", required=True, help="dataset root holding one or more copied shards")
+    parser.add_argument("--no-plots", action="store_true", help="skip summary.png")
+    return parser
+
+
+def segment_parser() -> argparse.ArgumentParser:
+    """Options of `segment`."""
+    parser = _parser("segment", COMMANDS["segment"])
+    parser.add_argument("--env_yaml", required=True, help="the scene's official env_*.yaml")
+    parser.add_argument("--point_cloud", required=True, help=".pcd (ASCII or binary) or .ply")
+    parser.add_argument("--out", required=True, help="landmark list to write (official seg_map JSONL)")
+    return parser
 
 
 def cmd_summarize(args: list[str]) -> None:
     from openfly_agent.data.writer import OpenFlyDatasetWriter
     from openfly_agent.toolchain.summary import write_summary
 
-    parser = argparse.ArgumentParser(prog="openfly-generate summarize", description="merge shards, summarise")
-    parser.add_argument("--root", required=True, help="dataset root holding one or more copied shards")
-    parser.add_argument("--no-plots", action="store_true")
-    ns = parser.parse_args(args)
+    ns = summarize_parser().parse_args(args)
+    setup_logging()
     OpenFlyDatasetWriter(ns.root).finalize()
     print(json.dumps(write_summary(ns.root, plots=not ns.no_plots), indent=2))
 
@@ -74,22 +160,42 @@ def load_agent(checkpoint: str, agent_class: str):
     try:
         cls = getattr(importlib.import_module(module_name), class_name)
     except (ImportError, AttributeError) as err:
-        raise SystemExit(f"--agent_class {agent_class!r} cannot be imported: {err}") from None
+        raise InputError(f"--agent_class {agent_class!r} cannot be imported: {err}") from None
     return cls.from_pretrained(checkpoint)
+
+
+DAGGER_OPTIONS = [
+    ("--checkpoint DIR", "trained agent folder (or Hub id) that flies the DAgger episodes (required)"),
+    (
+        "--agent_class MODULE:CLASS",
+        "class with from_pretrained(path) (default: openfly_agent.model.agent:OpenFlyAgent)",
+    ),
+]
 
 
 def cmd_dagger(args: list[str]) -> None:
     from openfly_agent.toolchain.dagger import AgentPolicy
     from openfly_agent.toolchain.generate import generate
     from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY
+    from openfly_agent.toolchain.settings import GenerateSettingsError
+    from openfly_agent.utils.cli_help import wants_help
 
-    parser = argparse.ArgumentParser(prog="openfly-generate dagger", add_help=False)
-    parser.add_argument("--checkpoint", required=True, help="trained agent folder (or Hub id)")
+    parser = argparse.ArgumentParser(prog=f"{PROG} dagger", add_help=False)
+    parser.add_argument("--checkpoint")
     parser.add_argument("--agent_class", default="openfly_agent.model.agent:OpenFlyAgent")
     ns, rest = parser.parse_known_args(args)
+    if wants_help(args):
+        print(_generate_help("dagger", rest, DAGGER_OPTIONS), end="")
+        return
+    if not ns.checkpoint:
+        raise InputError("dagger needs --checkpoint <trained agent folder> (dagger --help lists the options)")
     cfg = _parse_generate(rest)
+    setup_logging()
     policy = AgentPolicy(load_agent(ns.checkpoint, ns.agent_class))
-    summary = generate(cfg, policy=policy, kinds=(KIND_DAGGER_POLICY,))
+    try:
+        summary = generate(cfg, policy=policy, kinds=(KIND_DAGGER_POLICY,))
+    except GenerateSettingsError as err:
+        raise InputError(str(err)) from None
     print(json.dumps({k: summary[k] for k in ("trajectories", "dagger_episodes", "rejected")}))
 
 
@@ -98,26 +204,42 @@ def cmd_segment(args: list[str]) -> None:
     from openfly_agent.toolchain.pipeline import prepare_scene
     from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
 
-    parser = argparse.ArgumentParser(prog="openfly-generate segment", description="BEV landmark segmentation")
-    parser.add_argument("--env_yaml", required=True)
-    parser.add_argument("--point_cloud", required=True, help=".pcd (ASCII or binary) or .ply")
-    parser.add_argument("--out", required=True, help="landmark list to write (official seg_map JSONL)")
-    ns = parser.parse_args(args)
+    ns = segment_parser().parse_args(args)
+    setup_logging()
     cfg = generate_config_for_real_scene(ns.env_yaml, segment=True)
     prepared = prepare_scene(real_scene(ns.env_yaml, ns.point_cloud), cfg)
     write_landmark_list(Path(ns.out), list(prepared.landmarks.values()), cfg.map.pcd_scale_ratio)
     print(json.dumps({"landmarks": len(prepared.landmarks), "out": ns.out}))
 
 
-def main(argv: list[str] | None = None) -> None:
+HANDLERS = {
+    "generate": cmd_generate,
+    "summarize": cmd_summarize,
+    "dagger": cmd_dagger,
+    "segment": cmd_segment,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("-h", "--help"):
+        print(_usage(), end="")
+        return 0
     if not argv or argv[0] not in COMMANDS:
-        raise SystemExit(f"usage: python -m openfly_agent.toolchain {{{','.join(COMMANDS)}}} ...\n{__doc__}")
-    setup_logging()
-    {"generate": cmd_generate, "summarize": cmd_summarize, "dagger": cmd_dagger, "segment": cmd_segment}[
-        argv[0]
-    ](argv[1:])
+        what = f"unknown command {argv[0]!r}" if argv else "no command given"
+        print(f"{PROG}: {what}\n{_usage()}", end="", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        HANDLERS[argv[0]](argv[1:])
+    except InputError as err:
+        print(f"{PROG} {argv[0]}: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"{PROG} {argv[0]}: interrupted; run the same command again to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

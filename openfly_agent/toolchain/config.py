@@ -106,7 +106,7 @@ class PlannerConfig:
     max_expansions: int = 20000  # bounded search: the route is discarded (and counted) beyond this
     key_resolution_m: float = 1.5  # visited-state key = position rounded to this grid (official: 1 m)
     # 1 = (near-)admissible distance + turns heuristic; 1.5 = weighted A*: ~6x fewer expansions, paths
-    # ~0.3 % longer with ~20 % more turns on a 1 km embedded city (measured, see docs/TOOLCHAIN.md)
+    # ~0.3 percent longer with ~20 percent more turns on a 1 km embedded city (measured, docs/TOOLCHAIN.md)
     heuristic_weight: float = 1.5
 
     def __post_init__(self) -> None:
@@ -174,6 +174,8 @@ class VLMConfig:
 
 @dataclass
 class InstructionConfig:
+    """How the instruction of each trajectory is written."""
+
     backend: str = "template"  # "template" (offline, default) | "vlm" (OpenAI-compatible API)
     vlm: VLMConfig = field(default_factory=VLMConfig)
     min_box_area: float = 0.002  # a landmark is 'seen' in a frame when its box covers this image fraction
@@ -246,7 +248,9 @@ class SceneConfig:
 class GenerateConfig:
     """`python -m openfly_agent.toolchain generate --config_path configs/toolchain/<name>.yaml`."""
 
-    output_dir: str = "outputs/datasets/embedded-small"
+    output_dir: str = (
+        "outputs/datasets/embedded-small"  # the dataset root (relative to the working directory)
+    )
     seed: int = 0  # base of every per-unit seed
     workers: int = 2  # processes (spawn); 0 = run in this process
     shard: str = "0/1"  # "i/N": this machine generates the scenes whose position in the scene list is i mod N
@@ -261,7 +265,10 @@ class GenerateConfig:
     filters: FilterConfig = field(default_factory=FilterConfig)
     dagger: DaggerConfig = field(default_factory=DaggerConfig)
     instruction_batch: int = 64  # trajectories whose instructions are generated together (VLM concurrency)
-    plots: bool = True
+    plots: bool = True  # write meta/toolchain/summary.png
+    # discard the dataset in output_dir (Annotation/, traj/, meta/) and generate anew; without it a rerun
+    # resumes, and a rerun with other data settings is refused
+    overwrite: bool = False
 
     def __post_init__(self) -> None:
         _check(self.workers >= 0, "workers must be >= 0")

@@ -29,9 +29,9 @@ from openfly_agent.toolchain.config import GenerateConfig, parse_shard
 from openfly_agent.toolchain.instructions import make_instruction_backend
 from openfly_agent.toolchain.ledger import STATUS_OK, STATUS_REJECTED, UnitLedger
 from openfly_agent.toolchain.pipeline import KIND_ASTAR, KIND_DAGGER, KIND_DAGGER_POLICY, UnitResult, WorkUnit
+from openfly_agent.toolchain.settings import prepare_output
 from openfly_agent.toolchain.summary import write_summary
 from openfly_agent.toolchain.worker import SceneWorker, default_simulator
-from openfly_agent.utils.config import save_config
 
 logger = logging.getLogger(__name__)
 _SPLIT_STREAM = 7  # seed stream of the test-seen draw, apart from the route seeds
@@ -226,6 +226,9 @@ def generate(
 ) -> dict:
     """Generate (or resume) this shard of the dataset under `cfg.output_dir`; returns the summary.
 
+    A folder that holds a dataset of other settings is refused (`toolchain/settings.py`) unless
+    `cfg.overwrite`, which discards it first.
+
     Args:
         cfg: the generate config.
         sim_factory: builds one simulator per worker from the config (a module-level function, so it
@@ -236,8 +239,9 @@ def generate(
     """
     root = Path(cfg.output_dir)
     root.mkdir(parents=True, exist_ok=True)
-    (root / C.TOOLCHAIN_CONFIG_JSON).parent.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, root / C.TOOLCHAIN_CONFIG_JSON)
+    # The policy DAgger command adds episodes to a dataset with DAgger settings of its own.
+    dagger_only = KIND_ASTAR not in kinds and KIND_DAGGER not in kinds
+    prepare_output(cfg, ignore=("dagger.",) if dagger_only else (), record=not dagger_only)
     writer, ledger = OpenFlyDatasetWriter(root), UnitLedger(root)
     todo = {seed: units for seed, units in pending_units(cfg, ledger, writer, kinds).items() if units}
     total = sum(len(units) for units in todo.values())

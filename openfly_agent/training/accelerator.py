@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -62,6 +64,22 @@ def make_accelerator(cfg: TrainConfig) -> Accelerator:
         cfg.batch.global_batch_size,
     )
     return accelerator
+
+
+@contextmanager
+def closing_trackers(accelerator: Accelerator) -> Iterator[None]:
+    """`with closing_trackers(accelerator):` the trackers are closed (TensorBoard / W&B flushed) on leaving the
+    block, whichever way: the end of the run, an early return, an error.
+
+    Not `accelerator.end_training()`: that also destroys the process group while the prepared model is alive,
+    which leaves DDP's Reducer as the group's last holder and can deadlock the rank at exit. The entry point
+    closes the group once the run is released (`utils.distributed.close_process_group`).
+    """
+    try:
+        yield
+    finally:
+        for tracker in accelerator.trackers:
+            tracker.finish()
 
 
 def flat_config(cfg: TrainConfig) -> dict[str, str | int | float | bool]:

@@ -35,7 +35,7 @@ class TokenizerConfig:
     trained on the train split's instructions and saved there.
     """
 
-    path: str | None = None
+    path: str | None = None  # a local tokenizer folder (None: see the order above)
     train_vocab_size: int = 1024  # BPE vocabulary when one is trained
 
     def __post_init__(self) -> None:
@@ -58,10 +58,10 @@ class InitConfig:
 class OptimConfig:
     """AdamW and the learning-rate schedule (per optimizer step)."""
 
-    lr: float = 3e-4
+    lr: float = 3e-4  # peak learning rate (after warmup)
     weight_decay: float = 0.0  # applied to matrices only
-    betas: tuple[float, float] = (0.9, 0.95)
-    eps: float = 1e-8
+    betas: tuple[float, float] = (0.9, 0.95)  # AdamW betas
+    eps: float = 1e-8  # AdamW epsilon
     schedule: str = "cosine"  # constant | cosine | linear
     warmup_steps: int = 0
     min_lr_ratio: float = 0.0  # floor of cosine / linear as a fraction of lr
@@ -86,8 +86,8 @@ class OptimConfig:
 class BatchConfig:
     """Batch sizes; gradient accumulation is derived: global / (per_device x processes)."""
 
-    global_batch_size: int = 16
-    per_device_batch_size: int = 8
+    global_batch_size: int = 16  # samples per optimizer step, over all processes and accumulation steps
+    per_device_batch_size: int = 8  # samples per forward on each process
 
     def __post_init__(self) -> None:
         _require(self.per_device_batch_size > 0, "batch.per_device_batch_size must be > 0")
@@ -127,7 +127,7 @@ class LoggingConfig:
     """Trackers (a `metrics.jsonl` is always written) and how often the train metrics are logged."""
 
     tracker: str = "tensorboard"  # tensorboard | wandb | none
-    project: str = "openfly-agent"
+    project: str = "openfly-agent"  # tracker project name (W&B project, TensorBoard run group)
     run_name: str | None = None  # None: the output folder's name
     log_interval: int = 10  # optimizer steps between log lines
 
@@ -185,12 +185,13 @@ class TrainConfig:
     precision: str = "no"  # no | bf16 | fp16 (autocast; overrides the accelerate config file's value)
     gradient_checkpointing: bool = False  # activation checkpointing inside the LLM and ViTs
     freeze_stage: str = "full"  # full | frozen_vision | heads_only | lora (LoRA adapters, the `lora` section)
-    steps: int | None = None  # optimizer steps; or
-    epochs: float | None = 1.0  # passes over the train split (`steps` wins when both are set)
+    steps: int | None = None  # optimizer steps of the run (wins over `epochs` when both are set)
+    epochs: float | None = 1.0  # passes over the train split, used when `steps` is null
     time_limit_minutes: float | None = None  # also stop (and save) once this much wall time has passed
     stop_after_steps: int | None = None  # tests: exit after this step WITHOUT the final save (a crash)
+    # run folder (checkpoints/, logs/, tokenizer/), relative to the working directory
     output_dir: str = "outputs/train/tiny"
-    seed: int = 7
+    seed: int = 7  # model init, data order and augmentation
     resume: bool = False  # continue from <output_dir>/checkpoints/last
     cpu: bool = False  # train on the CPU even when CUDA is present
 

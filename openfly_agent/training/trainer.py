@@ -18,7 +18,7 @@ from tqdm.auto import tqdm
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.training.accelerator import flat_config, make_accelerator
+from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
@@ -115,7 +115,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     )
     model.train()
     last_checkpoint, saved_step, reason = None, None, None
-    with StopFlags(accelerator, cfg.time_limit_minutes) as stops:
+    # The bar, the stop-signal handlers and the trackers are closed on every way out, an error included.
+    with progress, StopFlags(accelerator, cfg.time_limit_minutes) as stops, closing_trackers(accelerator):
         while state.step < total_steps and reason is None:
             for batch in epoch_batches(train_loader, train_set, state, accelerator):
                 with accelerator.accumulate(model):  # gradients sync on the last micro-batch of a step
@@ -158,25 +159,24 @@ def train(cfg: TrainConfig) -> TrainResult:
                 if reason is not None:
                     logger.info("stopping at step %d (%s)", state.step, reason)
                     break
-    progress.close()
+        progress.close()
 
-    # 5. The end: a checkpoint of the last step, the LoRA merge, the offline evaluation of the test split.
-    if saved_step != state.step:
-        last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
-    if reason == "signal":
-        logger.warning(
-            "stopped by a signal at step %d; `--resume` continues from %s", state.step, last_checkpoint
-        )
-        return _result(state, last_checkpoint, {}, True, accelerator, model)
-    if cfg.use_lora and cfg.lora.merge_at_end:
-        export_merged_lora(accelerator, model, cfg.output_dir)  # full weights in <output_dir>/merged
-    final: dict[str, float] = {}
-    if test_loader is not None:
-        final = evaluate(model, test_loader, accelerator)
-        final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
-        log_metrics(accelerator, "test", final, state.step)
-    accelerator.end_training()
-    return _result(state, last_checkpoint, final, reason is not None, accelerator, model)
+        # 5. The end: a checkpoint of the last step, the LoRA merge, the offline evaluation of the test split.
+        if saved_step != state.step:
+            last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+        if reason == "signal":
+            logger.warning(
+                "stopped by a signal at step %d; `--resume` continues from %s", state.step, last_checkpoint
+            )
+            return _result(state, last_checkpoint, {}, True, accelerator, model)
+        if cfg.use_lora and cfg.lora.merge_at_end:
+            export_merged_lora(accelerator, model, cfg.output_dir)  # full weights in <output_dir>/merged
+        final: dict[str, float] = {}
+        if test_loader is not None:
+            final = evaluate(model, test_loader, accelerator)
+            final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
+            log_metrics(accelerator, "test", final, state.step)
+        return _result(state, last_checkpoint, final, reason is not None, accelerator, model)
 
 
 def log_metrics(accelerator, prefix: str, metrics: dict[str, float], step: int) -> None:

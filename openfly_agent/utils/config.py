@@ -18,10 +18,49 @@ T = TypeVar("T")
 def parse_config(
     config_class: type[T], args: list[str] | None = None, config_path: str | Path | None = None
 ) -> T:
-    """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus)."""
+    """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus).
+
+    Raises:
+        UnknownOptionError: an option that names no field, with the closest field ("did you mean").
+        draccus.utils.ParsingError: a value that does not parse or that the config refuses.
+    """
+    import sys
+
     import draccus
 
+    from openfly_agent.utils.cli_help import check_options
+
+    args = list(sys.argv[1:] if args is None else args)
+    check_options(config_class, args)
+    args = [_resolved_config_arg(arg, args[i - 1] if i else None) for i, arg in enumerate(args)]
+    if config_path is not None:
+        config_path = resolve_config_path(config_path)
     return draccus.parse(config_class=config_class, config_path=config_path, args=args)
+
+
+REPO_ROOT = Path(__file__).resolve().parents[2]  # a source checkout: configs/ sits next to the package
+
+
+def resolve_config_path(path: str | Path) -> Path:
+    """Where a file that ships with the repository is: `path` as given (relative to the working directory),
+    else, for a relative path that is not there, the same path inside the repository, so `configs/...` and
+    `data_cards/...` work from any folder.
+
+    Outputs and datasets are never resolved this way: they stay relative to the working directory.
+    """
+    path = Path(path)
+    if path.is_absolute() or path.exists():
+        return path
+    in_repo = REPO_ROOT / path
+    return in_repo if in_repo.is_file() else path
+
+
+def _resolved_config_arg(arg: str, previous: str | None) -> str:
+    if arg.startswith("--config_path="):
+        return "--config_path=" + str(resolve_config_path(arg.split("=", 1)[1]))
+    if previous == "--config_path" and not arg.startswith("--"):
+        return str(resolve_config_path(arg))
+    return arg
 
 
 def load_yaml_config(config_class: type[T], path: str | Path, overrides: list[str] | None = None) -> T:

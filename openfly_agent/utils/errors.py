@@ -20,8 +20,31 @@ class RecordError(ValueError):
 
 
 def root_cause(err: BaseException) -> str:
-    """The innermost cause's message: draccus wraps a config's ValueError in a ParsingError, and the innermost
-    error is the one that says what to change."""
-    while err.__cause__ is not None:
+    """The message that says what to change: draccus wraps a config's ValueError in its own parsing errors,
+    so those wrappers are unwrapped down to the error they carry. Any other error is kept as it is: its
+    message already names the file, record and field (and the cause it wraps would lose them)."""
+    while err.__cause__ is not None and type(err).__module__.split(".")[0] == "draccus":
         err = err.__cause__
     return str(err)
+
+
+def one_line(err: BaseException) -> str:
+    """`err` as one line for a command-line error message.
+
+    An error raised in a DataLoader worker reaches the main process as the worker's whole traceback ("Caught
+    SchemaError in DataLoader worker process 0. Original Traceback ..."); its last line is the message.
+    """
+    text = str(err).strip()
+    if "Original Traceback" in text:
+        last = text.splitlines()[-1]
+        text = last.split(": ", 1)[1] if ": " in last else last
+    return " ".join(text.split())
+
+
+def worker_error_name(err: BaseException) -> str | None:
+    """The class name of the error a DataLoader worker raised, when `err` is torch's re-raise of it."""
+    first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    prefix, _, rest = first.partition("Caught ")
+    if prefix or " in DataLoader worker" not in rest:
+        return None
+    return rest.split(" in DataLoader worker", 1)[0]

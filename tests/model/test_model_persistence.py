@@ -15,6 +15,7 @@ from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import ActionHeadConfig, LoraSettings
 from openfly_agent.model.freeze import FREEZE_STAGES
 from openfly_agent.model.lora import attach_lora, has_lora, load_lora_adapter, merge_lora, save_lora_adapter
+from openfly_agent.utils.processes import run_group
 
 NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
 
@@ -211,9 +212,7 @@ def test_auto_model_loads_a_training_checkpoint_or_says_what_to_pass(make_agent,
     assert all(torch.equal(v, agent.state_dict()[k]) for k, v in loaded.state_dict().items())
     # a fresh process (nothing registered): without trust_remote_code, transformers names the argument to pass
     code = f"from transformers import AutoModel\nAutoModel.from_pretrained({str(step)!r})"
-    done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=300
-    )
+    done = run_group([sys.executable, "-c", code], timeout=300, stdin=subprocess.DEVNULL)
     assert done.returncode != 0 and "pass the argument `trust_remote_code=True`" in done.stderr, done.stderr[
         -2000:
     ]

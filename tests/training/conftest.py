@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from openfly_agent.utils.processes import run_group, running
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TINY_DATASET_YAML = Path(__file__).with_name("tiny_dataset.yaml")
 STEPS = 4  # optimizer steps of the reference run (global batch 4 = 2 micro-batches of 2)
@@ -119,20 +121,20 @@ def _script_env() -> dict[str, str]:
     return env
 
 
-def run_script(args: list[str], launcher: list[str] | None = None, timeout: float = 300):
-    """Run train.py to the end in a subprocess (optionally under a launcher such as torchrun)."""
-    command = (launcher or [sys.executable]) + [str(REPO_ROOT / "train.py"), *args]
-    return subprocess.run(
-        command, cwd=REPO_ROOT, env=_script_env(), capture_output=True, text=True, timeout=timeout
-    )
+def run_script(args: list[str], launcher: list[str] | None = None, timeout: float = 300, script=None):
+    """Run train.py (or `script`) to the end in a subprocess, optionally under a launcher such as torchrun; on
+    timeout every process it started is killed (utils/processes.py)."""
+    command = (launcher or [sys.executable]) + [str(script or REPO_ROOT / "train.py"), *args]
+    return run_group(command, timeout=timeout, cwd=REPO_ROOT, env=_script_env())
 
 
-def start_script(args: list[str]) -> subprocess.Popen:
-    """Start train.py in a subprocess and return at once (its output is discarded)."""
+def start_script(args: list[str], **popen_kwargs):
+    """`with start_script(args) as process:` train.py in a subprocess (output discarded unless redirected),
+    stopped with everything it started when the block ends."""
     command = [sys.executable, str(REPO_ROOT / "train.py"), *args]
-    return subprocess.Popen(
-        command, cwd=REPO_ROOT, env=_script_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    popen_kwargs.setdefault("stdout", subprocess.DEVNULL)
+    popen_kwargs.setdefault("stderr", subprocess.DEVNULL)
+    return running(command, cwd=REPO_ROOT, env=_script_env(), **popen_kwargs)
 
 
 def train_losses(output_dir: Path) -> dict[int, float]:

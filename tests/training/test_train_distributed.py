@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -18,6 +18,7 @@ from conftest import (
     checkpoint_weights,
     make_config,
     run_script,
+    start_script,
     train_args,
     train_in_process,
     train_losses,
@@ -27,6 +28,9 @@ from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
+from openfly_agent.utils.processes import run_group
+
+EXIT_PROBE = Path(__file__).with_name("exit_probe.py")
 
 
 def _final_test_metrics(output_dir) -> dict[str, float]:
@@ -37,10 +41,17 @@ def _final_test_metrics(output_dir) -> dict[str, float]:
 def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, generated_dataset, tmp_path):
     reference_dir, reference = reference_run
     # 9 test samples over 2 processes x 4: one round-robin group of 8, then rank 1 pads with a weight-0 batch
-    args = train_args(generated_dataset, tmp_path, steps=STEPS, validation__final_max_samples=9)
+    args = [str(REPO_ROOT / "train.py")] + train_args(
+        generated_dataset, tmp_path, steps=STEPS, validation__final_max_samples=9
+    )
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
-    done = run_script(args, launcher=torchrun)
+    done = run_script(args, launcher=torchrun, script=EXIT_PROBE)
     assert done.returncode == 0, done.stderr[-3000:]
+    # Each rank destroyed its process group exactly once, after the DDP model was gone (a live Reducer would
+    # hold the group's last reference and could deadlock the rank at exit; scripts/stress_train_exit.py).
+    probes = sorted(re.findall(r"exit-probe: rank=(\d) destroy_calls=(\d+) ddp_alive=(-?\d+) initialized=(\w+)",
+                               done.stderr))  # fmt: skip
+    assert probes == [("0", "1", "0", "False"), ("1", "1", "0", "False")], done.stderr[-3000:]
     one, two = train_losses(reference_dir), train_losses(tmp_path)
     assert sorted(two) == list(range(1, STEPS + 1))
     assert two == pytest.approx(one, rel=1e-5)
@@ -69,16 +80,15 @@ def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
 ):
     reference_dir, _ = reference_run
     args = train_args(generated_dataset, tmp_path, steps=STEPS, checkpoint__save_interval=1)
-    env_cmd = run_script.__defaults__  # noqa: F841  (the same environment as run_script)
-    process = _start(args)
     manager = CheckpointManager(tmp_path, keep_last=5)
-    deadline = time.monotonic() + 240
-    while manager.latest() is None or manager.latest().name < "step-000002":
-        assert process.poll() is None, "training ended before it could be killed"
-        assert time.monotonic() < deadline, "no checkpoint appeared"
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)  # at an arbitrary point after step 2: computing or writing step 3
-    process.wait()
+    with start_script(args) as process:
+        deadline = time.monotonic() + 240
+        while manager.latest() is None or manager.latest().name < "step-000002":
+            assert process.poll() is None, "training ended before it could be killed"
+            assert time.monotonic() < deadline, "no checkpoint appeared"
+            time.sleep(0.05)
+        process.send_signal(signal.SIGKILL)  # at an arbitrary point after step 2: computing or writing step 3
+        process.wait()
     latest = CheckpointManager(tmp_path, keep_last=5).latest()
     assert latest is not None and (latest / "trainer_state.json").is_file()
     resumed = train_in_process(
@@ -92,16 +102,6 @@ def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
         torch.testing.assert_close(found[key], expected[key], rtol=0, atol=0, msg=key)
 
 
-def _start(args: list[str]) -> subprocess.Popen:
-    import os
-
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "PYTHONPATH": str(REPO_ROOT)}
-    return subprocess.Popen(
-        [sys.executable, str(REPO_ROOT / "train.py"), *args],
-        cwd=REPO_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-
-
 def test_each_epoch_reaches_the_dataset_with_two_processes(generated_dataset, tmp_path):
     """`random` history draws change with the epoch under a 2-process launch, and every process sees the draws
     of the current epoch (accelerate's loader alone forwards the epoch to the dataset with one process only)."""
@@ -110,7 +110,7 @@ def test_each_epoch_reaches_the_dataset_with_two_processes(generated_dataset, tm
     args = train_args(generated_dataset, tmp_path / "run", data__history__mode="random")
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
     command = [*torchrun, str(Path(__file__).with_name("epoch_worker.py")), str(tmp_path), *args]
-    done = subprocess.run(command, cwd=REPO_ROOT, env=_env(), capture_output=True, text=True, timeout=300)
+    done = run_group(command, timeout=300, cwd=REPO_ROOT, env=_env())
     assert done.returncode == 0, done.stderr[-3000:]
     seen = [tuple(r) for rank in (0, 1) for r in json.loads((tmp_path / f"rank{rank}.json").read_text())]
     assert {r[0] for r in seen} == {0, 1} and len(seen) > 20  # (epoch, episode, step, memory digest)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import time
 
 import numpy as np
@@ -22,6 +23,7 @@ from conftest import (
 from openfly_agent import constants as C
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import ACCELERATE_STATE_DIR, TRAINER_STATE_NAME
+from openfly_agent.utils.processes import communicate_group
 
 
 def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path):
@@ -122,20 +124,40 @@ def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, gen
     assert again == pytest.approx(reference, rel=0, abs=0)
 
 
+def test_ctrl_c_ends_with_one_line_and_130(generated_dataset, tmp_path):
+    """SIGINT (Ctrl-C): no traceback, one line saying how to go on from the last checkpoint, exit code 130."""
+    args = train_args(generated_dataset, tmp_path, steps=10_000, checkpoint__save_interval=1)
+    with start_script(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
+        deadline = time.monotonic() + 240
+        while CheckpointManager(tmp_path, 5).latest() is None:  # a checkpoint to resume from
+            assert process.poll() is None, "train.py exited before its first checkpoint"
+            assert time.monotonic() < deadline, "no checkpoint within 240 s"
+            time.sleep(0.2)
+        process.send_signal(signal.SIGINT)
+        _, err = communicate_group(process, timeout=120)
+    assert process.returncode == 130, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("train.py: interrupted; run the same command with --resume to resume from "), last
+    assert str(tmp_path / "checkpoints" / "step-") in last
+
+
 def test_sigterm_saves_a_checkpoint_and_resume_finishes(generated_dataset, tmp_path):
     """A preemption notice (SIGTERM) ends the run after the current step with a resumable checkpoint."""
     args = train_args(
         generated_dataset, tmp_path, steps=10_000, checkpoint__save_interval=0, validation__final_eval="false"
     )
-    process = start_script(args)
     metrics = tmp_path / "logs" / "metrics.jsonl"
-    deadline = time.monotonic() + 240
-    while not (metrics.is_file() and train_losses(tmp_path)):  # the first logged step: training is under way
-        assert process.poll() is None, "train.py exited before training started"
-        assert time.monotonic() < deadline, "no training step logged within 240 s"
-        time.sleep(0.5)
-    process.send_signal(signal.SIGTERM)
-    assert process.wait(timeout=120) == 0
+    with start_script(args) as process:
+        deadline = time.monotonic() + 240
+        while not (
+            metrics.is_file() and train_losses(tmp_path)
+        ):  # the first logged step: training is under way
+            assert process.poll() is None, "train.py exited before training started"
+            assert time.monotonic() < deadline, "no training step logged within 240 s"
+            time.sleep(0.5)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=120) == 0
     latest = CheckpointManager(tmp_path, 5).latest()
     assert latest is not None, "no checkpoint after SIGTERM"
     stopped_at = int(latest.name.split("-")[1])

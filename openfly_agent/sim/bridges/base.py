@@ -184,6 +184,11 @@ class EngineBridge(ABC):
             f"{last_error}. Is the engine running and listening on that host and port?"
         ) from last_error
 
+    def connect(self) -> None:
+        """Open the connection now (handshake included), so an engine that cannot be reached fails before
+        the first episode; raises `BridgeError` naming the engine, host and port."""
+        self._call("connect", lambda: None)
+
     # -- Simulator protocol ----------------------------------------------------------------------
     def reset(self, episode: EpisodeSpec) -> Observation:
         """Teleport to the episode's start and return the first frame."""

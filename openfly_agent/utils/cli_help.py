@@ -1,0 +1,315 @@
+"""Command-line help and option checks for the config dataclasses that draccus parses.
+
+    text = config_help(TrainConfig, cfg, prog="train.py", description=..., examples=[...])
+    check_options(TrainConfig, ["--optim.lrr=1"])   # UnknownOptionError: ... did you mean --optim.lr?
+
+draccus builds its `--help` from source comments and gets them wrong when a comment spans lines or sits
+inside a wrapped default, and it shows the dataclass defaults rather than the values a YAML preset gives.
+Here every flag's text comes from the class source (`ast` + `tokenize`): the comments on the lines of the
+field's statement, the comment block right above it, or the `Attributes:` entry of the class docstring; the
+default shown is the value in the config the command would run with.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import difflib
+import inspect
+import io
+import re
+import textwrap
+import tokenize
+import typing
+from collections.abc import Iterable, Sequence
+from functools import lru_cache
+from typing import Any
+
+HELP_FLAGS = ("-h", "--help")
+CONFIG_FLAG = "config_path"
+WIDTH = 110
+FLAG_COLUMN = 36
+_NBSP = "\x00"
+
+
+class UnknownOptionError(ValueError):
+    """A command-line option that names no config field; the message suggests the closest one."""
+
+
+# -- field descriptions from the source ------------------------------------------------------------------
+def _comments_by_line(source: str) -> dict[int, str]:
+    comments: dict[int, str] = {}
+    try:
+        for token in tokenize.generate_tokens(io.StringIO(source).readline):
+            if token.type == tokenize.COMMENT:
+                text = token.string.lstrip("#").strip()
+                if not text.startswith(("fmt:", "noqa", "type:")):
+                    comments[token.start[0]] = text
+    except (tokenize.TokenError, IndentationError):
+        pass
+    return comments
+
+
+def _attribute_docs(cls: type, names: set[str]) -> dict[str, str]:
+    """Entries of a Google-style `Attributes:` section (`name: text` or `a, b: text`, continued lines)."""
+    docs: dict[str, str] = {}
+    current: list[str] = []
+    inside = False
+    for line in (cls.__doc__ or "").splitlines():
+        stripped = line.strip()
+        if stripped == "Attributes:":
+            inside = True
+            continue
+        if not inside or not stripped:
+            continue
+        match = re.match(r"^([\w, ]+):\s*(.*)$", stripped)
+        keys = [k.strip() for k in match[1].split(",")] if match else []
+        if keys and all(k in names for k in keys):
+            current = keys
+            for key in keys:
+                docs[key] = match[2]
+        elif current:
+            for key in current:
+                docs[key] += " " + stripped
+    return docs
+
+
+@lru_cache(maxsize=256)
+def _own_field_docs(cls: type) -> dict[str, str]:
+    """Descriptions of the fields `cls` itself declares (see module docstring for where they come from)."""
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):
+        return {}
+    lines = source.splitlines()
+    comments = _comments_by_line(source)
+    tree = ast.parse(source)
+    class_node = next(node for node in tree.body if isinstance(node, ast.ClassDef))
+    docs: dict[str, str] = {}
+    statements = [n for n in class_node.body if isinstance(n, (ast.AnnAssign, ast.Assign, ast.Expr))]
+    names = {
+        n.target.id for n in statements if isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name)
+    }
+    docs.update(_attribute_docs(cls, names))
+    for node in statements:
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        inline = [comments[n] for n in range(node.lineno, node.end_lineno + 1) if n in comments]
+        above: list[str] = []
+        line = node.lineno - 1
+        while line >= 1 and lines[line - 1].strip().startswith("#") and line in comments:
+            above.insert(0, comments[line])
+            line -= 1
+        text = " ".join(above + inline).strip()
+        if text:
+            docs[node.target.id] = text
+    return docs
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """{field name: description} of a dataclass, inherited fields included (the subclass' text wins)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(inspect.getmro(cls)):
+        if dataclasses.is_dataclass(klass):
+            docs.update(_own_field_docs(klass))
+    return docs
+
+
+def class_summary(cls: type) -> str:
+    """First paragraph of the class docstring, on one line."""
+    doc = inspect.getdoc(cls) or ""
+    return " ".join(doc.split("\n\n")[0].split())
+
+
+# -- the flag tree ---------------------------------------------------------------------------------------
+def _hints(cls: type) -> dict[str, Any]:
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # an annotation that cannot be resolved: fall back to the raw strings
+        return {f.name: f.type for f in dataclasses.fields(cls)}
+
+
+def _nested_class(hint: Any) -> type | None:
+    """The dataclass of a field typed `SomeConfig` or `SomeConfig | None`, else None."""
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        return hint
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if len(args) == 1 and isinstance(args[0], type) and dataclasses.is_dataclass(args[0]):
+        return args[0]
+    return None
+
+
+def _type_name(hint: Any) -> str:
+    if isinstance(hint, str):
+        return hint.upper()
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (list, tuple, set):
+        inner = sorted({_type_name(a) for a in args if a is not Ellipsis})
+        return f"[{','.join(inner)}]"
+    if args:  # a union such as `int | None`
+        names = [_type_name(a) for a in args if a is not type(None)]
+        return "|".join(names) + ("?" if type(None) in args else "")
+    return getattr(hint, "__name__", str(hint)).upper()
+
+
+def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
+    """{dotted option: takes any sub-key} for every field of `cls` and its nested sections.
+
+    A section (`optim`) is an option too: draccus reads `--optim=<yaml file>`. Fields typed `dict` accept any
+    sub-key.
+    """
+    options: dict[str, bool] = {}
+    hints = _hints(cls)
+    for f in dataclasses.fields(cls):
+        name = prefix + f.name
+        nested = _nested_class(hints.get(f.name))
+        origin = typing.get_origin(hints.get(f.name))
+        options[name] = origin is dict or hints.get(f.name) is dict
+        if nested is not None:
+            options.update(known_options(nested, prefix=name + "."))
+    return options
+
+
+def option_names(args: Sequence[str]) -> list[str]:
+    """The option names of a command line (`--a.b=1`, `--a.b 1` -> "a.b"); values are skipped."""
+    return [arg[2:].split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
+
+
+def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG_FLAG,)) -> None:
+    """Raise `UnknownOptionError` for the first option that names no field, with the closest one.
+
+    Args:
+        cls: the config dataclass the command line is parsed into.
+        args: the command line (draccus form: `--a.b=c` or `--a.b c`).
+        extra: option names the command accepts besides the fields.
+    """
+    options = known_options(cls)
+    known = set(options) | set(extra)
+    open_prefixes = [name + "." for name, any_key in options.items() if any_key]
+    for name in option_names(args):
+        if name in known or any(name.startswith(p) for p in open_prefixes):
+            continue
+        close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+        if not close:  # a typo in the last part of a dotted name: compare with the siblings only
+            parent = name.rsplit(".", 1)[0] + "." if "." in name else ""
+            siblings = [k for k in known if k.startswith(parent) and "." not in k[len(parent) :]]
+            close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.5)
+        hint = f"; did you mean --{close[0]}?" if close else ""
+        raise UnknownOptionError(f"unknown option --{name}{hint} (--help lists every option)")
+
+
+# -- rendering -------------------------------------------------------------------------------------------
+def _format_value(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_format_value(v) for v in value) + "]"
+    if isinstance(value, str):
+        return value if value else '""'
+    return str(value)
+
+
+def _flag_lines(flag: str, text: str) -> list[str]:
+    width = WIDTH - FLAG_COLUMN
+    body = textwrap.wrap(text, width) or [""]
+    if len(flag) + 2 <= FLAG_COLUMN - 1:
+        first = f"  {flag}".ljust(FLAG_COLUMN) + body[0]
+        return [first] + [" " * FLAG_COLUMN + line for line in body[1:]]
+    return [f"  {flag}"] + [" " * FLAG_COLUMN + line for line in body]
+
+
+def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
+    """The flags of one config class (its scalar fields), then its nested sections."""
+    hints, docs = _hints(cls), field_docs(cls)
+    scalar, nested = [], []
+    for f in dataclasses.fields(cls):
+        value = getattr(config, f.name, None) if config is not None else None
+        sub = _nested_class(hints.get(f.name))
+        if sub is not None:
+            nested.append((f, sub, value))
+            continue
+        text = docs.get(f.name, "")
+        default = f"(default: {_format_value(value)})".replace(" ", _NBSP)  # never split across lines
+        flag = f"--{prefix}{f.name} {_type_name(hints.get(f.name, f.type))}"
+        scalar += [line.replace(_NBSP, " ") for line in _flag_lines(flag, f"{text} {default}".strip())]
+    out = list(scalar)
+    for f, sub, value in nested:
+        title = f"{prefix}{f.name}"
+        summary = field_docs(cls).get(f.name) or class_summary(sub)
+        out += ["", *textwrap.wrap(f"{title}: {summary}" if summary else f"{title}:", WIDTH)]
+        out += _section_lines(sub, value, prefix=title + ".")
+    return out
+
+
+def unchecked_defaults(cls: type) -> Any:
+    """An instance of `cls` holding its field defaults, built without `__post_init__` (whose checks may
+    refuse the bare defaults, e.g. a policy that needs a checkpoint)."""
+    config = object.__new__(cls)
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            value = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            value = f.default_factory()
+        else:
+            value = None
+        object.__setattr__(config, f.name, value)
+    return config
+
+
+def config_help(
+    cls: type,
+    config: Any,
+    prog: str,
+    description: str,
+    examples: Sequence[str],
+    config_note: str | None = None,
+    extra_options: Sequence[tuple[str, str]] = (),
+) -> str:
+    """The `--help` text of a command that parses `cls`.
+
+    Args:
+        cls: the config dataclass.
+        config: the config the command would run with (its values are the defaults shown); None shows the
+            dataclass defaults.
+        prog: the command, e.g. "train.py".
+        description: what the command does (one paragraph).
+        examples: command lines shown at the end.
+        config_note: where the shown defaults come from (e.g. "configs/train/tiny.yaml").
+        extra_options: (flag, text) of options the command takes besides the fields.
+    """
+    if config is None:
+        config = unchecked_defaults(cls)
+    lines = [f"usage: {prog} [--config_path YAML] [--<field>=VALUE ...]", ""]
+    lines += textwrap.wrap(" ".join(description.split()), WIDTH)
+    if config_note:
+        lines += ["", *textwrap.wrap(config_note, WIDTH)]
+    lines += ["", "options:"]
+    lines += _flag_lines("-h, --help", "show this help and exit")
+    lines += _flag_lines(f"--{CONFIG_FLAG} YAML", "a YAML file whose values replace the defaults below")
+    for flag, text in extra_options:
+        lines += _flag_lines(flag, text)
+    lines += ["", *_section_lines(cls, config, prefix="")]
+    lines += ["", "examples:", *(f"  {example}" for example in examples)]
+    return "\n".join(lines) + "\n"
+
+
+def wants_help(args: Sequence[str]) -> bool:
+    """Whether the command line asks for help."""
+    return any(arg in HELP_FLAGS for arg in args)
+
+
+def without_help(args: Sequence[str]) -> list[str]:
+    """The command line minus `-h` / `--help`."""
+    return [arg for arg in args if arg not in HELP_FLAGS]
+
+
+def config_path_of(args: Sequence[str]) -> str | None:
+    """The value of `--config_path X` / `--config_path=X` in a command line, or None."""
+    for index, arg in enumerate(args):
+        if arg == f"--{CONFIG_FLAG}" and index + 1 < len(args):
+            return args[index + 1]
+        if arg.startswith(f"--{CONFIG_FLAG}="):
+            return arg.split("=", 1)[1]
+    return None

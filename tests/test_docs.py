@@ -1,0 +1,308 @@
+"""Docs that run (issue 14): every command of README.md and docs/*.md names options its entry point has, and
+the fenced command blocks that can run on a CPU run on small data, from a fresh working directory; every
+Python snippet's imports resolve, and the self-contained ones run.
+
+Options of every command (tests/docs_commands.py finds them) are checked against the real parsers: draccus
+configs (train.py, eval.py, generate / dagger) and argparse (hub, simulator, summarize / segment), bench/ and
+scripts/ files by their source. A command block runs as documented, with small-data budget options appended
+(a few steps, episodes or trajectories) and the tiny test dataset standing in for embedded-small; blocks that
+train are marked `slow`.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import importlib.util
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+from docs_commands import REPO, DocCommand, DocSnippet, doc_commands, doc_snippets
+
+from openfly_agent import constants as C
+from openfly_agent.utils.cli_help import check_options
+from openfly_agent.utils.processes import run_group
+
+COMMANDS = doc_commands()
+SNIPPETS = doc_snippets()
+DATASET = "outputs/datasets/embedded-small"
+EXECUTABLE = {
+    "train",
+    "eval",
+    "toolchain:generate",
+    "toolchain:summarize",
+    "hub:release",
+    "hub:release-dataset",
+}
+EXECUTABLE |= {"sim:render", "sim:export", "sim:landmarks"}
+# Small-data budgets appended to an executed command (later options win).
+BUDGET = {
+    "train": [
+        "--steps=2", "--batch.global_batch_size=4", "--batch.per_device_batch_size=2", "--validation.interval=0",
+        "--validation.final_max_samples=4", "--logging.tracker=none", "--checkpoint.save_interval=0",
+        "--data.generate_if_missing=false", "--time_limit_minutes=10",
+    ],
+    "eval": ["--max_episodes=1", "--max_steps=3", "--plots=0", "--progress=false", "--batch_size=2", "--torch_threads=1"],
+    "toolchain:generate": [
+        "--workers=0", "--plots=false", "--scenes.train_seeds=[0]", "--scenes.unseen_seeds=[1]",
+        "--scenes.trajectories_per_scene=3", "--scenes.test_seen_fraction=0.5", "--scenes.city_size_m=300",
+        "--scenes.city_buildings=30", "--route.height_min_m=10", "--route.height_max_m=40", "--route.min_dist_m=40",
+        "--route.max_dist_m=90", "--categories.height_bins_m=[25,40]", "--categories.length_bins_m=[50,100]",
+        "--render.width=64", "--render.height=64", "--dagger.episodes_per_scene=0",
+    ],
+    "sim:render": ["--width=64", "--height=64", "--size-m=300"],
+    "sim:export": ["--size-m=300", "--spacing=8"],
+    "sim:landmarks": ["--size-m=300"],
+}  # fmt: skip
+
+
+def _id(command: DocCommand) -> str:
+    return f"{command.file}:{command.line}"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"{name}_entry_point", REPO / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _known(parser, argv: list[str], where: str) -> None:
+    """`argv` parses with `parser` (argparse) and leaves nothing unknown."""
+    try:
+        _, unknown = parser.parse_known_args(argv)
+    except SystemExit:
+        pytest.fail(f"{where}: argparse refuses {argv}")
+    assert not unknown, f"{where}: unknown options {unknown}"
+
+
+def _strip(args: list[str], names: tuple[str, ...]) -> list[str]:
+    out, skip = [], False
+    for arg in args:
+        if skip:
+            skip = False
+        elif arg in names:
+            skip = True
+        elif not any(arg.startswith(f"{name}=") for name in names):
+            out.append(arg)
+    return out
+
+
+def check_command(command: DocCommand) -> None:
+    """The command names an entry point that exists and options that entry point has (values parse too when
+    the command is complete, not a fragment with placeholders)."""
+    where = command.where
+    for flag, value in zip(command.launcher, command.launcher[1:]):
+        if flag == "--config_file":
+            assert (REPO / value).is_file(), f"{where}: no accelerate config {value}"
+    complete = command.block is not None and not command.has_placeholders and "..." not in command.text
+    if {"--help", "-h"} & {command.sub, *command.args}:  # every entry point has it (tests/test_cli_help.py)
+        return
+    if command.kind == "train":
+        from openfly_agent.training.config import TrainConfig
+
+        train = _load("train")
+        check_options(TrainConfig, train.with_default_config(command.args))
+        if complete:
+            train.parse_args(command.args)
+    elif command.kind == "eval":
+        from openfly_agent.eval.cli import normalize_argv
+        from openfly_agent.eval.config import EvalConfig
+        from openfly_agent.utils.config import parse_config
+
+        argv = normalize_argv(command.args)
+        check_options(EvalConfig, argv)
+        if complete:
+            parse_config(EvalConfig, argv)
+    elif command.kind == "toolchain":
+        from openfly_agent.toolchain import __main__ as toolchain
+        from openfly_agent.toolchain.config import GenerateConfig
+
+        assert command.sub in toolchain.COMMANDS, f"{where}: no toolchain command {command.sub!r}"
+        if command.sub in ("generate", "dagger"):
+            argv = toolchain._config_args(_strip(command.args, ("--checkpoint", "--agent_class")))
+            check_options(GenerateConfig, argv)
+            if complete:
+                toolchain._parse_generate(argv)
+        else:
+            parser = (
+                toolchain.summarize_parser() if command.sub == "summarize" else toolchain.segment_parser()
+            )
+            _known(parser, command.args, where)
+    elif command.kind == "hub":
+        from openfly_agent.hub.cli import build_parser
+
+        if command.sub is not None:
+            _known(build_parser(), [command.sub, *command.args], where)
+    elif command.kind == "sim":
+        from openfly_agent.sim.cli import build_parser
+
+        _known(build_parser(), [command.sub or "", *command.args], where)
+    elif command.kind in ("script", "shell"):
+        path = REPO / command.sub
+        assert path.is_file(), f"{where}: no file {command.sub}"
+        source = path.read_text()
+        for flag in [a.split("=", 1)[0] for a in command.args if a.startswith("--")]:
+            assert f'"{flag}"' in source, f"{where}: {command.sub} has no option {flag}"
+
+
+@pytest.mark.parametrize("command", [c for c in COMMANDS if c.kind != "other"], ids=_id)
+def test_documented_commands_use_real_options(command):
+    check_command(command)
+
+
+def test_the_stale_eval_command_of_issue_14_is_caught():
+    from docs_commands import parse_command
+
+    from openfly_agent.utils.cli_help import UnknownOptionError
+
+    stale = parse_command("docs/TRAINING.md", 0, "python eval.py --agent_path=runs/tiny")
+    with pytest.raises(UnknownOptionError, match="--agent_path"):
+        check_command(stale)
+    assert len(COMMANDS) > 50 and {c.kind for c in COMMANDS} >= {"train", "eval", "toolchain", "hub", "sim"}
+
+
+# -- running the blocks --------------------------------------------------------------------------------
+def _executable(command: DocCommand) -> bool:
+    key = command.kind if command.kind in ("train", "eval") else f"{command.kind}:{command.sub}"
+    return command.block is not None and command.runs_on_cpu and key in EXECUTABLE
+
+
+def _blocks() -> list:
+    blocks: dict[tuple[str, int], list[DocCommand]] = {}
+    for command in COMMANDS:
+        if _executable(command):
+            blocks.setdefault((command.file, command.block), []).append(command)
+    params, seen = [], set()
+    for (file, _), commands in blocks.items():
+        key = tuple(c.text.split("#")[0].strip() for c in commands)
+        if key in seen:  # the same command block in several documents runs once
+            continue
+        seen.add(key)
+        marks = [pytest.mark.slow] if any(c.kind == "train" for c in commands) else []
+        params.append(pytest.param(commands, id=f"{file}:{commands[0].line}", marks=marks))
+    return params
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory) -> Path:
+    from eval_helpers import generate_tiny_dataset
+
+    root = tmp_path_factory.mktemp("docs-data")
+    generate_tiny_dataset(root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def small_agent(tiny_data, tmp_path_factory) -> Path:
+    from eval_helpers import save_small_agent
+
+    from openfly_agent.data.openfly_reader import load_openfly_dataset
+
+    folder = tmp_path_factory.mktemp("docs-agent") / "step-000001"
+    save_small_agent(folder, [e.instruction for e in load_openfly_dataset(tiny_data, C.SPLIT_TRAIN)])
+    (folder / "train_config.json").write_text(
+        json.dumps({"seed": 0, "steps": 1, "init": {"checkpoint": None}})
+    )
+    return folder
+
+
+def _value(args: list[str], flag: str) -> str | None:
+    for index, arg in enumerate(args):
+        if arg == flag and index + 1 < len(args):
+            return args[index + 1]
+        if arg.startswith(f"{flag}="):
+            return arg.split("=", 1)[1]
+    return None
+
+
+def _prepare(command: DocCommand, work: Path, small_agent: Path) -> None:
+    """What the command reads and an earlier step would have written: a checkpoint run folder, results."""
+    checkpoint = _value(command.args, "--checkpoint")
+    if checkpoint and command.kind in ("eval", "hub") and not (work / checkpoint).exists():
+        run = Path(checkpoint)
+        run = run.parent.parent if run.name == "last" else run
+        shutil.copytree(small_agent, work / run / "checkpoints" / small_agent.name)
+        (work / run / "checkpoints" / "last").write_text(f"{small_agent.name}\n")
+    results = _value(command.args, "--results")
+    if results and not (work / results).exists():
+        overall = {"episodes": 1, "ne_m": 40.0, "sr_pct": 0.0, "osr_pct": 0.0, "spl_pct": 0.0}
+        splits = {s: {p: {"overall": overall} for p in ("openfly", "standard")} for s in C.SPLITS[1:]}
+        path = work / results / "agent" / C.RESULTS_JSON
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps({"version": 1, "policy": "agent", "splits": splits, "errors": {}}))
+
+
+def _argv(command: DocCommand) -> list[str]:
+    """The documented command as it runs from another folder, with the small-data budget appended."""
+    python = [sys.executable]
+    launcher = list(command.launcher)
+    if launcher[:2] == ["accelerate", "launch"]:
+        launcher = [str(Path(sys.executable).with_name("accelerate")), *launcher[1:]]
+    elif launcher[:1] == ["torchrun"]:
+        launcher = [*python, "-m", "torch.distributed.run", *launcher[1:]]
+    elif launcher:
+        launcher = [*python, *launcher[1:]]
+    launcher = [str(REPO / v) if p == "--config_file" else v for p, v in zip(["", *launcher], launcher)]
+    key = command.kind if command.kind in ("train", "eval") else f"{command.kind}:{command.sub}"
+    if command.kind in ("train", "eval"):
+        target = [str(REPO / command.sub)]
+        head = launcher or python
+    else:
+        module = {
+            "toolchain": "openfly_agent.toolchain",
+            "hub": "openfly_agent.hub",
+            "sim": "openfly_agent.sim.cli",
+        }
+        target, head = ["-m", module[command.kind], command.sub], python
+    return [*head, *target, *command.args, *BUDGET.get(key, [])]
+
+
+@pytest.mark.parametrize("commands", _blocks())
+def test_documented_command_blocks_run_on_small_data(commands, tiny_data, small_agent, tmp_path):
+    work = tmp_path / "work"  # not the repository: configs must be found from anywhere, outputs land here
+    work.mkdir()
+    if not any(c.sub == "generate" for c in commands):
+        shutil.copytree(tiny_data, work / DATASET)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HF_")}
+    env.update(HF_HUB_OFFLINE="1", HF_DATASETS_OFFLINE="1", TRANSFORMERS_OFFLINE="1", PYTHONPATH=str(REPO))
+    env.update(TOKENIZERS_PARALLELISM="false", OMP_NUM_THREADS="1", HF_HOME=str(tmp_path / "hf"))
+    for command in commands:
+        _prepare(command, work, small_agent)
+        if command.kind == "train" and "--resume" not in " ".join(command.args):
+            # Training commands of one block are alternatives ("or: python train.py") unless they resume.
+            output_dir = _load("train").parse_args([*command.args, *BUDGET["train"]]).output_dir
+            shutil.rmtree(work / output_dir, ignore_errors=True)
+        done = run_group(_argv(command), timeout=600, cwd=work, env={**env, **command.env})
+        assert done.returncode == 0, f"{command.where}\n{done.stdout[-2000:]}\n{done.stderr[-4000:]}"
+
+
+# -- Python snippets -----------------------------------------------------------------------------------
+NEEDS_MORE = ("my-user/", "AirSimBridge", "from datasets import")  # the Hub, a running engine
+
+
+def _check_imports(snippet: DocSnippet) -> None:
+    tree = ast.parse(snippet.code)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            module = importlib.import_module(node.module)
+            for alias in node.names:
+                assert hasattr(module, alias.name) or importlib.util.find_spec(
+                    f"{node.module}.{alias.name}"
+                ), f"{snippet.where}: {node.module} has no {alias.name}"
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                importlib.import_module(alias.name)
+
+
+@pytest.mark.parametrize("snippet", SNIPPETS, ids=lambda s: s.where)
+def test_documented_python_snippets(snippet, tmp_path, monkeypatch):
+    _check_imports(snippet)
+    if any(word in snippet.code for word in NEEDS_MORE):
+        return
+    monkeypatch.chdir(tmp_path)
+    exec(compile(snippet.code, snippet.where, "exec"), {"__name__": "__doc_snippet__"})
