@@ -16,7 +16,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 
@@ -64,16 +63,15 @@ class EveryChangeSelector:
         return [list(range(max(0, c - 2), c + 3)) for c in changes[-2:]]
 
 
-class _Tok:
-    bos_token_id, eos_token_id, pad_token_id = 1, 2, 0
+def make_processor(texts: list[str]):
+    """The model's input processor at 224 px (the 7B input size), with a BPE tokenizer trained on `texts`."""
+    from openfly_agent.model.action_tokenizer import ActionTokenizer
+    from openfly_agent.model.processor import OpenFlyProcessor
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
 
-    def __call__(self, text, add_special_tokens=True):
-        return {"input_ids": [1] + [3 + len(w) for w in text.split()]}
-
-
-class _Act:
-    def action_to_token_ids(self, action_id):
-        return [1000 + action_id]
+    tokenizer = train_bpe_tokenizer(texts, vocab_size=512)
+    actions = ActionTokenizer(vocab_end=len(tokenizer) + 256)
+    return OpenFlyProcessor(tokenizer, image_size=224, action_head=actions.to_dict())
 
 
 def machine() -> str:
@@ -124,7 +122,9 @@ def main() -> None:
 
         for history in ("none", "keyframes"):
             store = FrameStore(root, cache_episodes=args.episodes, cache_frames=args.episodes * args.steps)
-            dataset = NavigationStepDataset(episodes, store, EveryChangeSelector(), history=history)
+            dataset = NavigationStepDataset(
+                episodes, store, history, capacity=2, set_size=5, keyframe_selector=EveryChangeSelector()
+            )
             for label in ("cold", "warm"):
                 start = time.perf_counter()
                 samples = [dataset[i] for i in range(len(dataset))]
@@ -137,8 +137,9 @@ def main() -> None:
                     ms=round(ms, 3),
                     frames=round(frames_per_sample, 2),
                 )
-        resize = lambda rgb: torch.from_numpy(cv2.resize(rgb, (224, 224))).permute(2, 0, 1)
-        collator = NavigationCollator(_Tok(), _Act(), resize, str, capacity=2, set_size=5)
+        collator = NavigationCollator(
+            make_processor([e.instruction for e in episodes]), capacity=2, set_size=5
+        )
         start = time.perf_counter()
         for i in range(0, 64, 16):
             collator(samples[i : i + 16])

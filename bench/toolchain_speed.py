@@ -132,7 +132,7 @@ def bench_loader(root: Path, workers: int, batches: int = 30) -> None:
     from openfly_agent.data.openfly_reader import load_openfly_dataset
 
     episodes = load_openfly_dataset(root, "train")
-    dataset = NavigationStepDataset(episodes, FrameStore(root), history="uniform", capacity=2, set_size=1)
+    dataset = NavigationStepDataset(episodes, FrameStore(root), "uniform", capacity=2, set_size=1)
     loader = torch.utils.data.DataLoader(
         dataset,
         batch_size=16,

@@ -130,14 +130,7 @@ def synthetic_batch(agent, batch: int, frame_px: int = 128, seed: int = 0) -> di
         }
         for text in instructions(batch, seed=seed)
     ]
-    collate = NavigationCollator(
-        agent.tokenizer,
-        agent.action_tokenizer,
-        agent.image_transform,
-        agent.build_prompt,
-        capacity=k,
-        set_size=s,
-    )
+    collate = NavigationCollator(agent.processor, capacity=k, set_size=s)
     return collate(samples)
 
 

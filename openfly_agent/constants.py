@@ -90,6 +90,10 @@ NORM_STATS_NAME = "dataset_statistics.json"
 TRAIN_CONFIG_NAME = "train_config.json"
 MODEL_CARD_NAME = "README.md"
 ADAPTER_DIR_NAME = "adapter"
+PROCESSOR_CONFIG_NAME = "processor_config.json"  # OpenFlyProcessor's settings (transformers' name)
+# A training run: <output_dir>/checkpoints/step-NNNNNN/ folders and `last`, a one-line file naming the newest.
+CHECKPOINTS_DIR = "checkpoints"
+LAST_POINTER_NAME = "last"
 
 EPISODES_JSONL = "episodes.jsonl"
 RESULTS_JSON = "results.json"

@@ -1,4 +1,5 @@
-"""NavigationCollator: the batch contract of docs/INTERFACES.md, with a small real tokenizer built here."""
+"""NavigationCollator: the batch contract of docs/INTERFACES.md, through a real OpenFlyProcessor around a small
+word-level tokenizer built here (the processor's own text rules are tested in tests/model/test_model_processor.py)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.writer import OpenFlyDatasetWriter
+from openfly_agent.model.action_tokenizer import CODEBOOK, ActionTokenizer
+from openfly_agent.model.processor import OpenFlyProcessor
 
 WORDS = ["what", "action", "should", "the", "robot", "take", "to", "fly", "red", "tower", "?", "1", "2", "3"]
 BATCH_KEYS = {
@@ -37,19 +40,18 @@ def tokenizer():
     )
 
 
-class DiscreteActions:
-    """One token per action: the action id mapped into the last ids of the vocabulary."""
-
-    def __init__(self, vocab_size: int):
-        self.vocab_size = vocab_size
-
-    def action_to_token_ids(self, action_id: int) -> list[int]:
-        return [self.vocab_size - 1 - action_id]
+TEMPLATE = "what action should the robot take to {instruction} ?"
+NORM_STATS = {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}
 
 
-class EightTokenActions(DiscreteActions):
-    def action_to_token_ids(self, action_id: int) -> list[int]:
-        return [self.vocab_size - 1 - int(v > 0) for v in C.OPENVLA_ACTION_VECTORS[action_id]]
+def make_processor(tokenizer, head: str = "discrete", **kwargs) -> OpenFlyProcessor:
+    """8 x 8 px area resize, the lowercased template above; action ids right after the tokenizer's ids."""
+    actions = ActionTokenizer(head, vocab_end=len(tokenizer) + 256, eos_token_id=tokenizer.eos_token_id)
+    stats = NORM_STATS if head == "openvla_bins" else None
+    return OpenFlyProcessor(
+        tokenizer, image_size=8, resize="area", prompt_template=TEMPLATE, lowercase=True,
+        action_head=actions.to_dict(), action_stats=stats, **kwargs,
+    )  # fmt: skip
 
 
 def resize_8(rgb: np.ndarray) -> torch.Tensor:
@@ -75,12 +77,11 @@ def dataset(tmp_path):
     writer = OpenFlyDatasetWriter(tmp_path)
     for i, episode in enumerate(episodes):
         writer.write_episode(episode, make_frames(len(episode), seed=i))
-    return NavigationStepDataset(episodes, FrameStore(tmp_path), history="uniform", capacity=2)
+    return NavigationStepDataset(episodes, FrameStore(tmp_path), "uniform", capacity=2, set_size=3)
 
 
 def _collator(tokenizer, **kwargs):
-    kwargs = {"capacity": 2, "set_size": 3, **kwargs}
-    return NavigationCollator(tokenizer, DiscreteActions(len(tokenizer)), resize_8, prompt, **kwargs)
+    return NavigationCollator(make_processor(tokenizer), capacity=2, set_size=3, **kwargs)
 
 
 def test_batch_contract(tokenizer, dataset):
@@ -93,7 +94,7 @@ def test_batch_contract(tokenizer, dataset):
     b, length = 4, 14
     assert batch[C.INPUT_IDS].shape == (b, length) and batch[C.INPUT_IDS].dtype == torch.long
     assert batch[C.ATTENTION_MASK].tolist() == [[1] * 14, [1] * 14, [1] * 11 + [0] * 3, [1] * 11 + [0] * 3]
-    act = [len(tokenizer) - 1 - a for a in (9, 1, 3, 0)]
+    act = [len(tokenizer) + a for a in (9, 1, 3, 0)]  # the discrete head: vocab_end - 256 + action
     assert batch[C.INPUT_IDS][0].tolist() == prompt_a + [act[0]]
     assert batch[C.INPUT_IDS][2].tolist() == prompt_b + [act[2]] + [tokenizer.pad_token_id] * 3
     labels = batch[C.LABELS]
@@ -127,29 +128,41 @@ def test_batch_contract(tokenizer, dataset):
 
 
 def test_eight_action_tokens_eos_and_truncation(tokenizer, dataset):
-    collator = NavigationCollator(
-        tokenizer, EightTokenActions(len(tokenizer)), resize_8, prompt, 2, 3, max_length=12, append_eos=True
-    )
+    collator = NavigationCollator(make_processor(tokenizer, "openvla_bins", max_length=12), 2, 3)
     batch = collator([dataset[0], dataset[6]])
     assert batch[C.INPUT_IDS].shape == (2, 12)
     eos = tokenizer.eos_token_id
     # sample 0 (13 prompt tokens) is cut to 3 so that 8 action tokens + EOS fit
     assert batch[C.INPUT_IDS][0, :3].tolist() == tokenizer(prompt("fly to red tower"))["input_ids"][:3]
     assert batch[C.LABELS][0].tolist()[:3] == [-100] * 3 and batch[C.LABELS][0, -1].item() == eos
-    assert (batch[C.LABELS] != -100).sum(dim=1).tolist() == [9, 9]
+    assert (batch[C.LABELS] != -100).sum(dim=1).tolist() == [9, 9]  # 8 bins + one EOS, never two
     with pytest.raises(ValueError, match="no room"):
-        NavigationCollator(
-            tokenizer, EightTokenActions(len(tokenizer)), resize_8, prompt, 2, 3, max_length=8
-        )([dataset[0]])
+        NavigationCollator(make_processor(tokenizer, "openvla_bins", max_length=8), 2, 3)([dataset[0]])
+
+
+class _BadImages:
+    """A processor whose image() returns the frame unchanged (a numpy array, not a tensor)."""
+
+    def __init__(self, processor):
+        self.processor = processor
+
+    def __call__(self, *args, **kwargs):
+        return self.processor(*args, **kwargs)
+
+    def navigation_prompt(self, instruction):
+        return self.processor.navigation_prompt(instruction)
+
+    def image(self, rgb):
+        return rgb
 
 
 def test_metadata_and_bad_transform(tokenizer, dataset):
     batch = _collator(tokenizer, with_metadata=True)([dataset[4], dataset[8]])
     assert batch[C.EPISODE_ID] == [dataset.episodes[0].episode_id, dataset.episodes[1].episode_id]
     assert batch[C.STEP_INDEX].tolist() == [4, 2]
-    bad = NavigationCollator(tokenizer, DiscreteActions(len(tokenizer)), lambda rgb: rgb, prompt, 2, 3)
+    bad = NavigationCollator(_BadImages(make_processor(tokenizer)), 2, 3)
     with pytest.raises(ValueError, match=r"\(3, h, w\) uint8 tensor"):
-        bad([dataset[0]])
+        bad([dataset[3]])  # a sample with memory frames
 
 
 def test_dataloader_with_workers_matches_in_process(tokenizer, dataset):

@@ -15,21 +15,21 @@ from openfly_agent.utils.config import load_yaml_config
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "data"
 
 
-@pytest.mark.parametrize("name", ["embedded", "openfly_released"])
+@pytest.mark.parametrize("name", ["embedded-small", "openfly_released"])
 def test_yaml_configs_parse(name):
     cfg = load_yaml_config(
         DataConfig, CONFIGS / f"{name}.yaml", ["--history.mode=uniform", "--reader.strict=false"]
     )
-    assert cfg.history.mode == "uniform" and cfg.reader.strict is False and cfg.history.capacity == 2
+    assert cfg.history.mode == "uniform" and cfg.reader.strict is False and cfg.train_split == "train"
 
 
 def test_bad_values_say_what_to_change():
-    with pytest.raises(ValueError, match="DataConfig.split='val'"):
-        DataConfig(split="val")
-    with pytest.raises(ValueError, match="capacity=-1"):
-        HistoryConfig(capacity=-1)
-    with pytest.raises(ValueError, match="set_size=0"):
-        HistoryConfig(set_size=0)
+    with pytest.raises(ValueError, match="data.test_split='val'"):
+        DataConfig(test_split="val")
+    with pytest.raises(ValueError, match="data.history.mode='latest'"):
+        HistoryConfig(mode="latest")
+    with pytest.raises(ValueError, match="num_workers=-1"):
+        DataConfig(num_workers=-1)
 
 
 def test_make_step_dataset(tmp_path):
@@ -38,7 +38,7 @@ def test_make_step_dataset(tmp_path):
     writer.write_episode(episode, make_frames(len(episode)))
     writer.finalize()
     cfg = DataConfig(root=str(tmp_path), history=HistoryConfig(mode="uniform"))
-    dataset = make_step_dataset(cfg)  # trim (default): 3 steps 9, 2, 0
+    dataset = make_step_dataset(cfg, cfg.train_split, capacity=2, set_size=5)  # trim (default): 9, 2, 0
     assert (
         len(dataset) == 3
         and dataset[0]["action"] == 9

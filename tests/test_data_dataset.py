@@ -43,7 +43,7 @@ def store(tmp_path):
 
 def test_one_sample_per_model_step(store):
     episodes, frames, images = store
-    dataset = NavigationStepDataset(episodes, frames, history="none")
+    dataset = NavigationStepDataset(episodes, frames, "none", capacity=2, set_size=5)
     assert len(dataset) == 9
     steps = [(dataset[i][C.EPISODE_ID][-1], dataset[i][C.STEP_INDEX], dataset[i][C.ACTION]) for i in range(9)]
     assert steps == [("a", 1, 9), ("a", 2, 2), ("a", 3, 9), ("a", 4, 1), ("a", 5, 9), ("a", 6, 0)] + [
@@ -64,7 +64,7 @@ def test_one_sample_per_model_step(store):
 
 def test_uniform_history(store):
     episodes, frames, images = store
-    dataset = NavigationStepDataset(episodes, frames, history="uniform", capacity=2)
+    dataset = NavigationStepDataset(episodes, frames, "uniform", capacity=2, set_size=5)
     assert [dataset.memory_indices(i) for i in range(6)] == [
         [[0]],  # t = 1
         [[0], [1]],  # t = 2
@@ -74,7 +74,7 @@ def test_uniform_history(store):
         [[0], [5]],
     ]
     assert dataset.memory_indices(6) == []  # episode b, t = 0
-    three = NavigationStepDataset(episodes, frames, history="uniform", capacity=3)
+    three = NavigationStepDataset(episodes, frames, "uniform", capacity=3, set_size=5)
     assert three.memory_indices(4) == [[0], [2], [4]]  # t = 5: linspace(0, 4, 3)
     memory = dataset[3][C.MEMORY]  # t = 4: frames 0 and 3
     np.testing.assert_array_equal(memory[1][0][0], images[episodes[0].episode_id][3])
@@ -83,15 +83,15 @@ def test_uniform_history(store):
 
 def test_random_history_is_reproducible(store):
     episodes, frames, _ = store
-    a = NavigationStepDataset(episodes, frames, history="random", capacity=2, seed=5)
-    b = NavigationStepDataset(episodes, frames, history="random", capacity=2, seed=5)
+    a = NavigationStepDataset(episodes, frames, "random", capacity=2, set_size=5, seed=5)
+    b = NavigationStepDataset(episodes, frames, "random", capacity=2, set_size=5, seed=5)
     draws = [a.memory_indices(i) for i in range(len(a))]
     assert draws == [b.memory_indices(i) for i in range(len(b))]
     for i, sets in enumerate(draws):
         t = a.locate(i)[1]
         flat = [j for s in sets for j in s]
         assert len(flat) == min(2, t) and flat == sorted(set(flat)) and all(0 <= j < t for j in flat)
-    c = NavigationStepDataset(episodes, frames, history="random", capacity=2, seed=6)
+    c = NavigationStepDataset(episodes, frames, "random", capacity=2, set_size=5, seed=6)
     assert [c.memory_indices(i) for i in range(len(c))] != draws  # another seed, other draws
     a.set_epoch(1)
     assert [a.memory_indices(i) for i in range(len(a))] != draws  # another epoch, other draws
@@ -102,7 +102,9 @@ def test_random_history_is_reproducible(store):
 def test_keyframe_history_with_scripted_selector(store):
     episodes, frames, images = store
     selector = ScriptedSelector(lambda t: [[t - 1], [0, 1, 2, 3, 4, 5, 6][:t]] if t >= 2 else [])
-    dataset = NavigationStepDataset(episodes, frames, keyframe_selector=selector, capacity=2, set_size=3)
+    dataset = NavigationStepDataset(
+        episodes, frames, "keyframes", capacity=2, set_size=3, keyframe_selector=selector
+    )
     # t = 4 of episode a: sets {3} and {0, 1, 2, 3}; sets are sorted oldest first, cut to their last 3 frames
     assert dataset.memory_indices(3) == [[1, 2, 3], [3]]
     actions, areas, t = selector.calls[-1]
@@ -120,13 +122,22 @@ def test_keyframe_history_with_scripted_selector(store):
 def test_keyframe_history_keeps_the_last_capacity_sets(store):
     episodes, frames, _ = store
     selector = ScriptedSelector(lambda t: [[j] for j in range(t)])
-    dataset = NavigationStepDataset(episodes, frames, keyframe_selector=selector, capacity=2)
+    dataset = NavigationStepDataset(
+        episodes, frames, "keyframes", capacity=2, set_size=5, keyframe_selector=selector
+    )
     assert dataset.memory_indices(4) == [[3], [4]]  # t = 5
 
 
 def test_keyframe_selector_must_return_past_frames(store):
     episodes, frames, _ = store
-    dataset = NavigationStepDataset(episodes, frames, keyframe_selector=ScriptedSelector(lambda t: [[t]]))
+    dataset = NavigationStepDataset(
+        episodes,
+        frames,
+        "keyframes",
+        capacity=2,
+        set_size=5,
+        keyframe_selector=ScriptedSelector(lambda t: [[t]]),
+    )
     with pytest.raises(ValueError, match=r"must be in \[0, 2\)"):
         dataset.memory_indices(1)
 
@@ -134,6 +145,6 @@ def test_keyframe_selector_must_return_past_frames(store):
 def test_keyframes_mode_needs_a_selector(store):
     episodes, frames, _ = store
     with pytest.raises(ValueError, match="keyframe_selector"):
-        NavigationStepDataset(episodes, frames)
-    with pytest.raises(ValueError, match="HistoryConfig.mode"):
-        NavigationStepDataset(episodes, frames, history="latest")
+        NavigationStepDataset(episodes, frames, "keyframes", capacity=2, set_size=5)
+    with pytest.raises(ValueError, match="history='latest'"):
+        NavigationStepDataset(episodes, frames, "latest", capacity=2, set_size=5)

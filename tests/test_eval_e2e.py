@@ -237,7 +237,6 @@ def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
 
     from openfly_agent.eval.agent_policy import AgentPolicy, checkpoint_kind, load_agent
     from openfly_agent.eval.config import AgentSettings
-    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
 
     episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)[:3]
     source = save_released_format_agent(tmp_path / "released", [e.instruction for e in episodes])
@@ -247,11 +246,9 @@ def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
     assert loaded.action_tokenizer.decode_rule == "nearest"
     q99 = loaded.action_tokenizer.action_stats["q99"]
     np.testing.assert_array_equal(q99, NORM_STATS["vln_norm"]["action"]["q99"])
-    old = source.action_tokenizer
-    source.action_tokenizer = ActionTokenizer(
-        head="openvla_bins", vocab_end=old.vocab_end, decode_rule="nearest", eos_token_id=old.eos_token_id,
-        action_stats=select_action_stats(NORM_STATS, "vln_norm"),
-    )  # fmt: skip
+    source.set_action_decoding(
+        decode_rule="nearest", unnorm_key="vln_norm"
+    )  # through its config, as load_agent
     cfg = _cfg(dataset, tmp_path, policy="stop", max_steps=5)
     runs = []
     for agent in (loaded, source):  # the folder's agent flies exactly like the one that wrote it

@@ -22,7 +22,7 @@ from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import build_model_release, resolve_checkpoint
-from openfly_agent.hub.remote_code import AUTO_MAP
+from openfly_agent.model.remote_code import AUTO_MAP
 from openfly_agent.utils.processes import run_group
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

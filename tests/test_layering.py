@@ -52,3 +52,102 @@ def test_imports_go_downwards_only():
             if LEVEL[other] > LEVEL[own] or (own in SIBLINGS_FORBIDDEN and other in SIBLINGS_FORBIDDEN):
                 problems.append(f"{rel}: imports {module} ({own} L{LEVEL[own]} -> {other} L{LEVEL[other]})")
     assert not problems, "\n".join(problems)
+
+
+# --- no import circle between the modules of a package ------------------------------------------------------
+
+
+def _module_name(path: Path, root: Path) -> str:
+    """`<root.name>.a.b` for `<root>/a/b.py` (a package's `__init__.py` is the package itself)."""
+    parts = list(path.relative_to(root.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imported_modules(path: Path, root: Path, modules: set[str]) -> set[str]:
+    """Modules of `modules` that `path` imports anywhere (top level, in functions, under TYPE_CHECKING).
+
+    `from pkg import name` counts as importing `pkg.name` when that is a module, else `pkg`; relative imports
+    are resolved against the file's package.
+    """
+    own = _module_name(path, root)
+    package = own if path.name == "__init__.py" else own.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                source = ".".join(base + ([node.module] if node.module else []))
+            else:
+                source = node.module or ""
+            for alias in node.names:
+                found.add(f"{source}.{alias.name}" if f"{source}.{alias.name}" in modules else source)
+    return {m for m in found if m in modules and m != own}
+
+
+def import_graph(root: Path) -> dict[str, set[str]]:
+    """module -> the modules of the same top-level package (`root`) it imports."""
+    paths = {_module_name(p, root): p for p in root.rglob("*.py")}
+    return {name: _imported_modules(path, root, set(paths)) for name, path in paths.items()}
+
+
+def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Groups of modules that import each other, directly or through others (strongly connected, > 1 module)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles = []
+
+    def visit(module: str) -> None:  # Tarjan
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        for other in sorted(graph[module]):
+            if other not in index:
+                visit(other)
+                low[module] = min(low[module], low[other])
+            elif other in stack:
+                low[module] = min(low[module], index[other])
+        if low[module] == index[module]:
+            group = []
+            while not group or group[-1] != module:
+                group.append(stack.pop())
+            if len(group) > 1:
+                circles.append(sorted(group))
+
+    for module in sorted(graph):
+        if module not in index:
+            visit(module)
+    return circles
+
+
+def _write(root: Path, files: dict[str, str]) -> None:
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text)
+
+
+def test_the_circle_check_finds_circles(tmp_path):
+    root = tmp_path / "pkg"
+    _write(
+        root,
+        {
+            "__init__.py": "",
+            "sub/__init__.py": "",
+            "sub/a.py": "from .b import x\n",
+            "sub/b.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.sub.c import y\n",
+            "sub/c.py": "def f():\n    from . import a\n",
+            "sub/d.py": "from pkg.sub import a\nimport pkg.sub.b\n",
+            "e.py": "from pkg.sub import d\n",
+        },
+    )
+    graph = import_graph(root)
+    assert graph["pkg.sub.d"] == {"pkg.sub.a", "pkg.sub.b"} and graph["pkg.e"] == {"pkg.sub.d"}
+    assert import_circles(graph) == [["pkg.sub.a", "pkg.sub.b", "pkg.sub.c"]]
+    (root / "sub" / "c.py").write_text("import json\n")
+    assert import_circles(import_graph(root)) == []
+
+
+def test_no_import_circle_between_modules():
+    circles = import_circles(import_graph(PACKAGE))
+    assert not circles, "modules that import each other: " + "; ".join(" <-> ".join(c) for c in circles)

@@ -56,50 +56,61 @@ class ReaderOptions:
 class HistoryConfig:
     """Which earlier frames a training sample carries as memory.
 
+    How many (K) and how large (S) the memory sets are is the model's: `model.memory.capacity` and the
+    keyframe set size `2 x model.keyframes.radius + 1`; training passes them to the dataset.
+
     Attributes:
         mode: "keyframes" (the injected keyframe selector), "uniform" (K single frames evenly spaced over
-            the frames before t), "random" (K random earlier frames, reproducible per sample) or "none".
-        capacity: K, memory sets per sample (the FIFO memory bank size; 2 in the paper).
-        set_size: S, frames per keyframe set (change point +- 2 frames = 5).
+            the frames before t), "random" (K random earlier frames, reproducible per sample and epoch) or
+            "none".
     """
 
     mode: str = "keyframes"
-    capacity: int = 2
-    set_size: int = 5
 
     def __post_init__(self) -> None:
         if self.mode not in HISTORY_MODES:
-            raise ValueError(f"HistoryConfig.mode={self.mode!r}: choose one of {HISTORY_MODES}")
-        if self.capacity < 0:
-            raise ValueError(f"HistoryConfig.capacity={self.capacity}: must be >= 0 (0 = no memory)")
-        if self.set_size < 1:
-            raise ValueError(f"HistoryConfig.set_size={self.set_size}: must be >= 1")
+            raise ValueError(f"data.history.mode={self.mode!r}: choose one of {HISTORY_MODES}")
 
 
 @dataclass
 class DataConfig:
-    """Where the dataset lives and how samples are drawn from it.
+    """Where the dataset lives, its splits, and how samples are read and drawn from it.
 
     Attributes:
-        root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated.
-        split: one of constants.SPLITS.
+        root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated; relative to the
+            working directory.
+        train_split: the split training reads (one of constants.SPLITS).
+        val_split: periodic validation.
+        test_split: the final offline evaluation.
         reader: label handling (ReaderOptions).
         history: memory frames per sample (HistoryConfig).
-        seed: seed of the "random" history mode.
+        num_workers: DataLoader worker processes per training process.
         cache_episodes: episodes whose encoded frames stay in memory per process (LRU).
         cache_frames: decoded frames kept per process (LRU).
+        generate_if_missing: train.py runs the toolchain when `root` holds no dataset.
+        toolchain_config: the toolchain YAML it runs then; a relative path not found in the working
+            directory is read from the repository.
     """
 
-    root: str = "data/generated/embedded-small"
-    split: str = C.SPLIT_TRAIN
+    # dataset root (relative to the working directory); the toolchain writes embedded-small there
+    root: str = "outputs/datasets/embedded-small"
+    train_split: str = C.SPLIT_TRAIN
+    val_split: str = C.SPLIT_TEST_SEEN
+    test_split: str = C.SPLIT_TEST_UNSEEN
     reader: ReaderOptions = field(default_factory=ReaderOptions)
     history: HistoryConfig = field(default_factory=HistoryConfig)
-    seed: int = 0
+    num_workers: int = 0
     cache_episodes: int = 8
     cache_frames: int = 256
+    generate_if_missing: bool = True
+    toolchain_config: str = "configs/toolchain/embedded-small.yaml"
 
     def __post_init__(self) -> None:
-        if self.split not in C.SPLITS:
-            raise ValueError(f"DataConfig.split={self.split!r}: choose one of {C.SPLITS}")
+        for name in ("train_split", "val_split", "test_split"):
+            value = getattr(self, name)
+            if value not in C.SPLITS:
+                raise ValueError(f"data.{name}={value!r}: choose one of {C.SPLITS}")
+        if self.num_workers < 0:
+            raise ValueError(f"data.num_workers={self.num_workers} must be >= 0")
         if self.cache_episodes < 1 or self.cache_frames < 1:
-            raise ValueError("DataConfig.cache_episodes and cache_frames must be >= 1")
+            raise ValueError("data.cache_episodes and data.cache_frames must be >= 1")

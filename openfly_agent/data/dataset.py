@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from openfly_agent import constants as C
-from openfly_agent.data.config import DataConfig, HistoryConfig
+from openfly_agent.data.config import HISTORY_MODES, DataConfig
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.schema import Episode
@@ -64,10 +64,10 @@ class NavigationStepDataset(torch.utils.data.Dataset):
     Args:
         episodes: the episodes (reader options already applied).
         frames: resolves frame ids to RGB.
+        history: one of "keyframes", "uniform", "random", "none" (`data.history.mode`).
+        capacity: K, memory sets per sample (the model's `memory.capacity`).
+        set_size: S, frames per set (the model's keyframe set size, 2 x radius + 1).
         keyframe_selector: required for history "keyframes" (model/keyframes.py).
-        history: one of "keyframes", "uniform", "random", "none".
-        capacity: K, memory sets per sample.
-        set_size: S, frames per set.
         seed: seed of the "random" mode.
     """
 
@@ -75,18 +75,24 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         self,
         episodes: Sequence[Episode],
         frames: FrameStore,
+        history: str,
+        capacity: int,
+        set_size: int,
         keyframe_selector: KeyframeSelector | None = None,
-        history: str = "keyframes",
-        capacity: int = 2,
-        set_size: int = 5,
         seed: int = 0,
     ):
-        self.config = HistoryConfig(mode=history, capacity=capacity, set_size=set_size)
+        if history not in HISTORY_MODES:
+            raise ValueError(f"history={history!r}: choose one of {HISTORY_MODES}")
+        if capacity < 0 or set_size < 1:
+            raise ValueError(
+                f"capacity={capacity}, set_size={set_size}: need capacity >= 0 and set_size >= 1"
+            )
         if history == "keyframes" and keyframe_selector is None:
             raise ValueError(
                 "history='keyframes' needs keyframe_selector (the model's keyframe selector, e.g. "
                 "model.keyframes.KeyframeSelector); or choose history='uniform' | 'random' | 'none'"
             )
+        self.history, self.capacity, self.set_size = history, capacity, set_size
         self.episodes = list(episodes)
         self.frames = frames
         self.keyframe_selector = keyframe_selector
@@ -115,7 +121,7 @@ class NavigationStepDataset(torch.utils.data.Dataset):
     def memory_indices(self, index: int) -> list[list[int]]:
         """Frame indices of the memory sets of sample `index`, oldest set first (all < t)."""
         episode, t = self.locate(index)
-        k, mode = self.config.capacity, self.config.mode
+        k, mode = self.capacity, self.history
         if mode == "none" or k == 0 or t == 0:
             return []
         if mode == "uniform":
@@ -140,9 +146,9 @@ class NavigationStepDataset(torch.utils.data.Dataset):
                     f"memory frames must be in [0, {t})"
                 )
             if frame_set:
-                cleaned.append(frame_set[-self.config.set_size :])
+                cleaned.append(frame_set[-self.set_size :])
         cleaned.sort(key=lambda s: s[0])
-        return cleaned[-self.config.capacity :]
+        return cleaned[-self.capacity :]
 
     def _box(self, episode: Episode, t: int) -> tuple[np.ndarray, bool]:
         if episode.boxes is None or not episode.box_visible[t]:
@@ -171,22 +177,25 @@ class NavigationStepDataset(torch.utils.data.Dataset):
 
 
 def make_step_dataset(
-    cfg: DataConfig, keyframe_selector: KeyframeSelector | None = None
+    cfg: DataConfig,
+    split: str,
+    capacity: int,
+    set_size: int,
+    keyframe_selector: KeyframeSelector | None = None,
+    seed: int = 0,
 ) -> NavigationStepDataset:
-    """The training dataset of a `DataConfig`: episodes of `cfg.split` under `cfg.root` and their frames.
+    """The step dataset of `split` under `cfg.root`, with the reader options and history mode of `cfg`.
 
     Args:
-        cfg: dataset root, split, reader options, history.
+        cfg: dataset root, reader options, history mode, frame caches.
+        split: which split (e.g. `cfg.train_split`).
+        capacity: K, memory sets per sample (the model's `memory.capacity`).
+        set_size: S, frames per set (the model's keyframe set size).
         keyframe_selector: required when `cfg.history.mode == "keyframes"`.
+        seed: seed of the "random" history mode.
     """
-    episodes = load_openfly_dataset(cfg.root, cfg.split, cfg.reader)
+    episodes = load_openfly_dataset(cfg.root, split, cfg.reader)
     frames = FrameStore(cfg.root, cache_episodes=cfg.cache_episodes, cache_frames=cfg.cache_frames)
     return NavigationStepDataset(
-        episodes,
-        frames,
-        keyframe_selector=keyframe_selector,
-        history=cfg.history.mode,
-        capacity=cfg.history.capacity,
-        set_size=cfg.history.set_size,
-        seed=cfg.seed,
+        episodes, frames, cfg.history.mode, capacity, set_size, keyframe_selector=keyframe_selector, seed=seed
     )

@@ -19,10 +19,6 @@ from openfly_agent.eval.policy import OBS_EPISODE_ID
 
 logger = logging.getLogger(__name__)
 
-# The layout train.py writes (docs/TRAINING.md): <run>/checkpoints/step-N/ and a `last` pointer file.
-RUN_CHECKPOINTS_DIR = "checkpoints"
-LAST_POINTER = "last"
-
 
 class AgentPolicy:
     """Adapter from the agent's inference API to the runner's `Policy` protocol.
@@ -99,21 +95,15 @@ def checkpoint_folder(checkpoint: str) -> Path:
     """The checkpoint's HF folder: a folder with config.json as is; a training run (`<run>`,
     `<run>/checkpoints` or the `last` pointer file) resolved to its newest checkpoint; otherwise a Hub id
     resolved through the local Hub cache (or a download when online)."""
-    path = Path(checkpoint)
-    for _ in range(3):  # run dir -> checkpoints dir -> pointer file -> step folder
-        if path.is_dir() and (path / C.CONFIG_NAME).is_file():
-            return path
-        if path.is_file():  # a pointer: one line naming the newest checkpoint folder beside it
-            path = path.parent / path.read_text().strip()
-        elif (path / LAST_POINTER).is_file():
-            path = path / LAST_POINTER
-        elif (path / RUN_CHECKPOINTS_DIR / LAST_POINTER).is_file():
-            path = path / RUN_CHECKPOINTS_DIR / LAST_POINTER
-        else:
-            break
-    if path.is_dir() and (path / C.CONFIG_NAME).is_file():
-        return path
-    if Path(checkpoint).exists() or checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
+    from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+
+    try:
+        folder = resolve_checkpoint_folder(checkpoint)
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"--checkpoint {checkpoint!r}: {err}") from err
+    if folder is not None:
+        return folder
+    if checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
         raise FileNotFoundError(
             f"--checkpoint {checkpoint!r}: no config.json there (nor a training run with checkpoints/last, "
             "nor a Hub id 'owner/name')"
@@ -156,11 +146,10 @@ def _released_model_config(settings: AgentSettings):
         if settings.model_config
         else openvla_compat_7b_config()
     )
-    head = cfg.action_head
     head = dataclasses.replace(
-        head,
-        unnorm_key=settings.unnorm_key or head.unnorm_key,
-        decode_rule=settings.decode_rule or head.decode_rule,
+        cfg.action_head,
+        unnorm_key=settings.unnorm_key or cfg.action_head.unnorm_key,
+        decode_rule=settings.decode_rule or cfg.action_head.decode_rule,
     )
     return dataclasses.replace(cfg, action_head=head)
 
@@ -168,11 +157,11 @@ def _released_model_config(settings: AgentSettings):
 def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     """Load the agent of `checkpoint` on `device`, in eval mode, with the decoding settings applied.
 
-    Our folders load with `OpenFlyAgent.from_pretrained`; OpenVLA-format folders (the released
-    OpenFly-Agent) through `agent_from_openvla_checkpoint` with the `openvla_compat` model config
-    (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
+    Our folders load with `OpenFlyAgent.from_pretrained`, then take the decoding settings through their config
+    (`set_action_decoding`: the action tokenizer, `config.action_tokenizer` and the processor all follow);
+    OpenVLA-format folders (the released OpenFly-Agent) through `agent_from_openvla_checkpoint` with the
+    `openvla_compat` model config (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
     """
-    from openfly_agent.model.action_tokenizer import ActionTokenizer, select_action_stats
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
     from openfly_agent.model.tokenizer import load_tokenizer
@@ -190,14 +179,6 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()
     agent = OpenFlyAgent.from_pretrained(str(folder), dtype=dtype).to(device).eval()
-    if settings.decode_rule or settings.unnorm_key:  # rebuild the action tokenizer with the chosen decoding
-        old = agent.action_tokenizer
-        stats = old.action_stats
-        if settings.unnorm_key:
-            stats = select_action_stats(agent.config.norm_stats, settings.unnorm_key)
-        agent.action_tokenizer = ActionTokenizer(
-            head=old.head, vocab_end=old.vocab_end, eos_token_id=old.eos_token_id,
-            action_stats=stats, decode_rule=settings.decode_rule or old.decode_rule,
-        )  # fmt: skip
+    agent.set_action_decoding(decode_rule=settings.decode_rule, unnorm_key=settings.unnorm_key)
     logger.info("checkpoint %s on %s (%s)", folder, device, dtype)
     return agent

@@ -68,9 +68,9 @@ def load_lora_agent(checkpoint: str | Path, base: str | Path):
         ValueError: the base's model sections differ from the checkpoint's (wrong base), with the differences.
     """
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.configuration import OpenFlyAgentConfig
     from openfly_agent.model.lora import load_lora_adapter
     from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
     from openfly_agent.model.tokenizer import load_tokenizer
 
     checkpoint, base = local_folder(checkpoint), local_folder(base)

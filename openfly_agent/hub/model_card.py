@@ -65,7 +65,6 @@ TRAIN_SUMMARY_KEYS = (
     "data.root",
     "data.history.mode",
     "freeze_stage",
-    "lora.enabled",
     "steps",
     "epochs",
     "batch.global_batch_size",

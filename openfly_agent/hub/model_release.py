@@ -14,6 +14,7 @@ from openfly_agent.constants import (
     MODEL_CARD_NAME,
     MODEL_TYPE,
     NORM_STATS_NAME,
+    PROCESSOR_CONFIG_NAME,
     TRAIN_CONFIG_NAME,
     WEIGHTS_INDEX_NAME,
     WEIGHTS_NAME,
@@ -22,13 +23,13 @@ from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
 from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
 from openfly_agent.hub.model_card import ModelFacts, render_model_card, summarize_train_config
-from openfly_agent.hub.remote_code import CONFIGURATION_FILE, MODELING_FILE, add_auto_map, write_remote_code
 from openfly_agent.hub.results import load_results, resolve_results_path
+from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
 
 logger = logging.getLogger(__name__)
 
 EVAL_RESULTS_NAME = "eval_results.json"
-LAST_POINTER_NAME = "last"  # training's pointer file naming the newest checkpoint folder
 # Files of a checkpoint the release carries over when the agent's own save did not write them.
 CARRIED_FILES = (TRAIN_CONFIG_NAME, NORM_STATS_NAME, ACTION_TOKENIZER_NAME)
 # Pickle-based formats never enter a release (security: weights are safetensors only).
@@ -41,22 +42,16 @@ def resolve_checkpoint(path: str | Path) -> Path:
     Accepts a checkpoint folder (holding config.json), the pointer file `.../checkpoints/last`, or a folder
     holding such a pointer (`<run>/checkpoints` or `<run>`).
     """
-    path = Path(path)
-    if path.is_file() and path.name == LAST_POINTER_NAME:
-        return resolve_checkpoint(path.parent / path.read_text().strip())
-    if path.is_dir() and not (path / CONFIG_NAME).is_file():
-        for pointer in (path / LAST_POINTER_NAME, path / "checkpoints" / LAST_POINTER_NAME):
-            if pointer.is_file():
-                return resolve_checkpoint(pointer)
-    if not (path / CONFIG_NAME).is_file():
+    folder = resolve_checkpoint_folder(path)
+    if folder is None:
         raise FileNotFoundError(
             f"{path} is not a checkpoint folder (no {CONFIG_NAME}): pass e.g. <run>/checkpoints/step-000100 "
             "or the <run>/checkpoints/last pointer"
         )
-    model_type = read_json(path / CONFIG_NAME).get("model_type")
+    model_type = read_json(folder / CONFIG_NAME).get("model_type")
     if model_type != MODEL_TYPE:
-        raise ValueError(f"{path / CONFIG_NAME}: model_type is {model_type!r}, expected {MODEL_TYPE!r}")
-    return path
+        raise ValueError(f"{folder / CONFIG_NAME}: model_type is {model_type!r}, expected {MODEL_TYPE!r}")
+    return folder
 
 
 def build_model_release(cfg: ModelReleaseConfig) -> Path:
@@ -64,8 +59,9 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
 
     Full checkpoints are loaded and saved again with `max_shard_size`. LoRA checkpoints (metadata +
     `adapter/`) are rebuilt on their base weights and released merged, or as the adapter alone (`cfg.lora`).
-    Then: training config / norm stats carried over, the two `trust_remote_code` files and `auto_map` (not for
-    an adapter, which has no weights to load), the eval results, README.md. Inputs are checked first.
+    The agent's own save writes the processor files and the `trust_remote_code` modules with `auto_map` (an
+    adapter release has neither: no weights to load). Then: training config / norm stats carried over, the eval
+    results, README.md. Inputs are checked first.
     """
     checkpoint = resolve_checkpoint(cfg.checkpoint)
     results = load_results(cfg.results) if cfg.results else None
@@ -81,9 +77,6 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     for file_name in CARRIED_FILES:
         if (checkpoint / file_name).is_file() and not (out / file_name).exists():
             shutil.copy2(checkpoint / file_name, out / file_name)
-    if not adapter_form:
-        write_remote_code(out, __version__)
-        add_auto_map(out)
     if results is not None:
         shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
     facts = model_facts(agent, out, release_form=form, adapter_release=adapter_form)
@@ -143,8 +136,10 @@ def describe_files(folder: Path) -> dict[str, str]:
         NORM_STATS_NAME: "action normalisation statistics (OpenVLA `dataset_statistics` format)",
         TRAIN_CONFIG_NAME: "the training configuration used",
         EVAL_RESULTS_NAME: "the eval.py results the card's numbers come from",
+        PROCESSOR_CONFIG_NAME: "input processor: image size, prompt template, text limit, action head, norm stats",
         CONFIGURATION_FILE: "`trust_remote_code` entry: imports the config class of `openfly-agent`",
         MODELING_FILE: "`trust_remote_code` entry: imports the model class of `openfly-agent`",
+        PROCESSING_FILE: "`trust_remote_code` entry: imports the processor class of `openfly-agent`",
         "tokenizer.json": "text tokenizer",
         "tokenizer_config.json": "text tokenizer settings",
         "special_tokens_map.json": "text tokenizer special tokens",

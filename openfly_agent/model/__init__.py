@@ -12,7 +12,9 @@ from .config import ModelConfig, make_model_config, openfly_7b_config, tiny_conf
 _LAZY = {
     "OpenFlyAgent": ".agent",
     "register_auto_classes": ".agent",
-    "OpenFlyAgentConfig": ".configuration",
+    "OpenFlyAgentConfig": ".pretrained_config",
+    "OpenFlyProcessor": ".processor",
+    "ImageTransform": ".image_transform",
     "ActionTokenizer": ".action_tokenizer",
     "KeyframeSelector": ".keyframes",
     "MemoryBank": ".memory",

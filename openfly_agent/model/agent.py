@@ -1,18 +1,20 @@
 """`OpenFlyAgent`: fused ViT backbone + projector + Llama + grounding head + keyframe memory + action head.
 
 A `transformers.PreTrainedModel`, so save / load (safetensors, sharding), AutoModel registration and
-`push_to_hub` come from transformers. Training: `forward(batch) -> (loss, logs)`; closed-loop inference:
-`select_action(observations)` / `reset(episode_ids)` (model/inference.py).
+`push_to_hub` come from transformers. Inputs are prepared by `self.processor` (model/processor.py), in training
+(through the collator) and in inference alike. Training: `forward(batch) -> (loss, logs)`. Closed-loop
+inference, as lerobot's policies: `select_action(observations)` / `predict_step` / `reset(episode_ids)`, with
+each running episode's state (model/episode.py) in `self.episodes`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from transformers import PreTrainedModel
@@ -23,6 +25,7 @@ from openfly_agent.constants import (
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
+    EPISODE_ID,
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
@@ -31,25 +34,27 @@ from openfly_agent.constants import (
     MEMORY_FRAME_MASK,
     MEMORY_PIXEL_VALUES,
     NORM_STATS_NAME,
+    OBS_INSTRUCTION,
+    OBS_RGB,
     PIXEL_VALUES,
 )
 
-from .config import (
-    HEAD_DISCRETE,
-    MODE_OPENVLA_COMPAT,
-    ModelConfig,
-)
-from .configuration import OpenFlyAgentConfig
+from .checkpoint_path import check_not_adapter_only, resolve_checkpoint_folder
+from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT, ModelConfig, config_to_dict
+from .episode import EpisodeState, StepResult, check_observations
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, grounding_loss
-from .inference import StepResult, predict_step, reset_episodes
 from .keyframes import KeyframeSelector
 from .llm import build_language_model, unwrap_causal_lm
-from .memory import grid_pool
+from .memory import MemoryBank, grid_pool
 from .merging import choose_reference, merge_into_reference
+from .pretrained_config import OpenFlyAgentConfig
+from .processor import OpenFlyProcessor
 from .projector import FusedMLPProjector
-from .sequence import position_ids_from_mask, splice_after_bos
+from .remote_code import write_remote_code
+from .sequence import left_pad, position_ids_from_mask, splice_after_bos
+from .tokenizer import load_tokenizer, tokenizer_folder
 from .vision import FusedVisionBackbone
 
 logger = logging.getLogger(__name__)
@@ -60,7 +65,7 @@ class OpenFlyAgent(PreTrainedModel):
 
     Args:
         config: the transformers config (build fresh models with `from_model_config`).
-        tokenizer: optional text tokenizer, saved with the model and used by `select_action`.
+        tokenizer: optional text tokenizer; with it the agent has its `processor` (needed by `select_action`).
     """
 
     config_class = OpenFlyAgentConfig
@@ -86,7 +91,7 @@ class OpenFlyAgent(PreTrainedModel):
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         self.grounding_head = GroundingHead(llm_dim, cfg.grounding) if cfg.grounding.enabled else None
-        self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)
+        self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)  # built from the config only
         config.action_tokenizer = self.action_tokenizer.to_dict()
         self.keyframe_selector = KeyframeSelector(
             capacity=cfg.memory.capacity,
@@ -94,8 +99,9 @@ class OpenFlyAgent(PreTrainedModel):
             radius=cfg.keyframes.radius,
             merge_forward=cfg.keyframes.merge_forward,
         )
-        self.tokenizer = tokenizer
-        self.episodes: dict = {}  # episode_id -> inference state (model/inference.py)
+        self.processor: OpenFlyProcessor | None = None
+        self.tokenizer = tokenizer  # builds the processor
+        self.episodes: dict[str, EpisodeState] = {}  # running episodes of select_action / predict_step
         self.post_init()
 
     # --- construction -----------------------------------------------------------------------------
@@ -112,8 +118,6 @@ class OpenFlyAgent(PreTrainedModel):
             norm_stats: dataset statistics profiles (needed by the `openvla_bins` head).
         """
         if tokenizer is None and cfg.llm.tokenizer_path:
-            from .tokenizer import load_tokenizer
-
             tokenizer = load_tokenizer(cfg.llm.tokenizer_path)
         cfg = resolve_vocabulary(cfg, tokenizer)
         return cls(OpenFlyAgentConfig.from_model_config(cfg, norm_stats), tokenizer=tokenizer)
@@ -136,30 +140,32 @@ class OpenFlyAgent(PreTrainedModel):
         elif isinstance(module, GroundingHead):
             init.normal_(module.box_queries, std=0.02)
 
-    # --- processor pieces used by the collator ------------------------------------------------------------
-    def image_transform(self, rgb: np.ndarray) -> torch.Tensor:
-        """(H, W, 3) uint8 RGB -> (3, s, s) uint8 at the model's input size (bicubic as OpenVLA, or area)."""
-        rgb = np.asarray(rgb)
-        if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
-            raise ValueError(f"image_transform expects (H, W, 3) uint8 RGB, got {rgb.dtype} {rgb.shape}")
-        size = self.model_cfg.vision.image_size
-        if rgb.shape[:2] != (size, size):
-            if self.model_cfg.vision.resize == "bicubic":
-                from PIL import Image
+    @property
+    def tokenizer(self):
+        """The text tokenizer of the processor (None: the agent has no processor)."""
+        return None if self.processor is None else self.processor.tokenizer
 
-                rgb = np.asarray(Image.fromarray(rgb).resize((size, size), Image.BICUBIC))
-            else:
-                import cv2
+    @tokenizer.setter
+    def tokenizer(self, tokenizer) -> None:
+        """Set the text tokenizer: (re)builds `processor` from the config (None removes it)."""
+        self.processor = (
+            None
+            if tokenizer is None
+            else OpenFlyProcessor.from_model_config(self.model_cfg, tokenizer, self.config.norm_stats)
+        )
 
-                rgb = cv2.resize(rgb, (size, size), interpolation=cv2.INTER_AREA)
-        return torch.from_numpy(np.array(rgb, dtype=np.uint8, copy=True)).permute(2, 0, 1).contiguous()
-
-    def build_prompt(self, instruction: str) -> str:
-        """The text after the visual tokens for `instruction` (template of the `prompt` section)."""
-        text = instruction.strip()
-        if self.model_cfg.prompt.lowercase:
-            text = text.lower()
-        return self.model_cfg.prompt.template.format(instruction=text)
+    def set_action_decoding(self, decode_rule: str | None = None, unnorm_key: str | None = None) -> None:
+        """Change how `openvla_bins` tokens decode (rule, norm-stats profile) through the config: config.json's
+        sections, `config.action_tokenizer`, the action tokenizer and the processor all follow (None: keep)."""
+        head = self.model_cfg.action_head
+        head = dataclasses.replace(
+            head, decode_rule=decode_rule or head.decode_rule, unnorm_key=unnorm_key or head.unnorm_key
+        )
+        self.model_cfg = dataclasses.replace(self.model_cfg, action_head=head)
+        self.config.agent = config_to_dict(self.model_cfg)
+        self.action_tokenizer = make_action_tokenizer(self.model_cfg, self.config.norm_stats)
+        self.config.action_tokenizer = self.action_tokenizer.to_dict()
+        self.tokenizer = self.tokenizer  # rebuilds the processor from the new config
 
     # --- encoders ---------------------------------------------------------------------------------
     @property
@@ -266,7 +272,7 @@ class OpenFlyAgent(PreTrainedModel):
 
         Args:
             batch: the keys of docs/INTERFACES.md (input_ids, attention_mask, labels, pixel_values, memory_*,
-                box, box_visible).
+                box, box_visible), as `data/collator.py` builds them with `self.processor`.
 
         Returns:
             The scalar loss and float logs: loss, action_loss, grounding_loss, action_accuracy, box_iou,
@@ -281,7 +287,7 @@ class OpenFlyAgent(PreTrainedModel):
         visual, visual_mask = self.encode_visual(batch)
         embeds, mask, labels = splice_after_bos(
             self.embed_text(input_ids), batch[ATTENTION_MASK], batch[LABELS], visual, visual_mask
-        )
+        )  # [BOS] [memory] [current] [prompt] [action]: (B, L', D), (B, L'), (B, L')
         hidden = self.run_llm(embeds, mask).last_hidden_state  # (B, L', D)
         action_loss, accuracy = self._action_loss(hidden, labels)
         loss = action_loss
@@ -320,7 +326,7 @@ class OpenFlyAgent(PreTrainedModel):
             )
         return loss, accuracy
 
-    # --- closed-loop inference (model/inference.py) -----------------------------------------------
+    # --- closed-loop inference --------------------------------------------------------------------
     def select_action(self, observations: list[dict[str, Any]]) -> list[int]:
         """One action per observation, all episodes in one batch, each with its own memory.
 
@@ -330,15 +336,156 @@ class OpenFlyAgent(PreTrainedModel):
         Returns:
             Action ids 0..9, in the order of `observations`.
         """
-        return [result.action for result in predict_step(self, observations)]
+        return [result.action for result in self.predict_step(observations)]
 
+    @torch.no_grad()
     def predict_step(self, observations: list[dict[str, Any]]) -> list[StepResult]:
-        """`select_action` with details: action logits (or bin tokens) and the predicted landmark box."""
-        return predict_step(self, observations)
+        """`select_action` with details: action logits (or bin tokens) and the predicted landmark box.
+
+        One step of every observed episode in one left-padded prefill: encode the current frames, build
+        `[BOS] [memory] [current] [prompt]` per episode (the training layout without the action tokens), read
+        the action at the last position (`discrete`) or decode 8 bin tokens greedily with the KV cache
+        (`openvla_bins`), predict the landmark box, then record the step in the episode's state and push
+        keyframe sets that completed into its memory. Each frame is encoded once; the prompt once per episode.
+        """
+        if not observations:
+            return []
+        check_observations(observations)
+        states = [self._episode_state(obs[EPISODE_ID], obs[OBS_INSTRUCTION]) for obs in observations]
+        device = self.projector.fc1.weight.device
+        pixels = torch.stack([self.processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
+        patches, dino_cls = self.vision_backbone.forward_with_cls(pixels)  # (B, P, D_v), (B, D_dino)
+        current = self.projector(patches)  # (B, P, D)
+        compat = self.model_cfg.mode == MODE_OPENVLA_COMPAT
+        own_history = self.history_tokens(patches, dino_cls) if compat else None  # (B, D)
+
+        sequences = []
+        for row, state in enumerate(states):
+            if compat:
+                memory = state.compat_history(own_history[row], self.model_cfg.memory.capacity)  # (K, D)
+            else:
+                memory = torch.cat([current[row, :0], *state.memory.tokens()], dim=0)  # (M, D), oldest first
+            prompt = self.embed_text(torch.tensor(state.prompt_ids, device=device))  # (L, D)
+            sequences.append(
+                torch.cat([prompt[:1], memory.to(current.dtype), current[row], prompt[1:]], dim=0)
+            )
+        embeds, mask = left_pad(sequences)  # (B, L_max, D), (B, L_max)
+        output = self.run_llm(embeds, mask, use_cache=self.action_tokenizer.head != HEAD_DISCRETE)
+        hidden = output.last_hidden_state  # (B, L_max, D)
+        actions, details = self._decode_actions(hidden, mask, output.past_key_values)
+        boxes, visible = self._predict_boxes(hidden, mask)
+
+        results = []
+        for row, state in enumerate(states):
+            box = tuple(float(v) for v in boxes[row])
+            results.append(StepResult(actions[row], details[row].cpu(), box, bool(visible[row])))
+            frame = state.record(actions[row], box if visible[row] else None)
+            if compat:
+                state.keep_history_token(frame, own_history[row], self.model_cfg.memory.capacity)
+            else:
+                state.frame_features[frame] = patches[row]
+        if not compat:
+            self._update_memories(states)
+        return results
 
     def reset(self, episode_ids: list[str] | None = None) -> None:
         """Forget the memory of the listed episodes (every episode when None)."""
-        reset_episodes(self, episode_ids)
+        if episode_ids is None:
+            self.episodes.clear()
+        for episode_id in episode_ids or []:
+            self.episodes.pop(episode_id, None)
+
+    def _episode_state(self, episode_id: str, instruction: str) -> EpisodeState:
+        """The state of a running episode, or a new one with its prompt tokenised by the processor."""
+        state = self.episodes.get(episode_id)
+        if state is not None:
+            if state.instruction != instruction:
+                raise ValueError(
+                    f"episode {episode_id!r} changed its instruction: reset([{episode_id!r}]) first"
+                )
+            return state
+        if self.processor is None:
+            raise ValueError(
+                "select_action needs a tokenizer: pass one to from_model_config / from_pretrained"
+            )
+        prompt_ids, _ = self.processor.encode(self.processor.navigation_prompt(instruction))
+        state = EpisodeState(instruction, prompt_ids, MemoryBank(self.model_cfg.memory.capacity))
+        self.episodes[episode_id] = state
+        return state
+
+    def _decode_actions(self, hidden, mask, cache) -> tuple[list[int], list[torch.Tensor]]:
+        """Discrete: argmax over the 10 action ids at the last position. Bins: 8 greedy tokens, decoded."""
+        last = self.lm_logits(hidden[:, -1])  # (B, V)
+        if self.action_tokenizer.head == HEAD_DISCRETE:
+            ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=last.device)
+            logits = last[:, ids]  # (B, 10)
+            return [int(a) for a in logits.argmax(dim=-1)], list(logits)
+        tokens = self.greedy_decode(last, mask, cache, self.action_tokenizer.num_action_tokens)  # (B, 8)
+        return [self.processor.decode_action(row.tolist()) for row in tokens], list(tokens)
+
+    def greedy_decode(self, first_logits, mask, cache, steps: int) -> torch.Tensor:
+        """Greedy decoding of `steps` tokens reusing the prefill's KV cache (as predict_action, any token).
+
+        Args:
+            first_logits: (B, V) logits at the last prefill position.
+            mask: (B, L) prefill attention mask.
+            cache: the prefill's `past_key_values`.
+            steps: tokens to generate.
+
+        Returns:
+            (B, steps) token ids.
+        """
+        token = first_logits.argmax(dim=-1)  # (B,)
+        generated = [token]
+        positions = position_ids_from_mask(mask)[:, -1:]  # (B, 1)
+        for _ in range(steps - 1):
+            mask = torch.cat([mask, mask.new_ones(mask.shape[0], 1)], dim=1)
+            positions = positions + 1
+            out = self.run_llm(
+                self.embed_text(token[:, None]),
+                mask,
+                position_ids=positions,
+                past_key_values=cache,
+                use_cache=True,
+            )
+            cache = out.past_key_values
+            token = self.lm_logits(out.last_hidden_state[:, -1]).argmax(dim=-1)
+            generated.append(token)
+        return torch.stack(generated, dim=1)
+
+    def _predict_boxes(self, hidden, mask) -> tuple[torch.Tensor, list[bool]]:
+        """(B, 4) predicted boxes on the CPU and whether each counts as visible."""
+        batch = hidden.shape[0]
+        if self.grounding_head is None:
+            return torch.zeros(batch, 4), [False] * batch
+        boxes, visibility = self.grounding_head(hidden, mask.bool())  # (B, 4), (B,)
+        if self.model_cfg.grounding.visibility_weight == 0:
+            return boxes.float().cpu(), [True] * batch  # no visibility training: every box counts
+        return boxes.float().cpu(), [bool(v) for v in visibility > 0]
+
+    def _update_memories(self, states: list[EpisodeState]) -> None:
+        """Push newly completed keyframe sets (same selector as the dataset, predicted boxes) into the FIFOs."""
+        pending = []  # (state, frames)
+        for state in states:
+            for frames in self.keyframe_selector.select(state.actions, state.box_areas, state.step):
+                if tuple(frames) not in state.memory:
+                    pending.append((state, frames))
+            state.forget_features_before(state.step - self.keyframe_selector.set_size)
+        if not pending:
+            return
+        size = max(len(frames) for _, frames in pending)
+        first = next(iter(pending[0][0].frame_features.values()))
+        features = first.new_zeros(len(pending), size, *first.shape)  # (N, S, P, D_v)
+        frame_mask = torch.zeros(len(pending), size, dtype=torch.bool, device=first.device)  # (N, S)
+        boxes = torch.zeros(len(pending), size, 4, device=first.device)  # (N, S, 4)
+        for row, (state, frames) in enumerate(pending):
+            for col, frame in enumerate(frames):
+                features[row, col] = state.frame_features[frame]
+                boxes[row, col] = torch.tensor(state.boxes[frame], device=first.device)
+            frame_mask[row, : len(frames)] = True
+        tokens = self.memory_set_tokens(features, frame_mask, boxes, frame_mask)  # (N, m, D)
+        for row, (state, frames) in enumerate(pending):
+            state.memory.push(tuple(frames), tokens[row])
 
     # --- training set-up ---------------------------------------------------------------------------
     def freeze(self, stage: str) -> dict[str, int]:
@@ -362,7 +509,7 @@ class OpenFlyAgent(PreTrainedModel):
 
     # --- persistence ------------------------------------------------------------------------------
     def save_pretrained(self, save_directory, *args, **kwargs) -> None:
-        """transformers' save (config.json + safetensors) + action_tokenizer.json, norm stats, tokenizer."""
+        """transformers' save (config.json + safetensors), then the processor files and the remote code."""
         if getattr(self.language_model, "peft_config", None) is not None:
             raise ValueError(
                 "LoRA is attached: merge it first (model.lora.merge_lora) or save the adapter "
@@ -375,60 +522,50 @@ class OpenFlyAgent(PreTrainedModel):
         if not kwargs.get("is_main_process", True):
             return
         folder = Path(save_directory)
-        self.action_tokenizer.save(folder / ACTION_TOKENIZER_NAME)
-        if self.config.norm_stats:
-            (folder / NORM_STATS_NAME).write_text(json.dumps(self.config.norm_stats, indent=2) + "\n")
-        if self.tokenizer is not None:
-            self.tokenizer.save_pretrained(str(folder))
+        self.save_processor_files(folder)
+        write_remote_code(folder)
         if push:
             hub.update({k: kwargs[k] for k in ("token", "max_shard_size") if k in kwargs})
             self.push_to_hub(hub.pop("repo_id", folder.name), **hub)
 
+    def save_processor_files(self, folder: str | Path) -> None:
+        """What prepares inputs and reads outputs: the processor (processor_config.json + tokenizer files),
+        action_tokenizer.json and the norm stats (dataset_statistics.json)."""
+        folder = Path(folder)
+        self.action_tokenizer.save(folder / ACTION_TOKENIZER_NAME)
+        if self.config.norm_stats:
+            (folder / NORM_STATS_NAME).write_text(json.dumps(self.config.norm_stats, indent=2) + "\n")
+        if self.processor is not None:
+            self.processor.save_pretrained(str(folder))
+
     @classmethod
     def from_pretrained(cls, pretrained_model_name_or_path, *args, tokenizer=None, **kwargs):
-        """transformers' load; the tokenizer saved beside the weights is loaded too (folder or Hub repo id)."""
-        loaded = super().from_pretrained(pretrained_model_name_or_path, *args, **kwargs)
+        """transformers' load, plus the tokenizer saved beside the weights (folder or Hub repo id).
+
+        Also takes a training run folder, `<run>/checkpoints` or the `checkpoints/last` pointer: they load the
+        newest checkpoint. A LoRA checkpoint (`adapter/`, no weights) raises with what to load instead.
+        """
+        name = str(pretrained_model_name_or_path)
+        folder = resolve_checkpoint_folder(name)
+        if folder is not None:
+            name = str(folder)
+            check_not_adapter_only(folder)
+        loaded = super().from_pretrained(name, *args, **kwargs)
         model = loaded[0] if isinstance(loaded, tuple) else loaded
         if tokenizer is None:
-            folder = _tokenizer_folder(str(pretrained_model_name_or_path), kwargs)
-            if folder is not None:
-                from .tokenizer import load_tokenizer
-
-                tokenizer = load_tokenizer(folder)
+            saved = tokenizer_folder(name, kwargs)
+            tokenizer = load_tokenizer(saved) if saved is not None else None
         model.tokenizer = tokenizer
         return loaded
 
 
-# Files a saved tokenizer may consist of (ours: tokenizer.json; Llama-2's: tokenizer.model).
-_TOKENIZER_FILES = ["tokenizer*", "special_tokens_map.json", "added_tokens.json", "vocab*", "merges.txt"]
-
-
-def _tokenizer_folder(name_or_path: str, hub_kwargs: dict) -> Path | None:
-    """Local folder holding the checkpoint's tokenizer, fetching only the tokenizer files of a Hub repo id
-    (with the same revision / token / cache arguments as the weights). None when the checkpoint has none."""
-    folder = Path(name_or_path)
-    if folder.is_dir():
-        return folder if (folder / "tokenizer_config.json").is_file() else None
-    from huggingface_hub import snapshot_download
-
-    snapshot = Path(
-        snapshot_download(
-            name_or_path,
-            revision=hub_kwargs.get("revision"),
-            cache_dir=hub_kwargs.get("cache_dir"),
-            token=hub_kwargs.get("token"),
-            local_files_only=bool(hub_kwargs.get("local_files_only", False)),
-            allow_patterns=_TOKENIZER_FILES,
-        )
-    )
-    return snapshot if (snapshot / "tokenizer_config.json").is_file() else None
-
-
 def register_auto_classes() -> None:
-    """Register the agent with transformers' AutoConfig / AutoModel (call once from an entry point)."""
-    from transformers import AutoConfig, AutoModel
+    """Register the agent with transformers' AutoConfig / AutoModel / AutoProcessor (call once from an entry
+    point; folders saved by the agent also load with `trust_remote_code=True` without it)."""
+    from transformers import AutoConfig, AutoModel, AutoProcessor
 
     from openfly_agent.constants import MODEL_TYPE
 
     AutoConfig.register(MODEL_TYPE, OpenFlyAgentConfig, exist_ok=True)
     AutoModel.register(OpenFlyAgentConfig, OpenFlyAgent, exist_ok=True)
+    AutoProcessor.register(OpenFlyAgentConfig, OpenFlyProcessor, exist_ok=True)

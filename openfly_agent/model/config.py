@@ -37,6 +37,19 @@ NUM_ACTION_SLOTS = 256  # both heads use the last 256 ids below `action_head.voc
 
 RESIZE_MODES = ("bicubic", "area")
 
+# Llama-2-7B's architecture (meta-llama/Llama-2-7b-hf config.json); weights always come from a checkpoint.
+LLAMA2_7B_ARCH = {
+    "hidden_size": 4096,
+    "intermediate_size": 11008,
+    "num_hidden_layers": 32,
+    "num_attention_heads": 32,
+    "rms_norm_eps": 1e-5,
+}
+# Sizes of the `tiny` presets, taken by the tiny-only fields left at None (ignored by the 7B presets, which
+# reject them when set).
+TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
+TINY_LLM = {"hidden_size": 128, "num_layers": 2, "num_heads": 4, "intermediate_size": 344}
+
 
 def _check_choice(section: str, name: str, value: str, choices: tuple[str, ...]) -> None:
     if value not in choices:
@@ -48,40 +61,59 @@ def _check_positive(section: str, name: str, value: float) -> None:
         raise ValueError(f"{section}.{name} must be > 0, got {value}")
 
 
+def _fill_tiny_fields(section: str, cfg, is_tiny: bool, defaults: dict[str, int]) -> None:
+    """Tiny preset: fill the unset tiny-only fields with `defaults`. Other presets: reject any that is set."""
+    for name, default in defaults.items():
+        value = getattr(cfg, name)
+        if is_tiny and value is None:
+            setattr(cfg, name, default)
+        elif not is_tiny and value is not None:
+            raise ValueError(
+                f"{section}.{name}={value} is read by the tiny preset only; {section}.preset={cfg.preset} fixes "
+                f"the architecture, so remove {section}.{name} (or use {section}.preset=tiny)"
+            )
+
+
 @dataclass
 class VisionConfig:
     """Fused two-ViT backbone (DINOv2-style `featurizer` + SigLIP-style `fused_featurizer`).
 
     `dinosiglip-224px` builds the real timm architectures (224 px, patch 14, 256 patches,
     1024 + 1152 = 2176-d); `tiny` builds two small ViTs of the same structure from `image_size`,
-    `patch_size`, `width`, `fused_width`, `depth` and `num_heads`. Both read the output of the
-    second-to-last block, without the final norm.
+    `patch_size`, `width`, `fused_width`, `depth` and `num_heads` (None takes `TINY_VISION`). Both read the
+    output of the second-to-last block, without the final norm. `image_size` and `resize` also define the
+    image preprocessing (the processor's image transform).
     """
 
     preset: str = VISION_TINY
     image_size: int = 112  # square input side in pixels; must be a multiple of patch_size
     patch_size: int = 14
-    width: int = 96  # tiny only: DINO-style ViT width
-    fused_width: int = 128  # tiny only: SigLIP-style ViT width
-    depth: int = 3  # tiny only: blocks per ViT (features come from block depth - 2)
-    num_heads: int = 4  # tiny only
-    resize: str = "bicubic"  # image_transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
+    width: int | None = None  # tiny only: DINO-style ViT width
+    fused_width: int | None = None  # tiny only: SigLIP-style ViT width
+    depth: int | None = None  # tiny only: blocks per ViT (features come from block depth - 2)
+    num_heads: int | None = None  # tiny only
+    resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
     def __post_init__(self) -> None:
         _check_choice("vision", "preset", self.preset, VISION_PRESETS)
         _check_choice("vision", "resize", self.resize, RESIZE_MODES)
+        _fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
         if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
             raise ValueError(
                 f"vision.preset=dinosiglip-224px needs image_size=224 and patch_size=14 "
                 f"(got {self.image_size}, {self.patch_size}); use preset=tiny for other sizes"
             )
-        for name in ("image_size", "patch_size", "width", "fused_width", "depth", "num_heads"):
+        for name in ("image_size", "patch_size"):
             _check_positive("vision", name, getattr(self, name))
         if self.image_size % self.patch_size:
             raise ValueError(
                 f"vision.image_size={self.image_size} must be a multiple of "
                 f"vision.patch_size={self.patch_size}"
             )
+        if self.preset != VISION_TINY:
+            return
+        for name in TINY_VISION:
+            _check_positive("vision", name, getattr(self, name))
         if self.depth < 2:
             raise ValueError(f"vision.depth={self.depth}: need >= 2 blocks (features of the second-to-last)")
         for name in ("width", "fused_width"):
@@ -123,7 +155,8 @@ class ProjectorConfig:
 
 @dataclass
 class LLMConfig:
-    """Causal LM (transformers Llama). `llama2-7b` fixes the architecture; `tiny` reads the fields below.
+    """Causal LM (transformers Llama). `llama2-7b` fixes the architecture (`LLAMA2_7B_ARCH`); `tiny` reads the
+    four size fields below (None takes `TINY_LLM`).
 
     `vocab_size` = embedding rows. None derives it: 32064 for llama2-7b (OpenVLA's padded vocab); for tiny the
     tokenizer length + 256 reserved action ids (needs the tokenizer when the model is built).
@@ -132,10 +165,10 @@ class LLMConfig:
     preset: str = LLM_TINY
     tokenizer_path: str | None = None  # local folder with the tokenizer files (never downloaded)
     vocab_size: int | None = None
-    hidden_size: int = 128  # tiny only
-    num_layers: int = 2  # tiny only
-    num_heads: int = 4  # tiny only
-    intermediate_size: int = 344  # tiny only
+    hidden_size: int | None = None  # tiny only
+    num_layers: int | None = None  # tiny only
+    num_heads: int | None = None  # tiny only
+    intermediate_size: int | None = None  # tiny only
     max_length: int = 2048
     attn_implementation: str = "sdpa"  # sdpa | eager | flash_attention_2 (passed to transformers)
     # Special token ids (taken from the tokenizer when the model is built with one).
@@ -145,11 +178,15 @@ class LLMConfig:
 
     def __post_init__(self) -> None:
         _check_choice("llm", "preset", self.preset, LLM_PRESETS)
+        _fill_tiny_fields("llm", self, self.preset == LLM_TINY, TINY_LLM)
         if self.vocab_size is not None and self.vocab_size <= NUM_ACTION_SLOTS:
             raise ValueError(
                 f"llm.vocab_size={self.vocab_size} must exceed the {NUM_ACTION_SLOTS} action ids"
             )
-        for name in ("hidden_size", "num_layers", "num_heads", "intermediate_size", "max_length"):
+        _check_positive("llm", "max_length", self.max_length)
+        if self.preset != LLM_TINY:
+            return
+        for name in TINY_LLM:
             _check_positive("llm", name, getattr(self, name))
         if self.hidden_size % self.num_heads:
             raise ValueError(
@@ -159,7 +196,7 @@ class LLMConfig:
     @property
     def resolved_hidden_size(self) -> int:
         """LLM width of the chosen preset."""
-        return 4096 if self.preset == LLM_LLAMA2_7B else self.hidden_size
+        return LLAMA2_7B_ARCH["hidden_size"] if self.preset == LLM_LLAMA2_7B else self.hidden_size
 
 
 @dataclass

@@ -11,15 +11,21 @@ from .config import HEAD_DISCRETE, LLAMA2_PADDED_VOCAB, LLM_LLAMA2_7B, NUM_ACTIO
 logger = logging.getLogger(__name__)
 
 
+def action_stats_of(cfg: ModelConfig, norm_stats: dict | None) -> dict | None:
+    """The `action` norm stats the head un-normalises with: profile `action_head.unnorm_key` (bins head only)."""
+    if cfg.action_head.type == HEAD_DISCRETE:
+        return None
+    return select_action_stats(norm_stats, cfg.action_head.unnorm_key)
+
+
 def make_action_tokenizer(cfg: ModelConfig, norm_stats: dict | None) -> ActionTokenizer:
     """The action tokenizer of a (resolved) model config; bins heads take their profile of `norm_stats`."""
     head = cfg.action_head
-    stats = select_action_stats(norm_stats, head.unnorm_key) if head.type != HEAD_DISCRETE else None
     return ActionTokenizer(
         head=head.type,
         vocab_end=head.vocab_end or cfg.llm.vocab_size,
         eos_token_id=cfg.llm.eos_token_id,
-        action_stats=stats,
+        action_stats=action_stats_of(cfg, norm_stats),
         decode_rule=head.decode_rule,
     )
 

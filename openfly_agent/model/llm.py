@@ -4,16 +4,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from .config import LLM_LLAMA2_7B, LLMConfig
-
-# Llama-2-7B's architecture (meta-llama/Llama-2-7b-hf config.json); weights always come from a checkpoint.
-LLAMA2_7B_ARCH = {
-    "hidden_size": 4096,
-    "intermediate_size": 11008,
-    "num_hidden_layers": 32,
-    "num_attention_heads": 32,
-    "rms_norm_eps": 1e-5,
-}
+from .config import LLAMA2_7B_ARCH, LLM_LLAMA2_7B, LLMConfig
 
 
 def llama_config(cfg: LLMConfig, vocab_size: int):

@@ -86,6 +86,31 @@ def load_tokenizer(folder: str | Path):
     return tokenizer
 
 
+# Files a saved tokenizer may consist of (ours: tokenizer.json; Llama-2's: tokenizer.model).
+TOKENIZER_FILES = ["tokenizer*", "special_tokens_map.json", "added_tokens.json", "vocab*", "merges.txt"]
+
+
+def tokenizer_folder(name_or_path: str, hub_kwargs: dict) -> Path | None:
+    """Local folder holding a checkpoint's tokenizer, fetching only the tokenizer files of a Hub repo id
+    (with the `revision` / `token` / `cache_dir` / `local_files_only` of `hub_kwargs`). None when it has none."""
+    folder = Path(name_or_path)
+    if folder.is_dir():
+        return folder if (folder / "tokenizer_config.json").is_file() else None
+    from huggingface_hub import snapshot_download
+
+    snapshot = Path(
+        snapshot_download(
+            name_or_path,
+            revision=hub_kwargs.get("revision"),
+            cache_dir=hub_kwargs.get("cache_dir"),
+            token=hub_kwargs.get("token"),
+            local_files_only=bool(hub_kwargs.get("local_files_only", False)),
+            allow_patterns=TOKENIZER_FILES,
+        )
+    )
+    return snapshot if (snapshot / "tokenizer_config.json").is_file() else None
+
+
 def tiny_vocab_size(tokenizer) -> int:
     """Embedding rows of the tiny LM for `tokenizer`: its length + the 256 reserved action ids."""
     return len(tokenizer) + NUM_ACTION_SLOTS

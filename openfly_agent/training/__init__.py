@@ -1,6 +1,7 @@
-"""Level-2 training: config, loop, optimizer and schedule, checkpoints, evaluation, export.
+"""Level-2 training: config, the `train(cfg)` run, optimizer and schedule, checkpoints, evaluation, export.
 
-`fit(build_run(cfg))` is what train.py does. Names are imported lazily (importing the package is free).
+`train(cfg)` (training/trainer.py) is what train.py does. Names are imported lazily (importing the package is
+free).
 """
 
 from __future__ import annotations
@@ -9,10 +10,8 @@ from openfly_agent.utils.imports import lazy_exports
 
 _EXPORTS = {
     "TrainConfig": "config",
-    "build_run": "builder",
-    "fit": "loop",
-    "TrainingRun": "loop",
-    "FitResult": "loop",
+    "train": "trainer",
+    "TrainResult": "trainer",
     "PreflightError": "preflight",
     "CheckpointManager": "checkpoint",
 }

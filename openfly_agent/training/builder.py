@@ -1,6 +1,6 @@
-"""Build an OpenFly-Agent training run from a `TrainConfig`: preflight, tokenizer, agent, datasets, collator.
+"""What a run trains on and with: the dataset splits, the tokenizer, and the agent (fresh or initialised).
 
-Every check that can fail on user input runs before the model is built (training/preflight.py).
+Every check that can fail on user input runs before the agent's weights are built or read.
 """
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ from __future__ import annotations
 import collections
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -15,31 +16,24 @@ from accelerate import Accelerator
 from accelerate.utils import set_seed
 
 from openfly_agent import constants as C
-from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
 from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
-from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
-from openfly_agent.training.engine import assemble_run, make_accelerator
-from openfly_agent.training.export import export_merged_lora, make_exporter
-from openfly_agent.training.loop import TrainingRun
 from openfly_agent.training.modes import apply_training_mode
 from openfly_agent.training.preflight import (
     PreflightError,
-    check_dataset_root,
     check_frames_readable,
-    check_output_dir,
     checkpoint_tensor_shapes,
     compare_shapes,
     diff_configs,
     load_split,
 )
-from openfly_agent.utils.config import save_config
 
 logger = logging.getLogger(__name__)
 
@@ -47,81 +41,53 @@ TOKENIZER_DIR = "tokenizer"
 FORMAT_OURS, FORMAT_OPENVLA = "openfly", "openvla"
 
 
-def build_run(cfg: TrainConfig) -> TrainingRun:
-    """Check everything, then build the agent, data and loaders of `cfg` and return the ready run."""
-    resume_from = check_output_dir(cfg.output_dir, cfg.resume)
-    check_dataset_root(cfg.data)
-    accelerator = make_accelerator(cfg)
-    if accelerator.is_main_process:
-        CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last).remove_stale_staging()
-    splits = dict.fromkeys((cfg.data.train_split, cfg.data.val_split, cfg.data.test_split))
-    episodes = {split: load_split(cfg.data, split) for split in splits}
-    frames = FrameStore(
-        cfg.data.root, cache_episodes=cfg.data.cache_episodes, cache_frames=cfg.data.cache_frames
-    )
-    check_frames_readable(frames, episodes[cfg.data.train_split])
-    tokenizer = resolve_tokenizer(cfg, episodes[cfg.data.train_split], accelerator)
+@dataclass
+class Splits:
+    """The episodes of each configured split (read and checked) and the frame store they share."""
+
+    episodes: dict[str, list[Episode]]
+    frames: FrameStore
+
+    def dataset(self, split: str, cfg: TrainConfig, agent: OpenFlyAgent) -> NavigationStepDataset:
+        """Per-step samples of `split`: the history mode of `cfg.data`, the agent's memory shape and keyframes."""
+        return NavigationStepDataset(
+            self.episodes[split],
+            self.frames,
+            cfg.data.history.mode,
+            capacity=cfg.model.memory.capacity,
+            set_size=cfg.model.keyframes.set_size,
+            keyframe_selector=agent.keyframe_selector,
+            seed=cfg.seed,
+        )
+
+
+def load_splits(cfg: TrainConfig) -> Splits:
+    """Read the train, validation and test splits; a bad record or unreadable frames is a `PreflightError`."""
+    data = cfg.data
+    names = dict.fromkeys((data.train_split, data.val_split, data.test_split))
+    episodes = {split: load_split(data, split) for split in names}
+    frames = FrameStore(data.root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
+    check_frames_readable(frames, episodes[data.train_split])
+    return Splits(episodes, frames)
+
+
+def prepare_agent(
+    cfg: TrainConfig, splits: Splits, accelerator: Accelerator, resume_from: Path | None
+) -> OpenFlyAgent:
+    """The agent to train: tokenizer, norm stats and checkpoints checked first, then built (or loaded), with
+    the freeze stage or LoRA adapters and gradient checkpointing applied."""
+    train_episodes = splits.episodes[cfg.data.train_split]
+    tokenizer = resolve_tokenizer(cfg, train_episodes, accelerator)
     norm_stats = None
     if cfg.model.action_head.type == HEAD_OPENVLA_BINS:
-        norm_stats = {Path(cfg.data.root).name: compute_action_statistics(episodes[cfg.data.train_split])}
+        norm_stats = {Path(cfg.data.root).name: compute_action_statistics(train_episodes)}
     init_format = check_init_checkpoint(cfg, tokenizer, norm_stats)
     if resume_from is not None:
         check_architecture(cfg.model, tokenizer, norm_stats, resume_from, "the checkpoint to resume")
     set_seed(cfg.seed)  # the same initial weights on every process and on resume
     agent = build_agent(cfg, tokenizer, norm_stats, init_format)
     apply_training_mode(agent, cfg)
-    datasets = {split: make_dataset(cfg, agent, episodes[split], frames) for split in splits}
-    collator = make_collator(agent, cfg)
-    if accelerator.is_main_process:
-        save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
-    test = datasets[cfg.data.test_split]
-    return assemble_run(
-        cfg,
-        accelerator,
-        agent,
-        datasets[cfg.data.train_split],
-        collator,
-        make_export=lambda prepared: make_exporter(accelerator, prepared, cfg),
-        val_dataset=datasets[cfg.data.val_split],
-        test_dataset=test,
-        resume_from=resume_from,
-        majority_rate=lambda indices: majority_class_rate(datasets[cfg.data.train_split], test, indices),
-        after_training=merge_lora_at_end if cfg.lora.enabled and cfg.lora.merge_at_end else None,
-    )
-
-
-def merge_lora_at_end(run: TrainingRun) -> None:
-    """The `lora.merge_at_end` step: full merged weights in `<output_dir>/merged` (rank 0, CPU)."""
-    export_merged_lora(run.accelerator, run.model, run.cfg.output_dir)
-
-
-def make_dataset(
-    cfg: TrainConfig, agent: OpenFlyAgent, episodes: list, frames: FrameStore
-) -> NavigationStepDataset:
-    """Per-step samples of `episodes` with the history mode of `cfg` and the agent's keyframe selector."""
-    return NavigationStepDataset(
-        episodes,
-        frames,
-        keyframe_selector=agent.keyframe_selector,
-        history=cfg.data.history.mode,
-        capacity=cfg.data.history.capacity,
-        set_size=cfg.data.history.set_size,
-        seed=cfg.seed,
-    )
-
-
-def make_collator(agent: OpenFlyAgent, cfg: TrainConfig) -> NavigationCollator:
-    """The collator wired to the agent's tokenizer, action tokenizer, image transform and prompt."""
-    return NavigationCollator(
-        tokenizer=agent.tokenizer,
-        action_tokenizer=agent.action_tokenizer,
-        image_transform=agent.image_transform,
-        prompt_builder=agent.build_prompt,
-        capacity=cfg.data.history.capacity,
-        set_size=cfg.data.history.set_size,
-        max_length=cfg.model.llm.max_length - cfg.model.visual_tokens_per_step(),
-        append_eos=cfg.model.action_head.type == HEAD_OPENVLA_BINS,
-    )
+    return agent
 
 
 def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accelerator):
@@ -177,7 +143,7 @@ def check_init_checkpoint(cfg: TrainConfig, tokenizer, norm_stats: dict | None) 
     return fmt  # OpenVLA folders are checked key by key by the model's loader, which names every mismatch
 
 
-def resolved_model_config(model_cfg: ModelConfig, tokenizer, norm_stats: dict | None) -> OpenFlyAgent:
+def meta_agent(model_cfg: ModelConfig, tokenizer, norm_stats: dict | None) -> OpenFlyAgent:
     """The agent `model_cfg` gives with this tokenizer, built on the meta device (no memory, no compute)."""
     with torch.device("meta"):
         return OpenFlyAgent.from_model_config(model_cfg, tokenizer=tokenizer, norm_stats=norm_stats)
@@ -188,7 +154,7 @@ def check_architecture(model_cfg: ModelConfig, tokenizer, norm_stats, folder: Pa
     config_file = folder / C.CONFIG_NAME
     if not config_file.is_file():
         raise PreflightError(f"{what} {folder} has no {C.CONFIG_NAME}")
-    meta = resolved_model_config(model_cfg, tokenizer, norm_stats)
+    meta = meta_agent(model_cfg, tokenizer, norm_stats)
     saved = json.loads(config_file.read_text()).get("agent", {})
     differences = diff_configs(_shape_relevant(meta.config.agent), _shape_relevant(saved))
     if differences:

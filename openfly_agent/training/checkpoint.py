@@ -12,10 +12,10 @@ import re
 import shutil
 from pathlib import Path
 
+from openfly_agent.constants import CHECKPOINTS_DIR, LAST_POINTER_NAME
+
 logger = logging.getLogger(__name__)
 
-CHECKPOINTS_DIR = "checkpoints"
-LAST_POINTER_NAME = "last"  # a one-line text file naming the newest complete checkpoint folder
 STAGING_PREFIX = ".tmp-"
 _STEP_DIR = re.compile(r"^step-(\d+)$")
 

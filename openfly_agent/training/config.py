@@ -8,8 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from openfly_agent import constants as C
-from openfly_agent.data.config import HistoryConfig, ReaderOptions
+from openfly_agent.data.config import DataConfig
 from openfly_agent.model.config import LoraSettings, ModelConfig, tiny_config
 
 PRECISIONS = ("no", "bf16", "fp16")
@@ -25,35 +24,6 @@ class BatchSizeError(ValueError):
 def _require(condition: bool, message: str) -> None:
     if not condition:
         raise ValueError(message)
-
-
-@dataclass
-class TrainDataConfig:
-    """Dataset root, splits and sample construction.
-
-    The memory shape (capacity K, set size S) must equal the model's `memory.capacity` and
-    `keyframes.set_size`; `TrainConfig` checks it.
-    """
-
-    # dataset root (relative to the working directory); the toolchain writes embedded-small there
-    root: str = "outputs/datasets/embedded-small"
-    train_split: str = C.SPLIT_TRAIN  # the split trained on
-    val_split: str = C.SPLIT_TEST_SEEN  # periodic validation
-    test_split: str = C.SPLIT_TEST_UNSEEN  # the final offline evaluation
-    reader: ReaderOptions = field(default_factory=ReaderOptions)
-    history: HistoryConfig = field(default_factory=HistoryConfig)
-    num_workers: int = 0  # DataLoader worker processes per training process
-    cache_episodes: int = 8  # FrameStore LRU sizes, per process
-    cache_frames: int = 256
-    generate_if_missing: bool = True  # run the toolchain when `root` has no dataset (train.py)
-    # generate config used then; a relative path not found in the working directory is read from the repository
-    toolchain_config: str = "configs/toolchain/embedded-small.yaml"
-
-    def __post_init__(self) -> None:
-        for name in ("train_split", "val_split", "test_split"):
-            value = getattr(self, name)
-            _require(value in C.SPLITS, f"data.{name}={value!r}: choose one of {C.SPLITS}")
-        _require(self.num_workers >= 0, f"data.num_workers={self.num_workers} must be >= 0")
 
 
 @dataclass
@@ -142,13 +112,13 @@ class BatchConfig:
 
 @dataclass
 class LoraTrainingConfig(LoraSettings):
-    """peft LoRA on the LLM (model/lora.py); the projector and the grounding head train fully (stage `lora`).
+    """peft LoRA on the LLM (model/lora.py), used when `freeze_stage=lora`: adapters, projector and grounding head
+    train.
 
     Inherits rank, alpha, dropout, target_modules ("all-linear" or comma-separated names) and init from the
     model's `LoraSettings`.
     """
 
-    enabled: bool = False
     merge_at_end: bool = True  # also write <output_dir>/merged: full weights, merged on rank 0 on the CPU
 
 
@@ -202,7 +172,7 @@ class TrainConfig:
     """A training run. `configs/train/*.yaml` are instances of it; `train.py --help` lists every field."""
 
     model: ModelConfig = field(default_factory=tiny_config)
-    data: TrainDataConfig = field(default_factory=TrainDataConfig)
+    data: DataConfig = field(default_factory=DataConfig)
     tokenizer: TokenizerConfig = field(default_factory=TokenizerConfig)
     init: InitConfig = field(default_factory=InitConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -214,7 +184,7 @@ class TrainConfig:
 
     precision: str = "no"  # no | bf16 | fp16 (autocast; overrides the accelerate config file's value)
     gradient_checkpointing: bool = False  # activation checkpointing inside the LLM and ViTs
-    freeze_stage: str = "full"  # a stage the model knows (full, frozen_vision, heads_only, lora, ...)
+    freeze_stage: str = "full"  # full | frozen_vision | heads_only | lora (LoRA adapters, the `lora` section)
     steps: int | None = None  # optimizer steps of the run (wins over `epochs` when both are set)
     epochs: float | None = 1.0  # passes over the train split, used when `steps` is null
     time_limit_minutes: float | None = None  # also stop (and save) once this much wall time has passed
@@ -237,19 +207,8 @@ class TrainConfig:
             self.time_limit_minutes is None or self.time_limit_minutes > 0,
             f"time_limit_minutes must be > 0 or null, got {self.time_limit_minutes}",
         )
-        history, memory = self.data.history, self.model.memory
-        _require(
-            history.capacity == memory.capacity,
-            f"data.history.capacity={history.capacity} differs from model.memory.capacity={memory.capacity}: "
-            "the dataset must build as many memory sets as the model holds; set both",
-        )
-        _require(
-            history.set_size == self.model.keyframes.set_size,
-            f"data.history.set_size={history.set_size} differs from the model's keyframe set size "
-            f"{self.model.keyframes.set_size} (2 x keyframes.radius + 1); set both",
-        )
-        _require(
-            self.lora.enabled == (self.freeze_stage == "lora"),
-            f"lora.enabled={self.lora.enabled} with freeze_stage={self.freeze_stage!r}: LoRA runs use "
-            "freeze_stage=lora (adapters + projector + grounding head train) and only they do",
-        )
+
+    @property
+    def use_lora(self) -> bool:
+        """LoRA runs are the runs of freeze stage `lora` (adapters + projector + grounding head train)."""
+        return self.freeze_stage == "lora"

@@ -1,4 +1,4 @@
-"""A checkpoint's Hugging Face folder: weights (or LoRA adapter), config, tokenizers, stats, train config.
+"""A checkpoint's Hugging Face folder: weights (or LoRA adapter), config, processor files, train config.
 
 State dicts are gathered with `accelerator.get_state_dict` (a collective under FSDP / ZeRO-3: every process
 calls the exporter) and written by rank 0. A LoRA run can also be merged at the end, on rank 0 and on the CPU,
@@ -7,11 +7,9 @@ from that in-memory state dict: the base model is never loaded a second time.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
-from collections.abc import Callable
 from pathlib import Path
 
 from accelerate import Accelerator
@@ -20,6 +18,7 @@ from torch import nn
 
 from openfly_agent import constants as C
 from openfly_agent.model.lora import TRAINABLE_PARTS, TRAINABLES_NAME, has_lora
+from openfly_agent.model.remote_code import remove_auto_map, write_remote_code
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.lora import lora_scalings, merge_lora_state_dict
 from openfly_agent.utils.config import save_config
@@ -30,41 +29,39 @@ MERGED_DIR = "merged"
 MAX_SHARD_SIZE = "5GB"
 
 
-def make_exporter(accelerator: Accelerator, model: nn.Module, cfg: TrainConfig) -> Callable[[Path], None]:
-    """`export(folder)`: write the model folder of the current weights (call on every process)."""
-
-    def export(folder: Path) -> None:
-        state_dict = accelerator.get_state_dict(model)
-        if not accelerator.is_main_process:
-            return
-        agent = accelerator.unwrap_model(model)
-        if has_lora(agent):
-            write_lora_folder(agent, state_dict, folder)
-        else:
-            agent.save_pretrained(str(folder), state_dict=state_dict, safe_serialization=True)
-        save_config(cfg, Path(folder) / C.TRAIN_CONFIG_NAME)
-
-    return export
+def export_model_folder(accelerator: Accelerator, model: nn.Module, folder: Path, cfg: TrainConfig) -> None:
+    """Write the model folder of the current weights into `folder` (call on every process: the state-dict
+    gather is a collective under FSDP / ZeRO-3; rank 0 writes)."""
+    state_dict = accelerator.get_state_dict(model)
+    if not accelerator.is_main_process:
+        return
+    agent = accelerator.unwrap_model(model)
+    if has_lora(agent):
+        write_lora_folder(agent, state_dict, folder)
+    else:
+        agent.save_pretrained(str(folder), state_dict=state_dict, safe_serialization=True)
+    save_config(cfg, Path(folder) / C.TRAIN_CONFIG_NAME)
 
 
 def write_model_metadata(agent: nn.Module, folder: Path) -> None:
-    """Everything of a model folder but the weights: config.json, action tokenizer, norm stats, tokenizer."""
+    """Everything of a model folder but the weights: config.json and the processor files (processor config,
+    tokenizer, action tokenizer, norm stats). No `auto_map` (a config loaded from a checkpoint carries one) until
+    the `trust_remote_code` modules are written too."""
     folder.mkdir(parents=True, exist_ok=True)
     agent.config.save_pretrained(str(folder))
-    agent.action_tokenizer.save(folder / C.ACTION_TOKENIZER_NAME)
-    if agent.config.norm_stats:
-        (folder / C.NORM_STATS_NAME).write_text(json.dumps(agent.config.norm_stats, indent=2) + "\n")
-    if agent.tokenizer is not None:
-        agent.tokenizer.save_pretrained(str(folder))
+    remove_auto_map(folder)
+    agent.save_processor_files(folder)
 
 
 def write_lora_folder(agent: nn.Module, state_dict: dict, folder: Path) -> Path:
     """Model metadata + `adapter/` (peft files of the LLM + the projector / grounding head tensors).
 
     The layout of `model.lora.save_lora_adapter`, so `model.lora.load_lora_adapter` reads it; written from the
-    gathered `state_dict` so it also works when the live parameters are sharded.
+    gathered `state_dict` so it also works when the live parameters are sharded. The `trust_remote_code` files
+    make `AutoModel.from_pretrained` say how to load it (the adapter needs its base weights).
     """
     write_model_metadata(agent, Path(folder))
+    write_remote_code(folder)
     out = Path(folder) / C.ADAPTER_DIR_NAME
     prefix = "language_model."
     llm_state = {k[len(prefix) :]: v for k, v in state_dict.items() if k.startswith(prefix)}
@@ -93,6 +90,7 @@ def export_merged_lora(accelerator: Accelerator, model: nn.Module, output_dir: s
         shutil.rmtree(staging)
     write_model_metadata(agent, staging)
     save_torch_state_dict(merged, str(staging), max_shard_size=MAX_SHARD_SIZE)
+    write_remote_code(staging)
     if final.exists():
         shutil.rmtree(final)
     os.replace(staging, final)

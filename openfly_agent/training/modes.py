@@ -14,8 +14,9 @@ logger = logging.getLogger(__name__)
 
 
 def apply_training_mode(agent: nn.Module, cfg: TrainConfig) -> None:
-    """Attach LoRA (it applies the `lora` stage) or apply `cfg.freeze_stage`; then gradient checkpointing."""
-    if cfg.lora.enabled:
+    """Attach LoRA (freeze stage `lora`: it applies the stage) or apply `cfg.freeze_stage`; then gradient
+    checkpointing."""
+    if cfg.use_lora:
         attach_lora(agent, cfg.lora)
     else:
         freeze(agent, cfg.freeze_stage)

@@ -13,8 +13,9 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from openfly_agent import constants as C
+from openfly_agent.data.config import DataConfig
 from openfly_agent.training.checkpoint import CheckpointManager
-from openfly_agent.training.config import BatchConfig, BatchSizeError, TrainDataConfig
+from openfly_agent.training.config import BatchConfig, BatchSizeError
 
 logger = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
         raise PreflightError(str(err)) from err
 
 
-def check_dataset_root(data: TrainDataConfig) -> None:
+def check_dataset_root(data: DataConfig) -> None:
     """The dataset root exists and has an annotation for every configured split (files only, no parsing)."""
     from openfly_agent.data.openfly_reader import annotation_path, part_files
 
@@ -81,7 +82,7 @@ def check_dataset_root(data: TrainDataConfig) -> None:
             )
 
 
-def load_split(data: TrainDataConfig, split: str) -> list:
+def load_split(data: DataConfig, split: str) -> list:
     """Episodes of `split`; schema errors become a `PreflightError` naming file, record and field."""
     from openfly_agent.data.openfly_reader import load_openfly_dataset
     from openfly_agent.data.schema import SchemaError

@@ -12,7 +12,11 @@ from pathlib import Path
 
 from accelerate import Accelerator
 from accelerate.utils import DistributedType
+from torch import nn
 
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.export import export_model_folder
 from openfly_agent.training.state import (
     ACCELERATE_STATE_DIR,
     TrainerState,
@@ -35,22 +39,28 @@ def register_state_hooks(accelerator: Accelerator) -> None:
     accelerator.register_load_state_pre_hook(load_trainable_weights_hook)
 
 
-def save_checkpoint(run) -> Path:
-    """Write the checkpoint of `run.state.step` atomically (call on every process); return its folder."""
-    acc, step = run.accelerator, run.state.step
-    if acc.is_main_process:
-        run.checkpoints.begin(step)
-    acc.wait_for_everyone()
-    staging = run.checkpoints.staging_dir(step)
-    acc.save_state(str(staging / ACCELERATE_STATE_DIR))
-    run.export(staging)
-    if acc.is_main_process:
-        run.state.save(staging)
-    acc.wait_for_everyone()
-    if acc.is_main_process:
-        run.checkpoints.commit(step)
-    acc.wait_for_everyone()
-    return run.checkpoints.final_dir(step)
+def save_checkpoint(
+    accelerator: Accelerator,
+    model: nn.Module,
+    state: TrainerState,
+    checkpoints: CheckpointManager,
+    cfg: TrainConfig,
+) -> Path:
+    """Write the checkpoint of `state.step` atomically (call on every process); return its folder."""
+    step = state.step
+    if accelerator.is_main_process:
+        checkpoints.begin(step)
+    accelerator.wait_for_everyone()
+    staging = checkpoints.staging_dir(step)
+    accelerator.save_state(str(staging / ACCELERATE_STATE_DIR))
+    export_model_folder(accelerator, model, staging, cfg)
+    if accelerator.is_main_process:
+        state.save(staging)
+    accelerator.wait_for_everyone()
+    if accelerator.is_main_process:
+        checkpoints.commit(step)
+    accelerator.wait_for_everyone()
+    return checkpoints.final_dir(step)
 
 
 def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerState:

@@ -38,6 +38,16 @@ class TrainerState:
     samples_seen: int = 0
     world_size: int = 1
 
+    def advance(self, samples: int, steps_per_epoch: int, world_size: int) -> None:
+        """Count one optimizer step of `samples` samples; the epoch rolls over after `steps_per_epoch` steps."""
+        self.step += 1
+        self.step_in_epoch += 1
+        self.samples_seen += samples
+        self.world_size = world_size
+        if self.step_in_epoch >= steps_per_epoch:
+            self.epoch += 1
+            self.step_in_epoch = 0
+
     def save(self, folder: str | Path) -> None:
         """Write `trainer_state.json` into `folder`."""
         text = json.dumps(dataclasses.asdict(self), indent=2, sort_keys=True) + "\n"

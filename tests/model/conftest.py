@@ -56,23 +56,15 @@ def make_batch():
 
     def _make(agent, batch_size: int = 3, capacity: int | None = None, set_size: int = 5, seed: int = 0):
         gen = torch.Generator().manual_seed(seed)
-        tok = agent.tokenizer
+        processor = agent.processor
         size = agent.model_cfg.vision.image_size
         k = agent.model_cfg.memory.capacity if capacity is None else capacity
         actions = torch.randint(0, 10, (batch_size,), generator=gen)
-        rows = []
-        for i in range(batch_size):
-            prompt = tok(agent.build_prompt(INSTRUCTIONS[i % len(INSTRUCTIONS)])).input_ids
-            rows.append((prompt, agent.action_tokenizer.action_to_token_ids(int(actions[i]))))
-        length = max(len(p) + len(a) for p, a in rows)
-        input_ids = torch.full((batch_size, length), tok.pad_token_id)
-        attention_mask = torch.zeros(batch_size, length, dtype=torch.long)
-        labels = torch.full((batch_size, length), -100)
-        for i, (prompt, action) in enumerate(rows):
-            seq = prompt + action
-            input_ids[i, : len(seq)] = torch.tensor(seq)
-            attention_mask[i, : len(seq)] = 1
-            labels[i, len(prompt) : len(seq)] = torch.tensor(action)
+        text = processor(
+            [processor.navigation_prompt(INSTRUCTIONS[i % len(INSTRUCTIONS)]) for i in range(batch_size)],
+            actions=actions.tolist(),
+        )  # the training text of docs/INTERFACES.md: [BOS] prompt action, right padded
+        input_ids, attention_mask, labels = text["input_ids"], text["attention_mask"], text["labels"]
         frame_mask = torch.rand(batch_size, k, set_size, generator=gen) > 0.3
         frame_mask[:, :, 0] = True
         return {

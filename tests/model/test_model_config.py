@@ -8,6 +8,10 @@ from pathlib import Path
 import pytest
 
 from openfly_agent.model.config import (
+    LLAMA2_7B_ARCH,
+    TINY_LLM,
+    TINY_VISION,
+    LLMConfig,
     MemoryConfig,
     ModelConfig,
     VisionConfig,
@@ -56,3 +60,32 @@ def test_validation_messages_say_what_to_change():
         tiny_config(mode="openvla_compat")
     with pytest.raises(ValueError, match="unknown model preset"):
         make_model_config("huge")
+
+
+def test_tiny_only_fields_are_filled_for_tiny_and_rejected_for_7b():
+    tiny = tiny_config()
+    assert {name: getattr(tiny.vision, name) for name in TINY_VISION} == TINY_VISION
+    assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
+    big = openfly_7b_config()
+    assert all(getattr(big.vision, name) is None for name in TINY_VISION)
+    assert all(getattr(big.llm, name) is None for name in TINY_LLM)
+    assert big.llm.resolved_hidden_size == LLAMA2_7B_ARCH["hidden_size"] == 4096
+    with pytest.raises(ValueError, match=r"llm.hidden_size=4096 is read by the tiny preset only.*remove"):
+        LLMConfig(preset="llama2-7b", hidden_size=4096)
+    with pytest.raises(ValueError, match=r"vision.depth=24 is read by the tiny preset only"):
+        VisionConfig(preset="dinosiglip-224px", image_size=224, depth=24)
+    assert VisionConfig(width=64, num_heads=2).fused_width == TINY_VISION["fused_width"]  # unset: the default
+
+
+def test_config_json_of_older_7b_checkpoints_still_loads():
+    """Before the tiny-only sizes became optional, a 7B config.json held the tiny sizes too; those exact values
+    are dropped on load, anything else still fails."""
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    old = config_to_dict(openfly_7b_config())
+    old["vision"].update(TINY_VISION)
+    old["llm"].update(TINY_LLM)
+    assert OpenFlyAgentConfig(agent=old).model_config == openfly_7b_config()
+    old["llm"]["hidden_size"] = 64
+    with pytest.raises(ValueError, match="llm.hidden_size=64 is read by the tiny preset only"):
+        OpenFlyAgentConfig(agent=old)

@@ -14,7 +14,7 @@ from openfly_agent.model.config import (
     MemoryConfig,
     PromptConfig,
 )
-from openfly_agent.model.inference import compat_history_indices, greedy_decode
+from openfly_agent.model.episode import compat_history_indices
 from openfly_agent.model.sequence import left_pad
 
 INSTRUCTIONS = [
@@ -121,7 +121,7 @@ def test_kv_cache_decoding_equals_full_recompute(make_agent):
     rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
     embeds, mask = left_pad(rows)
     out = agent.run_llm(embeds, mask, use_cache=True)
-    cached = greedy_decode(agent, agent.lm_logits(out.last_hidden_state[:, -1]), mask, out.past_key_values, 8)
+    cached = agent.greedy_decode(agent.lm_logits(out.last_hidden_state[:, -1]), mask, out.past_key_values, 8)
     seq, seq_mask, tokens = embeds, mask, []
     for _ in range(8):
         token = agent.lm_logits(agent.run_llm(seq, seq_mask).last_hidden_state[:, -1]).argmax(-1)
@@ -164,7 +164,7 @@ def test_compat_mode_runs_the_released_layout(make_agent):
     assert state.prompt_ids[-1] == 5 and state.prompt_ids[0] == agent.tokenizer.bos_token_id
     assert sorted(state.history_tokens) == [0, 2, 3]  # frame 0 (padding) + the last K frames
     # history token = projector(DINO CLS ++ pooled SigLIP patches), one per frame
-    pixels = agent.image_transform(frames[0, 3])[None]
+    pixels = agent.processor.image(frames[0, 3])[None]
     patches, cls = agent.vision_backbone.forward_with_cls(pixels)
     manual = agent.projector(torch.cat([cls, patches[..., agent.vision_backbone.dino_dim :].mean(1)], -1))
     torch.testing.assert_close(state.history_tokens[3], manual[0], rtol=1e-5, atol=1e-5)

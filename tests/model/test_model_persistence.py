@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import ActionHeadConfig, LoraSettings
 from openfly_agent.model.freeze import FREEZE_STAGES
 from openfly_agent.model.lora import attach_lora, has_lora, load_lora_adapter, merge_lora, save_lora_adapter
+from openfly_agent.utils.processes import run_group
 
 NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
 
@@ -176,3 +179,79 @@ def test_save_with_push_uploads_the_complete_folder(make_agent, tmp_path, monkey
     (repo_id, kwargs, files) = calls[0]
     assert repo_id == "me/agent" and kwargs == {"max_shard_size": "1GB"}
     assert {"action_tokenizer.json", "tokenizer.json", "model.safetensors"} <= set(files)
+
+
+def _training_run(agent, root):
+    """`agent` saved as a training run lays it out: <run>/checkpoints/step-000002 and the `last` pointer."""
+    step = root / "run" / "checkpoints" / "step-000002"
+    agent.save_pretrained(step)
+    (root / "run" / "checkpoints" / "last").write_text("step-000002\n")
+    return root / "run", step
+
+
+def test_from_pretrained_takes_a_run_its_pointer_or_a_step_folder(make_agent, tmp_path):
+    agent = make_agent()
+    run, step = _training_run(agent, tmp_path)
+    expected = agent.state_dict()
+    for path in (run, run / "checkpoints", run / "checkpoints" / "last", step):
+        loaded = OpenFlyAgent.from_pretrained(path)
+        assert loaded.processor is not None and loaded.processor.to_dict() == agent.processor.to_dict(), path
+        for key, value in loaded.state_dict().items():
+            assert torch.equal(value, expected[key]), (path, key)
+    with pytest.raises(FileNotFoundError, match="pass a checkpoint folder"):
+        OpenFlyAgent.from_pretrained(tmp_path)  # exists, but neither a checkpoint nor a run
+
+
+def test_auto_model_loads_a_training_checkpoint_or_says_what_to_pass(make_agent, tmp_path):
+    from transformers import AutoModel
+
+    agent = make_agent()
+    _, step = _training_run(agent, tmp_path)
+    loaded = AutoModel.from_pretrained(step, trust_remote_code=True)
+    assert type(loaded).__name__ == "OpenFlyAgent" and loaded.processor is not None
+    assert all(torch.equal(v, agent.state_dict()[k]) for k, v in loaded.state_dict().items())
+    # a fresh process (nothing registered): without trust_remote_code, transformers names the argument to pass
+    code = f"from transformers import AutoModel\nAutoModel.from_pretrained({str(step)!r})"
+    done = run_group([sys.executable, "-c", code], timeout=300, stdin=subprocess.DEVNULL)
+    assert done.returncode != 0 and "pass the argument `trust_remote_code=True`" in done.stderr, done.stderr[
+        -2000:
+    ]
+
+
+def test_a_lora_only_checkpoint_says_what_loads_it(make_agent, tmp_path):
+    from openfly_agent.training.export import write_lora_folder
+
+    agent = make_agent()
+    attach_lora(agent, LoraSettings(rank=2, alpha=4))
+    write_lora_folder(agent, agent.state_dict(), tmp_path)
+    with pytest.raises(ValueError, match="LoRA checkpoint .*load_lora_agent"):
+        OpenFlyAgent.from_pretrained(tmp_path)
+
+
+def test_decoding_overrides_go_through_the_config(make_agent, tmp_path):
+    """eval's decode_rule / unnorm_key reach the config, `config.action_tokenizer`, the action tokenizer and the
+    processor together (none can go stale)."""
+    from openfly_agent.eval.agent_policy import load_agent
+    from openfly_agent.eval.config import AgentSettings
+
+    stats = {"a": NORM_STATS["demo"], "b": {"action": {"q01": [-1.0] * 8, "q99": [20.0] * 8}}}
+    head = ActionHeadConfig(type="openvla_bins", unnorm_key="a", decode_rule="exact")
+    make_agent(action_head=head, norm_stats=stats).save_pretrained(tmp_path)
+    agent = load_agent(
+        str(tmp_path), AgentSettings(decode_rule="nearest", unnorm_key="b", dtype="float32"), "cpu"
+    )
+    assert (
+        agent.model_cfg.action_head.decode_rule == "nearest" and agent.model_cfg.action_head.unnorm_key == "b"
+    )
+    assert agent.config.agent["action_head"]["decode_rule"] == "nearest"
+    for settings in (
+        agent.config.action_tokenizer,
+        agent.action_tokenizer.to_dict(),
+        agent.processor.action_head,
+    ):
+        assert settings["decode_rule"] == "nearest"
+    for tokenizer in (agent.action_tokenizer, agent.processor.action_tokenizer):
+        np.testing.assert_array_equal(tokenizer.action_stats["q99"], [20.0] * 8)
+    agent.save_pretrained(tmp_path / "again")
+    saved = json.loads((tmp_path / "again" / "processor_config.json").read_text())
+    assert saved["action_head"]["decode_rule"] == "nearest" and saved["action_stats"]["q99"] == [20.0] * 8

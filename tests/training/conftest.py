@@ -33,13 +33,12 @@ def generated_dataset(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def reference_run(generated_dataset, tmp_path_factory):
-    """An uninterrupted in-process run of STEPS steps, a checkpoint every 2: (output_dir, run, result).
+    """An uninterrupted in-process run of STEPS steps, a checkpoint every 2: (output_dir, TrainResult).
 
     The vision backbone is frozen, so resuming must rebuild frozen weights and restore only trainable ones.
     """
     out = tmp_path_factory.mktemp("reference")
-    run, result = train_in_process(make_config(generated_dataset, out, steps=STEPS))
-    return out, run, result
+    return out, train_in_process(make_config(generated_dataset, out, steps=STEPS))
 
 
 def train_args(dataset: Path, output_dir: Path, **overrides) -> list[str]:
@@ -84,16 +83,36 @@ def reset_accelerate() -> None:
 
 
 def train_in_process(cfg):
-    """Build and fit a run in this process; returns (run, result)."""
-    from openfly_agent.training.builder import build_run
-    from openfly_agent.training.loop import fit
+    """`training.train(cfg)` in this process; returns its `TrainResult`."""
+    from openfly_agent.training.trainer import train
 
     reset_accelerate()
     try:
-        run = build_run(cfg)
-        return run, fit(run)
+        return train(cfg)
     finally:
         reset_accelerate()
+
+
+def built_agent(cfg):
+    """The agent a run of `cfg` would start training (checks, tokenizer, init weights, freeze / LoRA applied)."""
+    from openfly_agent.training.accelerator import make_accelerator
+    from openfly_agent.training.builder import load_splits, prepare_agent
+
+    reset_accelerate()
+    try:
+        return prepare_agent(cfg, load_splits(cfg), make_accelerator(cfg), None)
+    finally:
+        reset_accelerate()
+
+
+def split_batch(cfg, agent, split: str, indices) -> dict:
+    """A collated batch of samples `indices` of `split`, built as the run of `cfg` builds it."""
+    from openfly_agent.data.collator import NavigationCollator
+    from openfly_agent.training.builder import load_splits
+
+    dataset = load_splits(cfg).dataset(split, cfg, agent)
+    collate = NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size)
+    return collate([dataset[i] for i in indices])
 
 
 def _script_env() -> dict[str, str]:

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from accelerate.commands.config.config_args import load_config_from_file
 
+from openfly_agent.training.accelerator import flat_config
 from openfly_agent.training.config import BatchConfig, BatchSizeError, OptimConfig, TrainConfig
-from openfly_agent.training.engine import flat_config
 from openfly_agent.utils.config import config_from_dict, config_to_dict, parse_config
 from openfly_agent.utils.errors import root_cause
 
@@ -52,7 +52,8 @@ def test_paper_recipe_values():
     )
     assert (cfg.batch.global_batch_size, cfg.precision, cfg.model.llm.preset) == (128, "bf16", "llama2-7b")
     lora = parse_config(TrainConfig, [], config_path=CONFIGS / "train" / "openfly-7b-lora.yaml")
-    assert lora.lora.enabled and lora.freeze_stage == "lora" and lora.lora.rank == 32
+    assert lora.use_lora and lora.freeze_stage == "lora" and lora.lora.rank == 32
+    assert not cfg.use_lora
 
 
 def test_command_line_overrides_the_yaml():
@@ -75,11 +76,10 @@ def test_accelerate_config_loads(path):
     [
         ({"precision": "fp8"}, "precision='fp8'"),
         ({"steps": None, "epochs": None}, "set `steps`"),
-        ({"freeze_stage": "full", "lora": {"enabled": True}}, "LoRA runs use freeze_stage=lora"),
-        ({"freeze_stage": "lora"}, "LoRA runs use freeze_stage=lora"),
+        ({"data": {"history": {"mode": "latest"}}}, "data.history.mode='latest'"),
         (
-            {"data": {"history": {"capacity": 1}}},
-            "data.history.capacity=1 differs from model.memory.capacity=2",
+            {"model": {"llm": {"preset": "llama2-7b", "hidden_size": 64}}},
+            "llm.hidden_size=64 is read by the tiny preset only",
         ),
         ({"optim": {"schedule": "step"}}, "optim.schedule='step'"),
     ],

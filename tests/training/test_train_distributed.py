@@ -24,8 +24,11 @@ from conftest import (
     train_losses,
 )
 
+from openfly_agent.data.collator import NavigationCollator
+from openfly_agent.training.builder import load_splits
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
+from openfly_agent.utils.processes import run_group
 
 EXIT_PROBE = Path(__file__).with_name("exit_probe.py")
 
@@ -36,7 +39,7 @@ def _final_test_metrics(output_dir) -> dict[str, float]:
 
 
 def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, generated_dataset, tmp_path):
-    reference_dir, reference, _ = reference_run
+    reference_dir, reference = reference_run
     # 9 test samples over 2 processes x 4: one round-robin group of 8, then rank 1 pads with a weight-0 batch
     args = [str(REPO_ROOT / "train.py")] + train_args(
         generated_dataset, tmp_path, steps=STEPS, validation__final_max_samples=9
@@ -59,9 +62,13 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, ge
 
     # the final offline evaluation covers exactly the 9 samples, as one process over the same 9 does
     single = SimpleNamespace(device=torch.device("cpu"), num_processes=1, process_index=0)
-    test_set, collate = reference.test_loader.loader.dataset, reference.test_loader.loader.collate_fn
+    cfg = make_config(generated_dataset, reference_dir)
+    test_set = load_splits(cfg).dataset(cfg.data.test_split, cfg, reference.agent)
+    collate = NavigationCollator(
+        reference.agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size
+    )
     loader, indices = make_eval_loader(test_set, 9, 4, single, collate)
-    one_process = evaluate(reference.model, loader, single)
+    one_process = evaluate(reference.agent, loader, single)
     two_processes = _final_test_metrics(tmp_path)
     assert len(indices) == 9 and two_processes["test/samples"] == one_process["samples"] == 9
     assert two_processes["test/action_accuracy"] == pytest.approx(one_process["action_accuracy"])
@@ -71,7 +78,7 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, ge
 def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
     reference_run, generated_dataset, tmp_path
 ):
-    reference_dir, _, _ = reference_run
+    reference_dir, _ = reference_run
     args = train_args(generated_dataset, tmp_path, steps=STEPS, checkpoint__save_interval=1)
     manager = CheckpointManager(tmp_path, keep_last=5)
     with start_script(args) as process:
@@ -84,7 +91,7 @@ def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
         process.wait()
     latest = CheckpointManager(tmp_path, keep_last=5).latest()
     assert latest is not None and (latest / "trainer_state.json").is_file()
-    _, resumed = train_in_process(
+    resumed = train_in_process(
         make_config(generated_dataset, tmp_path, steps=STEPS, resume="true", validation__final_eval="false")
     )
     assert resumed.state.step == STEPS
@@ -93,3 +100,40 @@ def test_sigkill_mid_run_leaves_a_valid_checkpoint_and_resume_matches(
     found = checkpoint_weights(tmp_path / "checkpoints" / f"step-{STEPS:06d}")
     for key in expected:
         torch.testing.assert_close(found[key], expected[key], rtol=0, atol=0, msg=key)
+
+
+def test_each_epoch_reaches_the_dataset_with_two_processes(generated_dataset, tmp_path):
+    """`random` history draws change with the epoch under a 2-process launch, and every process sees the draws
+    of the current epoch (accelerate's loader alone forwards the epoch to the dataset with one process only)."""
+    from epoch_worker import describe, make_dataset
+
+    args = train_args(generated_dataset, tmp_path / "run", data__history__mode="random")
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+    command = [*torchrun, str(Path(__file__).with_name("epoch_worker.py")), str(tmp_path), *args]
+    done = run_group(command, timeout=300, cwd=REPO_ROOT, env=_env())
+    assert done.returncode == 0, done.stderr[-3000:]
+    seen = [tuple(r) for rank in (0, 1) for r in json.loads((tmp_path / f"rank{rank}.json").read_text())]
+    assert {r[0] for r in seen} == {0, 1} and len(seen) > 20  # (epoch, episode, step, memory digest)
+    # what one process computes for the same samples, epoch by epoch
+    dataset = make_dataset(make_config(generated_dataset, tmp_path / "run", data__history__mode="random"))
+    index = {(e.episode_id, t): i for i in range(len(dataset)) for e, t in [dataset.locate(i)]}
+    samples = sorted({index[(episode_id, step)] for _, episode_id, step, _ in seen})
+    expected = {}
+    for epoch in (0, 1):
+        dataset.set_epoch(epoch)
+        for episode_id, step, digest in describe([dataset[i] for i in samples]):
+            expected[(epoch, episode_id, step)] = digest
+    wrong = [r for r in seen if expected[r[:3]] != r[3]]
+    assert not wrong, f"{len(wrong)} of {len(seen)} samples carry another epoch's draws, e.g. {wrong[:2]}"
+    changed = [key for key in expected if key[0] == 0 and expected[key] != expected[(1, *key[1:])]]
+    assert len(changed) > len(samples) // 4  # the draws really change between epochs
+
+
+def _env() -> dict[str, str]:
+    import os
+
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "TOKENIZERS_PARALLELISM": "false"}
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(REPO_ROOT), str(Path(__file__).parent), env.get("PYTHONPATH", "")]
+    )
+    return env

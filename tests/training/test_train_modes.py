@@ -4,19 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import make_config, train_in_process
+from conftest import built_agent, make_config, split_batch, train_in_process
 
 from openfly_agent import constants as C
-from openfly_agent.training.builder import build_run
 from openfly_agent.training.preflight import PreflightError
-
-
-def _test_batch(run, size: int = 4) -> dict:
-    from openfly_agent.data.collator import NavigationCollator
-
-    dataset = run.test_loader.dataset if run.test_loader is not None else run.train_loader.dataset
-    collate: NavigationCollator = run.train_loader.collate_fn
-    return collate([dataset[i] for i in range(size)])
 
 
 def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_path):
@@ -24,10 +15,10 @@ def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_p
     from openfly_agent.model.lora import TRAINABLES_NAME
 
     cfg = make_config(
-        generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__enabled="true", lora__rank=4,
+        generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__rank=4,
         lora__alpha=8, optim__lr=1e-2, validation__final_eval="false",
     )  # fmt: skip
-    run, result = train_in_process(cfg)
+    result = train_in_process(cfg)
     adapter = result.checkpoint / C.ADAPTER_DIR_NAME
     assert (adapter / "adapter_config.json").is_file() and (adapter / TRAINABLES_NAME).is_file()
     assert not (result.checkpoint / C.WEIGHTS_NAME).exists()  # base weights are not copied into checkpoints
@@ -36,8 +27,8 @@ def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_p
     ).is_file()
     merged = OpenFlyAgent.from_pretrained(str(tmp_path / "merged")).eval()
     assert not any("lora_" in k for k in merged.state_dict())
-    lora_agent = run.accelerator.unwrap_model(run.model).eval()
-    batch = _test_batch(run)
+    lora_agent = result.agent.eval()
+    batch = split_batch(cfg, lora_agent, cfg.data.test_split, range(4))
     with torch.no_grad():
         expected, _ = lora_agent(batch)
         found, _ = merged(batch)
@@ -50,9 +41,8 @@ def test_gradient_checkpointing_gives_the_same_loss_and_gradients(generated_data
     from openfly_agent.training.modes import enable_gradient_checkpointing
 
     cfg = make_config(generated_dataset, tmp_path, freeze_stage="full", validation__final_eval="false")
-    run = _built(cfg)
-    agent = run.accelerator.unwrap_model(run.model).train()
-    batch = _test_batch(run, size=2)
+    agent = built_agent(cfg).train()
+    batch = split_batch(cfg, agent, cfg.data.test_split, range(2))
     loss, _ = agent(batch)
     loss.backward()
     plain = {n: p.grad.clone() for n, p in agent.named_parameters() if p.grad is not None}
@@ -69,25 +59,18 @@ def test_gradient_checkpointing_gives_the_same_loss_and_gradients(generated_data
 def test_init_checkpoint_of_another_architecture_fails_before_training(
     reference_run, generated_dataset, tmp_path
 ):
-    _, _, result = reference_run
+    _, result = reference_run
     cfg = make_config(
         generated_dataset, tmp_path, init__checkpoint=str(result.checkpoint), model__llm__hidden_size=64
     )
     with pytest.raises(PreflightError, match=r"model\.llm\.hidden_size: checkpoint 128, config 64"):
-        _built(cfg)
+        train_in_process(cfg)
+    assert not (tmp_path / "checkpoints").exists()  # failed before any training step
 
 
 def test_init_from_our_checkpoint_starts_from_its_weights(reference_run, generated_dataset, tmp_path):
-    _, reference, result = reference_run
+    _, result = reference_run
     cfg = make_config(generated_dataset, tmp_path, init__checkpoint=str(result.checkpoint))
-    run = _built(cfg)
-    trained = reference.accelerator.unwrap_model(reference.model).state_dict()
-    for key, value in run.accelerator.unwrap_model(run.model).state_dict().items():
+    trained = result.agent.state_dict()
+    for key, value in built_agent(cfg).state_dict().items():
         torch.testing.assert_close(value, trained[key], rtol=0, atol=0, msg=key)
-
-
-def _built(cfg):
-    from conftest import reset_accelerate
-
-    reset_accelerate()
-    return build_run(cfg)

@@ -9,8 +9,9 @@ import torch
 from safetensors.torch import save_file
 
 from openfly_agent import constants as C
+from openfly_agent.data.config import DataConfig
 from openfly_agent.training.checkpoint import CheckpointManager
-from openfly_agent.training.config import BatchConfig, BatchSizeError, TrainDataConfig
+from openfly_agent.training.config import BatchConfig, BatchSizeError
 from openfly_agent.training.preflight import (
     PreflightError,
     check_batch,
@@ -57,7 +58,7 @@ def test_batch_sizes_must_divide():
 
 
 def test_missing_dataset_root_says_how_to_generate(tmp_path):
-    data = TrainDataConfig(root=str(tmp_path / "nowhere"))
+    data = DataConfig(root=str(tmp_path / "nowhere"))
     with pytest.raises(
         PreflightError, match="does not exist; generate it: python -m openfly_agent.toolchain"
     ):
@@ -70,7 +71,7 @@ def test_missing_split_is_named(tmp_path, openfly_fixtures):
     records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
     (annotation / "train.json").write_text(json.dumps(records))
     with pytest.raises(PreflightError, match="no annotation for split 'test_seen'"):
-        check_dataset_root(TrainDataConfig(root=str(tmp_path)))
+        check_dataset_root(DataConfig(root=str(tmp_path)))
 
 
 def test_malformed_record_names_file_record_and_field(tmp_path, openfly_fixtures):
@@ -80,7 +81,7 @@ def test_malformed_record_names_file_record_and_field(tmp_path, openfly_fixtures
     records[2]["yaw"] = records[2]["yaw"][:-1]  # one yaw short
     (annotation / "train.json").write_text(json.dumps(records))
     with pytest.raises(PreflightError) as err:
-        load_split(TrainDataConfig(root=str(tmp_path)), C.SPLIT_TRAIN)
+        load_split(DataConfig(root=str(tmp_path)), C.SPLIT_TRAIN)
     message = str(err.value)
     assert "train.json" in message and "yaw" in message and "2" in message
 

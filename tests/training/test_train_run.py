@@ -27,22 +27,25 @@ from openfly_agent.utils.processes import communicate_group
 
 
 def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path):
-    from openfly_agent.training.builder import make_collator
-    from openfly_agent.training.optim import make_optimizer
-
-    cfg = make_config(generated_dataset, tmp_path)
+    from openfly_agent.data.collator import NavigationCollator
     from openfly_agent.data.dataset import NavigationStepDataset
     from openfly_agent.data.frames import FrameStore
     from openfly_agent.data.openfly_reader import load_openfly_dataset
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.training.optim import make_optimizer
 
+    cfg = make_config(generated_dataset, tmp_path)
     episodes = load_openfly_dataset(generated_dataset, C.SPLIT_TRAIN, cfg.data.reader)
     tokenizer = train_bpe_tokenizer([e.instruction for e in episodes], cfg.tokenizer.train_vocab_size)
     torch.manual_seed(0)
     agent = OpenFlyAgent.from_model_config(cfg.model, tokenizer=tokenizer).train()
-    dataset = NavigationStepDataset(episodes, FrameStore(generated_dataset), agent.keyframe_selector)
-    batch = make_collator(agent, cfg)([dataset[i] for i in range(0, len(dataset), len(dataset) // 4)][:4])
+    k, s = cfg.model.memory.capacity, cfg.model.keyframes.set_size
+    dataset = NavigationStepDataset(
+        episodes, FrameStore(generated_dataset), "keyframes", k, s, keyframe_selector=agent.keyframe_selector
+    )
+    collate = NavigationCollator(agent.processor, k, s)
+    batch = collate([dataset[i] for i in range(0, len(dataset), len(dataset) // 4)][:4])
     optimizer = make_optimizer(agent, lr=1e-3, weight_decay=0.0, betas=(0.9, 0.95))
     losses = []
     for _ in range(6):
@@ -55,7 +58,7 @@ def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path
 
 
 def test_run_writes_checkpoints_in_the_hf_layout(reference_run):
-    out, run, result = reference_run
+    out, result = reference_run
     manager = CheckpointManager(out, keep_last=5)
     assert [p.name for p in manager.complete_checkpoints()] == ["step-000002", "step-000004"]
     final = manager.latest()
@@ -80,9 +83,9 @@ def test_saved_checkpoint_loads_and_acts(reference_run, generated_dataset):
     from openfly_agent.data.openfly_reader import load_openfly_dataset
     from openfly_agent.model.agent import OpenFlyAgent
 
-    out, run, result = reference_run
+    out, result = reference_run
     agent = OpenFlyAgent.from_pretrained(str(result.checkpoint)).eval()
-    trained = run.accelerator.unwrap_model(run.model).state_dict()
+    trained = result.agent.state_dict()
     for key, value in agent.state_dict().items():
         torch.testing.assert_close(value, trained[key], rtol=0, atol=0, msg=key)
     episode = load_openfly_dataset(generated_dataset, C.SPLIT_TEST_UNSEEN)[0]
@@ -101,8 +104,8 @@ def test_saved_checkpoint_loads_and_acts(reference_run, generated_dataset):
 
 
 def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, generated_dataset, tmp_path):
-    out, _, _ = reference_run
-    _, stopped = train_in_process(
+    out, _ = reference_run
+    stopped = train_in_process(
         make_config(generated_dataset, tmp_path, steps=STEPS, stop_after_steps=3)
     )  # no final eval
     assert stopped.stopped_early and stopped.state.step == 3
@@ -110,7 +113,7 @@ def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, gen
     resume = make_config(
         generated_dataset, tmp_path, steps=STEPS, resume="true", validation__final_eval="false"
     )
-    _, resumed = train_in_process(resume)
+    resumed = train_in_process(resume)
     assert resumed.state.step == STEPS
     expected = checkpoint_weights(out / "checkpoints" / "step-000004")
     found = checkpoint_weights(tmp_path / "checkpoints" / "step-000004")
@@ -163,5 +166,5 @@ def test_sigterm_saves_a_checkpoint_and_resume_finishes(generated_dataset, tmp_p
     resume = make_config(
         generated_dataset, tmp_path, steps=stopped_at + 2, resume="true", validation__final_eval="false"
     )
-    _, resumed = train_in_process(resume)
+    resumed = train_in_process(resume)
     assert resumed.state.step == stopped_at + 2

@@ -1,0 +1,194 @@
+"""`train(cfg)`: one OpenFly-Agent training run, from the input checks to the final offline evaluation.
+
+Readable top to bottom, as OpenVLA's `train(cfg)` and nanoGPT's loop: checks, data, agent and processor,
+optimizer and loaders through accelerate, then the loop (accumulation, clipping, logging, validation,
+checkpoints, stops), then the final checkpoint, the LoRA merge and the test-split evaluation. The helpers it
+calls each do one thing (training/builder.py, loaders.py, saving.py, evaluate.py, stops.py, ...).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm.auto import tqdm
+
+from openfly_agent import constants as C
+from openfly_agent.data.collator import NavigationCollator
+from openfly_agent.model.agent import OpenFlyAgent
+from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
+from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.evaluate import evaluate, make_eval_loader
+from openfly_agent.training.export import export_merged_lora
+from openfly_agent.training.loaders import epoch_batches, make_train_loader
+from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
+from openfly_agent.training.optim import make_optimizer, make_scheduler
+from openfly_agent.training.preflight import check_dataset_root, check_output_dir
+from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
+from openfly_agent.training.state import TrainerState
+from openfly_agent.training.stops import StopFlags
+from openfly_agent.utils.config import save_config
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainResult:
+    """What a run ends with (on every process).
+
+    Attributes:
+        state: the counters at the end.
+        checkpoint: the last checkpoint written (None when none was).
+        final_metrics: the final evaluation of `data.test_split` (`{}` when skipped or stopped early).
+        stopped_early: the time limit, a stop signal or `stop_after_steps` ended the run.
+        agent: the trained agent (unwrapped from accelerate's wrappers).
+        is_main_process: whether this process is rank 0.
+    """
+
+    state: TrainerState
+    checkpoint: Path | None
+    final_metrics: dict[str, float]
+    stopped_early: bool
+    agent: OpenFlyAgent
+    is_main_process: bool
+
+
+def train(cfg: TrainConfig) -> TrainResult:
+    """Train the agent of `cfg` (docs/TRAINING.md) on every process of the launch; see the module docstring.
+
+    Raises:
+        PreflightError: bad input (output folder, dataset, batch sizes, checkpoints), before any compute.
+    """
+    # 1. Checks before any compute: each failure is a PreflightError that says what to change.
+    resume_from = check_output_dir(cfg.output_dir, cfg.resume)
+    check_dataset_root(cfg.data)
+    accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
+    checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
+    if accelerator.is_main_process:
+        checkpoints.remove_stale_staging()
+    splits = load_splits(cfg)
+
+    # 2. The agent, whose processor prepares every input, and the per-step samples of each split.
+    agent = prepare_agent(cfg, splits, accelerator, resume_from)
+    train_set = splits.dataset(cfg.data.train_split, cfg, agent)
+    val_set = splits.dataset(cfg.data.val_split, cfg, agent)
+    test_set = splits.dataset(cfg.data.test_split, cfg, agent)
+    collate = NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size)
+    if accelerator.is_main_process:
+        save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
+
+    # 3. Optimizer, schedule and loaders; accelerate wraps them for the launch (DDP / FSDP / DeepSpeed).
+    train_loader, sampler = make_train_loader(train_set, collate, cfg)
+    total_steps = cfg.steps or max(1, math.ceil(cfg.epochs * sampler.steps_per_epoch))
+    optim = cfg.optim
+    optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps)
+    scheduler = make_scheduler(optimizer, optim.schedule, optim.warmup_steps, total_steps, optim.min_lr_ratio)
+    model, optimizer, train_loader, scheduler = accelerator.prepare(agent, optimizer, train_loader, scheduler)
+    register_state_hooks(accelerator)  # checkpoints keep trainable tensors only
+    eval_batch = cfg.validation.per_device_batch_size or cfg.batch.per_device_batch_size
+    val_loader = test_loader = None
+    test_indices: list[int] = []
+    if cfg.validation.interval:
+        val_loader, _ = make_eval_loader(
+            val_set, cfg.validation.max_samples, eval_batch, accelerator, collate, cfg.data.num_workers
+        )
+    if cfg.validation.final_eval:
+        test_loader, test_indices = make_eval_loader(
+            test_set, cfg.validation.final_max_samples, eval_batch, accelerator, collate, cfg.data.num_workers
+        )
+    state = TrainerState(world_size=accelerator.num_processes)
+    if resume_from is not None:
+        state = restore_checkpoint(accelerator, resume_from)  # optimizer, schedule, RNG, trainable weights
+    accelerator.init_trackers(cfg.logging.project, config=flat_config(cfg))
+    logger.info(
+        "run: %d steps (%d per epoch), starting at step %d", total_steps, sampler.steps_per_epoch, state.step
+    )
+
+    # 4. The loop: one optimizer step = one global batch = `accumulation` micro-batches on each process.
+    means, meter = RunningMeans(), ThroughputMeter()
+    progress = tqdm(
+        total=total_steps, initial=state.step, disable=not accelerator.is_main_process, desc="train"
+    )
+    model.train()
+    last_checkpoint, saved_step, reason = None, None, None
+    # The bar, the stop-signal handlers and the trackers are closed on every way out, an error included.
+    with progress, StopFlags(accelerator, cfg.time_limit_minutes) as stops, closing_trackers(accelerator):
+        while state.step < total_steps and reason is None:
+            for batch in epoch_batches(train_loader, train_set, state, accelerator):
+                with accelerator.accumulate(model):  # gradients sync on the last micro-batch of a step
+                    loss, logs = model(batch)
+                    accelerator.backward(loss)
+                    if accelerator.sync_gradients and optim.max_grad_norm is not None:
+                        grad_norm = accelerator.clip_grad_norm_(model.parameters(), optim.max_grad_norm)
+                        if grad_norm is not None:  # DeepSpeed clips inside its engine and returns None
+                            logs = {**logs, "grad_norm": float(grad_norm)}
+                    optimizer.step()  # a no-op until the step's last micro-batch
+                    optimizer.zero_grad(set_to_none=True)
+                means.add(logs)
+                meter.update(int(batch[C.INPUT_IDS].shape[0]), count_llm_tokens(batch, cfg.model))
+                if not accelerator.sync_gradients:
+                    continue
+                scheduler.step()
+                state.advance(cfg.batch.global_batch_size, sampler.steps_per_epoch, accelerator.num_processes)
+                progress.update(1)
+                if state.step % cfg.logging.log_interval == 0 or state.step == total_steps:
+                    train_logs = {**means.pop(accelerator), **meter.report(accelerator)}
+                    train_logs.update(memory_stats(accelerator.device), lr=float(scheduler.get_last_lr()[0]))
+                    train_logs["epoch"] = state.epoch + state.step_in_epoch / sampler.steps_per_epoch
+                    log_metrics(accelerator, "train", train_logs, state.step)
+                    progress.set_postfix(
+                        loss=f"{train_logs.get('loss', float('nan')):.4f}",
+                        acc=f"{train_logs.get('action_accuracy', float('nan')):.3f}",
+                    )
+                if val_loader is not None and state.step % cfg.validation.interval == 0:
+                    log_metrics(accelerator, "val", evaluate(model, val_loader, accelerator), state.step)
+                if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
+                    last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+                    saved_step = state.step
+                if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
+                    logger.warning("stop_after_steps=%d reached: exiting without the final save", state.step)
+                    progress.close()
+                    return _result(state, last_checkpoint, {}, True, accelerator, model)
+                if state.step >= total_steps:
+                    break
+                reason = stops.reason()  # the time limit or SIGTERM / SIGUSR1 on any process
+                if reason is not None:
+                    logger.info("stopping at step %d (%s)", state.step, reason)
+                    break
+        progress.close()
+
+        # 5. The end: a checkpoint of the last step, the LoRA merge, the offline evaluation of the test split.
+        if saved_step != state.step:
+            last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+        if reason == "signal":
+            logger.warning(
+                "stopped by a signal at step %d; `--resume` continues from %s", state.step, last_checkpoint
+            )
+            return _result(state, last_checkpoint, {}, True, accelerator, model)
+        if cfg.use_lora and cfg.lora.merge_at_end:
+            export_merged_lora(accelerator, model, cfg.output_dir)  # full weights in <output_dir>/merged
+        final: dict[str, float] = {}
+        if test_loader is not None:
+            final = evaluate(model, test_loader, accelerator)
+            final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
+            log_metrics(accelerator, "test", final, state.step)
+        return _result(state, last_checkpoint, final, reason is not None, accelerator, model)
+
+
+def log_metrics(accelerator, prefix: str, metrics: dict[str, float], step: int) -> None:
+    """Send `prefix/<name>` values to the trackers; validation and test figures also go to the log."""
+    accelerator.log({f"{prefix}/{k}": v for k, v in metrics.items()}, step=step)
+    if prefix != "train":
+        logger.info(
+            "step %d %s: %s", step, prefix, ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items()))
+        )
+
+
+def _result(state, checkpoint, final, stopped_early, accelerator, model) -> TrainResult:
+    return TrainResult(
+        state, checkpoint, final, stopped_early, accelerator.unwrap_model(model), accelerator.is_main_process
+    )
