@@ -58,13 +58,15 @@ def report(result, cfg) -> None:
     """The final figures, on stdout of the main process."""
     final = result.final_metrics
     print(f"finished at step {result.state.step}; last checkpoint: {result.checkpoint}")
-    if final:
+    if final and "action_accuracy" in final:
         majority = final.get("majority_class_rate", float("nan"))
         print(
             f"offline action accuracy on {cfg.data.test_split} ({int(final['samples'])} samples): "
             f"{final['action_accuracy']:.4f}; majority-class rate: {majority:.4f}; "
             f"box IoU: {final['box_iou']:.4f}"
         )
+    elif final:  # the grounding stage: no actions
+        print(f"target box IoU on {cfg.data.test_split} ({int(final['samples'])} samples): {final['box_iou']:.4f}")
 
 
 def run(argv: list[str], state: dict) -> int:

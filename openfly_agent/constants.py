@@ -64,6 +64,7 @@ MEMORY_BOXES = "memory_boxes"  # (B, K, S, 4) float, (cx, cy, w, h) in [0, 1]
 MEMORY_BOX_VISIBLE = "memory_box_visible"  # (B, K, S) bool
 BOX = "box"  # (B, 4) float, current frame landmark box (cx, cy, w, h)
 BOX_VISIBLE = "box_visible"  # (B,) bool; False = no landmark visible (mask, never a fake box)
+FRAME_INDEX = "frame_index"  # (B,) long: the frame of `pixel_values` each sequence reads (grounding batches)
 ACTION = "action"  # (B,) long, action id 0..9
 ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
 EPISODE_ID = "episode_id"  # list[str]

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from openfly_agent import constants as C
+from openfly_agent.data.grounding import BOXES, EXPRESSION_SAMPLE, EXPRESSIONS, GROUNDING_KIND
 
 logger = logging.getLogger(__name__)
 
@@ -121,3 +122,46 @@ class NavigationCollator:
             batch[C.EPISODE_ID] = [s[C.EPISODE_ID] for s in samples]
             batch[C.STEP_INDEX] = torch.tensor([int(s[C.STEP_INDEX]) for s in samples], dtype=torch.long)
         return batch
+
+
+class GroundingCollator:
+    """Grounding-stage samples (data/grounding.py) -> a batch with no action targets.
+
+    An expression sample gives one sequence per expression (`processor.grounding_prompt`) that all read its frame;
+    an instruction sample one sequence (`processor.navigation_prompt`) with the target's box (maybe not
+    visible). Each frame is encoded once: `pixel_values` (F, 3, H, W) and `frame_index` (B,) of each sequence.
+
+    Args:
+        processor: prepares model inputs (the agent's `OpenFlyProcessor`: `grounding_prompt`, `navigation_prompt`,
+            `image`, and `__call__(prompts)` for the text).
+    """
+
+    def __init__(self, processor) -> None:
+        self.processor = processor
+
+    def __call__(self, samples: Sequence[dict]) -> dict[str, torch.Tensor]:
+        if not samples:
+            raise ValueError("cannot collate an empty list of samples")
+        prompts, boxes, visible, frame_index = [], [], [], []
+        for frame, sample in enumerate(samples):
+            if sample[GROUNDING_KIND] == EXPRESSION_SAMPLE:
+                for expression, box in zip(sample[EXPRESSIONS], sample[BOXES]):
+                    prompts.append(self.processor.grounding_prompt(expression))
+                    boxes.append(np.asarray(box, dtype=np.float32))
+                    visible.append(True)
+                    frame_index.append(frame)
+            else:
+                prompts.append(self.processor.navigation_prompt(sample[C.OBS_INSTRUCTION]))
+                shown = bool(sample[C.BOX_VISIBLE])
+                boxes.append(np.asarray(sample[C.BOX], dtype=np.float32) if shown else np.zeros(4, np.float32))
+                visible.append(shown)
+                frame_index.append(frame)
+        text = self.processor(prompts)  # input_ids, attention_mask (B, L); no labels: nothing to supervise
+        return {
+            C.INPUT_IDS: text[C.INPUT_IDS],
+            C.ATTENTION_MASK: text[C.ATTENTION_MASK],
+            C.PIXEL_VALUES: torch.stack([self.processor.image(s[C.OBS_RGB]) for s in samples]),  # (F, 3, H, W)
+            C.FRAME_INDEX: torch.tensor(frame_index, dtype=torch.long),  # (B,)
+            C.BOX: torch.from_numpy(np.stack(boxes)),  # (B, 4)
+            C.BOX_VISIBLE: torch.tensor(visible, dtype=torch.bool),  # (B,)
+        }

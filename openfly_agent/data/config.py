@@ -90,6 +90,12 @@ class DataConfig:
         generate_if_missing: train.py runs the toolchain when `root` holds no dataset.
         toolchain_config: the toolchain YAML it runs then; a relative path not found in the working
             directory is read from the repository.
+        extra_train_roots: more datasets (same layout) whose train split joins the training data, e.g. the
+            DAgger rounds' rollouts (their frames are read from their own roots).
+        grounding_root: the grounding dataset (`toolchain grounding`) the grounding stage trains on.
+        instruction_fraction: grounding stage: share of its samples that are navigation steps (instruction and
+            target box) rather than referring expressions.
+        expressions_per_frame: grounding stage: expressions per grounding frame in a batch (one encode each).
     """
 
     # dataset root (relative to the working directory); the toolchain writes embedded-small there
@@ -104,8 +110,16 @@ class DataConfig:
     cache_frames: int = 256
     generate_if_missing: bool = True
     toolchain_config: str = "configs/toolchain/embedded-small.yaml"
+    extra_train_roots: list[str] = field(default_factory=list)
+    grounding_root: str | None = None
+    instruction_fraction: float = 0.25
+    expressions_per_frame: int = 4
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.instruction_fraction < 1.0:
+            raise ValueError(f"data.instruction_fraction={self.instruction_fraction} must be in [0, 1)")
+        if self.expressions_per_frame < 1:
+            raise ValueError(f"data.expressions_per_frame={self.expressions_per_frame} must be >= 1")
         for name in ("train_split", "val_split", "test_split"):
             value = getattr(self, name)
             if value not in C.SPLITS:

@@ -213,3 +213,29 @@ def _index_parquet_folder(folder: Path) -> dict[str, Path]:
         if first and first[0]["env_id"] and first[0]["traj_id"]:
             index[first[0]["env_id"].replace("\\", "/").strip("/") + "/" + first[0]["traj_id"]] = path
     return index
+
+
+class FrameStores:
+    """Frames of episodes from several dataset roots (the main dataset and the DAgger rounds' rollouts).
+
+    Each episode is read from the store of the root it was loaded from; episode ids must be unique overall.
+
+    Args:
+        stores_and_episodes: (store, the episodes of its root) pairs.
+    """
+
+    def __init__(self, stores_and_episodes: list[tuple[FrameStore, list[Episode]]]):
+        self._store_of: dict[str, FrameStore] = {}
+        for store, episodes in stores_and_episodes:
+            for episode in episodes:
+                if episode.episode_id in self._store_of:
+                    raise ValueError(f"episode {episode.episode_id} is in two datasets ({store.root} and another)")
+                self._store_of[episode.episode_id] = store
+
+    def frame(self, episode: Episode, t: int) -> np.ndarray:
+        """Frame `t` of `episode` from its own root (cached by that root's store)."""
+        return self._store_of[episode.episode_id].frame(episode, t)
+
+    def frames(self, episode: Episode) -> list[np.ndarray]:
+        """All frames of `episode`, in order."""
+        return self._store_of[episode.episode_id].frames(episode)

@@ -26,6 +26,7 @@ from openfly_agent.constants import (
     BOX,
     BOX_VISIBLE,
     EPISODE_ID,
+    FRAME_INDEX,
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
@@ -39,12 +40,14 @@ from openfly_agent.constants import (
     PIXEL_VALUES,
 )
 
+from .box_token import BoxTokenEmbedding, insert_before_targets, jitter_boxes, last_true_index
 from .checkpoint_path import check_not_adapter_only, resolve_checkpoint_folder
 from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT, ModelConfig, config_to_dict
+from .conv_vision import ConvVisionBackbone
 from .episode import EpisodeState, StepResult, check_observations
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
-from .grounding import GroundingHead, grounding_loss
+from .grounding import GroundingHead, GroundingOutput, grounding_loss
 from .keyframes import KeyframeSelector
 from .llm import build_language_model, unwrap_causal_lm
 from .memory import MemoryBank, grid_pool
@@ -55,7 +58,7 @@ from .projector import FusedMLPProjector
 from .remote_code import write_remote_code
 from .sequence import left_pad, position_ids_from_mask, splice_after_bos
 from .tokenizer import load_tokenizer, tokenizer_folder
-from .vision import FusedVisionBackbone
+from .vision import build_vision_backbone
 
 logger = logging.getLogger(__name__)
 
@@ -87,10 +90,13 @@ class OpenFlyAgent(PreTrainedModel):
             )
         self.model_cfg = cfg
         llm_dim = cfg.llm.resolved_hidden_size
-        self.vision_backbone = FusedVisionBackbone(cfg.vision)
+        self.vision_backbone = build_vision_backbone(cfg.vision)
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
-        self.grounding_head = GroundingHead(llm_dim, cfg.grounding) if cfg.grounding.enabled else None
+        self.grounding_head = (
+            GroundingHead(llm_dim, cfg.grounding, cfg.vision.grid_side) if cfg.grounding.enabled else None
+        )
+        self.box_token_embed = BoxTokenEmbedding(llm_dim) if cfg.action_head.box_token else None
         self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)  # built from the config only
         config.action_tokenizer = self.action_tokenizer.to_dict()
         self.keyframe_selector = KeyframeSelector(
@@ -139,6 +145,8 @@ class OpenFlyAgent(PreTrainedModel):
             init.constant_(module.gamma, module.init_values)
         elif isinstance(module, GroundingHead):
             init.normal_(module.box_queries, std=0.02)
+        elif isinstance(module, ConvVisionBackbone):
+            init.trunc_normal_(module.pos_embed, std=0.02)
 
     @property
     def tokenizer(self):
@@ -248,11 +256,19 @@ class OpenFlyAgent(PreTrainedModel):
     def encode_visual(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
         """Visual tokens of a training batch: memory (oldest first) then the current frame.
 
+        A grounding batch may hold fewer frames than sequences: `frame_index` (B,) says which frame of
+        `pixel_values` (F, 3, H, W) each sequence reads (each frame is encoded once).
+
         Returns:
             (B, M + P, D) tokens and their (B, M + P) bool mask (False on missing memory sets).
         """
-        current = self.projector(self.vision_backbone(batch[PIXEL_VALUES]))  # (B, P, D)
+        current = self.projector(self.vision_backbone(batch[PIXEL_VALUES]))  # (F, P, D)
+        if batch.get(FRAME_INDEX) is not None:
+            current = current[batch[FRAME_INDEX].to(current.device)]  # (B, P, D)
         memory, memory_mask = self.encode_memory_batch(batch)  # (B, M, D), (B, M)
+        if memory.shape[0] != current.shape[0]:  # a grounding batch has no memory: one empty row per sequence
+            memory = current.new_zeros(current.shape[0], 0, current.shape[-1])  # (B, 0, D)
+            memory_mask = torch.zeros(current.shape[0], 0, dtype=torch.bool, device=current.device)
         visual = torch.cat([memory.to(current.dtype), current], dim=1)  # (B, M + P, D)
         return visual, torch.cat([memory_mask, memory_mask.new_ones(current.shape[:2])], dim=1)
 
@@ -270,9 +286,12 @@ class OpenFlyAgent(PreTrainedModel):
     def forward(self, batch: dict[str, Any]) -> tuple[torch.Tensor, dict[str, float]]:
         """Action cross-entropy + `grounding.loss_weight` * grounding loss on a collated batch.
 
+        A batch without `labels` is a grounding batch (the grounding stage: a referring expression or an
+        instruction per sequence, the target's box, no action): only the grounding loss is computed.
+
         Args:
             batch: the keys of docs/INTERFACES.md (input_ids, attention_mask, labels, pixel_values, memory_*,
-                box, box_visible), as `data/collator.py` builds them with `self.processor`.
+                box, box_visible, frame_index), as `data/collator.py` builds them with `self.processor`.
 
         Returns:
             The scalar loss and float logs: loss, action_loss, grounding_loss, action_accuracy, box_iou,
@@ -284,25 +303,57 @@ class OpenFlyAgent(PreTrainedModel):
             raise ValueError(
                 f"input_ids must start with BOS ({bos}) in column 0 (right padding); got {input_ids[:, 0]}"
             )
+        labels = batch.get(LABELS)
+        if labels is None:
+            labels = torch.full_like(input_ids, IGNORE_INDEX)
         visual, visual_mask = self.encode_visual(batch)
         embeds, mask, labels = splice_after_bos(
-            self.embed_text(input_ids), batch[ATTENTION_MASK], batch[LABELS], visual, visual_mask
+            self.embed_text(input_ids), batch[ATTENTION_MASK], labels, visual, visual_mask
         )  # [BOS] [memory] [current] [prompt] [action]: (B, L', D), (B, L'), (B, L')
+        readable = mask.bool() & (labels == IGNORE_INDEX)  # what the grounding head may read: no targets
+        has_actions = bool((labels != IGNORE_INDEX).any())
+        if self.box_token_embed is not None and has_actions:
+            box = jitter_boxes(
+                batch[BOX].float(), self.model_cfg.action_head.box_token_jitter if self.training else 0
+            )
+            token = self.box_token_embed(box, batch[BOX_VISIBLE].bool())  # (B, D)
+            embeds, mask, labels, at = insert_before_targets(embeds, mask, labels, token)
+            readable = mask.bool() & (labels == IGNORE_INDEX)
+            readable[torch.arange(readable.shape[0], device=readable.device), at] = False
         hidden = self.run_llm(embeds, mask).last_hidden_state  # (B, L', D)
-        action_loss, accuracy = self._action_loss(hidden, labels)
-        loss = action_loss
-        logs = {"action_loss": float(action_loss.detach()), "action_accuracy": accuracy}
+        loss = hidden.new_zeros(())
+        logs = {}
+        if has_actions:
+            action_loss, accuracy = self._action_loss(hidden, labels)
+            loss = loss + action_loss
+            logs.update(action_loss=float(action_loss.detach()), action_accuracy=accuracy)
         if self.grounding_head is not None and BOX in batch:
-            boxes, visibility = self.grounding_head(hidden, mask.bool() & (labels == IGNORE_INDEX))
+            first_image = visual.shape[1] - self.model_cfg.vision.num_patches + 1  # after BOS and the memory
+            output = self.ground(hidden, readable, first_image)
             g_loss, g_logs = grounding_loss(
-                boxes, visibility, batch[BOX], batch[BOX_VISIBLE].bool(), self.model_cfg.grounding
+                output, batch[BOX], batch[BOX_VISIBLE].bool(), self.model_cfg.grounding
             )
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
             logs.update(g_logs, grounding_loss=float(g_loss.detach()))
         else:
             logs.update(grounding_loss=0.0, box_iou=0.0, num_visible_boxes=0.0)
+        if not has_actions and self.grounding_head is None:
+            raise ValueError("batch has no labelled action token and the agent has no grounding head")
         logs["loss"] = float(loss.detach())
         return loss, logs
+
+    def ground(self, hidden: torch.Tensor, readable: torch.Tensor, first_image) -> GroundingOutput:
+        """The grounding head on a sequence's hidden states.
+
+        Args:
+            hidden: (B, L, D) LLM hidden states.
+            readable: (B, L) bool, the positions the head may read (image + prompt; no padding, targets or box).
+            first_image: (B,) long or int, position of each row's first current-frame token.
+        """
+        p = self.model_cfg.vision.num_patches
+        first = torch.as_tensor(first_image, device=hidden.device).reshape(-1, 1)  # (B or 1, 1)
+        image_positions = (first + torch.arange(p, device=hidden.device)[None]).expand(hidden.shape[0], p)
+        return self.grounding_head(hidden, readable, image_positions, last_true_index(readable))
 
     def _action_loss(self, hidden: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, float]:
         targets = labels[:, 1:]  # next-token targets
@@ -359,7 +410,7 @@ class OpenFlyAgent(PreTrainedModel):
         compat = self.model_cfg.mode == MODE_OPENVLA_COMPAT
         own_history = self.history_tokens(patches, dino_cls) if compat else None  # (B, D)
 
-        sequences = []
+        sequences, memory_sizes = [], []
         for row, state in enumerate(states):
             if compat:
                 memory = state.compat_history(own_history[row], self.model_cfg.memory.capacity)  # (K, D)
@@ -369,11 +420,21 @@ class OpenFlyAgent(PreTrainedModel):
             sequences.append(
                 torch.cat([prompt[:1], memory.to(current.dtype), current[row], prompt[1:]], dim=0)
             )
+            memory_sizes.append(memory.shape[0])
         embeds, mask = left_pad(sequences)  # (B, L_max, D), (B, L_max)
-        output = self.run_llm(embeds, mask, use_cache=self.action_tokenizer.head != HEAD_DISCRETE)
+        use_cache = self.action_tokenizer.head != HEAD_DISCRETE or self.box_token_embed is not None
+        output = self.run_llm(embeds, mask, use_cache=use_cache)
         hidden = output.last_hidden_state  # (B, L_max, D)
+        padding = mask.shape[1] - mask.sum(dim=1)  # (B,) left padding of each row
+        first_image = (
+            padding + 1 + torch.tensor(memory_sizes, device=mask.device)
+        )  # after [pad] [BOS] [memory]
+        boxes, visible = self._predict_boxes(hidden, mask, first_image)
+        if self.box_token_embed is not None:  # [.. prompt] [BOX]: one cached step, the action is read there
+            token = self.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)
+            hidden, mask = self._decode_one(token, mask, output.past_key_values)
         actions, details = self._decode_actions(hidden, mask, output.past_key_values)
-        boxes, visible = self._predict_boxes(hidden, mask)
+        boxes = boxes.float().cpu()
 
         results = []
         for row, state in enumerate(states):
@@ -453,15 +514,27 @@ class OpenFlyAgent(PreTrainedModel):
             generated.append(token)
         return torch.stack(generated, dim=1)
 
-    def _predict_boxes(self, hidden, mask) -> tuple[torch.Tensor, list[bool]]:
-        """(B, 4) predicted boxes on the CPU and whether each counts as visible."""
+    def _predict_boxes(self, hidden, mask, first_image) -> tuple[torch.Tensor, list[bool]]:
+        """(B, 4) predicted boxes and whether each counts as visible (prefill of left-padded rows)."""
         batch = hidden.shape[0]
         if self.grounding_head is None:
-            return torch.zeros(batch, 4), [False] * batch
-        boxes, visibility = self.grounding_head(hidden, mask.bool())  # (B, 4), (B,)
+            return hidden.new_zeros(batch, 4), [False] * batch
+        output = self.ground(hidden, mask.bool(), first_image)
         if self.model_cfg.grounding.visibility_weight == 0:
-            return boxes.float().cpu(), [True] * batch  # no visibility training: every box counts
-        return boxes.float().cpu(), [bool(v) for v in visibility > 0]
+            return output.boxes.float(), [True] * batch  # no visibility training: every box counts
+        return output.boxes.float(), [bool(v) for v in output.visibility > 0]
+
+    def _decode_one(
+        self, token: torch.Tensor, mask: torch.Tensor, cache
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Feed one (B, D) input embedding after the prefill (KV cache) -> its (B, 1, D) hidden state and the
+        (B, L + 1) mask."""
+        positions = position_ids_from_mask(mask)[:, -1:] + 1  # (B, 1)
+        mask = torch.cat([mask, mask.new_ones(mask.shape[0], 1)], dim=1)
+        out = self.run_llm(
+            token[:, None], mask, position_ids=positions, past_key_values=cache, use_cache=True
+        )
+        return out.last_hidden_state, mask
 
     def _update_memories(self, states: list[EpisodeState]) -> None:
         """Push newly completed keyframe sets (same selector as the dataset, predicted boxes) into the FIFOs."""
@@ -495,8 +568,7 @@ class OpenFlyAgent(PreTrainedModel):
     def _set_gradient_checkpointing(self, enable: bool = True, **kwargs) -> None:
         """transformers' activation checkpointing on the Llama layers, plus timm's on both ViTs."""
         super()._set_gradient_checkpointing(enable=enable, **kwargs)
-        self.vision_backbone.featurizer.set_grad_checkpointing(enable)
-        self.vision_backbone.fused_featurizer.set_grad_checkpointing(enable)
+        self.vision_backbone.set_grad_checkpointing(enable)
 
     def get_optim_params(self, weight_decay: float = 0.0) -> list[dict]:
         """Trainable parameters in two AdamW groups: decay on matrices, none on biases / norms / tokens."""

@@ -13,8 +13,10 @@ MODE_OPENVLA_COMPAT = "openvla_compat"
 MODES = (MODE_OPENFLY, MODE_OPENVLA_COMPAT)
 
 VISION_DINOSIGLIP_224 = "dinosiglip-224px"
-VISION_TINY = "tiny"
-VISION_PRESETS = (VISION_DINOSIGLIP_224, VISION_TINY)
+VISION_TINY = "tiny"  # two small ViTs of the dinosiglip structure
+VISION_TINY_CNN = "tiny-cnn"  # a small ResNet with the same token grid (model/conv_vision.py)
+VISION_PRESETS = (VISION_DINOSIGLIP_224, VISION_TINY, VISION_TINY_CNN)
+CNN_STRIDE = 16  # tiny-cnn: pixels per token side (the ResNet's output stride)
 # The real timm architectures of the `dinosiglip-224px` preset (weights come from a checkpoint, never
 # downloaded).
 DINOSIGLIP_TIMM_IDS = ("vit_large_patch14_reg4_dinov2", "vit_so400m_patch14_siglip_224")
@@ -48,6 +50,7 @@ LLAMA2_7B_ARCH = {
 # Sizes of the `tiny` presets, taken by the tiny-only fields left at None (ignored by the 7B presets, which
 # reject them when set).
 TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
+TINY_CNN_VISION = {"cnn_channels": [32, 64, 96, 128], "cnn_stem_width": 16}
 TINY_LLM = {"hidden_size": 128, "num_layers": 2, "num_heads": 4, "intermediate_size": 344}
 
 
@@ -76,28 +79,35 @@ def _fill_tiny_fields(section: str, cfg, is_tiny: bool, defaults: dict[str, int]
 
 @dataclass
 class VisionConfig:
-    """Fused two-ViT backbone (DINOv2-style `featurizer` + SigLIP-style `fused_featurizer`).
+    """The vision backbone: uint8 frames -> one feature vector per cell of a square token grid.
 
     `dinosiglip-224px` builds the real timm architectures (224 px, patch 14, 256 patches,
     1024 + 1152 = 2176-d); `tiny` builds two small ViTs of the same structure from `image_size`,
     `patch_size`, `width`, `fused_width`, `depth` and `num_heads` (None takes `TINY_VISION`). Both read the
-    output of the second-to-last block, without the final norm. `image_size` and `resize` also define the
-    image preprocessing (the processor's image transform).
+    output of the second-to-last block, without the final norm. `tiny-cnn` (the CPU default) is a small timm
+    ResNet of output stride 16 with `cnn_channels` stage widths (None takes `TINY_CNN_VISION`): a 128 px frame
+    gives the same 8 x 8 token grid, into the same projector and LLM (model/conv_vision.py). `image_size` and
+    `resize` also define the image preprocessing (the processor's image transform).
     """
 
-    preset: str = VISION_TINY
-    image_size: int = 112  # square input side in pixels; must be a multiple of patch_size
-    patch_size: int = 14
+    preset: str = VISION_TINY_CNN
+    image_size: int = 128  # square input side in pixels; must be a multiple of patch_size
+    patch_size: int = CNN_STRIDE  # pixels per token side (tiny-cnn: the ResNet's stride, 16)
     width: int | None = None  # tiny only: DINO-style ViT width
     fused_width: int | None = None  # tiny only: SigLIP-style ViT width
     depth: int | None = None  # tiny only: blocks per ViT (features come from block depth - 2)
     num_heads: int | None = None  # tiny only
+    cnn_channels: list[int] | None = (
+        None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
+    )
+    cnn_stem_width: int | None = None  # tiny-cnn only: channels of the stem convolution
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
     def __post_init__(self) -> None:
         _check_choice("vision", "preset", self.preset, VISION_PRESETS)
         _check_choice("vision", "resize", self.resize, RESIZE_MODES)
         _fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
+        _fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
         if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
             raise ValueError(
                 f"vision.preset=dinosiglip-224px needs image_size=224 and patch_size=14 "
@@ -110,6 +120,16 @@ class VisionConfig:
                 f"vision.image_size={self.image_size} must be a multiple of "
                 f"vision.patch_size={self.patch_size}"
             )
+        if self.preset == VISION_TINY_CNN:
+            if self.patch_size != CNN_STRIDE:
+                raise ValueError(
+                    f"vision.preset=tiny-cnn has a stride of {CNN_STRIDE}: set patch_size={CNN_STRIDE}"
+                )
+            if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0 or self.cnn_stem_width <= 0:
+                raise ValueError(
+                    f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
+                    f"vision.cnn_stem_width={self.cnn_stem_width} positive"
+                )
         if self.preset != VISION_TINY:
             return
         for name in TINY_VISION:
@@ -134,7 +154,9 @@ class VisionConfig:
 
     @property
     def featurizer_widths(self) -> tuple[int, int]:
-        """Widths of (featurizer, fused_featurizer)."""
+        """Widths of (featurizer, fused_featurizer); tiny-cnn has no fused featurizer (width 0)."""
+        if self.preset == VISION_TINY_CNN:
+            return (self.cnn_channels[-1], 0)
         return DINOSIGLIP_WIDTHS if self.preset == VISION_DINOSIGLIP_224 else (self.width, self.fused_width)
 
     @property
@@ -204,6 +226,8 @@ class PromptConfig:
     """How an instruction becomes the text after the visual tokens."""
 
     template: str = "What action should the drone take to {instruction}?"
+    # the text of a grounding-stage sample (a referring expression, no action)
+    grounding_template: str = "Where is {expression}?"
     lowercase: bool = False
     # Token appended after the prompt at inference (OpenVLA's predict_action appends 29871 '▁' for Llama-2).
     suffix_token_id: int | None = None
@@ -213,22 +237,33 @@ class PromptConfig:
             raise ValueError(
                 f"prompt.template={self.template!r} must contain the placeholder {{instruction}}"
             )
+        if "{expression}" not in self.grounding_template:
+            raise ValueError(
+                f"prompt.grounding_template={self.grounding_template!r} must contain the placeholder {{expression}}"
+            )
 
 
 @dataclass
 class GroundingConfig:
-    """Landmark grounding head: learned queries cross-attend to the LLM hidden states and regress a box."""
+    """Landmark grounding head: learned queries cross-attend to the LLM hidden states and regress a box.
+
+    `cells` (the tiny preset) adds per-cell scoring of the current frame: the query starts from the last prompt
+    token, FiLM-scores every cell, the box centre is the softmax-weighted cell centre plus an offset, and
+    `cell_weight` x the cross-entropy of the cell holding the box centre joins the loss (model/grounding.py).
+    """
 
     enabled: bool = True
     num_layers: int = 3
     num_queries: int = 1
-    dim: int = 64  # 256 in the 7B preset
+    dim: int = 128  # 256 in the 7B preset
     num_heads: int = 4  # 8 in the 7B preset
     loss_weight: float = 1.0  # weight of the grounding loss in the total loss
     l1_weight: float = 1.0  # grounding loss = GIoU + l1_weight * L1 (visible boxes) + visibility_weight * BCE
     visibility_weight: float = (
         0.5  # 0 disables the visibility logit's loss (predicted boxes then always count)
     )
+    cells: bool = True  # per-cell scoring and box centre (False: the paper's box regression, the 7B presets)
+    cell_weight: float = 1.0  # weight of the cell cross-entropy (with `cells`)
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads"):
@@ -237,7 +272,7 @@ class GroundingConfig:
             raise ValueError(
                 f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"
             )
-        for name in ("loss_weight", "l1_weight", "visibility_weight"):
+        for name in ("loss_weight", "l1_weight", "visibility_weight", "cell_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"grounding.{name} must be >= 0, got {getattr(self, name)}")
 
@@ -298,6 +333,11 @@ class ActionHeadConfig:
 
     Both use the 256 ids just below `vocab_end` (None = llm vocab size). The discrete head maps action a to id
     `vocab_end - 256 + a`; the bins head maps bin b (1..256) to `vocab_end - b` as OpenVLA does.
+
+    `box_token` (the tiny preset; discrete head): the grounding head's box of the target, embedded as one more
+    input token after the prompt, is what the action is read at, so the action is conditioned on where the
+    target is (a grounded chain of thought, as ECoT's bounding boxes before the action). Training embeds the
+    ground-truth box jittered by `box_token_jitter`; inference the predicted one (docs/ARCHITECTURE.md).
     """
 
     type: str = HEAD_DISCRETE
@@ -305,6 +345,8 @@ class ActionHeadConfig:
     decode_rule: str = DECODE_EXACT  # openvla_bins: exact (official: exact match else STOP) | nearest
     unnorm_key: str | None = None  # which entry of norm_stats un-normalises the bins (None: the only one)
     vocab_end: int | None = None
+    box_token: bool = True  # the action is read at an embedded-box token after the prompt (discrete head)
+    box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
 
     def __post_init__(self) -> None:
         _check_choice("action_head", "type", self.type, ACTION_HEADS)
@@ -313,6 +355,8 @@ class ActionHeadConfig:
             raise ValueError(f"action_head.n_bins={self.n_bins}: only {NUM_ACTION_SLOTS} bins are supported")
         if self.vocab_end is not None and self.vocab_end < NUM_ACTION_SLOTS:
             raise ValueError(f"action_head.vocab_end={self.vocab_end} must be >= {NUM_ACTION_SLOTS}")
+        if self.box_token_jitter < 0:
+            raise ValueError(f"action_head.box_token_jitter={self.box_token_jitter} must be >= 0")
 
 
 @dataclass
@@ -346,6 +390,17 @@ class ModelConfig:
             raise ValueError(
                 f"mode=openvla_compat summarises each history frame in one token: set memory.grid={side}"
             )
+        if self.action_head.box_token and (
+            self.action_head.type != HEAD_DISCRETE or not self.grounding.enabled
+        ):
+            raise ValueError(
+                "action_head.box_token reads the action at the grounding head's box: it needs "
+                "action_head.type=discrete and grounding.enabled=true (or set action_head.box_token=false)"
+            )
+        if self.mode == MODE_OPENVLA_COMPAT and self.vision.preset == VISION_TINY_CNN:
+            raise ValueError(
+                "mode=openvla_compat reproduces the released ViT backbone: not vision.preset=tiny-cnn"
+            )
         vocab = self.llm.vocab_size
         if (
             vocab is not None
@@ -374,8 +429,9 @@ def _divisors(n: int) -> list[int]:
 
 
 def tiny_config(**overrides) -> ModelConfig:
-    """CPU preset (= the dataclass defaults): two 3-block ViTs at 112 px (8x8 patches), a 2-layer Llama of
-    width 128, K = 2, g = 8 (1 token per keyframe set)."""
+    """CPU preset (= the dataclass defaults): a small ResNet at 128 px (8x8 tokens), a 2-layer Llama of width 128,
+    the grounding head with cell scoring, the box token before the action, K = 2, g = 8 (1 token per keyframe
+    set)."""
     return dataclasses.replace(ModelConfig(), **overrides)
 
 
@@ -387,8 +443,8 @@ def openfly_7b_config(**overrides) -> ModelConfig:
             preset=LLM_LLAMA2_7B, vocab_size=LLAMA2_PADDED_VOCAB, pad_token_id=LLAMA2_TOKENIZER_VOCAB
         ),
         prompt=PromptConfig(),
-        action_head=ActionHeadConfig(vocab_end=LLAMA2_TOKENIZER_VOCAB),
-        grounding=GroundingConfig(dim=256, num_heads=8),
+        action_head=ActionHeadConfig(vocab_end=LLAMA2_TOKENIZER_VOCAB, box_token=False),
+        grounding=GroundingConfig(dim=256, num_heads=8, cells=False),
         memory=MemoryConfig(capacity=2, grid=16),
     )
     return dataclasses.replace(cfg, **overrides)
@@ -404,6 +460,7 @@ def openvla_compat_7b_config(**overrides) -> ModelConfig:
             vocab_end=LLAMA2_TOKENIZER_VOCAB,
             decode_rule=DECODE_EXACT,
             unnorm_key="vlnv1",
+            box_token=False,
         ),
     )
     return dataclasses.replace(cfg, **overrides)

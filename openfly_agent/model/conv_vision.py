@@ -13,9 +13,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .config import CNN_STRIDE, VisionConfig
+
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-CNN_STRIDE = 16  # total downsampling of the ResNet (output_stride): one token per 16 x 16 pixels
 
 
 def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
@@ -39,19 +40,18 @@ class ConvVisionBackbone(nn.Module):
     """`featurizer` (a small ResNet) + `pos_embed`: uint8 pixels -> (N, P, C) cell features.
 
     Args:
-        image_size: square input side in pixels (a multiple of 16).
-        channels: the four stage widths; the last is the feature width C.
-        stem_width: channels of the stem convolution.
+        cfg: vision section of the model config (`tiny-cnn`: image_size, cnn_channels, cnn_stem_width).
     """
 
-    def __init__(self, image_size: int, channels: tuple[int, ...], stem_width: int) -> None:
+    def __init__(self, cfg: VisionConfig) -> None:
         super().__init__()
-        if image_size % CNN_STRIDE:
-            raise ValueError(f"vision.image_size={image_size} must be a multiple of {CNN_STRIDE} for tiny-cnn")
-        self.image_size = image_size
-        self.featurizer = build_resnet(tuple(channels), stem_width).to(memory_format=torch.channels_last)
-        self.grid_side = image_size // CNN_STRIDE
-        self.pos_embed = nn.Parameter(torch.zeros(self.grid_side**2, channels[-1]))
+        self.cfg = cfg
+        self.image_size = cfg.image_size
+        self.featurizer = build_resnet(tuple(cfg.cnn_channels), cfg.cnn_stem_width).to(
+            memory_format=torch.channels_last
+        )
+        self.grid_side = cfg.grid_side
+        self.pos_embed = nn.Parameter(torch.zeros(cfg.num_patches, cfg.cnn_channels[-1]))
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
@@ -74,3 +74,11 @@ class ConvVisionBackbone(nn.Module):
         )
         features = self.featurizer.forward_features(x)  # (N, C, g, g)
         return features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
+
+    def forward_with_cls(self, pixels: torch.Tensor) -> tuple[torch.Tensor, None]:
+        """The ViT backbones' `(patches, cls)` interface; a CNN has no CLS token (None)."""
+        return self.forward(pixels), None
+
+    def set_grad_checkpointing(self, enable: bool = True) -> None:
+        """Activation checkpointing of the ResNet stages (timm)."""
+        self.featurizer.set_grad_checkpointing(enable)

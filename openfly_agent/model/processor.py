@@ -27,6 +27,7 @@ from .factory import action_stats_of, make_action_tokenizer
 from .image_transform import ImageTransform
 
 DEFAULT_TEMPLATE = PromptConfig().template
+DEFAULT_GROUNDING_TEMPLATE = PromptConfig().grounding_template
 
 
 class OpenFlyProcessor(ProcessorMixin):
@@ -40,6 +41,7 @@ class OpenFlyProcessor(ProcessorMixin):
         image_size: side of the square model input (the vision config's `image_size`).
         resize: `bicubic` | `area` (the vision config's `resize`).
         prompt_template: text after the visual tokens, with an `{instruction}` placeholder.
+        grounding_template: the text of a grounding sample, with an `{expression}` placeholder.
         lowercase: lowercase the instruction first.
         suffix_token_id: token appended after the prompt (None: none).
         max_length: the most text tokens (prompt + action targets) per sample; None: no limit.
@@ -54,6 +56,7 @@ class OpenFlyProcessor(ProcessorMixin):
         image_size: int = 224,
         resize: str = "bicubic",
         prompt_template: str = DEFAULT_TEMPLATE,
+        grounding_template: str = DEFAULT_GROUNDING_TEMPLATE,
         lowercase: bool = False,
         suffix_token_id: int | None = None,
         max_length: int | None = None,
@@ -67,7 +70,10 @@ class OpenFlyProcessor(ProcessorMixin):
         if "{instruction}" not in prompt_template:
             raise ValueError(f"prompt_template={prompt_template!r} must contain {{instruction}}")
         self.image_size, self.resize = image_size, resize
+        if "{expression}" not in grounding_template:
+            raise ValueError(f"grounding_template={grounding_template!r} must contain {{expression}}")
         self.prompt_template, self.lowercase = prompt_template, lowercase
+        self.grounding_template = grounding_template
         self.suffix_token_id, self.max_length = suffix_token_id, max_length
         self.action_head = dict(action_head or ActionTokenizer().to_dict())
         self.action_stats = action_stats
@@ -88,6 +94,7 @@ class OpenFlyProcessor(ProcessorMixin):
             image_size=cfg.vision.image_size,
             resize=cfg.vision.resize,
             prompt_template=cfg.prompt.template,
+            grounding_template=cfg.prompt.grounding_template,
             lowercase=cfg.prompt.lowercase,
             suffix_token_id=cfg.prompt.suffix_token_id,
             max_length=cfg.llm.max_length - cfg.visual_tokens_per_step(),
@@ -125,6 +132,13 @@ class OpenFlyProcessor(ProcessorMixin):
         if self.lowercase:
             text = text.lower()
         return self.prompt_template.format(instruction=text)
+
+    def grounding_prompt(self, expression: str) -> str:
+        """The text after the visual tokens for a referring `expression` (grounding stage)."""
+        text = expression.strip()
+        if self.lowercase:
+            text = text.lower()
+        return self.grounding_template.format(expression=text)
 
     def encode(self, prompt: str, action: int | None = None) -> tuple[list[int], list[int]]:
         """`(input_ids, labels)` of one sample: `[BOS] prompt [suffix]`, then the action target's tokens.

@@ -10,7 +10,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import DINOSIGLIP_TIMM_IDS, VISION_DINOSIGLIP_224, VisionConfig
+from .config import DINOSIGLIP_TIMM_IDS, VISION_DINOSIGLIP_224, VISION_TINY_CNN, VisionConfig
+from .conv_vision import ConvVisionBackbone
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # DINOv2 input normalisation
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -117,7 +118,19 @@ class FusedVisionBackbone(nn.Module):
         """(N, 3, H, W) uint8 -> (N, P, D) fused patch features of the second-to-last blocks."""
         return self.forward_with_cls(pixels)[0]
 
+    def set_grad_checkpointing(self, enable: bool = True) -> None:
+        """Activation checkpointing of both ViTs (timm)."""
+        self.featurizer.set_grad_checkpointing(enable)
+        self.fused_featurizer.set_grad_checkpointing(enable)
+
     @property
     def dino_dim(self) -> int:
         """Width of the DINO-style featurizer (the CLS token's width)."""
         return self.cfg.featurizer_widths[0]
+
+
+def build_vision_backbone(cfg: VisionConfig) -> nn.Module:
+    """The backbone of a vision section: the fused ViTs (`dinosiglip-224px`, `tiny`) or the ResNet (`tiny-cnn`)."""
+    if cfg.preset == VISION_TINY_CNN:
+        return ConvVisionBackbone(cfg)
+    return FusedVisionBackbone(cfg)

@@ -22,6 +22,8 @@ COMMANDS = {
     "dagger": "DAgger episodes flown by a trained agent, relabelled by the A* expert, added to a dataset",
     "segment": "BEV landmark segmentation of a real scene's point cloud into an official landmark list",
     "grounding": "referring expressions (one per visible landmark) on rendered frames of a dataset's cities",
+    "dagger-round": "one DAgger round: a trained agent flies train episodes in lockstep, the A* expert labels "
+    "every visited state, the rollouts are written as a new dataset",
 }
 EXAMPLES = {
     "generate": (
@@ -41,6 +43,10 @@ EXAMPLES = {
     "grounding": (
         f"{PROG} grounding --source_root outputs/datasets/embedded-small "
         "--output_dir outputs/datasets/grounding-small",
+    ),
+    "dagger-round": (
+        f"{PROG} dagger-round --checkpoint outputs/recipe/navigation --source_root outputs/datasets/embedded-small "
+        "--output_dir outputs/datasets/dagger-r1 --episodes 400",
     ),
 }
 EXIT_BAD_INPUT = 2
@@ -248,12 +254,53 @@ def cmd_grounding(args: list[str]) -> None:
     print(json.dumps(info["splits"]))
 
 
+def cmd_dagger_round(args: list[str]) -> None:
+    import draccus
+
+    from openfly_agent.eval.agent_policy import AgentPolicy
+    from openfly_agent.toolchain.config import DaggerRoundConfig
+    from openfly_agent.toolchain.dagger_rounds import run_dagger_round
+    from openfly_agent.utils.cli_help import UnknownOptionError, config_help, wants_help, without_help
+    from openfly_agent.utils.config import parse_config
+    from openfly_agent.utils.errors import root_cause
+
+    parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False)
+    parser.add_argument("--checkpoint")
+    parser.add_argument("--agent_class", default="openfly_agent.model.agent:OpenFlyAgent")
+    parser.add_argument("--torch_threads", type=int, default=0)
+    ns, rest = parser.parse_known_args(args)
+    if wants_help(args):
+        cfg = parse_config(DaggerRoundConfig, _config_args(without_help(rest)))
+        text = config_help(
+            DaggerRoundConfig, cfg, f"{PROG} dagger-round --checkpoint DIR", COMMANDS["dagger-round"],
+            EXAMPLES["dagger-round"],
+        )  # fmt: skip
+        print(text, end="")
+        return
+    if not ns.checkpoint:
+        raise InputError("dagger-round needs --checkpoint <trained agent folder> (dagger-round --help)")
+    try:
+        cfg = parse_config(DaggerRoundConfig, _config_args(rest))
+    except UnknownOptionError as err:
+        raise InputError(str(err)) from None
+    except draccus.utils.ParsingError as err:
+        raise InputError(f"bad dagger-round config: {root_cause(err)}") from None
+    setup_logging()
+    if ns.torch_threads:
+        import torch
+
+        torch.set_num_threads(ns.torch_threads)
+    agent = load_agent(ns.checkpoint, ns.agent_class).eval()
+    print(json.dumps(run_dagger_round(AgentPolicy(agent), cfg)))
+
+
 HANDLERS = {
     "generate": cmd_generate,
     "summarize": cmd_summarize,
     "dagger": cmd_dagger,
     "segment": cmd_segment,
     "grounding": cmd_grounding,
+    "dagger-round": cmd_dagger_round,
 }
 
 

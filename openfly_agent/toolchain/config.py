@@ -288,15 +288,15 @@ class DaggerRoundConfig:
     frame size come from its saved toolchain config. The written dataset joins the training data.
     """
 
-    source_root: str = "outputs/datasets/embedded-small"
-    output_dir: str = "outputs/datasets/dagger-r1"
+    source_root: str = "outputs/datasets/embedded-small"  # dataset whose train episodes the agent flies
+    output_dir: str = "outputs/datasets/dagger-r1"  # where the round's rollouts are written (a new dataset)
     round_name: str = "r1"  # part of the written episode ids
     episodes: int = 400  # rollouts (train episodes drawn without replacement)
     expert_mix: float = 0.0  # probability that the expert's action is flown instead of the agent's
     max_policy_steps: int = 60  # agent-flown states at most; then the expert flies to the goal
     max_steps: int = 150  # states at most (a rollout without a STOP by then is dropped)
     num_envs: int = 16  # rollouts in lockstep (the agent's batch)
-    seed: int = 0
+    seed: int = 0  # seed of the episode draw and of expert_mix
 
     def __post_init__(self) -> None:
         _check(self.episodes >= 1, "dagger round: episodes must be >= 1")

@@ -6,6 +6,7 @@ Every check that can fail on user input runs before the agent's weights are buil
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 from dataclasses import dataclass
@@ -17,14 +18,17 @@ from accelerate.utils import set_seed
 
 from openfly_agent import constants as C
 from openfly_agent.data.dataset import NavigationStepDataset
-from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.frames import FrameStore, FrameStores
+from openfly_agent.data.grounding import read_grounding_expressions
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
+from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
 from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
-from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
+from openfly_agent.training.init_matching import load_matching_weights
 from openfly_agent.training.modes import apply_training_mode
 from openfly_agent.training.preflight import (
     PreflightError,
@@ -43,17 +47,24 @@ FORMAT_OURS, FORMAT_OPENVLA = "openfly", "openvla"
 
 @dataclass
 class Splits:
-    """The episodes of each configured split (read and checked) and the frame store they share."""
+    """The episodes of each configured split (read and checked) and the frames they read.
+
+    The train split also holds the train episodes of `data.extra_train_roots` (e.g. DAgger rollouts), each read
+    from its own root.
+    """
 
     episodes: dict[str, list[Episode]]
-    frames: FrameStore
+    frames: FrameStore | FrameStores
 
-    def dataset(self, split: str, cfg: TrainConfig, agent: OpenFlyAgent) -> NavigationStepDataset:
-        """Per-step samples of `split`: the history mode of `cfg.data`, the agent's memory shape and keyframes."""
+    def dataset(
+        self, split: str, cfg: TrainConfig, agent: OpenFlyAgent, history: str | None = None
+    ) -> NavigationStepDataset:
+        """Per-step samples of `split`: the history mode of `cfg.data` (or `history`), the agent's memory shape
+        and keyframes."""
         return NavigationStepDataset(
             self.episodes[split],
             self.frames,
-            cfg.data.history.mode,
+            history or cfg.data.history.mode,
             capacity=cfg.model.memory.capacity,
             set_size=cfg.model.keyframes.set_size,
             keyframe_selector=agent.keyframe_selector,
@@ -62,13 +73,27 @@ class Splits:
 
 
 def load_splits(cfg: TrainConfig) -> Splits:
-    """Read the train, validation and test splits; a bad record or unreadable frames is a `PreflightError`."""
+    """Read the train, validation and test splits (and the train splits of `data.extra_train_roots`); a bad
+    record or unreadable frames is a `PreflightError`."""
     data = cfg.data
     names = dict.fromkeys((data.train_split, data.val_split, data.test_split))
     episodes = {split: load_split(data, split) for split in names}
     frames = FrameStore(data.root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
     check_frames_readable(frames, episodes[data.train_split])
-    return Splits(episodes, frames)
+    if not data.extra_train_roots:
+        return Splits(episodes, frames)
+    stores = [(frames, [e for split in names for e in episodes[split]])]
+    for root in data.extra_train_roots:
+        extra = load_split(dataclasses.replace(data, root=root), data.train_split)
+        store = FrameStore(root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
+        check_frames_readable(store, extra)
+        logger.info("%d more train episodes from %s", len(extra), root)
+        stores.append((store, extra))
+        episodes[data.train_split] = episodes[data.train_split] + extra
+    try:
+        return Splits(episodes, FrameStores(stores))
+    except ValueError as err:  # an episode id in two roots
+        raise PreflightError(f"data.extra_train_roots: {err}") from err
 
 
 def prepare_agent(
@@ -93,8 +118,10 @@ def prepare_agent(
 def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accelerator):
     """The run's tokenizer (order in `TokenizerConfig`); a trained one is written by rank 0 first."""
     candidates = [cfg.tokenizer.path, cfg.model.llm.tokenizer_path]
-    if cfg.init.checkpoint and (Path(cfg.init.checkpoint) / "tokenizer_config.json").is_file():
-        candidates.append(cfg.init.checkpoint)
+    if cfg.init.checkpoint and Path(cfg.init.checkpoint).exists():  # a run folder: its `last` checkpoint
+        init_folder = resolve_checkpoint_folder(cfg.init.checkpoint) or Path(cfg.init.checkpoint)
+        if (init_folder / "tokenizer_config.json").is_file():
+            candidates.append(str(init_folder))
     own = Path(cfg.output_dir) / TOKENIZER_DIR
     for folder in [c for c in candidates if c]:
         logger.info("tokenizer: %s", folder)
@@ -107,6 +134,8 @@ def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accel
     with accelerator.main_process_first():
         if not (own / "tokenizer_config.json").is_file():
             texts = sorted({e.instruction for e in train_episodes})
+            if cfg.stage == STAGE_GROUNDING and cfg.data.grounding_root:  # the expressions' words too
+                texts += sorted(read_grounding_expressions(cfg.data.grounding_root))
             logger.info(
                 "training a BPE tokenizer (%d tokens) on %d instructions -> %s",
                 cfg.tokenizer.train_vocab_size,
@@ -137,8 +166,14 @@ def check_init_checkpoint(cfg: TrainConfig, tokenizer, norm_stats: dict | None) 
     folder = Path(cfg.init.checkpoint)
     if not folder.is_dir():
         raise PreflightError(f"init.checkpoint {folder} does not exist")
+    try:  # a training run or its `last` pointer: the checkpoint folder it names
+        folder = resolve_checkpoint_folder(folder) or folder
+    except FileNotFoundError as err:
+        raise PreflightError(f"init.checkpoint: {err}") from err
     fmt = detect_init_format(folder, cfg.init.format)
-    if fmt == FORMAT_OURS:
+    if cfg.init.matching and fmt != FORMAT_OURS:
+        raise PreflightError(f"init.matching loads checkpoints of ours; {folder} is an {fmt} checkpoint")
+    if fmt == FORMAT_OURS and not cfg.init.matching:
         check_architecture(cfg.model, tokenizer, norm_stats, folder, "init.checkpoint")
     return fmt  # OpenVLA folders are checked key by key by the model's loader, which names every mismatch
 
@@ -180,7 +215,13 @@ def _shape_relevant(agent_config: dict) -> dict:
 def build_agent(
     cfg: TrainConfig, tokenizer, norm_stats: dict | None, init_format: str | None
 ) -> OpenFlyAgent:
-    """A fresh agent, or one initialised from `init.checkpoint` (ours: from_pretrained; OpenVLA: by name)."""
+    """A fresh agent, or one initialised from `init.checkpoint` (ours: from_pretrained, or the matching tensors
+    with `init.matching`; OpenVLA: by name)."""
+    if init_format == FORMAT_OURS and cfg.init.matching:
+        agent = OpenFlyAgent.from_model_config(cfg.model, tokenizer=tokenizer, norm_stats=norm_stats)
+        report = load_matching_weights(agent, Path(cfg.init.checkpoint))
+        logger.info("initialised from %s: %s", cfg.init.checkpoint, report.summary())
+        return agent
     if init_format == FORMAT_OURS:
         agent = OpenFlyAgent.from_pretrained(cfg.init.checkpoint, tokenizer=tokenizer)
         logger.info("initialised from %s", cfg.init.checkpoint)

@@ -12,6 +12,8 @@ from openfly_agent.data.config import DataConfig
 from openfly_agent.model.config import LoraSettings, ModelConfig, tiny_config
 
 PRECISIONS = ("no", "bf16", "fp16")
+STAGE_GROUNDING, STAGE_NAVIGATION = "grounding", "navigation"
+STAGES = (STAGE_GROUNDING, STAGE_NAVIGATION)
 SCHEDULES = ("constant", "cosine", "linear")
 TRACKERS = ("tensorboard", "wandb", "none")
 INIT_FORMATS = ("auto", "openfly", "openvla")
@@ -45,10 +47,18 @@ class TokenizerConfig:
 
 @dataclass
 class InitConfig:
-    """Weights to start from (None: random init from the model config, the tiny default)."""
+    """Weights to start from (None: random init from the model config, the tiny default).
 
-    checkpoint: str | None = None  # an OpenFly-Agent / OpenVLA HF folder, or one of our checkpoints
+    `matching` loads every tensor of one of our checkpoints whose name and shape the configured model shares and
+    leaves the rest freshly initialised, listing both: how a stage starts from the previous one (the navigation
+    stage from the grounding stage, a DAgger round from the navigation stage) when the model gains modules.
+    """
+
+    checkpoint: str | None = (
+        None  # an OpenFly-Agent / OpenVLA HF folder, or one of our checkpoints (run folders too)
+    )
     format: str = "auto"  # auto (ours if config.json has our model_type) | openfly | openvla
+    matching: bool = False  # ours only: load the tensors of matching name and shape, list the new ones
 
     def __post_init__(self) -> None:
         _require(self.format in INIT_FORMATS, f"init.format={self.format!r}: choose one of {INIT_FORMATS}")
@@ -182,6 +192,9 @@ class TrainConfig:
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
 
+    # grounding: referring expressions + instruction targets, no action loss (data.grounding_root);
+    # navigation: actions and the grounding loss on the navigation dataset (docs/TRAINING.md, "Stages")
+    stage: str = "navigation"
     precision: str = "no"  # no | bf16 | fp16 (autocast; overrides the accelerate config file's value)
     gradient_checkpointing: bool = False  # activation checkpointing inside the LLM and ViTs
     freeze_stage: str = "full"  # full | frozen_vision | heads_only | lora (LoRA adapters, the `lora` section)
@@ -197,6 +210,16 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _require(self.precision in PRECISIONS, f"precision={self.precision!r}: choose one of {PRECISIONS}")
+        _require(self.stage in STAGES, f"stage={self.stage!r}: choose one of {STAGES}")
+        _require(
+            self.stage != STAGE_GROUNDING or self.data.grounding_root is not None,
+            "stage=grounding trains on a grounding dataset: set --data.grounding_root "
+            "(python -m openfly_agent.toolchain grounding writes one)",
+        )
+        _require(
+            self.stage != STAGE_GROUNDING or self.model.grounding.enabled,
+            "stage=grounding trains the grounding head: model.grounding.enabled must be true",
+        )
         _require(
             self.steps is not None or self.epochs is not None,
             "set `steps` (optimizer steps) or `epochs` (passes over the train split)",

@@ -88,7 +88,8 @@ def make_eval_loader(
 
 @torch.no_grad()
 def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerator) -> dict[str, float]:
-    """Loss, action accuracy (per sample) and box IoU (per visible box) over every process's shard.
+    """Loss, action accuracy (per sample; batches with action labels) and box IoU (per visible box) over every
+    process's shard.
 
     Batch means from `model(batch) -> (loss, logs)` are weighted by the batch size (loss, accuracy) and by the
     number of visible boxes (IoU), times the batch's weight (0 for a padding batch), then summed over
@@ -98,8 +99,10 @@ def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerat
     model.eval()
     # samples, loss x B, accuracy x B, IoU x visible, visible
     sums = torch.zeros(5, dtype=torch.float64, device=accelerator.device)
+    has_actions = False
     for batch, weight in loader:
         batch = send_to_device(batch, accelerator.device)
+        has_actions = has_actions or C.LABELS in batch
         loss, logs = model(batch)
         size = float(batch[C.INPUT_IDS].shape[0])
         visible = float(batch[C.BOX_VISIBLE].sum()) if C.BOX_VISIBLE in batch else 0.0
@@ -108,7 +111,7 @@ def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerat
             [
                 size,
                 float(loss) * size,
-                float(logs["action_accuracy"]) * size,
+                float(logs.get("action_accuracy", 0.0)) * size,
                 iou * visible if visible and iou == iou else 0.0,
                 visible if iou == iou else 0.0,
             ],
@@ -121,9 +124,7 @@ def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerat
     samples, loss, accuracy, iou, visible = sums.tolist()
     if samples == 0:
         return {}
-    return {
-        "loss": loss / samples,
-        "action_accuracy": accuracy / samples,
-        "box_iou": iou / visible if visible else float("nan"),
-        "samples": samples,
-    }
+    metrics = {"loss": loss / samples, "box_iou": iou / visible if visible else float("nan"), "samples": samples}
+    if has_actions:  # grounding batches carry no action targets
+        metrics["action_accuracy"] = accuracy / samples
+    return metrics

@@ -16,12 +16,11 @@ from pathlib import Path
 from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
-from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
-from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.config import STAGE_NAVIGATION, TrainConfig
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
 from openfly_agent.training.export import export_merged_lora
 from openfly_agent.training.loaders import epoch_batches, make_train_loader
@@ -29,6 +28,7 @@ from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_
 from openfly_agent.training.optim import make_optimizer, make_scheduler
 from openfly_agent.training.preflight import check_dataset_root, check_output_dir
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
+from openfly_agent.training.stages import stage_data
 from openfly_agent.training.state import TrainerState
 from openfly_agent.training.stops import StopFlags
 from openfly_agent.utils.config import save_config
@@ -72,12 +72,11 @@ def train(cfg: TrainConfig) -> TrainResult:
         checkpoints.remove_stale_staging()
     splits = load_splits(cfg)
 
-    # 2. The agent, whose processor prepares every input, and the per-step samples of each split.
+    # 2. The agent, whose processor prepares every input, and the stage's samples of each split
+    #    (navigation: per-step samples with history; grounding: expressions and instruction targets).
     agent = prepare_agent(cfg, splits, accelerator, resume_from)
-    train_set = splits.dataset(cfg.data.train_split, cfg, agent)
-    val_set = splits.dataset(cfg.data.val_split, cfg, agent)
-    test_set = splits.dataset(cfg.data.test_split, cfg, agent)
-    collate = NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size)
+    data = stage_data(cfg, splits, agent)
+    train_set, val_set, test_set, collate = data.train, data.val, data.test, data.collate
     if accelerator.is_main_process:
         save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
 
@@ -174,7 +173,8 @@ def train(cfg: TrainConfig) -> TrainResult:
         final: dict[str, float] = {}
         if test_loader is not None:
             final = evaluate(model, test_loader, accelerator)
-            final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
+            if cfg.stage == STAGE_NAVIGATION:
+                final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
             log_metrics(accelerator, "test", final, state.step)
         return _result(state, last_checkpoint, final, reason is not None, accelerator, model)
 
