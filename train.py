@@ -66,7 +66,9 @@ def report(result, cfg) -> None:
             f"box IoU: {final['box_iou']:.4f}"
         )
     elif final:  # the grounding stage: no actions
-        print(f"target box IoU on {cfg.data.test_split} ({int(final['samples'])} samples): {final['box_iou']:.4f}")
+        print(
+            f"target box IoU on {cfg.data.test_split} ({int(final['samples'])} samples): {final['box_iou']:.4f}"
+        )
 
 
 def run(argv: list[str], state: dict) -> int:

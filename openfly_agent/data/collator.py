@@ -153,14 +153,18 @@ class GroundingCollator:
             else:
                 prompts.append(self.processor.navigation_prompt(sample[C.OBS_INSTRUCTION]))
                 shown = bool(sample[C.BOX_VISIBLE])
-                boxes.append(np.asarray(sample[C.BOX], dtype=np.float32) if shown else np.zeros(4, np.float32))
+                boxes.append(
+                    np.asarray(sample[C.BOX], dtype=np.float32) if shown else np.zeros(4, np.float32)
+                )
                 visible.append(shown)
                 frame_index.append(frame)
         text = self.processor(prompts)  # input_ids, attention_mask (B, L); no labels: nothing to supervise
         return {
             C.INPUT_IDS: text[C.INPUT_IDS],
             C.ATTENTION_MASK: text[C.ATTENTION_MASK],
-            C.PIXEL_VALUES: torch.stack([self.processor.image(s[C.OBS_RGB]) for s in samples]),  # (F, 3, H, W)
+            C.PIXEL_VALUES: torch.stack(
+                [self.processor.image(s[C.OBS_RGB]) for s in samples]
+            ),  # (F, 3, H, W)
             C.FRAME_INDEX: torch.tensor(frame_index, dtype=torch.long),  # (B,)
             C.BOX: torch.from_numpy(np.stack(boxes)),  # (B, 4)
             C.BOX_VISIBLE: torch.tensor(visible, dtype=torch.bool),  # (B,)

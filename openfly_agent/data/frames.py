@@ -229,7 +229,9 @@ class FrameStores:
         for store, episodes in stores_and_episodes:
             for episode in episodes:
                 if episode.episode_id in self._store_of:
-                    raise ValueError(f"episode {episode.episode_id} is in two datasets ({store.root} and another)")
+                    raise ValueError(
+                        f"episode {episode.episode_id} is in two datasets ({store.root} and another)"
+                    )
                 self._store_of[episode.episode_id] = store
 
     def frame(self, episode: Episode, t: int) -> np.ndarray:

@@ -176,7 +176,9 @@ def read_grounding_expressions(root: str | Path, splits: tuple[str, ...] = (C.SP
     texts: set[str] = set()
     for path in sorted((Path(root) / FRAMES_DIR).glob("*/*.parquet")):
         table = pq.read_table(path, columns=["split", "expressions"])
-        for split, expressions in zip(table.column("split").to_pylist(), table.column("expressions").to_pylist()):
+        for split, expressions in zip(
+            table.column("split").to_pylist(), table.column("expressions").to_pylist()
+        ):
             if split in splits:
                 texts.update(expressions)
     return texts

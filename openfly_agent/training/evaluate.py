@@ -124,7 +124,11 @@ def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerat
     samples, loss, accuracy, iou, visible = sums.tolist()
     if samples == 0:
         return {}
-    metrics = {"loss": loss / samples, "box_iou": iou / visible if visible else float("nan"), "samples": samples}
+    metrics = {
+        "loss": loss / samples,
+        "box_iou": iou / visible if visible else float("nan"),
+        "samples": samples,
+    }
     if has_actions:  # grounding batches carry no action targets
         metrics["action_accuracy"] = accuracy / samples
     return metrics

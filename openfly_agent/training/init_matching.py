@@ -30,7 +30,9 @@ class MatchReport:
         """One line for logs, naming up to `limit` keys of each non-loaded group."""
 
         def names(keys: list[str]) -> str:
-            shown = ", ".join(keys[:limit]) + (f", ... ({len(keys) - limit} more)" if len(keys) > limit else "")
+            shown = ", ".join(keys[:limit]) + (
+                f", ... ({len(keys) - limit} more)" if len(keys) > limit else ""
+            )
             return f" [{shown}]" if keys else ""
 
         return (
@@ -64,7 +66,7 @@ def load_matching_weights(model: torch.nn.Module, checkpoint: str | Path) -> Mat
     seen: set[str] = set()
     for path in checkpoint_files(folder):
         with safe_open(str(path), framework="pt") as handle:  # safetensors: no unpickling
-            for name in handle.keys():
+            for name in handle.keys():  # noqa: SIM118 (a safetensors handle is not iterable)
                 seen.add(name)
                 if name not in expected:
                     report.unused.append(name)

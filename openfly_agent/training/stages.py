@@ -8,8 +8,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from torch.utils.data import Dataset
 
@@ -65,7 +65,9 @@ def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
             train=splits.dataset(data.train_split, cfg, agent),
             val=splits.dataset(data.val_split, cfg, agent),
             test=splits.dataset(data.test_split, cfg, agent),
-            collate=NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size),
+            collate=NavigationCollator(
+                agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size
+            ),
         )
     if not data.grounding_root:
         raise PreflightError(
