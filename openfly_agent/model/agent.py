@@ -96,7 +96,7 @@ class OpenFlyAgent(PreTrainedModel):
         self.grounding_head = (
             GroundingHead(llm_dim, cfg.grounding, cfg.vision.grid_side) if cfg.grounding.enabled else None
         )
-        self.box_token_embed = BoxTokenEmbedding(llm_dim) if cfg.action_head.box_token else None
+        self.box_token_embed = BoxTokenEmbedding(llm_dim) if cfg.uses_box_token else None
         self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)  # built from the config only
         config.action_tokenizer = self.action_tokenizer.to_dict()
         self.keyframe_selector = KeyframeSelector(

@@ -334,7 +334,8 @@ class ActionHeadConfig:
     Both use the 256 ids just below `vocab_end` (None = llm vocab size). The discrete head maps action a to id
     `vocab_end - 256 + a`; the bins head maps bin b (1..256) to `vocab_end - b` as OpenVLA does.
 
-    `box_token` (the tiny preset; discrete head): the grounding head's box of the target, embedded as one more
+    `box_token` (None: on exactly when the head is discrete and the grounding head enabled; the 7B presets set
+    it off to keep the paper's layout): the grounding head's box of the target, embedded as one more
     input token after the prompt, is what the action is read at, so the action is conditioned on where the
     target is (a grounded chain of thought, as ECoT's bounding boxes before the action). Training embeds the
     ground-truth box jittered by `box_token_jitter`; inference the predicted one (docs/ARCHITECTURE.md).
@@ -345,7 +346,8 @@ class ActionHeadConfig:
     decode_rule: str = DECODE_EXACT  # openvla_bins: exact (official: exact match else STOP) | nearest
     unnorm_key: str | None = None  # which entry of norm_stats un-normalises the bins (None: the only one)
     vocab_end: int | None = None
-    box_token: bool = True  # the action is read at an embedded-box token after the prompt (discrete head)
+    # the action is read at an embedded-box token after the prompt (None: when discrete with grounding)
+    box_token: bool | None = None
     box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
 
     def __post_init__(self) -> None:
@@ -390,9 +392,7 @@ class ModelConfig:
             raise ValueError(
                 f"mode=openvla_compat summarises each history frame in one token: set memory.grid={side}"
             )
-        if self.action_head.box_token and (
-            self.action_head.type != HEAD_DISCRETE or not self.grounding.enabled
-        ):
+        if self.action_head.box_token and not self._box_token_possible:
             raise ValueError(
                 "action_head.box_token reads the action at the grounding head's box: it needs "
                 "action_head.type=discrete and grounding.enabled=true (or set action_head.box_token=false)"
@@ -417,6 +417,17 @@ class ModelConfig:
         if self.mode == MODE_OPENVLA_COMPAT:
             return 1
         return (self.vision.grid_side // self.memory.grid) ** 2
+
+    @property
+    def _box_token_possible(self) -> bool:
+        return self.action_head.type == HEAD_DISCRETE and self.grounding.enabled
+
+    @property
+    def uses_box_token(self) -> bool:
+        """`action_head.box_token`, with None resolved: on when the head is discrete and grounding enabled."""
+        if self.action_head.box_token is None:
+            return self._box_token_possible
+        return self.action_head.box_token
 
     def visual_tokens_per_step(self, num_memory_sets: int | None = None) -> int:
         """P current-frame tokens + memory tokens (K full sets by default): 256 + 2 = 258 for 7B."""

@@ -15,7 +15,7 @@ from torch import nn
 
 from .config import CNN_STRIDE, VisionConfig
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
@@ -52,8 +52,8 @@ class ConvVisionBackbone(nn.Module):
         )
         self.grid_side = cfg.grid_side
         self.pos_embed = nn.Parameter(torch.zeros(cfg.num_patches, cfg.cnn_channels[-1]))
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        # no buffers for the constants: transformers builds models on the meta device when loading, and a
+        # non-persistent buffer would come back uninitialised
 
     @property
     def feature_dim(self) -> int:
@@ -68,10 +68,10 @@ class ConvVisionBackbone(nn.Module):
                 f"vision backbone expects uint8 RGB pixels of shape (N, 3, {size}, {size}); got "
                 f"{pixels.dtype} {tuple(pixels.shape)}"
             )
-        dtype = self.pos_embed.dtype
-        x = ((pixels.to(dtype) / 255.0 - self.mean.to(dtype)) / self.std.to(dtype)).contiguous(
-            memory_format=torch.channels_last
-        )
+        dtype, device = self.pos_embed.dtype, pixels.device
+        mean = torch.tensor(IMAGENET_MEAN, dtype=dtype, device=device).view(1, 3, 1, 1)
+        std = torch.tensor(IMAGENET_STD, dtype=dtype, device=device).view(1, 3, 1, 1)
+        x = ((pixels.to(dtype) / 255.0 - mean) / std).contiguous(memory_format=torch.channels_last)
         features = self.featurizer.forward_features(x)  # (N, C, g, g)
         return features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
 

@@ -107,11 +107,6 @@ class GroundingHead(nn.Module):
         self.text_query = nn.Linear(llm_dim, cfg.dim)  # the last prompt token starts the query
         self.cell_scorer = CellScorer(cfg.dim)
         self.box_mlp = nn.Sequential(nn.Linear(2 * cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, 4))
-        ys, xs = torch.meshgrid(torch.arange(grid_side), torch.arange(grid_side), indexing="ij")
-        centres = (
-            torch.stack([xs.flatten() + 0.5, ys.flatten() + 0.5], dim=-1) / grid_side
-        )  # (P, 2) row-major
-        self.register_buffer("cell_centres", centres, persistent=False)
 
     def forward(
         self,
@@ -148,10 +143,22 @@ class GroundingHead(nn.Module):
         weights = cell_logits.softmax(dim=-1)  # (B, P)
         context = (weights[..., None] * cells).sum(dim=1)  # (B, d)
         raw = self.box_mlp(torch.cat([pooled, context], dim=-1))  # (B, 4)
-        centre = weights @ self.cell_centres.to(weights.dtype)  # (B, 2)
+        centre = weights @ cell_centres(self.grid_side, weights.device, weights.dtype)  # (B, 2)
         cxcy = (centre + torch.tanh(raw[:, :2]) / self.grid_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
         return GroundingOutput(boxes, visibility, cell_logits)
+
+
+def cell_centres(grid_side: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(P, 2) normalised (x, y) centres of a grid_side x grid_side grid's cells, row-major.
+
+    Computed on each call rather than kept in a buffer: transformers builds models on the meta device when
+    loading, and a non-persistent buffer would come back uninitialised.
+    """
+    ys, xs = torch.meshgrid(
+        torch.arange(grid_side, device=device), torch.arange(grid_side, device=device), indexing="ij"
+    )
+    return (torch.stack([xs.flatten() + 0.5, ys.flatten() + 0.5], dim=-1) / grid_side).to(dtype)
 
 
 def cxcywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:

@@ -23,7 +23,7 @@ from .vision import build_featurizers
 
 logger = logging.getLogger(__name__)
 
-NEW_MODULE_PREFIXES = ("grounding_head.",)
+NEW_MODULE_PREFIXES = ("grounding_head.", "box_token_embed.")
 VISION_PREFIXES = ("vision_backbone.featurizer.", "vision_backbone.fused_featurizer.")
 _OPENVLA_SCALE = re.compile(r"\.(ls[12])\.scale_factor$")
 _TIMM_SCALE = re.compile(r"\.(ls[12])\.gamma$")
@@ -176,7 +176,8 @@ def agent_from_openvla_checkpoint(folder: str | Path, cfg, tokenizer=None, devic
             if type(module).__name__.endswith("RotaryEmbedding"):
                 unwrap = agent.language_model
                 unwrap._init_weights(module)
-        if agent.grounding_head is not None:
-            for module in agent.grounding_head.modules():
-                agent._init_weights(module)
+        for new_module in (agent.grounding_head, agent.box_token_embed):  # NEW_MODULE_PREFIXES
+            if new_module is not None:
+                for module in new_module.modules():
+                    agent._init_weights(module)
     return agent.eval(), report

@@ -11,10 +11,8 @@ import torch
 from torch import nn
 
 from .config import DINOSIGLIP_TIMM_IDS, VISION_DINOSIGLIP_224, VISION_TINY_CNN, VisionConfig
-from .conv_vision import ConvVisionBackbone
+from .conv_vision import IMAGENET_MEAN, IMAGENET_STD, ConvVisionBackbone
 
-IMAGENET_MEAN = (0.485, 0.456, 0.406)  # DINOv2 input normalisation
-IMAGENET_STD = (0.229, 0.224, 0.225)
 SIGLIP_MEAN = (0.5, 0.5, 0.5)
 SIGLIP_STD = (0.5, 0.5, 0.5)
 SIGLIP_MLP_RATIO = 3.7362  # So400m's MLP width / embedding width, kept for the tiny SigLIP-style ViT

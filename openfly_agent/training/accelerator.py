@@ -9,9 +9,9 @@ from pathlib import Path
 
 import torch
 from accelerate import Accelerator, PartialState
-from accelerate.utils import ProjectConfiguration
+from accelerate.utils import DistributedDataParallelKwargs, ProjectConfiguration
 
-from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
 from openfly_agent.training.preflight import check_batch
 from openfly_agent.training.trackers import make_trackers
 from openfly_agent.utils.config import config_to_dict
@@ -53,6 +53,8 @@ def make_accelerator(cfg: TrainConfig) -> Accelerator:
             project_dir=str(output_dir), logging_dir=str(output_dir / LOGS_DIR)
         ),
         step_scheduler_with_optimizer=False,  # the schedule is per optimizer step, whatever the world size
+        # the grounding stage has no action target: the LM head and the box token get no gradient there
+        kwargs_handlers=[DistributedDataParallelKwargs(find_unused_parameters=cfg.stage == STAGE_GROUNDING)],
     )
     logger.info(
         "accelerator: %s, %d process(es), device %s, precision %s, accumulation %d (global batch %d)",

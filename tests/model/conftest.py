@@ -27,7 +27,9 @@ def small_config(**overrides):
     from openfly_agent.model.config import GroundingConfig, LLMConfig, MemoryConfig, VisionConfig, tiny_config
 
     cfg = tiny_config(
-        vision=VisionConfig(image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2),
+        vision=VisionConfig(
+            preset="tiny", image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
+        ),
         llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
         grounding=GroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
 from openfly_agent.model.config import GroundingConfig, MemoryConfig, MergingConfig, openfly_7b_config
-from openfly_agent.model.grounding import GroundingHead, grounding_loss, iou_and_giou
+from openfly_agent.model.grounding import (
+    GroundingHead,
+    GroundingOutput,
+    box_cells,
+    grounding_loss,
+    iou_and_giou,
+)
 
 LOG_KEYS = {"loss", "action_loss", "grounding_loss", "action_accuracy", "box_iou", "num_visible_boxes"}
 
@@ -122,40 +126,72 @@ def test_giou_by_hand(pred, target, iou, giou):
 
 
 def test_grounding_loss_ignores_invisible_targets():
-    cfg = GroundingConfig(l1_weight=2.0, visibility_weight=0.0)
-    pred = torch.tensor([[0.5, 0.5, 0.4, 0.4], [0.5, 0.5, 0.2, 0.2]])
+    cfg = GroundingConfig(l1_weight=2.0, visibility_weight=0.0, cells=False)
+    pred = GroundingOutput(torch.tensor([[0.5, 0.5, 0.4, 0.4], [0.5, 0.5, 0.2, 0.2]]), torch.zeros(2))
     target = torch.tensor([[0.5, 0.5, 0.8, 0.8], [0.1, 0.1, 0.1, 0.1]])
     visible = torch.tensor([True, False])
-    loss, logs = grounding_loss(pred, torch.zeros(2), target, visible, cfg)
+    loss, logs = grounding_loss(pred, target, visible, cfg)
     # only row 0: (1 - GIoU) = 0.75, L1 = 0.4 + 0.4 -> 0.75 + 2 * 0.8
     assert loss.item() == pytest.approx(0.75 + 1.6, abs=1e-6)
     assert logs["box_iou"] == pytest.approx(0.25) and logs["num_visible_boxes"] == 1.0
     target[1] = torch.tensor([0.9, 0.9, 0.05, 0.05])
-    assert grounding_loss(pred, torch.zeros(2), target, visible, cfg)[0].item() == pytest.approx(loss.item())
-    none_visible, logs = grounding_loss(pred, torch.zeros(2), target, torch.tensor([False, False]), cfg)
+    assert grounding_loss(pred, target, visible, cfg)[0].item() == pytest.approx(loss.item())
+    none_visible, logs = grounding_loss(pred, target, torch.tensor([False, False]), cfg)
     assert none_visible.item() == 0.0 and logs["box_iou"] == 0.0
 
 
 def test_grounding_head_outputs_unit_boxes():
-    head = GroundingHead(24, dataclasses.replace(GroundingConfig(dim=16, num_heads=2), num_queries=3))
+    head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, num_queries=3, cells=False))
     hidden = torch.randn(2, 7, 24) * 10
     mask = torch.tensor([[True] * 7, [True] * 3 + [False] * 4])
-    boxes, vis = head(hidden, mask)
-    assert boxes.shape == (2, 4) and vis.shape == (2,)
-    assert ((boxes > 0) & (boxes < 1)).all()
+    out = head(hidden, mask)
+    assert out.boxes.shape == (2, 4) and out.visibility.shape == (2,) and out.cell_logits is None
+    assert ((out.boxes > 0) & (out.boxes < 1)).all()
     hidden2 = hidden.clone()
     hidden2[1, 3:] = 1e3  # masked positions do not matter
-    torch.testing.assert_close(head(hidden2, mask)[0][1], boxes[1])
+    torch.testing.assert_close(head(hidden2, mask).boxes[1], out.boxes[1])
+
+
+def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
+    torch.manual_seed(0)
+    head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True), grid_side=2)
+    with pytest.raises(ValueError, match="grid side"):
+        GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True))
+    # sequence: 4 image tokens (a 2 x 2 grid) then 2 prompt tokens; the prompt's last token names the cell
+    hidden = torch.randn(4, 6, 24)
+    hidden[:, :4] += torch.eye(4, 24) * 3  # each cell has its own feature
+    target_cell = torch.tensor([0, 1, 2, 3])
+    hidden[:, 5] = torch.eye(4, 24)[target_cell] * 3
+    mask = torch.ones(4, 6, dtype=torch.bool)
+    image = torch.arange(4).expand(4, 4)
+    last = torch.full((4,), 5)
+    centres = torch.tensor([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
+    targets = torch.cat([centres[target_cell], torch.full((4, 2), 0.3)], dim=1)
+    optimizer = torch.optim.Adam(head.parameters(), lr=1e-2)
+    cfg = GroundingConfig(dim=16, num_heads=2, cells=True)
+    for _ in range(150):
+        loss, logs = grounding_loss(
+            head(hidden, mask, image, last), targets, torch.ones(4, dtype=torch.bool), cfg
+        )
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    out = head(hidden, mask, image, last)
+    assert out.cell_logits.argmax(-1).tolist() == target_cell.tolist()
+    assert logs["box_iou"] > 0.8
+    assert box_cells(out.boxes, 2).tolist() == target_cell.tolist()
 
 
 def test_activation_checkpointing_gives_the_same_gradients(make_agent, make_batch):
     agent = make_agent().train()
     batch = make_batch(agent)
+    torch.manual_seed(0)  # the same box-token jitter in both passes
     agent(batch)[0].backward()
     plain = {n: p.grad.clone() for n, p in agent.named_parameters()}
     agent.zero_grad()
     agent.activation_checkpointing_enable()
     assert agent.vision_backbone.featurizer.grad_checkpointing
+    torch.manual_seed(0)
     agent(batch)[0].backward()
     for name, param in agent.named_parameters():
         torch.testing.assert_close(param.grad, plain[name], rtol=1e-4, atol=1e-6, msg=name)

@@ -9,6 +9,7 @@ import pytest
 
 from openfly_agent.model.config import (
     LLAMA2_7B_ARCH,
+    TINY_CNN_VISION,
     TINY_LLM,
     TINY_VISION,
     LLMConfig,
@@ -64,7 +65,12 @@ def test_validation_messages_say_what_to_change():
 
 def test_tiny_only_fields_are_filled_for_tiny_and_rejected_for_7b():
     tiny = tiny_config()
-    assert {name: getattr(tiny.vision, name) for name in TINY_VISION} == TINY_VISION
+    assert {name: getattr(tiny.vision, name) for name in TINY_CNN_VISION} == TINY_CNN_VISION
+    assert all(getattr(tiny.vision, name) is None for name in TINY_VISION)  # the ViT sizes: not the CNN's
+    vit = VisionConfig(preset="tiny", image_size=112, patch_size=14)
+    assert {name: getattr(vit, name) for name in TINY_VISION} == TINY_VISION
+    with pytest.raises(ValueError, match=r"vision.width=96 is read by the tiny preset only"):
+        VisionConfig(width=96)  # tiny-cnn
     assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
     big = openfly_7b_config()
     assert all(getattr(big.vision, name) is None for name in TINY_VISION)
@@ -74,7 +80,8 @@ def test_tiny_only_fields_are_filled_for_tiny_and_rejected_for_7b():
         LLMConfig(preset="llama2-7b", hidden_size=4096)
     with pytest.raises(ValueError, match=r"vision.depth=24 is read by the tiny preset only"):
         VisionConfig(preset="dinosiglip-224px", image_size=224, depth=24)
-    assert VisionConfig(width=64, num_heads=2).fused_width == TINY_VISION["fused_width"]  # unset: the default
+    vit = VisionConfig(preset="tiny", image_size=112, patch_size=14, width=64, num_heads=2)
+    assert vit.fused_width == TINY_VISION["fused_width"]  # unset: the default
 
 
 def test_config_json_of_older_7b_checkpoints_still_loads():

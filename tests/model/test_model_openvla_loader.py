@@ -11,6 +11,7 @@ from timm.models.vision_transformer import VisionTransformer
 from transformers import LlamaConfig, LlamaForCausalLM
 
 from openfly_agent.model.openvla_loader import (
+    NEW_MODULE_PREFIXES,
     agent_from_openvla_checkpoint,
     load_openvla_weights,
     read_openvla_norm_stats,
@@ -82,7 +83,7 @@ def test_synthetic_openvla_checkpoint_loads_by_name(make_agent, tmp_path):
     _write_sharded(state, tmp_path / "ckpt")
     report = load_openvla_weights(agent, tmp_path / "ckpt")
 
-    assert report.missing_new == sorted(k for k in agent.state_dict() if k.startswith("grounding_head."))
+    assert report.missing_new == sorted(k for k in agent.state_dict() if k.startswith(NEW_MODULE_PREFIXES))
     assert report.missing_new  # the only thing the checkpoint lacks
     last = agent.model_cfg.vision.depth - 1
     assert sorted(report.unused) == sorted(
@@ -142,10 +143,10 @@ def test_export_round_trip(make_agent):
     source, target = make_agent(seed=1), make_agent(seed=2)
     exported = to_openvla_state_dict(source)
     assert any(k.endswith("ls1.scale_factor") for k in exported)
-    assert not any(k.endswith(".gamma") or k.startswith("grounding_head.") for k in exported)
+    assert not any(k.endswith(".gamma") or k.startswith(NEW_MODULE_PREFIXES) for k in exported)
     load_openvla_weights(target, exported)
     for key, value in source.state_dict().items():
-        if not key.startswith("grounding_head."):
+        if not key.startswith(NEW_MODULE_PREFIXES):
             assert torch.equal(target.state_dict()[key], value), key
 
 
@@ -159,6 +160,10 @@ def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_confi
     assert agent.config.norm_stats == NORM_STATS and report.missing_new
     assert all(not p.is_meta for p in agent.parameters())
     assert torch.isfinite(agent.grounding_head.box_queries).all()
+    # the new modules (not in an OpenVLA checkpoint) are freshly initialised: give them the reference's weights,
+    # since the box token feeds the grounding head's box to the action
+    for name in ("grounding_head", "box_token_embed"):
+        getattr(agent, name).load_state_dict(getattr(reference, name).state_dict())
     frame = torch.randint(0, 256, (56, 56, 3), dtype=torch.uint8).numpy()
     obs = [{"episode_id": "a", "instruction": "Fly to the red tower.", "rgb": frame}]
     torch.testing.assert_close(

@@ -153,7 +153,12 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
     pixels_at = {t: spy.pixels[t][0] for t in range(steps)}  # what the backbone saw when frame t was current
     (result,) = agent.predict_step([obs(steps)])
     inference_pixels = spy.pixels[-1][0]
-    inference_embeds, inference_mask = spy.llm[-1]
+    # the prefill, then (box token) one cached step that embeds the predicted target box
+    box_token = agent.box_token_embed is not None
+    inference_embeds, inference_mask = spy.llm[-2] if box_token else spy.llm[-1]
+    if box_token:
+        inference_embeds = torch.cat([inference_embeds, spy.llm[-1][0]], dim=1)
+        inference_mask = torch.cat([inference_mask, spy.llm[-1][1][:, -1:]], dim=1)
 
     # the training sample of step `steps`: its memory = the sets the agent holds, with its predicted boxes
     sample = {
@@ -161,8 +166,9 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
         C.OBS_RGB: frames[steps],
         C.MEMORY: [[(frames[j], np.asarray(boxes[j]), True) for j in frame_set] for frame_set in memory_sets],
         C.ACTION: result.action,
-        C.BOX: np.zeros(4, np.float32),
-        C.BOX_VISIBLE: False,
+        # the target box of the step: the one inference predicted, so the box tokens are the same
+        C.BOX: np.asarray(result.box, np.float32),
+        C.BOX_VISIBLE: result.box_visible,
     }
     cfg = agent.model_cfg
     batch = NavigationCollator(agent.processor, cfg.memory.capacity, cfg.keyframes.set_size)([sample])
@@ -181,7 +187,7 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
             assert torch.equal(batch[C.MEMORY_PIXEL_VALUES][0, k, s], pixels_at[frame])
     # the decoder input: every attended position but the action token, and its mask
     embeds, mask = spy.llm[0]
-    attended = embeds[0][mask[0].bool()][:-1]  # (L, D): [BOS] [memory] [current] [prompt]
+    attended = embeds[0][mask[0].bool()][:-1]  # (L, D): [BOS] [memory] [current] [prompt] ([BOX])
     assert inference_mask.all() and attended.shape == inference_embeds[0].shape
     torch.testing.assert_close(attended, inference_embeds[0], rtol=1e-5, atol=1e-5)
     assert logs["action_accuracy"] == 1.0  # the prefill's last position predicts the action inference chose

@@ -1,0 +1,7 @@
+"""The navigation recipe as one resumable command: data -> grounding stage -> navigation stage -> DAgger rounds ->
+closed-loop evaluation with every baseline (docs/TRAINING.md, "The recipe")."""
+
+from openfly_agent.recipe.config import DaggerSettings, EvalSettings, RecipeConfig, StageBudget
+from openfly_agent.recipe.run import recipe_steps, run_recipe
+
+__all__ = ["DaggerSettings", "EvalSettings", "RecipeConfig", "StageBudget", "recipe_steps", "run_recipe"]

@@ -1,0 +1,57 @@
+"""`python -m openfly_agent.recipe --config_path configs/recipe/main_job.yaml [--<field>=VALUE ...]`
+
+Runs the navigation recipe (openfly_agent/recipe/run.py); run the same command again to resume.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+import draccus
+
+from openfly_agent.recipe.config import RecipeConfig
+from openfly_agent.recipe.run import run_recipe
+from openfly_agent.utils.cli_help import UnknownOptionError, config_help, wants_help, without_help
+from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.errors import root_cause
+from openfly_agent.utils.logging_utils import setup_logging
+
+PROG = "python -m openfly_agent.recipe"
+DESCRIPTION = (
+    "the navigation recipe as one resumable command: dataset -> grounding data -> grounding stage -> navigation "
+    "stage -> DAgger rounds -> closed-loop evaluation with every baseline (docs/TRAINING.md, 'The recipe')"
+)
+EXAMPLES = (
+    f"{PROG} --config_path configs/recipe/main_job.yaml          # the README's main job (~30 min on 2 cores)",
+    f"{PROG} --config_path configs/recipe/tiny-recipe.yaml --output_dir outputs/recipe",
+)
+logger = logging.getLogger("openfly_agent.recipe")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if wants_help(args):
+        cfg = parse_config(RecipeConfig, without_help(args))
+        sys.stdout.write(config_help(RecipeConfig, cfg, PROG, DESCRIPTION, EXAMPLES))
+        return 0
+    try:
+        cfg = parse_config(RecipeConfig, args)
+    except (UnknownOptionError, ValueError, draccus.utils.ParsingError) as err:
+        sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
+        return 2
+    setup_logging()
+    try:
+        run_recipe(cfg)
+    except RuntimeError as err:
+        sys.stderr.write(f"{PROG}: {err}\n")
+        return 1
+    except KeyboardInterrupt:
+        sys.stderr.write(f"{PROG}: interrupted; run the same command again to resume\n")
+        return 130
+    logger.info("recipe complete: table in %s/eval/summary.md", cfg.output_dir)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,86 @@
+"""`RecipeConfig`: every stage of the navigation recipe and its budget (configs/recipe/*.yaml)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from openfly_agent import constants as C
+
+
+def _check(condition: bool, message: str) -> None:
+    if not condition:
+        raise ValueError(message)
+
+
+@dataclass
+class StageBudget:
+    """One training stage: it stops at `steps` or after `minutes`, whichever comes first; steps 0 skips it."""
+
+    steps: int = 1000  # optimizer steps (0: the stage is skipped)
+    minutes: float = 10.0  # wall-clock cap of the stage's training (train.py --time_limit_minutes)
+    args: list[str] = field(default_factory=list)  # more train.py overrides, e.g. ["--optim.lr=5e-4"]
+
+    def __post_init__(self) -> None:
+        _check(self.steps >= 0, f"steps must be >= 0, got {self.steps}")
+        _check(self.minutes > 0, f"minutes must be > 0, got {self.minutes}")
+
+
+@dataclass
+class DaggerSettings:
+    """DAgger rounds: the latest agent flies train episodes, the A* expert labels every visited state, and the
+    agent trains again on the original data plus every round's rollouts (toolchain/dagger_rounds.py)."""
+
+    rounds: int = 1  # 0: no DAgger
+    episodes: int = 300  # rollouts per round (train episodes drawn without replacement)
+    max_policy_steps: int = 40  # agent-flown states per rollout at most; then the expert flies to the goal
+    expert_mix: float = 0.0  # probability that the expert's action is flown instead of the agent's
+    num_envs: int = 16  # rollouts in lockstep (the agent's batch)
+    train: StageBudget = field(default_factory=lambda: StageBudget(steps=300, minutes=5.0))
+
+    def __post_init__(self) -> None:
+        _check(self.rounds >= 0, f"dagger.rounds must be >= 0, got {self.rounds}")
+        _check(self.episodes >= 1, f"dagger.episodes must be >= 1, got {self.episodes}")
+
+
+@dataclass
+class EvalSettings:
+    """The closed-loop evaluation at the end (eval.py on the embedded simulator)."""
+
+    # the test splits, evaluated in full by default
+    splits: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
+    # evaluated next to the agent (box_servo: the reflex on the true target box, the perception bar)
+    baselines: list[str] = field(default_factory=lambda: ["random", "stop", "forward", "oracle", "box_servo"])
+    max_episodes: int = 0  # per split, evenly spaced (0: the full splits)
+    batch_size: int = 16  # episodes in lockstep
+    torch_threads: int = 2  # torch threads of the evaluation process
+
+    def __post_init__(self) -> None:
+        _check(self.max_episodes >= 0, f"eval.max_episodes must be >= 0, got {self.max_episodes}")
+
+
+@dataclass
+class RecipeConfig:
+    """`python -m openfly_agent.recipe`: the stages in order, each skipped when its output is complete.
+
+    Relative paths: outputs are relative to the working directory, configs are read from it or else from the
+    repository (as everywhere in the project).
+    """
+
+    output_dir: str = "outputs/recipe"  # grounding/, navigation/, dagger/r<k>/, eval/ and recipe_state.json
+    dataset_root: str = "outputs/datasets/embedded-small"  # generated when missing
+    toolchain_config: str = "configs/toolchain/embedded-small.yaml"  # how the dataset is generated
+    grounding_root: str = "outputs/datasets/grounding-small"  # the referring-expression dataset (generated)
+    train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
+    processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
+    torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts
+    grounding: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=8.0))
+    navigation: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=10.0))
+    dagger: DaggerSettings = field(default_factory=DaggerSettings)
+    eval: EvalSettings = field(default_factory=EvalSettings)
+
+    def __post_init__(self) -> None:
+        _check(self.processes >= 1, f"processes must be >= 1, got {self.processes}")
+        _check(self.torch_threads >= 1, f"torch_threads must be >= 1, got {self.torch_threads}")
+        _check(
+            self.navigation.steps > 0, "navigation.steps must be > 0: the recipe trains a navigating agent"
+        )

@@ -1,0 +1,204 @@
+"""Run the recipe's stages in order as child processes, skipping those already complete.
+
+Each stage is the project's own command (the toolchain, `train.py` under accelerate, `eval.py`), so the recipe
+is exactly what a user could type, and each of them resumes on its own: an interrupted stage continues where it
+stopped on the next run. A stage is complete when its marker file exists (written after the command exits 0);
+`recipe_state.json` records every stage's command and wall time.
+
+    grounding data -> grounding stage -> navigation stage (init: grounding, matching tensors)
+        -> DAgger round k: rollouts of the latest agent + training on all data (init: the latest agent)
+        -> closed-loop evaluation of the final agent with every baseline
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from openfly_agent.recipe.config import RecipeConfig, StageBudget
+from openfly_agent.utils.config import REPO_ROOT, resolve_config_path
+from openfly_agent.utils.processes import start_group, stop_group
+
+logger = logging.getLogger(__name__)
+
+DONE_MARKER = ".recipe_done"
+STATE_FILE = "recipe_state.json"
+KIND_DATA, KIND_TRAIN, KIND_EVAL = "data", "train", "eval"
+
+
+@dataclass
+class RecipeStep:
+    """One command of the recipe.
+
+    Attributes:
+        name: the stage's name in logs and in recipe_state.json ("navigation", "dagger-r1-train", ...).
+        kind: data | train | eval.
+        command: the argument list (resume flags are added when the step runs).
+        folder: where it writes; its marker `folder/.recipe_done` says the step is complete.
+        env: environment variables it needs (thread counts).
+    """
+
+    name: str
+    kind: str
+    command: list[str]
+    folder: Path
+    env: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def done(self) -> bool:
+        return (self.folder / DONE_MARKER).is_file()
+
+
+def _train_launcher(cfg: RecipeConfig) -> tuple[list[str], dict[str, str]]:
+    """accelerate with `processes` one-thread processes (gloo), or one process of `torch_threads` threads."""
+    if cfg.processes > 1:
+        accelerate_config = str(resolve_config_path("configs/accelerate/cpu_2proc.yaml"))
+        launch = [sys.executable, "-m", "accelerate.commands.launch", "--config_file", accelerate_config]
+        return launch + ["--num_processes", str(cfg.processes)], {"OMP_NUM_THREADS": "1"}
+    return [sys.executable], {"OMP_NUM_THREADS": str(cfg.torch_threads)}
+
+
+def _train_step(
+    cfg: RecipeConfig, name: str, folder: Path, budget: StageBudget, args: list[str]
+) -> RecipeStep:
+    launcher, env = _train_launcher(cfg)
+    command = launcher + [
+        str(REPO_ROOT / "train.py"),
+        "--config_path", str(resolve_config_path(cfg.train_config)),
+        f"--data.root={cfg.dataset_root}",
+        f"--output_dir={folder}",
+        f"--steps={budget.steps}",
+        f"--time_limit_minutes={budget.minutes}",
+        *args,
+        *budget.args,
+    ]  # fmt: skip
+    return RecipeStep(name, KIND_TRAIN, command, folder, env)
+
+
+def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
+    """The recipe's commands in order (nothing is run)."""
+    out = Path(cfg.output_dir)
+    toolchain = [sys.executable, "-m", "openfly_agent.toolchain"]
+    steps = [
+        RecipeStep(
+            "dataset",
+            KIND_DATA,
+            toolchain + ["generate", "--config", str(resolve_config_path(cfg.toolchain_config)),
+                         f"--output_dir={cfg.dataset_root}"],
+            out / "dataset",
+        ),
+    ]  # fmt: skip
+    init: list[str] = []
+    if cfg.grounding.steps:
+        steps.append(
+            RecipeStep(
+                "grounding-data",
+                KIND_DATA,
+                toolchain
+                + ["grounding", f"--source_root={cfg.dataset_root}", f"--output_dir={cfg.grounding_root}"],
+                out / "grounding-data",
+            )
+        )
+        grounding_args = ["--stage=grounding", f"--data.grounding_root={cfg.grounding_root}"]
+        steps.append(_train_step(cfg, "grounding", out / "grounding", cfg.grounding, grounding_args))
+        init = [f"--init.checkpoint={out / 'grounding'}", "--init.matching=true"]
+    steps.append(_train_step(cfg, "navigation", out / "navigation", cfg.navigation, init))
+    latest, rounds = out / "navigation", []
+    for k in range(1, cfg.dagger.rounds + 1):
+        round_dir = out / "dagger" / f"r{k}"
+        rounds.append(str(round_dir / "data"))
+        d = cfg.dagger
+        steps.append(
+            RecipeStep(
+                f"dagger-r{k}-rollouts",
+                KIND_DATA,
+                toolchain + [
+                    "dagger-round", f"--checkpoint={latest}", f"--torch_threads={cfg.torch_threads}",
+                    f"--source_root={cfg.dataset_root}", f"--output_dir={round_dir / 'data'}",
+                    f"--round_name=r{k}", f"--episodes={d.episodes}", f"--max_policy_steps={d.max_policy_steps}",
+                    f"--expert_mix={d.expert_mix}", f"--num_envs={d.num_envs}", f"--seed={k}",
+                ],
+                round_dir / "data",
+                {"OMP_NUM_THREADS": str(cfg.torch_threads)},
+            )
+        )  # fmt: skip
+        round_args = [
+            f"--init.checkpoint={latest}",
+            "--init.matching=true",
+            "--data.extra_train_roots=[" + ",".join(rounds) + "]",
+        ]
+        steps.append(_train_step(cfg, f"dagger-r{k}-train", round_dir / "train", d.train, round_args))
+        latest = round_dir / "train"
+    e = cfg.eval
+    steps.append(
+        RecipeStep(
+            "eval",
+            KIND_EVAL,
+            [
+                sys.executable, str(REPO_ROOT / "eval.py"), "--checkpoint", str(latest), "--sim", "embedded",
+                "--split", *e.splits, "--baselines", *e.baselines, "--dataset_root", cfg.dataset_root,
+                "--output_dir", str(out / "eval"), "--batch_size", str(e.batch_size),
+                "--torch_threads", str(e.torch_threads),
+                *(["--max_episodes", str(e.max_episodes)] if e.max_episodes else []),
+            ],
+            out / "eval",
+            {"OMP_NUM_THREADS": str(e.torch_threads)},
+        )
+    )  # fmt: skip
+    return steps
+
+
+def _with_resume(step: RecipeStep, retrained: bool) -> list[str]:
+    """The command as run now: training resumes an interrupted run; eval starts over after new training."""
+    if step.kind == KIND_TRAIN:
+        return step.command + [f"--resume={(step.folder / 'checkpoints' / 'last').is_file()}".lower()]
+    if step.kind == KIND_EVAL:
+        return step.command + [f"--overwrite={str(retrained).lower()}"]
+    return step.command
+
+
+def run_recipe(cfg: RecipeConfig) -> dict:
+    """Run every incomplete step of `cfg` in order; returns recipe_state.json's content.
+
+    Raises:
+        RuntimeError: a step exited non-zero (its name and exit code; its output went to the console).
+    """
+    out = Path(cfg.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    state_path = out / STATE_FILE
+    state = json.loads(state_path.read_text()) if state_path.is_file() else {"steps": {}}
+    state["config"] = asdict(cfg)
+    retrained = False
+    steps = recipe_steps(cfg)
+    for index, step in enumerate(steps, 1):
+        if step.done:
+            logger.info(
+                "[%d/%d] %s: complete (delete %s to run it again)", index, len(steps), step.name, step.folder
+            )
+            continue
+        command = _with_resume(step, retrained)
+        logger.info("[%d/%d] %s: %s", index, len(steps), step.name, " ".join(command))
+        start = time.time()
+        proc = start_group(command, env={**os.environ, **step.env})
+        try:
+            code = proc.wait()
+        except (
+            BaseException
+        ):  # Ctrl-C / SIGTERM: the stage's processes stop too (training saves a checkpoint)
+            stop_group(proc, grace_s=60.0)
+            raise
+        if code != 0:
+            raise RuntimeError(f"recipe step {step.name} failed with exit code {code}: {' '.join(command)}")
+        seconds = time.time() - start
+        step.folder.mkdir(parents=True, exist_ok=True)
+        (step.folder / DONE_MARKER).write_text(json.dumps({"seconds": round(seconds, 1)}) + "\n")
+        retrained = retrained or step.kind == KIND_TRAIN
+        state["steps"][step.name] = {"command": command, "seconds": round(seconds, 1)}
+        state_path.write_text(json.dumps(state, indent=2) + "\n")
+        logger.info("[%d/%d] %s: done in %.0f s", index, len(steps), step.name, seconds)
+    return state

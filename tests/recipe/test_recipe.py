@@ -1,0 +1,107 @@
+"""The recipe's chain of commands and its resumable runner."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from openfly_agent.recipe import DaggerSettings, RecipeConfig, StageBudget, recipe_steps, run_recipe
+from openfly_agent.recipe import run as recipe_run
+from openfly_agent.recipe.__main__ import main as recipe_main
+from openfly_agent.recipe.run import DONE_MARKER, KIND_DATA, KIND_EVAL, KIND_TRAIN, RecipeStep
+from openfly_agent.utils.config import load_yaml_config
+
+
+def _flag(command: list[str], name: str) -> str | None:
+    """The value of `--name=value` or `--name value` in a command."""
+    for i, arg in enumerate(command):
+        if arg.startswith(f"--{name}="):
+            return arg.split("=", 1)[1]
+        if arg == f"--{name}":
+            return command[i + 1]
+    return None
+
+
+def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
+    cfg = RecipeConfig(output_dir=str(tmp_path / "r"), dagger=DaggerSettings(rounds=2))
+    steps = recipe_steps(cfg)
+    assert [s.name for s in steps] == [
+        "dataset", "grounding-data", "grounding", "navigation", "dagger-r1-rollouts", "dagger-r1-train",
+        "dagger-r2-rollouts", "dagger-r2-train", "eval",
+    ]  # fmt: skip
+    by_name = {s.name: s for s in steps}
+    out = tmp_path / "r"
+    assert _flag(by_name["grounding"].command, "stage") == "grounding"
+    assert _flag(by_name["navigation"].command, "init.checkpoint") == str(out / "grounding")
+    assert _flag(by_name["navigation"].command, "init.matching") == "true"
+    assert _flag(by_name["dagger-r1-rollouts"].command, "checkpoint") == str(out / "navigation")
+    assert _flag(by_name["dagger-r2-rollouts"].command, "checkpoint") == str(out / "dagger" / "r1" / "train")
+    r1, r2 = out / "dagger" / "r1" / "data", out / "dagger" / "r2" / "data"
+    assert _flag(by_name["dagger-r1-train"].command, "data.extra_train_roots") == f"[{r1}]"
+    assert _flag(by_name["dagger-r2-train"].command, "data.extra_train_roots") == f"[{r1},{r2}]"
+    assert _flag(by_name["eval"].command, "checkpoint") == str(out / "dagger" / "r2" / "train")
+    assert "box_servo" in by_name["eval"].command and _flag(by_name["eval"].command, "max_episodes") is None
+    assert _flag(by_name["grounding"].command, "steps") == str(cfg.grounding.steps)
+    assert _flag(by_name["dagger-r2-train"].command, "time_limit_minutes") == str(cfg.dagger.train.minutes)
+
+
+def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluated(tmp_path):
+    cfg = RecipeConfig(
+        output_dir=str(tmp_path), grounding=StageBudget(steps=0), dagger=DaggerSettings(rounds=0)
+    )
+    steps = recipe_steps(cfg)
+    assert [s.name for s in steps] == ["dataset", "navigation", "eval"]
+    assert _flag(steps[1].command, "init.checkpoint") is None
+    assert _flag(steps[2].command, "checkpoint") == str(tmp_path / "navigation")
+
+
+def test_the_shipped_recipes_parse():
+    for name in ("main_job", "tiny-recipe"):
+        cfg = load_yaml_config(RecipeConfig, f"configs/recipe/{name}.yaml", [])
+        assert cfg.navigation.steps > 0 and cfg.eval.max_episodes == 0  # full test splits
+
+
+def _script(tmp_path, name: str, kind: str, code: str) -> RecipeStep:
+    return RecipeStep(name, kind, [sys.executable, "-c", code], tmp_path / name)
+
+
+def test_runner_skips_complete_steps_resumes_training_and_reevaluates_new_weights(tmp_path, monkeypatch):
+    log = tmp_path / "calls.txt"
+    record = f"import sys; open({str(log)!r}, 'a').write(' '.join(sys.argv[1:]) + '\\n')"
+    steps = [
+        _script(tmp_path, "data", KIND_DATA, record),
+        _script(tmp_path, "train", KIND_TRAIN, record),
+        _script(tmp_path, "eval", KIND_EVAL, record),
+    ]
+    monkeypatch.setattr(recipe_run, "recipe_steps", lambda cfg: steps)
+    (tmp_path / "train" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "train" / "checkpoints" / "last").write_text("step-000002\n")  # an interrupted run
+    state = run_recipe(RecipeConfig(output_dir=str(tmp_path / "out")))
+    assert log.read_text().splitlines() == ["", "--resume=true", "--overwrite=true"]
+    assert all((tmp_path / name / DONE_MARKER).is_file() for name in ("data", "train", "eval"))
+    assert set(state["steps"]) == {"data", "train", "eval"}
+    (tmp_path / "eval" / DONE_MARKER).unlink()
+    run_recipe(RecipeConfig(output_dir=str(tmp_path / "out")))  # only eval runs, on unchanged weights
+    assert log.read_text().splitlines()[3:] == ["--overwrite=false"]
+
+
+def test_a_failing_step_stops_the_recipe_and_is_not_marked(tmp_path, monkeypatch):
+    steps = [
+        _script(tmp_path, "bad", KIND_DATA, "raise SystemExit(3)"),
+        _script(tmp_path, "next", KIND_DATA, ""),
+    ]
+    monkeypatch.setattr(recipe_run, "recipe_steps", lambda cfg: steps)
+    with pytest.raises(RuntimeError, match="recipe step bad failed with exit code 3"):
+        run_recipe(RecipeConfig(output_dir=str(tmp_path / "out")))
+    assert not (tmp_path / "bad" / DONE_MARKER).exists() and not (tmp_path / "next").exists()
+    assert recipe_main([f"--output_dir={tmp_path / 'out'}"]) == 1
+
+
+def test_command_line_errors_and_help(capsys):
+    assert recipe_main(["--navigation.stepz=3"]) == 2
+    assert "navigation.steps" in capsys.readouterr().err
+    assert recipe_main(["--navigation.steps=0"]) == 2
+    assert recipe_main(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert "--dagger.rounds INT" in text and "(default: 1500)" in text and "examples:" in text

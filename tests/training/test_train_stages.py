@@ -1,0 +1,101 @@
+"""Stage chaining: a grounding stage on referring expressions, then a navigation stage that starts from it."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from conftest import built_agent, checkpoint_weights, make_config, train_in_process
+from safetensors.torch import save_file
+
+from openfly_agent.toolchain.config import GroundingDataConfig
+from openfly_agent.toolchain.grounding import generate_grounding
+from openfly_agent.training.init_matching import load_matching_weights
+from openfly_agent.training.preflight import PreflightError
+
+
+@pytest.fixture(scope="module")
+def grounding_root(generated_dataset, tmp_path_factory):
+    root = tmp_path_factory.mktemp("grounding") / "g"
+    generate_grounding(
+        GroundingDataConfig(source_root=str(generated_dataset), output_dir=str(root), yaw_copies=0)
+    )
+    return root
+
+
+@pytest.fixture(scope="module")
+def grounding_run(generated_dataset, grounding_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("grounding_stage")
+    cfg = make_config(
+        generated_dataset, out, stage="grounding", data__grounding_root=str(grounding_root),
+        freeze_stage="full", model__action_head__box_token="false",
+    )  # fmt: skip
+    return out, train_in_process(cfg)
+
+
+def test_grounding_stage_trains_on_expressions_and_reports_target_iou(grounding_run):
+    out, result = grounding_run
+    assert result.state.step == 4
+    final = result.final_metrics
+    assert "action_accuracy" not in final and "majority_class_rate" not in final  # no action targets
+    assert 0.0 <= final["box_iou"] <= 1.0 and final["samples"] == 8
+    records = [json.loads(line) for line in (out / "logs" / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in records if "train/grounding_loss" in r]
+    assert train and all(r["train/grounding_loss"] > 0 for r in train)
+
+
+def test_navigation_stage_loads_the_matching_weights_and_lists_the_new_ones(
+    generated_dataset, grounding_run, tmp_path, caplog
+):
+    grounding_dir, _ = grounding_run
+    cfg = make_config(
+        generated_dataset, tmp_path, init__checkpoint=str(grounding_dir), init__matching="true",
+        freeze_stage="full", steps=1,
+    )  # fmt: skip
+    with caplog.at_level("INFO", logger="openfly_agent.training.builder"):
+        agent = built_agent(cfg)
+    line = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("initialised from"))
+    assert "new 4 [box_token_embed.fc1.bias" in line and "other shape 0" in line and "unused 0" in line
+    before = checkpoint_weights(grounding_dir / "checkpoints" / "step-000004")
+    after = agent.state_dict()
+    assert {k for k in after if k not in before} == {k for k in after if k.startswith("box_token_embed.")}
+    for key, tensor in before.items():  # every tensor of the grounding stage, the embeddings included
+        torch.testing.assert_close(after[key], tensor, rtol=0, atol=0, msg=key)
+    assert (grounding_dir / "tokenizer").is_dir() and not (tmp_path / "tokenizer").exists()  # its tokenizer
+
+
+def test_grounding_stage_without_a_root_is_refused(generated_dataset, tmp_path):
+    from openfly_agent.training.config import TrainConfig
+
+    cfg = make_config(generated_dataset, tmp_path)
+    with pytest.raises(ValueError, match="data.grounding_root"):
+        TrainConfig(**{**vars(cfg), "stage": "grounding"})
+
+
+def test_matching_loads_name_and_shape_matches_only(tmp_path):
+    saved = torch.nn.ModuleDict(
+        {"a": torch.nn.Linear(3, 4), "b": torch.nn.Linear(2, 2), "old": torch.nn.Linear(1, 1)}
+    )
+    folder = tmp_path / "ckpt"
+    folder.mkdir()
+    (folder / "config.json").write_text("{}")
+    save_file({k: v.contiguous() for k, v in saved.state_dict().items()}, str(folder / "model.safetensors"))
+    model = torch.nn.ModuleDict(
+        {"a": torch.nn.Linear(3, 4), "b": torch.nn.Linear(2, 3), "new": torch.nn.Linear(1, 1)}
+    )
+    b_before = model["b"].weight.detach().clone()
+    report = load_matching_weights(model, folder)
+    assert report.loaded == ["a.bias", "a.weight"]
+    assert report.reshaped == ["b.bias", "b.weight"] and report.unused == ["old.bias", "old.weight"]
+    assert report.new == ["new.bias", "new.weight"]
+    assert torch.equal(model["a"].weight, saved["a"].weight) and torch.equal(model["b"].weight, b_before)
+    assert "loaded 2 tensors; new 2 [new.bias, new.weight]" in report.summary()
+
+
+def test_matching_refuses_a_missing_checkpoint(generated_dataset, tmp_path):
+    cfg = make_config(
+        generated_dataset, tmp_path, init__checkpoint=str(tmp_path / "nope"), init__matching="true"
+    )
+    with pytest.raises(PreflightError, match="does not exist"):
+        train_in_process(cfg)
