@@ -1,7 +1,7 @@
 """Imports go downwards only (DESIGN.md layout): L0 constants/utils, L1 model|data|sim, L2 toolchain|training|eval, L3 hub.
 
 Also: the package's own modules are imported at the top of a module (an import inside a function says why with a
-`# lazy: <reason>` comment).
+`# lazy: <reason>` comment), and the tests mirror the package (tests/<subpackage>/).
 """
 
 from __future__ import annotations
@@ -227,3 +227,31 @@ def test_own_modules_are_imported_at_module_top():
         for line in unexplained_function_imports(path)
     ]
     assert not found, "move these to the top, or say why not with `# lazy: <reason>`:\n" + "\n".join(found)
+
+
+# --- the tests mirror the package ---------------------------------------------------------------------------
+
+TESTS = Path(__file__).resolve().parent
+REPOSITORY_WIDE_TESTS = {
+    "test_cli_help.py",
+    "test_docs.py",
+    "test_eval_e2e.py",
+    "test_layering.py",
+    "test_paths.py",
+}
+
+
+def test_tests_mirror_the_package_layout():
+    """The tests of a subpackage live in tests/<subpackage>/; only repository-wide tests sit at the root."""
+    subpackages = {init.parent.name for init in PACKAGE.glob("*/__init__.py")}
+    problems = [
+        f"tests/{path.name}: the tests of openfly_agent/<subpackage>/ go in tests/<subpackage>/"
+        for path in sorted(TESTS.glob("test_*.py"))
+        if path.name not in REPOSITORY_WIDE_TESTS
+    ]
+    problems += [
+        f"tests/{folder.name}/: no subpackage openfly_agent/{folder.name}/"
+        for folder in sorted(TESTS.iterdir())
+        if folder.is_dir() and any(folder.glob("test_*.py")) and folder.name not in subpackages
+    ]
+    assert not problems, "\n".join(problems)
