@@ -11,9 +11,19 @@ from __future__ import annotations
 
 import sys
 
+from openfly_agent.data.schema import SchemaError
 from openfly_agent.eval.cli import normalize_argv
-from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.config import EvalConfig, EvalInputError
+from openfly_agent.eval.run import run as evaluate
+from openfly_agent.utils.cli_help import (
+    UnknownOptionError,
+    config_help,
+    config_path_of,
+    wants_help,
+    without_help,
+)
 from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import RecordError, root_cause
 from openfly_agent.utils.logging_utils import setup_logging
 
@@ -37,8 +47,6 @@ EXAMPLES = (
 
 def help_text(argv: list[str]) -> str:
     """`--help`: every option with the value the same command line without `--help` would use."""
-    from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
-
     argv = normalize_argv(without_help(argv))
     config = config_path_of(argv)
     cfg = None
@@ -56,11 +64,6 @@ def help_text(argv: list[str]) -> str:
 def run(argv: list[str]) -> int:
     """Parse the command line, run the evaluation, print the comparison table (rank 0); the exit code."""
     from draccus.utils import ParsingError
-
-    from openfly_agent.data.schema import SchemaError
-    from openfly_agent.eval.config import EvalInputError
-    from openfly_agent.eval.run import run as evaluate
-    from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
 
     if wants_help(argv):
         print(help_text(argv), end="")
@@ -97,8 +100,6 @@ def run(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (Ctrl-C: one line and 130, no traceback)."""
-    from openfly_agent.utils.distributed import close_process_group
-
     try:
         code = run(list(sys.argv[1:] if argv is None else argv))
     except KeyboardInterrupt:

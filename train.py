@@ -18,6 +18,9 @@ from __future__ import annotations
 import logging
 import sys
 
+from openfly_agent.data.openfly_reader import annotation_path
+from openfly_agent.toolchain.config import GenerateConfig
+from openfly_agent.toolchain.generate import generate
 from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_default_config: tests/test_docs.py)
     DEFAULT_CONFIG,
     data_error_message,
@@ -26,6 +29,11 @@ from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_defaul
     parse_args,
     with_default_config,
 )
+from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
+from openfly_agent.utils.config import load_yaml_config
+from openfly_agent.utils.distributed import close_process_group
+from openfly_agent.utils.errors import root_cause
+from openfly_agent.utils.logging_utils import setup_logging
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
@@ -37,18 +45,13 @@ def ensure_dataset(cfg) -> None:
     """Generate the dataset with the toolchain when `data.root` has no train split (rank 0; others wait)."""
     from accelerate import PartialState
 
-    from openfly_agent.data.openfly_reader import annotation_path
-    from openfly_agent.training.accelerator import use_cpu
+    from openfly_agent.training.accelerator import use_cpu  # lazy: torch + accelerate; --help stays fast
 
     if annotation_path(cfg.data.root, cfg.data.train_split).is_file() or not cfg.data.generate_if_missing:
         return
     state = PartialState(cpu=use_cpu(cfg))
     with state.main_process_first():
         if state.is_main_process:
-            from openfly_agent.toolchain.config import GenerateConfig
-            from openfly_agent.toolchain.generate import generate
-            from openfly_agent.utils.config import load_yaml_config
-
             logger.info("%s has no dataset: generating it with %s", cfg.data.root, cfg.data.toolchain_config)
             overrides = [f"--output_dir={cfg.data.root}"]  # write where training reads
             generate(load_yaml_config(GenerateConfig, cfg.data.toolchain_config, overrides))
@@ -75,10 +78,7 @@ def run(argv: list[str], state: dict) -> int:
     """Parse, check, train and report; `state["output_dir"]` is set as soon as it is known."""
     from draccus.utils import ParsingError
 
-    from openfly_agent.training import PreflightError, train
-    from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
-    from openfly_agent.utils.errors import root_cause
-    from openfly_agent.utils.logging_utils import setup_logging
+    from openfly_agent.training import PreflightError, train  # lazy: torch + transformers; --help stays fast
 
     if wants_help(argv):
         print(help_text(argv), end="")
@@ -109,8 +109,6 @@ def main(argv: list[str] | None = None) -> int:
     The process group is closed here, after `run` has returned and released the model, optimizer and loaders
     (utils/distributed.py explains why the order matters).
     """
-    from openfly_agent.utils.distributed import close_process_group
-
     state: dict = {}
     try:
         code = run(list(sys.argv[1:] if argv is None else argv), state)

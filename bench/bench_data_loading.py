@@ -24,6 +24,8 @@ from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore, decode_image, encode_image
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.writer import OpenFlyDatasetWriter
+from openfly_agent.model.action_tokenizer import ActionTokenizer
+from openfly_agent.model.tokenizer import train_bpe_tokenizer
 
 
 def synthetic_frame(size: int, rng: np.random.Generator) -> np.ndarray:
@@ -65,9 +67,7 @@ class EveryChangeSelector:
 
 def make_processor(texts: list[str]):
     """The model's input processor at 224 px (the 7B input size), with a BPE tokenizer trained on `texts`."""
-    from openfly_agent.model.action_tokenizer import ActionTokenizer
-    from openfly_agent.model.processor import OpenFlyProcessor
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.processor import OpenFlyProcessor  # lazy: transformers
 
     tokenizer = train_bpe_tokenizer(texts, vocab_size=512)
     actions = ActionTokenizer(vocab_end=len(tokenizer) + 256)

@@ -29,13 +29,20 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from openfly_agent.eval.agent_policy import AgentPolicy, load_agent  # noqa: E402
+from openfly_agent.eval.config import AgentSettings, EvalConfig  # noqa: E402
+from openfly_agent.eval.distributed import ProcessInfo  # noqa: E402
+from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env  # noqa: E402
+from openfly_agent.eval.rollout import LockstepRunner  # noqa: E402
+from openfly_agent.model.config import tiny_config  # noqa: E402
+from openfly_agent.model.tokenizer import train_bpe_tokenizer  # noqa: E402
+from openfly_agent.toolchain.config import GenerateConfig, RenderConfig, SceneConfig  # noqa: E402
+from openfly_agent.toolchain.generate import generate  # noqa: E402
+
 
 def _dataset(args) -> str:
     if args.dataset_root and (Path(args.dataset_root) / "Annotation").is_dir():
         return args.dataset_root
-    from openfly_agent.toolchain.config import GenerateConfig, RenderConfig, SceneConfig
-    from openfly_agent.toolchain.generate import generate
-
     root = tempfile.mkdtemp(prefix="eval-bench-")
     scenes = SceneConfig(
         train_seeds=[0], unseen_seeds=[1000], trajectories_per_scene=args.episodes, test_seen_fraction=0.9
@@ -49,11 +56,7 @@ def _dataset(args) -> str:
 def _agent(args, texts, device: str):
     import torch
 
-    from openfly_agent.eval.agent_policy import load_agent
-    from openfly_agent.eval.config import AgentSettings
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.config import tiny_config
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers; --help stays fast
 
     if args.checkpoint:
         return load_agent(args.checkpoint, AgentSettings(dtype="float32"), device)
@@ -64,11 +67,6 @@ def _agent(args, texts, device: str):
 
 def _measure(agent, episodes, cfg, batch: int, device: str) -> dict:
     import torch
-
-    from openfly_agent.eval.agent_policy import AgentPolicy
-    from openfly_agent.eval.distributed import ProcessInfo
-    from openfly_agent.eval.factory import embedded_sim_config, make_env
-    from openfly_agent.eval.rollout import LockstepRunner
 
     cfg.batch_size = batch
     env = make_env(cfg, ProcessInfo(), episodes, render=True)
@@ -113,9 +111,6 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
 
     import torch
-
-    from openfly_agent.eval.config import EvalConfig
-    from openfly_agent.eval.factory import load_splits
 
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -21,6 +21,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from openfly_agent.data.config import ReaderOptions  # noqa: E402
+from openfly_agent.data.openfly_reader import load_openfly_dataset  # noqa: E402
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(
@@ -38,9 +41,7 @@ def main() -> None:
 
     import torch
 
-    from openfly_agent.data.config import ReaderOptions
-    from openfly_agent.data.openfly_reader import load_openfly_dataset
-    from openfly_agent.data.predictability import run_probes
+    from openfly_agent.data.predictability import run_probes  # lazy: torch; --help stays fast
 
     torch.set_num_threads(args.threads)
     options = ReaderOptions(takeoff_landing=args.takeoff_landing)

@@ -24,6 +24,8 @@ import numpy as np
 import torch
 
 from openfly_agent.model.config import MemoryConfig, MergingConfig, ModelConfig, make_model_config
+from openfly_agent.model.random_init import materialize_random_
+from openfly_agent.model.tokenizer import train_bpe_tokenizer
 
 INSTRUCTIONS = [
     "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower.",
@@ -43,9 +45,7 @@ def history_variant(cfg: ModelConfig, history: str) -> ModelConfig:
 
 def build_agent(cfg: ModelConfig, device: str, dtype: torch.dtype):
     """A randomly initialised agent on `device` (7B: created on meta, materialised once, init there)."""
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.random_init import materialize_random_
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: transformers
 
     tokenizer = train_bpe_tokenizer(INSTRUCTIONS * 8, vocab_size=512)
     if cfg.llm.preset == "tiny":

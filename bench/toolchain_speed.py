@@ -24,9 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
+from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.toolchain.config import GenerateConfig, SceneConfig
+from openfly_agent.toolchain.generate import generate
 from openfly_agent.toolchain.pipeline import Rejected, plan_trajectory, prepare_scene
+from openfly_agent.toolchain.render import render_poses
 from openfly_agent.toolchain.scenes import embedded_scene
+from openfly_agent.toolchain.worker import default_simulator
 from openfly_agent.utils.config import load_yaml_config
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "toolchain" / "embedded-small.yaml"
@@ -78,9 +83,6 @@ def bench_planning(cfg: GenerateConfig, units: int):
 
 
 def bench_rendering(cfg: GenerateConfig, prepared, planned) -> None:
-    from openfly_agent.toolchain.render import render_poses
-    from openfly_agent.toolchain.worker import default_simulator
-
     sim = default_simulator(cfg)
     render_poses(sim, prepared.scene.scene_id, planned[0].seq.poses[:2], 0.0)  # context + scene upload
     start, cpu, frames = time.perf_counter(), _cpu_s(), 0
@@ -100,8 +102,6 @@ def bench_rendering(cfg: GenerateConfig, prepared, planned) -> None:
 
 
 def bench_complete(cfg: GenerateConfig, root: Path) -> None:
-    from openfly_agent.toolchain.generate import generate
-
     start, cpu = time.perf_counter(), _cpu_s()
     summary = generate(cfg, progress=False)
     wall, cpu = time.perf_counter() - start, _cpu_s() - cpu
@@ -127,9 +127,7 @@ def bench_complete(cfg: GenerateConfig, root: Path) -> None:
 def bench_loader(root: Path, workers: int, batches: int = 30) -> None:
     import torch
 
-    from openfly_agent.data.dataset import NavigationStepDataset
-    from openfly_agent.data.frames import FrameStore
-    from openfly_agent.data.openfly_reader import load_openfly_dataset
+    from openfly_agent.data.dataset import NavigationStepDataset  # lazy: torch, like `import torch` above
 
     episodes = load_openfly_dataset(root, "train")
     dataset = NavigationStepDataset(episodes, FrameStore(root), "uniform", capacity=2, set_size=1)

@@ -29,8 +29,15 @@ import numpy as np
 import torch
 
 from openfly_agent import constants as C
+from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.model.config import LoraSettings, make_model_config
+from openfly_agent.model.freeze import freeze
+from openfly_agent.model.lora import attach_lora
+from openfly_agent.model.random_init import materialize_random_
+from openfly_agent.model.tokenizer import train_bpe_tokenizer
 from openfly_agent.training.metrics import count_llm_tokens
+from openfly_agent.training.modes import enable_gradient_checkpointing
+from openfly_agent.training.optim import make_optimizer
 
 WORDS = [
     "fly",
@@ -90,9 +97,7 @@ def instructions(count: int, words: int = 70, seed: int = 0) -> list[str]:
 
 def build_agent(preset: str, device: str):
     """A randomly initialised agent of `preset` on `device` (7B: built on meta, materialised once there)."""
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.random_init import materialize_random_
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: transformers
 
     tokenizer = train_bpe_tokenizer(instructions(64), vocab_size=1024)
     cfg = make_model_config(preset)
@@ -107,8 +112,6 @@ def build_agent(preset: str, device: str):
 
 def synthetic_batch(agent, batch: int, frame_px: int = 128, seed: int = 0) -> dict:
     """A collated training batch with every memory slot filled (K sets x S frames)."""
-    from openfly_agent.data.collator import NavigationCollator
-
     cfg = agent.model_cfg
     k, s = cfg.memory.capacity, cfg.keyframes.set_size
     rng = np.random.default_rng(seed)
@@ -171,8 +174,6 @@ def gpu_peak_flops(override_tflops: float | None) -> float | None:
 
 def time_steps(agent, batch: dict, steps: int, warmup: int, autocast, device: str) -> float:
     """Median seconds per optimizer step (forward, backward, clip, AdamW)."""
-    from openfly_agent.training.optim import make_optimizer
-
     optimizer = make_optimizer(agent, lr=1e-4, weight_decay=0.0, betas=(0.9, 0.95))
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     times = []
@@ -193,10 +194,6 @@ def time_steps(agent, batch: dict, steps: int, warmup: int, autocast, device: st
 
 def measure(name: str, batch_size: int, steps: int, warmup: int, peak_tflops: float | None) -> dict:
     """One configuration's JSON row (or the reason it was skipped)."""
-    from openfly_agent.model.freeze import freeze
-    from openfly_agent.model.lora import attach_lora
-    from openfly_agent.training.modes import enable_gradient_checkpointing
-
     big = name.startswith("7b")
     row = {"config": name, "batch": batch_size}
     if big and not torch.cuda.is_available():

@@ -67,7 +67,7 @@ def flag_text(text: str, flag: str) -> str:
 
 def ends_with_example(text: str, program: str) -> bool:
     lines = [line for line in text.splitlines() if line.strip()]
-    return "example" in "\n".join(lines[-8:]) and program in lines[-1]
+    return "example" in "\n".join(lines[-12:]) and program in lines[-1]
 
 
 def test_train_help_shows_what_a_plain_run_uses(capsys):

@@ -1,11 +1,16 @@
-"""Imports go downwards only (DESIGN.md layout): L0 constants/utils, L1 model|data|sim, L2 toolchain|training|eval, L3 hub."""
+"""Imports go downwards only (DESIGN.md layout): L0 constants/utils, L1 model|data|sim, L2 toolchain|training|eval, L3 hub.
+
+Also: the package's own modules are imported at the top of a module (an import inside a function says why with a
+`# lazy: <reason>` comment), and the tests mirror the package (tests/<subpackage>/).
+"""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "openfly_agent"
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "openfly_agent"
 LEVEL = {
     "constants": 0,
     "utils": 0,
@@ -16,6 +21,7 @@ LEVEL = {
     "training": 2,
     "eval": 2,
     "hub": 3,
+    "recipe": 3,
 }
 SIBLINGS_FORBIDDEN = {"model", "data", "sim"}  # L1 parts never import each other
 
@@ -151,3 +157,102 @@ def test_the_circle_check_finds_circles(tmp_path):
 def test_no_import_circle_between_modules():
     circles = import_circles(import_graph(PACKAGE))
     assert not circles, "modules that import each other: " + "; ".join(" <-> ".join(c) for c in circles)
+
+
+# --- the package's own modules are imported at module top ------------------------------------------------------
+
+
+def _imports_own_module(node: ast.AST) -> bool:
+    if isinstance(node, ast.Import):
+        return any(alias.name.split(".")[0] == "openfly_agent" for alias in node.names)
+    if isinstance(node, ast.ImportFrom):
+        return node.level > 0 or (node.module or "").split(".")[0] == "openfly_agent"
+    return False
+
+
+def unexplained_function_imports(path: Path) -> list[str]:
+    """Imports of `openfly_agent` modules inside a function of `path` with no `# lazy: <reason>` on their lines.
+
+    A function-level import is for a heavy or optional dependency that importing the module must not pull in
+    (or an import circle); the comment says which.
+    """
+    source = path.read_text()
+    lines = source.splitlines()
+    found = []
+
+    def says_why(node: ast.stmt) -> bool:
+        return any("# lazy:" in line for line in lines[node.lineno - 1 : node.end_lineno])
+
+    def visit(node: ast.AST, in_function: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            inside = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if inside and _imports_own_module(child) and not says_why(child):
+                found.append(f"{path}:{child.lineno}: {lines[child.lineno - 1].strip()}")
+            visit(child, inside)
+
+    visit(ast.parse(source, filename=str(path)), False)
+    return found
+
+
+def test_the_function_import_check_finds_unexplained_imports(tmp_path):
+    path = tmp_path / "mod.py"
+    path.write_text(
+        "import openfly_agent.utils\n"
+        "def f():\n"
+        "    import json\n"
+        "    from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch\n"
+        "    from . import sibling\n"
+        "class C:\n"
+        "    def g(self):\n"
+        "        if True:\n"
+        "            from openfly_agent.sim import (\n"
+        "                city,\n"
+        "            )\n"
+    )
+    assert unexplained_function_imports(path) == [
+        f"{path}:5: from . import sibling",
+        f"{path}:9: from openfly_agent.sim import (",
+    ]
+
+
+def test_own_modules_are_imported_at_module_top():
+    scripts = [
+        REPO / "train.py",
+        REPO / "eval.py",
+        *(REPO / "bench").glob("*.py"),
+        *(REPO / "scripts").glob("*.py"),
+    ]
+    found = [
+        line
+        for path in sorted(PACKAGE.rglob("*.py")) + scripts
+        for line in unexplained_function_imports(path)
+    ]
+    assert not found, "move these to the top, or say why not with `# lazy: <reason>`:\n" + "\n".join(found)
+
+
+# --- the tests mirror the package ---------------------------------------------------------------------------
+
+TESTS = Path(__file__).resolve().parent
+REPOSITORY_WIDE_TESTS = {
+    "test_cli_help.py",
+    "test_docs.py",
+    "test_eval_e2e.py",
+    "test_layering.py",
+    "test_paths.py",
+}
+
+
+def test_tests_mirror_the_package_layout():
+    """The tests of a subpackage live in tests/<subpackage>/; only repository-wide tests sit at the root."""
+    subpackages = {init.parent.name for init in PACKAGE.glob("*/__init__.py")}
+    problems = [
+        f"tests/{path.name}: the tests of openfly_agent/<subpackage>/ go in tests/<subpackage>/"
+        for path in sorted(TESTS.glob("test_*.py"))
+        if path.name not in REPOSITORY_WIDE_TESTS
+    ]
+    problems += [
+        f"tests/{folder.name}/: no subpackage openfly_agent/{folder.name}/"
+        for folder in sorted(TESTS.iterdir())
+        if folder.is_dir() and any(folder.glob("test_*.py")) and folder.name not in subpackages
+    ]
+    assert not problems, "\n".join(problems)

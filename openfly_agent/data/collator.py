@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from openfly_agent import constants as C
-from openfly_agent.data.grounding import BOXES, EXPRESSION_SAMPLE, EXPRESSIONS, GROUNDING_KIND
+from openfly_agent.data.grounding_samples import BOXES, EXPRESSION_SAMPLE, EXPRESSIONS, GROUNDING_KIND
 
 logger = logging.getLogger(__name__)
 

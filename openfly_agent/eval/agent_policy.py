@@ -16,6 +16,10 @@ from pathlib import Path
 from openfly_agent import constants as C
 from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
+from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
+from openfly_agent.model.tokenizer import load_tokenizer
+from openfly_agent.utils.config import load_yaml_config
 
 logger = logging.getLogger(__name__)
 
@@ -95,8 +99,6 @@ def checkpoint_folder(checkpoint: str) -> Path:
     """The checkpoint's HF folder: a folder with config.json as is; a training run (`<run>`,
     `<run>/checkpoints` or the `last` pointer file) resolved to its newest checkpoint; otherwise a Hub id
     resolved through the local Hub cache (or a download when online)."""
-    from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
-
     try:
         folder = resolve_checkpoint_folder(checkpoint)
     except FileNotFoundError as err:
@@ -138,9 +140,6 @@ def checkpoint_kind(folder: Path) -> str:
 
 
 def _released_model_config(settings: AgentSettings):
-    from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
-    from openfly_agent.utils.config import load_yaml_config
-
     cfg = (
         load_yaml_config(ModelConfig, settings.model_config)
         if settings.model_config
@@ -162,9 +161,8 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     OpenVLA-format folders (the released OpenFly-Agent) through `agent_from_openvla_checkpoint` with the
     `openvla_compat` model config (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
     """
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
-    from openfly_agent.model.tokenizer import load_tokenizer
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
+    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
 
     folder = checkpoint_folder(checkpoint)
     dtype = resolve_dtype(settings.dtype, device)

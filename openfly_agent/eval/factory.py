@@ -10,12 +10,25 @@ from pathlib import Path
 import numpy as np
 
 from openfly_agent import constants as C
+from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.schema import Episode
+from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
 from openfly_agent.eval.baselines import make_baseline
+from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
 from openfly_agent.eval.config import EngineUnreachableError, EvalConfig, EvalInputError, SimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
+from openfly_agent.sim.bridges.airsim import AirSimBridge
 from openfly_agent.sim.bridges.base import BridgeError
+from openfly_agent.sim.bridges.gs_http import GSHttpBridge
+from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
+from openfly_agent.sim.city import CityConfig
+from openfly_agent.sim.embedded import EmbeddedSimConfig
+from openfly_agent.sim.occupancy import OccupancyGrid
+from openfly_agent.sim.pointcloud import read_points
+from openfly_agent.sim.scene import SceneBounds
+from openfly_agent.sim.vector import VectorSimulator
 from openfly_agent.utils.errors import RecordError
 
 logger = logging.getLogger(__name__)
@@ -37,8 +50,6 @@ def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
     Raises:
         FileNotFoundError: the dataset root or a split's annotation is missing, with the path and a hint.
     """
-    from openfly_agent.data.openfly_reader import load_openfly_dataset
-
     out = {}
     for split in cfg.split:
         try:
@@ -58,8 +69,6 @@ def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
 
 def dataset_frame_size(root: str, episodes: list[Episode]) -> tuple[int, int] | None:
     """(height, width) of the dataset frames (its first frame), or None when the dataset has no frames."""
-    from openfly_agent.data.frames import FrameStore
-
     if not episodes:
         return None
     try:
@@ -94,10 +103,6 @@ def toolchain_settings(root: str) -> dict:
 
 def scene_occupancy(template: str, scene_id: str, voxel_m: float):
     """Occupancy grid of a real scene from its point cloud (`template` with `{scene_id}`), for collisions."""
-    from openfly_agent.sim.occupancy import OccupancyGrid
-    from openfly_agent.sim.pointcloud import read_points
-    from openfly_agent.sim.scene import SceneBounds
-
     path = Path(template.format(scene_id=scene_id))
     if not path.is_file():
         raise FileNotFoundError(f"sim.occupancy_pcd: no point cloud for scene {scene_id} at {path}")
@@ -132,10 +137,6 @@ def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
         EngineUnreachableError: the engine does not answer (connection and handshake are tried at once, so
             a wrong host or port, or an engine that is not running, ends the run before any episode).
     """
-    from openfly_agent.sim.bridges.airsim import AirSimBridge
-    from openfly_agent.sim.bridges.gs_http import GSHttpBridge
-    from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
-
     classes = {"unrealcv": UnrealCVBridge, "airsim": AirSimBridge, "gs_http": GSHttpBridge}
     bridge_cls = classes[settings.type]
     config = settings.bridge_config()
@@ -157,9 +158,6 @@ def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
     Frame size: `sim.width/height`, else the toolchain config of the dataset, else its first frame, else
     224. City parameters and the collision voxel come from the toolchain config (defaults otherwise).
     """
-    from openfly_agent.sim.city import CityConfig
-    from openfly_agent.sim.embedded import EmbeddedSimConfig
-
     generated = toolchain_settings(cfg.dataset_root)
     size = None
     if "width" in generated and "height" in generated:
@@ -186,12 +184,8 @@ def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render
         return make_bridge_env(cfg.sim, info)
     sim_cfg = embedded_sim_config(cfg, episodes)
     if not render:
-        from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
-
         cities = CityCache(sim_cfg)
         return SimulatorSlots([BlindEmbeddedSimulator(sim_cfg, cities) for _ in range(cfg.batch_size)])
-    from openfly_agent.sim.vector import VectorSimulator
-
     logger.info(
         "embedded simulator: %d x %d px, %d environments", sim_cfg.width, sim_cfg.height, cfg.batch_size
     )
@@ -204,7 +198,5 @@ def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: Proce
         return make_baseline(
             name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode, box_servo=cfg.box_servo
         )
-    from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
-
     device = resolve_device(cfg.device, getattr(info.state, "device", None))
     return AgentPolicy(load_agent(cfg.checkpoint, cfg.agent, device))

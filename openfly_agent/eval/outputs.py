@@ -17,8 +17,11 @@ from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.config import EvalConfig
 from openfly_agent.eval.episodes import target_landmark
+from openfly_agent.eval.metrics import episode_metrics
+from openfly_agent.eval.plots import plot_topdown, safe_name
 from openfly_agent.eval.records import EpisodeRecord
 from openfly_agent.eval.report import comparison_markdown, policy_results, results_markdown, trajectory_of
+from openfly_agent.eval.scene_map import FootprintCache
 
 logger = logging.getLogger(__name__)
 
@@ -58,8 +61,6 @@ def sample_for_plots(records: list[EpisodeRecord], count: int) -> list[EpisodeRe
 
 
 def _subtitle(record: EpisodeRecord, profiles: list[str]) -> str:
-    from openfly_agent.eval.metrics import episode_metrics
-
     parts = []
     for profile in profiles:
         m = episode_metrics(trajectory_of(record), profile)
@@ -75,9 +76,6 @@ def write_plots(
     city_config=None,
 ) -> list[Path]:
     """Top-down plots of a sample of episodes into `folder/plots/<split>/` (`city_config`: embedded)."""
-    from openfly_agent.eval.plots import plot_topdown, safe_name
-    from openfly_agent.eval.scene_map import FootprintCache
-
     footprints_of = FootprintCache(city_config)
     paths = []
     for record in sample_for_plots(records, cfg.plots):

@@ -13,6 +13,7 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.data.schema import Episode
+from openfly_agent.eval.agent_policy import checkpoint_fingerprint
 from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
@@ -22,7 +23,9 @@ from openfly_agent.eval.distributed import (
     read_all_logs,
     shard,
 )
+from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
+from openfly_agent.eval.plots import safe_name, write_gif
 from openfly_agent.eval.policy import Policy
 from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
 from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, groups, teleport_record
@@ -62,16 +65,12 @@ def result_identity(cfg: EvalConfig, policy: str) -> dict:
     """`cfg.result_identity(policy)`, plus the fingerprint of the agent's weights."""
     identity = cfg.result_identity(policy)
     if policy == "agent":
-        from openfly_agent.eval.agent_policy import checkpoint_fingerprint
-
         identity["weights"] = checkpoint_fingerprint(cfg.checkpoint)
     return identity
 
 
 def gif_path(folder: Path, split: str, episode_id: str) -> Path:
     """Where the GIF of one episode goes."""
-    from openfly_agent.eval.plots import safe_name
-
     return folder / "gifs" / f"{split}__{safe_name(episode_id)}.gif"
 
 
@@ -84,8 +83,6 @@ def evaluate_policy(
     info: ProcessInfo,
 ) -> RolloutStats:
     """Run this process' shard of every split not yet in the logs of `folder`; append as they finish."""
-    from openfly_agent.eval.plots import write_gif
-
     # Errored episodes (an engine that failed) are not done: this run tries them again.
     logged = read_all_logs(folder)
     done = {r.key for r in logged if not r.errored}
@@ -146,8 +143,6 @@ def run(cfg: EvalConfig) -> dict:
     Every process runs its shard; only rank 0 merges, writes reports and returns the tables (other ranks
     return an empty dict).
     """
-    from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
-
     info = process_info(cpu=True if cfg.device == "cpu" else None)
     if cfg.torch_threads is not None:
         import torch

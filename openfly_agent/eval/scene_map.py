@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from openfly_agent.eval.plots import Footprint
+from openfly_agent.sim.city import SCENE_PREFIX, generate_city, parse_scene_id
 
 
 def scene_footprints(scene_id: str, city_config=None) -> list[Footprint]:
@@ -15,8 +16,6 @@ def scene_footprints(scene_id: str, city_config=None) -> list[Footprint]:
         city_config: the `CityConfig` the dataset was generated with (None = the default); a different one
             gives a different city.
     """
-    from openfly_agent.sim.city import SCENE_PREFIX, generate_city, parse_scene_id
-
     if not scene_id.startswith(SCENE_PREFIX):
         return []
     city = generate_city(parse_scene_id(scene_id), city_config)

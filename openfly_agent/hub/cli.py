@@ -9,6 +9,10 @@ import time
 
 from openfly_agent.hub.cli_args import add_dataclass_arguments, build_dataclass
 from openfly_agent.hub.config import DatasetReleaseConfig, ModelReleaseConfig
+from openfly_agent.hub.dataset_release import build_dataset_release
+from openfly_agent.hub.fake_hub import FakeHub
+from openfly_agent.hub.model_release import build_model_release
+from openfly_agent.hub.push import check_push_ready, push_folder
 from openfly_agent.utils.logging_utils import setup_logging
 
 PROG = "python -m openfly_agent.hub"
@@ -83,9 +87,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _release_model(cfg: ModelReleaseConfig) -> int:
-    from openfly_agent.hub.model_release import build_model_release
-    from openfly_agent.hub.push import check_push_ready, push_folder
-
     if cfg.push:  # offline, no token or no Hub: fail before anything is written
         check_push_ready(cfg.repo_id)
     folder = build_model_release(cfg)
@@ -99,9 +100,6 @@ def _release_model(cfg: ModelReleaseConfig) -> int:
 
 
 def _release_dataset(cfg: DatasetReleaseConfig) -> int:
-    from openfly_agent.hub.dataset_release import build_dataset_release
-    from openfly_agent.hub.push import check_push_ready, push_folder
-
     if cfg.push:
         check_push_ready(cfg.repo_id)
     folder = build_dataset_release(cfg)
@@ -125,8 +123,6 @@ def _serve_fake_hub(token: str) -> int:
     The handlers are installed explicitly: a shell starts background jobs with SIGINT ignored, and a Python
     started that way would never see Ctrl-C / `kill -INT` and serve forever.
     """
-    from openfly_agent.hub.fake_hub import FakeHub
-
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.default_int_handler)  # raises KeyboardInterrupt
     with FakeHub(token=token) as hub:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, MODEL_TYPE, TRAIN_CONFIG_NAME
 from openfly_agent.hub.folder_utils import read_json
+from openfly_agent.model.tokenizer import load_tokenizer
 
 logger = logging.getLogger(__name__)
 
@@ -67,11 +68,10 @@ def load_lora_agent(checkpoint: str | Path, base: str | Path):
     Raises:
         ValueError: the base's model sections differ from the checkpoint's (wrong base), with the differences.
     """
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.lora import load_lora_adapter
-    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
-    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
-    from openfly_agent.model.tokenizer import load_tokenizer
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
+    from openfly_agent.model.lora import load_lora_adapter  # lazy: torch
+    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig  # lazy: torch + transformers
 
     checkpoint, base = local_folder(checkpoint), local_folder(base)
     config = OpenFlyAgentConfig.from_pretrained(str(checkpoint))

@@ -90,9 +90,9 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
 
 def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: Path, max_shard_size: str):
     """Save the weights into `out` in the chosen form; returns (agent, description of the form)."""
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.lora import merge_lora, save_lora_adapter
-    from openfly_agent.training.export import write_model_metadata
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
+    from openfly_agent.model.lora import merge_lora, save_lora_adapter  # lazy: torch
+    from openfly_agent.training.export import write_model_metadata  # lazy: torch + accelerate
 
     if base is None:
         agent = OpenFlyAgent.from_pretrained(str(checkpoint)).eval()

@@ -34,6 +34,7 @@ from openfly_agent.constants import (
     MEMORY_BOXES,
     MEMORY_FRAME_MASK,
     MEMORY_PIXEL_VALUES,
+    MODEL_TYPE,
     NORM_STATS_NAME,
     OBS_INSTRUCTION,
     OBS_RGB,
@@ -635,8 +636,6 @@ def register_auto_classes() -> None:
     """Register the agent with transformers' AutoConfig / AutoModel / AutoProcessor (call once from an entry
     point; folders saved by the agent also load with `trust_remote_code=True` without it)."""
     from transformers import AutoConfig, AutoModel, AutoProcessor
-
-    from openfly_agent.constants import MODEL_TYPE
 
     AutoConfig.register(MODEL_TYPE, OpenFlyAgentConfig, exist_ok=True)
     AutoModel.register(OpenFlyAgentConfig, OpenFlyAgent, exist_ok=True)

@@ -161,7 +161,7 @@ def agent_from_openvla_checkpoint(folder: str | Path, cfg, tokenizer=None, devic
     Returns:
         (agent, LoadReport).
     """
-    from .agent import OpenFlyAgent
+    from .agent import OpenFlyAgent  # lazy: transformers; the state-dict conversions need torch only
 
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(

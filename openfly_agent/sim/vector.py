@@ -14,6 +14,7 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.sim.base import EpisodeSpec, Observation, Simulator, StepInfo
+from openfly_agent.sim.embedded import EmbeddedSimulator
 from openfly_agent.utils.geometry import Pose
 
 
@@ -67,8 +68,6 @@ class VectorSimulator:
     @classmethod
     def embedded(cls, cfg=None, num_envs: int = 1, cities: Sequence = ()) -> VectorSimulator:
         """`num_envs` embedded simulators sharing one GL context and city cache; `cities` are registered."""
-        from openfly_agent.sim.embedded import EmbeddedSimulator
-
         first = EmbeddedSimulator(cfg)
         for city in cities:
             first.register_city(city)

@@ -13,6 +13,27 @@ import json
 import sys
 from pathlib import Path
 
+from openfly_agent.data.writer import OpenFlyDatasetWriter
+from openfly_agent.eval.agent_policy import AgentPolicy as BatchAgentPolicy
+from openfly_agent.toolchain.config import DaggerRoundConfig, GenerateConfig, GroundingDataConfig
+from openfly_agent.toolchain.dagger import AgentPolicy
+from openfly_agent.toolchain.dagger_rounds import run_dagger_round
+from openfly_agent.toolchain.generate import generate
+from openfly_agent.toolchain.grounding import generate_grounding
+from openfly_agent.toolchain.landmarks import write_landmark_list
+from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY, prepare_scene
+from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
+from openfly_agent.toolchain.settings import GenerateSettingsError
+from openfly_agent.toolchain.summary import write_summary
+from openfly_agent.utils.cli_help import (
+    UnknownOptionError,
+    config_help,
+    config_path_of,
+    wants_help,
+    without_help,
+)
+from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
 
 PROG = "python -m openfly_agent.toolchain"
@@ -81,11 +102,6 @@ def _parse_generate(args: list[str]):
     """GenerateConfig from YAML + overrides; a bad value or option is an InputError naming the field."""
     import draccus
 
-    from openfly_agent.toolchain.config import GenerateConfig
-    from openfly_agent.utils.cli_help import UnknownOptionError
-    from openfly_agent.utils.config import parse_config
-    from openfly_agent.utils.errors import root_cause
-
     try:
         return parse_config(GenerateConfig, _config_args(args))
     except UnknownOptionError as err:
@@ -95,9 +111,6 @@ def _parse_generate(args: list[str]):
 
 
 def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] = ()) -> str:
-    from openfly_agent.toolchain.config import GenerateConfig
-    from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
-
     args = _config_args(without_help(args))
     config = config_path_of(args)
     try:
@@ -113,10 +126,6 @@ def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] =
 
 
 def cmd_generate(args: list[str]) -> None:
-    from openfly_agent.toolchain.generate import generate
-    from openfly_agent.toolchain.settings import GenerateSettingsError
-    from openfly_agent.utils.cli_help import wants_help
-
     if wants_help(args):
         print(_generate_help("generate", args), end="")
         return
@@ -156,9 +165,6 @@ def segment_parser() -> argparse.ArgumentParser:
 
 
 def cmd_summarize(args: list[str]) -> None:
-    from openfly_agent.data.writer import OpenFlyDatasetWriter
-    from openfly_agent.toolchain.summary import write_summary
-
     ns = summarize_parser().parse_args(args)
     setup_logging()
     OpenFlyDatasetWriter(ns.root).finalize()
@@ -185,12 +191,6 @@ DAGGER_OPTIONS = [
 
 
 def cmd_dagger(args: list[str]) -> None:
-    from openfly_agent.toolchain.dagger import AgentPolicy
-    from openfly_agent.toolchain.generate import generate
-    from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY
-    from openfly_agent.toolchain.settings import GenerateSettingsError
-    from openfly_agent.utils.cli_help import wants_help
-
     parser = argparse.ArgumentParser(prog=f"{PROG} dagger", add_help=False)
     parser.add_argument("--checkpoint")
     parser.add_argument("--agent_class", default="openfly_agent.model.agent:OpenFlyAgent")
@@ -211,10 +211,6 @@ def cmd_dagger(args: list[str]) -> None:
 
 
 def cmd_segment(args: list[str]) -> None:
-    from openfly_agent.toolchain.landmarks import write_landmark_list
-    from openfly_agent.toolchain.pipeline import prepare_scene
-    from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
-
     ns = segment_parser().parse_args(args)
     setup_logging()
     cfg = generate_config_for_real_scene(ns.env_yaml, segment=True)
@@ -225,12 +221,6 @@ def cmd_segment(args: list[str]) -> None:
 
 def cmd_grounding(args: list[str]) -> None:
     import draccus
-
-    from openfly_agent.toolchain.config import GroundingDataConfig
-    from openfly_agent.toolchain.grounding import generate_grounding
-    from openfly_agent.utils.cli_help import UnknownOptionError, config_help, wants_help, without_help
-    from openfly_agent.utils.config import parse_config
-    from openfly_agent.utils.errors import root_cause
 
     if wants_help(args):
         description = COMMANDS["grounding"] + " (data_cards/grounding.md); resumable scene by scene"
@@ -256,13 +246,6 @@ def cmd_grounding(args: list[str]) -> None:
 
 def cmd_dagger_round(args: list[str]) -> None:
     import draccus
-
-    from openfly_agent.eval.agent_policy import AgentPolicy
-    from openfly_agent.toolchain.config import DaggerRoundConfig
-    from openfly_agent.toolchain.dagger_rounds import run_dagger_round
-    from openfly_agent.utils.cli_help import UnknownOptionError, config_help, wants_help, without_help
-    from openfly_agent.utils.config import parse_config
-    from openfly_agent.utils.errors import root_cause
 
     parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False)
     parser.add_argument("--checkpoint")
@@ -291,7 +274,7 @@ def cmd_dagger_round(args: list[str]) -> None:
 
         torch.set_num_threads(ns.torch_threads)
     agent = load_agent(ns.checkpoint, ns.agent_class).eval()
-    print(json.dumps(run_dagger_round(AgentPolicy(agent), cfg)))
+    print(json.dumps(run_dagger_round(BatchAgentPolicy(agent), cfg)))
 
 
 HANDLERS = {

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import GenerateConfig
-from openfly_agent.utils.config import config_to_dict
+from openfly_agent.utils.config import config_to_dict, save_config
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +95,5 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
                 "settings to resume it, pass another --output_dir, or --overwrite=true to discard it"
             )
     if record or not path.is_file():
-        from openfly_agent.utils.config import save_config
-
         path.parent.mkdir(parents=True, exist_ok=True)
         save_config(cfg, path)

@@ -7,7 +7,9 @@ import time
 from collections.abc import Callable
 
 from openfly_agent.sim.base import Simulator
+from openfly_agent.sim.embedded import EmbeddedSimConfig, EmbeddedSimulator
 from openfly_agent.toolchain.config import GenerateConfig
+from openfly_agent.toolchain.dagger import generate_dagger_unit
 from openfly_agent.toolchain.pipeline import (
     DAGGER_KINDS,
     KIND_DAGGER_POLICY,
@@ -24,8 +26,6 @@ logger = logging.getLogger(__name__)
 
 def default_simulator(cfg: GenerateConfig) -> Simulator:
     """The embedded simulator at the configured frame size, building the same cities as the toolchain."""
-    from openfly_agent.sim.embedded import EmbeddedSimConfig, EmbeddedSimulator
-
     sim_cfg = EmbeddedSimConfig(
         width=cfg.render.width, height=cfg.render.height, city=city_config_for(cfg.scenes)
     )
@@ -65,8 +65,6 @@ class SceneWorker:
     def run(self, unit: WorkUnit) -> UnitResult:
         prepared = self.scene(unit.scene_seed)
         if unit.kind in DAGGER_KINDS:
-            from openfly_agent.toolchain.dagger import generate_dagger_unit
-
             if unit.kind == KIND_DAGGER_POLICY and self.policy is None:
                 raise ValueError("dagger_policy units need a policy (the `dagger` command loads one)")
             policy = self.policy if unit.kind == KIND_DAGGER_POLICY else None

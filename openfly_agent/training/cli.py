@@ -6,7 +6,12 @@ it prints for `--help`, for data that cannot be read and for Ctrl-C lives here.
 
 from __future__ import annotations
 
-from openfly_agent.utils.config import REPO_ROOT
+from openfly_agent.data.schema import SchemaError
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.config import TrainConfig
+from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
+from openfly_agent.utils.config import REPO_ROOT, parse_config
+from openfly_agent.utils.errors import RecordError, one_line, worker_error_name
 
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "train" / "tiny.yaml"
 
@@ -35,17 +40,11 @@ def with_default_config(argv: list[str]) -> list[str]:
 def parse_args(argv: list[str]):
     """`TrainConfig` from `--config_path` (default: the tiny preset) and dotted overrides; `--resume` alone
     means `--resume=true`."""
-    from openfly_agent.training.config import TrainConfig
-    from openfly_agent.utils.config import parse_config
-
     return parse_config(TrainConfig, with_default_config(argv))
 
 
 def help_text(argv: list[str]) -> str:
     """`--help`: every option with the value the same command line without `--help` would use."""
-    from openfly_agent.training.config import TrainConfig
-    from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
-
     argv = with_default_config(without_help(argv))
     config = config_path_of(argv)
     try:
@@ -63,9 +62,6 @@ def data_error_message(err: BaseException) -> str | None:
     Covers the reader's and the frame store's errors raised in this process, before or during training, and
     the same errors raised inside a DataLoader worker (torch re-raises those as a RuntimeError).
     """
-    from openfly_agent.data.schema import SchemaError
-    from openfly_agent.utils.errors import RecordError, one_line, worker_error_name
-
     data_errors = (SchemaError, RecordError)
     if isinstance(err, data_errors) or worker_error_name(err) in {e.__name__ for e in data_errors}:
         return one_line(err)
@@ -74,8 +70,6 @@ def data_error_message(err: BaseException) -> str | None:
 
 def interrupted_message(output_dir: str | None) -> str:
     """What Ctrl-C prints: how to pick the run up again."""
-    from openfly_agent.training.checkpoint import CheckpointManager
-
     latest = CheckpointManager(output_dir, keep_last=1).latest() if output_dir else None
     if latest is None:
         return "train.py: interrupted before the first checkpoint; run the same command again to start over"

@@ -14,6 +14,8 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import DataConfig
+from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
+from openfly_agent.data.schema import SchemaError
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import BatchConfig, BatchSizeError
 
@@ -65,8 +67,6 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
 
 def check_dataset_root(data: DataConfig) -> None:
     """The dataset root exists and has an annotation for every configured split (files only, no parsing)."""
-    from openfly_agent.data.openfly_reader import annotation_path, part_files
-
     root = Path(data.root)
     if not root.is_dir():
         hint = (
@@ -84,9 +84,6 @@ def check_dataset_root(data: DataConfig) -> None:
 
 def load_split(data: DataConfig, split: str) -> list:
     """Episodes of `split`; schema errors become a `PreflightError` naming file, record and field."""
-    from openfly_agent.data.openfly_reader import load_openfly_dataset
-    from openfly_agent.data.schema import SchemaError
-
     try:
         episodes = load_openfly_dataset(data.root, split, options=data.reader)
     except (SchemaError, FileNotFoundError, json.JSONDecodeError) as err:

@@ -16,12 +16,8 @@ from torch.utils.data import Dataset
 from openfly_agent import constants as C
 from openfly_agent.data.collator import GroundingCollator, NavigationCollator
 from openfly_agent.data.dataset import NavigationStepDataset
-from openfly_agent.data.grounding import (
-    GroundingFrameDataset,
-    GroundingMixture,
-    instruction_sample,
-    read_grounding_frames,
-)
+from openfly_agent.data.grounding import read_grounding_frames
+from openfly_agent.data.grounding_samples import GroundingFrameDataset, GroundingMixture, instruction_sample
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
 from openfly_agent.training.preflight import PreflightError

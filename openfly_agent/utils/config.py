@@ -12,6 +12,8 @@ import json
 from pathlib import Path
 from typing import Any, TypeVar
 
+from openfly_agent.utils.cli_help import check_options
+
 T = TypeVar("T")
 
 
@@ -27,8 +29,6 @@ def parse_config(
     import sys
 
     import draccus
-
-    from openfly_agent.utils.cli_help import check_options
 
     args = list(sys.argv[1:] if args is None else args)
     check_options(config_class, args)

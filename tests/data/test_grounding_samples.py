@@ -8,13 +8,13 @@ import pytest
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import GroundingCollator
-from openfly_agent.data.grounding import (
+from openfly_agent.data.grounding import GroundingFrame
+from openfly_agent.data.grounding_samples import (
     BOXES,
     EXPRESSION_SAMPLE,
     EXPRESSIONS,
     GROUNDING_KIND,
     INSTRUCTION_SAMPLE,
-    GroundingFrame,
     GroundingFrameDataset,
     GroundingMixture,
 )

@@ -30,12 +30,14 @@ def _recording_destroy(group=None):
 
 def _report() -> None:
     alive = max(_alive_at_destroy, default=-1)
-    print(
+    line = (
         f"exit-probe: rank={os.environ.get('RANK', '0')} destroy_calls={len(_alive_at_destroy)} "
-        f"ddp_alive={alive} initialized={dist.is_initialized()}",
-        file=sys.stderr,
-        flush=True,
+        f"ddp_alive={alive} initialized={dist.is_initialized()}\n"
     )
+    # one write(2) of the whole line: the two ranks share stderr, and print's separate writes of the text and
+    # its newline interleaved ("initialized=Falseexit-probe: rank=1 ...") in a CI run
+    sys.stderr.flush()
+    os.write(sys.stderr.fileno(), line.encode())
 
 
 dist.destroy_process_group = _recording_destroy

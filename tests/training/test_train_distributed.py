@@ -49,7 +49,7 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(reference_run, ge
     assert done.returncode == 0, done.stderr[-3000:]
     # Each rank destroyed its process group exactly once, after the DDP model was gone (a live Reducer would
     # hold the group's last reference and could deadlock the rank at exit; scripts/stress_train_exit.py).
-    probes = sorted(re.findall(r"exit-probe: rank=(\d) destroy_calls=(\d+) ddp_alive=(-?\d+) initialized=(\w+)",
+    probes = sorted(re.findall(r"exit-probe: rank=(\d) destroy_calls=(\d+) ddp_alive=(-?\d+) initialized=(True|False)",
                                done.stderr))  # fmt: skip
     assert probes == [("0", "1", "0", "False"), ("1", "1", "0", "False")], done.stderr[-3000:]
     one, two = train_losses(reference_dir), train_losses(tmp_path)

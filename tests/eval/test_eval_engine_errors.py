@@ -23,7 +23,7 @@ from openfly_agent.eval.episodes import start_pose
 from openfly_agent.eval.report import policy_results
 from openfly_agent.sim.bridges.unrealcv import unrealcv_pose_commands
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 EPISODE_IDS = [f"env_ue_smallcity/astar_data/low_short/ep{i}" for i in range(3)]
 
 

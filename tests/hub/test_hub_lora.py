@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from test_hub_release import INSTRUCTIONS, assert_same_behaviour, probe_namespace  # tests/ is on sys.path
+from test_hub_release import INSTRUCTIONS, assert_same_behaviour, probe_namespace  # tests/hub/ is on sys.path
 
 from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, WEIGHTS_NAME
 from openfly_agent.hub.config import CardConfig, ModelReleaseConfig

@@ -91,7 +91,7 @@ def _ignore_sigint() -> None:
 @pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_fake_hub_command_serves_until_interrupted(tmp_path, stop_signal):
     """It stops and prints its summary on Ctrl-C / SIGTERM, even when started with SIGINT ignored."""
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     command = [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"]
     pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     with running(command, env=env, preexec_fn=_ignore_sigint, **pipes) as proc:

@@ -10,7 +10,7 @@ from openfly_agent.toolchain.__main__ import _config_args, main
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.utils.config import load_yaml_config
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "toolchain"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "toolchain"
 
 
 @pytest.mark.parametrize("name", ["embedded-small", "embedded-100k"])

@@ -25,7 +25,7 @@ from openfly_agent.hub.model_release import build_model_release, resolve_checkpo
 from openfly_agent.model.remote_code import AUTO_MAP
 from openfly_agent.utils.processes import run_group
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 TOKEN = "hf_releaseTestTokenNeverShown42"
 INSTRUCTIONS = [
     "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower.",

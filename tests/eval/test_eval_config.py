@@ -88,7 +88,7 @@ def test_result_identity_tracks_what_changes_results():
 def test_shipped_configs_parse(name):
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "configs" / "eval" / f"{name}.yaml"
+    path = Path(__file__).resolve().parents[2] / "configs" / "eval" / f"{name}.yaml"
     cfg = parse_config(EvalConfig, ["--config_path", str(path), "--checkpoint=ckpt"])
     assert cfg.sim.type in ("embedded", "unrealcv", "airsim", "gs_http")
     if name.startswith("released"):

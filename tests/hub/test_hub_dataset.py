@@ -13,7 +13,7 @@ from openfly_agent.hub.config import DatasetReleaseConfig
 from openfly_agent.hub.dataset_release import build_dataset_release
 from openfly_agent.hub.model_card import split_front_matter
 
-CARD = Path(__file__).resolve().parents[1] / "data_cards" / "embedded.md"
+CARD = Path(__file__).resolve().parents[2] / "data_cards" / "embedded.md"
 # (episode id, actions, split): 14 frames in all, 6 + 5 in train
 EPISODES = [
     ("embedded-1/astar_data/high_short/t0", [9, 2, 9, 1, 1, 0], "train"),

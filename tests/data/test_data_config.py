@@ -12,7 +12,7 @@ from openfly_agent.data.dataset import make_step_dataset
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.utils.config import load_yaml_config
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "data"
+CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "data"
 
 
 @pytest.mark.parametrize("name", ["embedded-small", "openfly_released"])

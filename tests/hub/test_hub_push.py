@@ -8,13 +8,13 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_hub_dataset import CARD, make_dataset_root  # tests/ is on sys.path (pytest prepend mode)
+from test_hub_dataset import CARD, make_dataset_root  # tests/hub/ is on sys.path (pytest prepend mode)
 
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.push import PushError, push_folder
 from openfly_agent.utils.processes import run_group
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 TOKEN = "hf_fakeTokenThatMustNeverBePrinted0123"
 
 

@@ -9,7 +9,7 @@ import yaml
 from openfly_agent.data.config import MERGED_FORWARD_POSITIONS, TAKEOFF_LANDING_MODES
 from openfly_agent.data.parquet_io import TRAJECTORY_SCHEMA
 
-CARDS = Path(__file__).resolve().parents[1] / "data_cards"
+CARDS = Path(__file__).resolve().parents[2] / "data_cards"
 
 
 def _front_matter(text: str) -> tuple[dict, str]:
