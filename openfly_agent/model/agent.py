@@ -10,9 +10,7 @@ each running episode's state (model/episode.py) in `self.episodes`.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -21,7 +19,6 @@ from transformers import PreTrainedModel
 from transformers import initialization as init
 
 from openfly_agent.constants import (
-    ACTION_TOKENIZER_NAME,
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
@@ -30,41 +27,36 @@ from openfly_agent.constants import (
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
-    MEMORY_BOX_VISIBLE,
-    MEMORY_BOXES,
-    MEMORY_FRAME_MASK,
-    MEMORY_PIXEL_VALUES,
     MODEL_TYPE,
-    NORM_STATS_NAME,
     OBS_INSTRUCTION,
     OBS_RGB,
     PIXEL_VALUES,
 )
 
+from .agent_io import AgentPersistence
 from .box_token import BoxTokenEmbedding, insert_before_targets, jitter_boxes, last_true_index
-from .checkpoint_path import check_not_adapter_only, resolve_checkpoint_folder
 from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT, ModelConfig, config_to_dict
 from .conv_vision import ConvVisionBackbone
+from .decoding import decode_one, greedy_decode
 from .episode import EpisodeState, StepResult, check_observations
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, GroundingOutput, grounding_loss
 from .keyframes import KeyframeSelector
 from .llm import build_language_model, unwrap_causal_lm
-from .memory import MemoryBank, grid_pool
-from .merging import choose_reference, merge_into_reference
+from .memory import MemoryBank
+from .memory_encoding import MemoryEncoding
 from .pretrained_config import OpenFlyAgentConfig
 from .processor import OpenFlyProcessor
 from .projector import FusedMLPProjector
-from .remote_code import write_remote_code
 from .sequence import left_pad, position_ids_from_mask, splice_after_bos
-from .tokenizer import load_tokenizer, tokenizer_folder
+from .tokenizer import load_tokenizer
 from .vision import build_vision_backbone
 
 logger = logging.getLogger(__name__)
 
 
-class OpenFlyAgent(PreTrainedModel):
+class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
     """OpenFly-Agent under OpenVLA's module names (`vision_backbone`, `projector`, `language_model`).
 
     Args:
@@ -185,74 +177,6 @@ class OpenFlyAgent(PreTrainedModel):
     def embed_text(self, input_ids: torch.Tensor) -> torch.Tensor:
         """(B, L) ids -> (B, L, D) input embeddings."""
         return unwrap_causal_lm(self.language_model).get_input_embeddings()(input_ids)
-
-    def memory_set_tokens(
-        self, features: torch.Tensor, frame_mask: torch.Tensor, boxes: torch.Tensor, box_visible: torch.Tensor
-    ) -> torch.Tensor:
-        """Keyframe sets -> memory tokens: merge into the largest-box frame, grid-pool, project.
-
-        Args:
-            features: (N, S, P, D_v) fused features of each frame of each set.
-            frame_mask: (N, S) bool, real frames.
-            boxes: (N, S, 4) landmark boxes (ground truth in training, predicted online).
-            box_visible: (N, S) bool.
-
-        Returns:
-            (N, (sqrt(P) / g)^2, D_llm) tokens.
-        """
-        reference = choose_reference(boxes.to(features.device), box_visible.to(features.device), frame_mask)
-        merging = self.model_cfg.merging
-        if merging.enabled:
-            merged = merge_into_reference(features, frame_mask, reference, merging.threshold, merging.top_r)
-        else:
-            merged = features[
-                torch.arange(features.shape[0], device=features.device), reference
-            ]  # (N, P, D_v)
-        return self.projector(grid_pool(merged, self.model_cfg.memory.grid))  # (N, m, D)
-
-    def history_tokens(self, patches: torch.Tensor, dino_cls: torch.Tensor) -> torch.Tensor:
-        """openvla_compat: one token per history frame = DINO CLS ++ pooled SigLIP patches -> (N, D_llm)."""
-        siglip = patches[..., self.vision_backbone.dino_dim :]  # (N, P, D_siglip)
-        pooled = grid_pool(siglip, self.model_cfg.memory.grid)[:, 0]  # (N, D_siglip)
-        return self.projector(torch.cat([dino_cls, pooled], dim=-1))  # (N, D)
-
-    def encode_memory_batch(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Memory tokens of a training batch -> (B, M, D) tokens and (B, M) bool mask (missing sets off)."""
-        current = batch[PIXEL_VALUES]
-        b = current.shape[0]
-        if self.model_cfg.memory.capacity == 0 or MEMORY_PIXEL_VALUES not in batch:
-            empty = torch.zeros(
-                b, 0, self.llm_dim, device=current.device, dtype=self.projector.fc1.weight.dtype
-            )
-            return empty, torch.zeros(b, 0, dtype=torch.bool, device=current.device)
-        pixels = batch[MEMORY_PIXEL_VALUES]  # (B, K, S, 3, H, W)
-        frame_mask = batch[MEMORY_FRAME_MASK].bool().to(pixels.device)  # (B, K, S)
-        _, k, s = pixels.shape[:3]
-        if k > self.model_cfg.memory.capacity:
-            raise ValueError(
-                f"batch holds {k} memory sets but memory.capacity is {self.model_cfg.memory.capacity}"
-            )
-        real = pixels[frame_mask]  # (n_real, 3, H, W)
-        if self.model_cfg.mode == MODE_OPENVLA_COMPAT:
-            tokens = self.projector.fc3.weight.new_zeros(b, k * s, self.llm_dim)  # (B, K*S, D)
-            if real.shape[0]:
-                tokens[frame_mask.view(b, k * s)] = self.history_tokens(
-                    *self.vision_backbone.forward_with_cls(real)
-                )
-            return tokens, frame_mask.view(b, k * s)
-        p, dv = self.model_cfg.vision.num_patches, self.model_cfg.vision.feature_dim
-        features = self.projector.fc1.weight.new_zeros(b, k, s, p, dv)  # (B, K, S, P, D_v)
-        if real.shape[0]:
-            features[frame_mask] = self.vision_backbone(real).to(features.dtype)
-        tokens = self.memory_set_tokens(
-            features.flatten(0, 1),
-            frame_mask.flatten(0, 1),
-            batch[MEMORY_BOXES].flatten(0, 1),
-            batch[MEMORY_BOX_VISIBLE].bool().flatten(0, 1),
-        )  # (B*K, m, D)
-        m = tokens.shape[1]
-        set_mask = frame_mask.any(dim=-1).repeat_interleave(m, dim=1)  # (B, K*m)
-        return tokens.reshape(b, k * m, -1), set_mask
 
     def encode_visual(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
         """Visual tokens of a training batch: memory (oldest first) then the current frame.
@@ -433,7 +357,7 @@ class OpenFlyAgent(PreTrainedModel):
         boxes, visible = self._predict_boxes(hidden, mask, first_image)
         if self.box_token_embed is not None:  # [.. prompt] [BOX]: one cached step, the action is read there
             token = self.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)
-            hidden, mask = self._decode_one(token, mask, output.past_key_values)
+            hidden, mask = decode_one(self, token, mask, output.past_key_values)
         actions, details = self._decode_actions(hidden, mask, output.past_key_values)
         boxes = boxes.float().cpu()
 
@@ -482,38 +406,8 @@ class OpenFlyAgent(PreTrainedModel):
             ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=last.device)
             logits = last[:, ids]  # (B, 10)
             return [int(a) for a in logits.argmax(dim=-1)], list(logits)
-        tokens = self.greedy_decode(last, mask, cache, self.action_tokenizer.num_action_tokens)  # (B, 8)
+        tokens = greedy_decode(self, last, mask, cache, self.action_tokenizer.num_action_tokens)  # (B, 8)
         return [self.processor.decode_action(row.tolist()) for row in tokens], list(tokens)
-
-    def greedy_decode(self, first_logits, mask, cache, steps: int) -> torch.Tensor:
-        """Greedy decoding of `steps` tokens reusing the prefill's KV cache (as predict_action, any token).
-
-        Args:
-            first_logits: (B, V) logits at the last prefill position.
-            mask: (B, L) prefill attention mask.
-            cache: the prefill's `past_key_values`.
-            steps: tokens to generate.
-
-        Returns:
-            (B, steps) token ids.
-        """
-        token = first_logits.argmax(dim=-1)  # (B,)
-        generated = [token]
-        positions = position_ids_from_mask(mask)[:, -1:]  # (B, 1)
-        for _ in range(steps - 1):
-            mask = torch.cat([mask, mask.new_ones(mask.shape[0], 1)], dim=1)
-            positions = positions + 1
-            out = self.run_llm(
-                self.embed_text(token[:, None]),
-                mask,
-                position_ids=positions,
-                past_key_values=cache,
-                use_cache=True,
-            )
-            cache = out.past_key_values
-            token = self.lm_logits(out.last_hidden_state[:, -1]).argmax(dim=-1)
-            generated.append(token)
-        return torch.stack(generated, dim=1)
 
     def _predict_boxes(self, hidden, mask, first_image) -> tuple[torch.Tensor, list[bool]]:
         """(B, 4) predicted boxes and whether each counts as visible (prefill of left-padded rows)."""
@@ -524,18 +418,6 @@ class OpenFlyAgent(PreTrainedModel):
         if self.model_cfg.grounding.visibility_weight == 0:
             return output.boxes.float(), [True] * batch  # no visibility training: every box counts
         return output.boxes.float(), [bool(v) for v in output.visibility > 0]
-
-    def _decode_one(
-        self, token: torch.Tensor, mask: torch.Tensor, cache
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Feed one (B, D) input embedding after the prefill (KV cache) -> its (B, 1, D) hidden state and the
-        (B, L + 1) mask."""
-        positions = position_ids_from_mask(mask)[:, -1:] + 1  # (B, 1)
-        mask = torch.cat([mask, mask.new_ones(mask.shape[0], 1)], dim=1)
-        out = self.run_llm(
-            token[:, None], mask, position_ids=positions, past_key_values=cache, use_cache=True
-        )
-        return out.last_hidden_state, mask
 
     def _update_memories(self, states: list[EpisodeState]) -> None:
         """Push newly completed keyframe sets (same selector as the dataset, predicted boxes) into the FIFOs."""
@@ -579,57 +461,6 @@ class OpenFlyAgent(PreTrainedModel):
                 tokens = any(key in name for key in ("pos_embed", "cls_token", "reg_token", "box_queries"))
                 (no_decay if param.ndim < 2 or tokens else decay).append(param)
         return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
-
-    # --- persistence ------------------------------------------------------------------------------
-    def save_pretrained(self, save_directory, *args, **kwargs) -> None:
-        """transformers' save (config.json + safetensors), then the processor files and the remote code."""
-        if getattr(self.language_model, "peft_config", None) is not None:
-            raise ValueError(
-                "LoRA is attached: merge it first (model.lora.merge_lora) or save the adapter "
-                "(model.lora.save_lora_adapter); the merged agent saves in the plain key layout"
-            )
-        # transformers would upload before the extra files exist: push the finished folder afterwards instead
-        push = kwargs.pop("push_to_hub", False)
-        hub = {k: kwargs.pop(k) for k in ("repo_id", "commit_message", "create_pr", "private") if k in kwargs}
-        super().save_pretrained(save_directory, *args, **kwargs)
-        if not kwargs.get("is_main_process", True):
-            return
-        folder = Path(save_directory)
-        self.save_processor_files(folder)
-        write_remote_code(folder)
-        if push:
-            hub.update({k: kwargs[k] for k in ("token", "max_shard_size") if k in kwargs})
-            self.push_to_hub(hub.pop("repo_id", folder.name), **hub)
-
-    def save_processor_files(self, folder: str | Path) -> None:
-        """What prepares inputs and reads outputs: the processor (processor_config.json + tokenizer files),
-        action_tokenizer.json and the norm stats (dataset_statistics.json)."""
-        folder = Path(folder)
-        self.action_tokenizer.save(folder / ACTION_TOKENIZER_NAME)
-        if self.config.norm_stats:
-            (folder / NORM_STATS_NAME).write_text(json.dumps(self.config.norm_stats, indent=2) + "\n")
-        if self.processor is not None:
-            self.processor.save_pretrained(str(folder))
-
-    @classmethod
-    def from_pretrained(cls, pretrained_model_name_or_path, *args, tokenizer=None, **kwargs):
-        """transformers' load, plus the tokenizer saved beside the weights (folder or Hub repo id).
-
-        Also takes a training run folder, `<run>/checkpoints` or the `checkpoints/last` pointer: they load the
-        newest checkpoint. A LoRA checkpoint (`adapter/`, no weights) raises with what to load instead.
-        """
-        name = str(pretrained_model_name_or_path)
-        folder = resolve_checkpoint_folder(name)
-        if folder is not None:
-            name = str(folder)
-            check_not_adapter_only(folder)
-        loaded = super().from_pretrained(name, *args, **kwargs)
-        model = loaded[0] if isinstance(loaded, tuple) else loaded
-        if tokenizer is None:
-            saved = tokenizer_folder(name, kwargs)
-            tokenizer = load_tokenizer(saved) if saved is not None else None
-        model.tokenizer = tokenizer
-        return loaded
 
 
 def register_auto_classes() -> None:

@@ -14,6 +14,7 @@ from openfly_agent.model.config import (
     MemoryConfig,
     PromptConfig,
 )
+from openfly_agent.model.decoding import greedy_decode
 from openfly_agent.model.episode import compat_history_indices
 from openfly_agent.model.sequence import left_pad
 
@@ -121,7 +122,7 @@ def test_kv_cache_decoding_equals_full_recompute(make_agent):
     rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
     embeds, mask = left_pad(rows)
     out = agent.run_llm(embeds, mask, use_cache=True)
-    cached = agent.greedy_decode(agent.lm_logits(out.last_hidden_state[:, -1]), mask, out.past_key_values, 8)
+    cached = greedy_decode(agent, agent.lm_logits(out.last_hidden_state[:, -1]), mask, out.past_key_values, 8)
     seq, seq_mask, tokens = embeds, mask, []
     for _ in range(8):
         token = agent.lm_logits(agent.run_llm(seq, seq_mask).last_hidden_state[:, -1]).argmax(-1)
