@@ -10,7 +10,7 @@ from openfly_agent.recipe import DaggerSettings, RecipeConfig, StageBudget, reci
 from openfly_agent.recipe import run as recipe_run
 from openfly_agent.recipe.__main__ import main as recipe_main
 from openfly_agent.recipe.run import DONE_MARKER, KIND_DATA, KIND_EVAL, KIND_TRAIN, RecipeStep
-from openfly_agent.utils.config import load_yaml_config
+from openfly_agent.utils.config import REPO_ROOT, load_yaml_config, resolve_config_path
 
 
 def _flag(command: list[str], name: str) -> str | None:
@@ -56,10 +56,13 @@ def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluat
     assert _flag(steps[2].command, "checkpoint") == str(tmp_path / "navigation")
 
 
-def test_the_shipped_recipes_parse():
-    for name in ("main_job", "tiny-recipe"):
-        cfg = load_yaml_config(RecipeConfig, f"configs/recipe/{name}.yaml", [])
-        assert cfg.navigation.steps > 0 and cfg.eval.max_episodes == 0  # full test splits
+def test_the_shipped_recipes_and_ablations_parse():
+    configs = sorted((REPO_ROOT / "configs" / "recipe").rglob("*.yaml"))
+    assert len(configs) >= 9  # main job, recipe, 7 ablations
+    for path in configs:
+        cfg = load_yaml_config(RecipeConfig, path, [])
+        assert cfg.navigation.steps > 0 and cfg.eval.max_episodes == 0, path  # full test splits
+        assert resolve_config_path(cfg.train_config).is_file(), path
 
 
 def _script(tmp_path, name: str, kind: str, code: str) -> RecipeStep:
