@@ -24,6 +24,7 @@ PLACEHOLDER = re.compile(r"<[^>]*>|\$|\.\.\.|\*")
 NOT_ON_CPU = (
     "single_gpu.yaml", "ddp.yaml", "fsdp", "deepspeed", "openfly-7b", "openvla", "released-", "--push",
     "unrealcv", "airsim", "gs_http", "embedded-100k", "main_job.sh", "--multi_gpu", "--nnodes",
+    "openfly_agent.recipe",  # the recipe: 30 min to 3 h (its parts run in tests/recipe and here one by one)
 )  # fmt: skip
 LAUNCHER_OPTIONS_WITH_VALUE = {
     "--config_file", "--num_processes", "--num_machines", "--machine_rank", "--main_process_ip",
@@ -145,10 +146,13 @@ def parse_command(file: str, line: int, text: str, block: int | None = None) -> 
                 "openfly_agent.toolchain": "toolchain",
                 "openfly_agent.hub": "hub",
                 "openfly_agent.sim.cli": "sim",
+                "openfly_agent.recipe": "recipe",
             }
             if module in kinds:
                 command.kind = kinds[module]
-                if command.kind == "sim" or (rest and not rest[0].startswith("-")):
+                if command.kind == "sim" or (
+                    command.kind != "recipe" and rest and not rest[0].startswith("-")
+                ):
                     command.sub, rest = (rest[0], rest[1:]) if rest else (None, [])
                 command.args = rest
             return command

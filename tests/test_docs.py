@@ -24,6 +24,8 @@ import pytest
 from docs_commands import REPO, DocCommand, DocSnippet, doc_commands, doc_snippets
 
 from openfly_agent import constants as C
+from openfly_agent.recipe.config import RecipeConfig
+from openfly_agent.toolchain.config import DaggerRoundConfig, GroundingDataConfig
 from openfly_agent.utils.cli_help import check_options
 from openfly_agent.utils.processes import run_group
 
@@ -38,7 +40,7 @@ EXECUTABLE = {
     "hub:release",
     "hub:release-dataset",
 }
-EXECUTABLE |= {"sim:render", "sim:export", "sim:landmarks"}
+EXECUTABLE |= {"sim:render", "sim:export", "sim:landmarks", "toolchain:grounding"}
 # Small-data budgets appended to an executed command (later options win).
 BUDGET = {
     "train": [
@@ -55,6 +57,7 @@ BUDGET = {
         "--render.width=64", "--render.height=64", "--dagger.episodes_per_scene=0",
     ],
     "sim:render": ["--width=64", "--height=64", "--size-m=300"],
+    "toolchain:grounding": ["--yaw_copies=0"],
     "sim:export": ["--size-m=300", "--spacing=8"],
     "sim:landmarks": ["--size-m=300"],
 }  # fmt: skip
@@ -128,6 +131,11 @@ def check_command(command: DocCommand) -> None:
             check_options(GenerateConfig, argv)
             if complete:
                 toolchain._parse_generate(argv)
+        elif command.sub == "grounding":
+            check_options(GroundingDataConfig, toolchain._config_args(command.args))
+        elif command.sub == "dagger-round":
+            argv = _strip(command.args, ("--checkpoint", "--agent_class", "--torch_threads"))
+            check_options(DaggerRoundConfig, toolchain._config_args(argv))
         else:
             parser = (
                 toolchain.summarize_parser() if command.sub == "summarize" else toolchain.segment_parser()
@@ -138,6 +146,8 @@ def check_command(command: DocCommand) -> None:
 
         if command.sub is not None:
             _known(build_parser(), [command.sub, *command.args], where)
+    elif command.kind == "recipe":
+        check_options(RecipeConfig, command.args)
     elif command.kind == "sim":
         from openfly_agent.sim.cli import build_parser
 
