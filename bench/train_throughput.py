@@ -4,7 +4,9 @@
     python bench/train_throughput.py --configs tiny-cpu --batch 8 --steps 10
 
 Configurations (one JSON line each):
-- `tiny-cpu`: the tiny preset, full fine-tune, fp32, on the CPU (the embedded default of train.py);
+- `tiny-cpu`: the tiny preset (the `tiny-cnn` ResNet backbone), full fine-tune, fp32, on the CPU (the embedded
+  default of train.py);
+- `tiny-vit-cpu`: the same with `vision.preset=tiny` (the two small ViTs at 112 px, the default before issue 12);
 - `7b-lora-bf16`: the OpenFly-Agent 7B shape (random init) with LoRA r=32 on every LLM linear layer, the
   vision backbone frozen, bf16 autocast, gradient checkpointing (configs/train/openfly-7b-lora.yaml, 1 GPU).
 Batches are synthetic but shaped like training: random 128 px frames resized by the agent's transform,
@@ -30,7 +32,7 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
-from openfly_agent.model.config import LoraSettings, make_model_config
+from openfly_agent.model.config import LoraSettings, VisionConfig, make_model_config
 from openfly_agent.model.freeze import freeze
 from openfly_agent.model.lora import attach_lora
 from openfly_agent.model.random_init import materialize_random_
@@ -95,12 +97,15 @@ def instructions(count: int, words: int = 70, seed: int = 0) -> list[str]:
     return [" ".join(rng.choice(WORDS, size=words)) for _ in range(count)]
 
 
-def build_agent(preset: str, device: str):
-    """A randomly initialised agent of `preset` on `device` (7B: built on meta, materialised once there)."""
+def build_agent(preset: str, device: str, vit: bool = False):
+    """A randomly initialised agent of `preset` on `device` (7B: built on meta, materialised once there);
+    `vit`: the tiny preset with the two small ViTs instead of the ResNet."""
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: transformers
 
     tokenizer = train_bpe_tokenizer(instructions(64), vocab_size=1024)
     cfg = make_model_config(preset)
+    if vit:
+        cfg = dataclasses.replace(cfg, vision=VisionConfig(preset="tiny", image_size=112, patch_size=14))
     if cfg.llm.preset == "tiny":
         return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device)
     with torch.device("meta"):
@@ -200,7 +205,7 @@ def measure(name: str, batch_size: int, steps: int, warmup: int, peak_tflops: fl
         return {**row, "device": "cuda (absent)", "skipped": "needs CUDA (7B, bf16)"}
     device = "cuda" if big else "cpu"
     torch.manual_seed(0)
-    agent = build_agent("openfly-7b" if big else "tiny", device).train()
+    agent = build_agent("openfly-7b" if big else "tiny", device, vit=name == "tiny-vit-cpu").train()
     if big:
         attach_lora(agent, dataclasses.replace(LoraSettings(), rank=32, alpha=16))
         enable_gradient_checkpointing(agent)
@@ -241,7 +246,7 @@ def measure(name: str, batch_size: int, steps: int, warmup: int, peak_tflops: fl
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--configs", nargs="+", default=["tiny-cpu", "7b-lora-bf16"])
+    parser.add_argument("--configs", nargs="+", default=["tiny-cpu", "tiny-vit-cpu", "7b-lora-bf16"])
     parser.add_argument("--batch", type=int, default=8, help="samples per optimizer step (one micro-batch)")
     parser.add_argument("--steps", type=int, default=5, help="timed steps; step_s is their median")
     parser.add_argument("--warmup", type=int, default=2)
