@@ -109,7 +109,9 @@ def small_agent_config():
     from openfly_agent.model.config import GroundingConfig, LLMConfig, MemoryConfig, VisionConfig, tiny_config
 
     return tiny_config(
-        vision=VisionConfig(image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2),
+        vision=VisionConfig(
+            preset="tiny", image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
+        ),
         llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
         grounding=GroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
@@ -126,6 +128,8 @@ def save_small_agent(folder, texts, seed: int = 0) -> None:
     tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
     torch.manual_seed(seed)
     agent = OpenFlyAgent.from_model_config(small_agent_config(), tokenizer=tokenizer).eval()
+    with torch.no_grad():  # the untrained head says "visible": the records hold boxes the tests can compare
+        agent.grounding_head.visibility.bias.fill_(2.0)
     agent.save_pretrained(str(folder))
 
 

@@ -25,7 +25,8 @@ def apply_training_mode(agent: nn.Module, cfg: TrainConfig) -> None:
 
 
 def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:
-    """Recompute activations in the backward pass: the Llama decoder layers and the timm ViT blocks.
+    """Recompute activations in the backward pass: the Llama decoder layers and the timm ViT blocks / ResNet
+    stages.
 
     Non-reentrant checkpointing, so frozen inputs (LoRA, frozen vision) need no `requires_grad` tricks.
     Returns the names of the modules switched on.
@@ -33,7 +34,8 @@ def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:
     agent.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
     switched = [name for name, m in agent.named_modules() if getattr(m, "gradient_checkpointing", False)]
     for name, module in agent.named_modules():
-        if hasattr(module, "set_grad_checkpointing") and hasattr(module, "blocks"):  # a timm ViT
+        is_timm = hasattr(module, "set_grad_checkpointing") and hasattr(module, "grad_checkpointing")
+        if is_timm and (hasattr(module, "blocks") or hasattr(module, "layer1")):  # a timm ViT or ResNet
             module.set_grad_checkpointing(True)
             switched.append(name)
     logger.info("gradient checkpointing on %d modules", len(switched))

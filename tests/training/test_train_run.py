@@ -47,14 +47,18 @@ def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path
     collate = NavigationCollator(agent.processor, k, s)
     batch = collate([dataset[i] for i in range(0, len(dataset), len(dataset) // 4)][:4])
     optimizer = make_optimizer(agent, lr=1e-3, weight_decay=0.0, betas=(0.9, 0.95))
-    losses = []
+    losses, action_losses = [], []
+    torch.manual_seed(0)  # the box-token jitter
     for _ in range(6):
         loss, logs = agent(batch)
         loss.backward()
         optimizer.step()
         optimizer.zero_grad()
         losses.append(logs["loss"])
-    assert losses[-1] < 0.7 * losses[0], losses
+        action_losses.append(logs["action_loss"])
+    # the action cross-entropy falls on the 4 samples; the total (with the grounding terms) falls at every step
+    assert action_losses[-1] < 0.8 * action_losses[0], action_losses
+    assert all(b < a for a, b in zip(losses, losses[1:])), losses
 
 
 def test_run_writes_checkpoints_in_the_hf_layout(reference_run):
