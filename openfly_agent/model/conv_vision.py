@@ -6,10 +6,6 @@ dilated instead of strided), so a 128 px frame gives an 8 x 8 grid, the patch gr
 learned position embedding is added to every cell (convolution features alone say little about *where* a cell
 is, and the LLM's rotary positions only give relative offsets). The output (N, P, C) goes into the same
 projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs).
-
-Normalisation is GroupNorm (8 groups), not the ResNet's BatchNorm: a sample's features then never depend on the
-other samples of its batch, so one process and N data-parallel processes train the same model, training and
-evaluation run the same function, and there are no running statistics to keep in checkpoints.
 """
 
 from __future__ import annotations
@@ -21,23 +17,14 @@ from .config import CNN_STRIDE, VisionConfig
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-NORM_GROUPS = 8  # GroupNorm groups; every stage width (and the 64-channel stem) must be a multiple
 
 
 def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
-    """A timm ResNet of BasicBlocks, one block per stage, output stride 16, GroupNorm, no pooling or classifier."""
-    from functools import partial
-
-    from timm.layers import GroupNorm
+    """A timm ResNet of BasicBlocks, one block per stage, output stride 16, no pooling or classifier."""
     from timm.models.resnet import BasicBlock, ResNet
 
     if len(channels) != 4:
         raise ValueError(f"vision.cnn_channels needs 4 stage widths, got {list(channels)}")
-    if any(c % NORM_GROUPS for c in (*channels, stem_width)):
-        raise ValueError(
-            f"vision.cnn_channels {list(channels)} and cnn_stem_width {stem_width} must be multiples of "
-            f"{NORM_GROUPS} (GroupNorm groups)"
-        )
     return ResNet(
         BasicBlock,
         [1, 1, 1, 1],
@@ -46,7 +33,6 @@ def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
         output_stride=CNN_STRIDE,
         num_classes=0,
         global_pool="",
-        norm_layer=partial(GroupNorm, num_groups=NORM_GROUPS),
     )
 
 
