@@ -71,7 +71,9 @@ class CellScorer(nn.Module):
         super().__init__()
         self.norm = nn.LayerNorm(dim)
         self.scale, self.shift = nn.Linear(dim, dim), nn.Linear(dim, dim)
-        self.score = nn.Sequential(nn.GELU(), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1))
+        # no bias on the last layer: a constant added to every cell's logit changes neither the softmax nor the
+        # cell cross-entropy, so its gradient is rounding noise that Adam would turn into lr-sized steps
+        self.score = nn.Sequential(nn.GELU(), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1, bias=False))
 
     def forward(self, cells: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
         """cells (B, P, d), code (B, d) -> (B, P) logits."""
