@@ -202,7 +202,11 @@ def test_ctrl_c_ends_with_one_line_and_130_then_the_same_command_resumes(dataset
     log = tmp_path / "random" / C.EPISODES_JSONL
     gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # slows the run down (frames)
     pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
-    with running(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env, **pipes) as proc:
+    # SIGINT back to its default in the child: a shell starts background jobs (`pytest ... &`) with it ignored
+    default_sigint = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+    with running(
+        _eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env, preexec_fn=default_sigint, **pipes
+    ) as proc:
         deadline = time.monotonic() + 240
         while (
             time.monotonic() < deadline and proc.poll() is None and not (log.is_file() and log.read_bytes())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -128,12 +129,19 @@ def run_script(args: list[str], launcher: list[str] | None = None, timeout: floa
     return run_group(command, timeout=timeout, cwd=REPO_ROOT, env=_script_env())
 
 
+def default_sigint() -> None:
+    """Child pre-exec: SIGINT back to its default. A shell starts background jobs (`pytest ... &`) with SIGINT
+    ignored and children inherit that, so a Ctrl-C test would otherwise depend on how pytest was started."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_script(args: list[str], **popen_kwargs):
     """`with start_script(args) as process:` train.py in a subprocess (output discarded unless redirected),
     stopped with everything it started when the block ends."""
     command = [sys.executable, str(REPO_ROOT / "train.py"), *args]
     popen_kwargs.setdefault("stdout", subprocess.DEVNULL)
     popen_kwargs.setdefault("stderr", subprocess.DEVNULL)
+    popen_kwargs.setdefault("preexec_fn", default_sigint)
     return running(command, cwd=REPO_ROOT, env=_script_env(), **popen_kwargs)
 
 
