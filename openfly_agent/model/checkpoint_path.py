@@ -6,6 +6,7 @@ one-line file naming the newest complete one (training/checkpoint.py).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from openfly_agent.constants import (
@@ -59,3 +60,17 @@ def check_not_adapter_only(folder: Path) -> None:
             "openfly_agent.hub.lora_release.load_lora_agent(checkpoint, base=<the init checkpoint>), or load "
             "<output_dir>/merged, the full model a LoRA run writes at the end (lora.merge_at_end)"
         )
+
+
+def checkpoint_files(folder: Path) -> list[Path]:
+    """The safetensors files of a checkpoint folder (the shards its index names, or its one file).
+
+    Raises:
+        FileNotFoundError: the folder holds neither.
+    """
+    if (folder / WEIGHTS_INDEX_NAME).is_file():
+        shards = sorted(set(json.loads((folder / WEIGHTS_INDEX_NAME).read_text())["weight_map"].values()))
+        return [folder / shard for shard in shards]
+    if (folder / WEIGHTS_NAME).is_file():
+        return [folder / WEIGHTS_NAME]
+    raise FileNotFoundError(f"{folder} has neither {WEIGHTS_NAME} nor {WEIGHTS_INDEX_NAME}")

@@ -219,9 +219,19 @@ def cmd_segment(args: list[str]) -> None:
     print(json.dumps({"landmarks": len(prepared.landmarks), "out": ns.out}))
 
 
-def cmd_grounding(args: list[str]) -> None:
+def _parse_command_config(config_class, args: list[str], command: str):
+    """A command's config dataclass from `args` (`--config` accepted); bad input is a one-line InputError."""
     import draccus
 
+    try:
+        return parse_config(config_class, _config_args(args))
+    except UnknownOptionError as err:
+        raise InputError(str(err)) from None
+    except draccus.utils.ParsingError as err:
+        raise InputError(f"bad {command} config: {root_cause(err)}") from None
+
+
+def cmd_grounding(args: list[str]) -> None:
     if wants_help(args):
         description = COMMANDS["grounding"] + " (data_cards/grounding.md); resumable scene by scene"
         cfg = parse_config(GroundingDataConfig, _config_args(without_help(args)))
@@ -230,12 +240,7 @@ def cmd_grounding(args: list[str]) -> None:
             end="",
         )
         return
-    try:
-        cfg = parse_config(GroundingDataConfig, _config_args(args))
-    except UnknownOptionError as err:
-        raise InputError(str(err)) from None
-    except draccus.utils.ParsingError as err:
-        raise InputError(f"bad grounding config: {root_cause(err)}") from None
+    cfg = _parse_command_config(GroundingDataConfig, args, "grounding")
     setup_logging()
     try:
         info = generate_grounding(cfg)
@@ -245,8 +250,6 @@ def cmd_grounding(args: list[str]) -> None:
 
 
 def cmd_dagger_round(args: list[str]) -> None:
-    import draccus
-
     parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False)
     parser.add_argument("--checkpoint")
     parser.add_argument("--agent_class", default="openfly_agent.model.agent:OpenFlyAgent")
@@ -262,12 +265,7 @@ def cmd_dagger_round(args: list[str]) -> None:
         return
     if not ns.checkpoint:
         raise InputError("dagger-round needs --checkpoint <trained agent folder> (dagger-round --help)")
-    try:
-        cfg = parse_config(DaggerRoundConfig, _config_args(rest))
-    except UnknownOptionError as err:
-        raise InputError(str(err)) from None
-    except draccus.utils.ParsingError as err:
-        raise InputError(f"bad dagger-round config: {root_cause(err)}") from None
+    cfg = _parse_command_config(DaggerRoundConfig, rest, "dagger-round")
     setup_logging()
     if ns.torch_threads:
         import torch

@@ -6,15 +6,13 @@ e.g. the box token): what was loaded, what is new and what was left out is logge
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from safetensors import safe_open
 
-from openfly_agent.constants import WEIGHTS_INDEX_NAME, WEIGHTS_NAME
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.checkpoint_path import checkpoint_files, resolve_checkpoint_folder
 
 
 @dataclass
@@ -39,16 +37,6 @@ class MatchReport:
             f"loaded {len(self.loaded)} tensors; new {len(self.new)}{names(self.new)}; "
             f"other shape {len(self.reshaped)}{names(self.reshaped)}; unused {len(self.unused)}{names(self.unused)}"
         )
-
-
-def checkpoint_files(folder: Path) -> list[Path]:
-    """The safetensors files of a checkpoint folder (one file, or the shards its index names)."""
-    if (folder / WEIGHTS_NAME).is_file():
-        return [folder / WEIGHTS_NAME]
-    if (folder / WEIGHTS_INDEX_NAME).is_file():
-        shards = sorted(set(json.loads((folder / WEIGHTS_INDEX_NAME).read_text())["weight_map"].values()))
-        return [folder / shard for shard in shards]
-    raise FileNotFoundError(f"{folder} holds no {WEIGHTS_NAME} nor {WEIGHTS_INDEX_NAME}")
 
 
 def load_matching_weights(model: torch.nn.Module, checkpoint: str | Path) -> MatchReport:

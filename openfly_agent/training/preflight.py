@@ -12,10 +12,10 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
-from openfly_agent import constants as C
 from openfly_agent.data.config import DataConfig
 from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
 from openfly_agent.data.schema import SchemaError
+from openfly_agent.model.checkpoint_path import checkpoint_files
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import BatchConfig, BatchSizeError
 
@@ -106,17 +106,13 @@ def checkpoint_tensor_shapes(folder: str | Path) -> dict[str, tuple[int, ...]]:
     """Tensor names and shapes of a checkpoint's safetensors files, read from the headers only."""
     from safetensors import safe_open
 
-    folder = Path(folder)
-    index = folder / C.WEIGHTS_INDEX_NAME
-    if index.is_file():
-        files = sorted(set(json.loads(index.read_text())["weight_map"].values()))
-    elif (folder / C.WEIGHTS_NAME).is_file():
-        files = [C.WEIGHTS_NAME]
-    else:
-        raise PreflightError(f"{folder} has neither {C.WEIGHTS_NAME} nor {C.WEIGHTS_INDEX_NAME}")
+    try:
+        files = checkpoint_files(Path(folder))
+    except FileNotFoundError as err:
+        raise PreflightError(str(err)) from None
     shapes: dict[str, tuple[int, ...]] = {}
-    for name in files:
-        with safe_open(str(folder / name), framework="pt") as f:
+    for path in files:
+        with safe_open(str(path), framework="pt") as f:
             for key in f.keys():  # noqa: SIM118 (safe_open is not a dict)
                 shapes[key] = tuple(f.get_slice(key).get_shape())
     return shapes

@@ -27,7 +27,7 @@ INSTRUCTIONS = [
 NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
 
 
-def _memory_agent(make_agent, **overrides):
+def memory_agent(make_agent, **overrides):
     """An untrained agent whose actions change with the image (seed 1, visual tokens amplified), and where
     every change point yields a keyframe set (all predicted boxes visible, theta = 0)."""
     agent = make_agent(
@@ -59,7 +59,7 @@ def _obs(episode: int, frame: np.ndarray) -> dict:
 
 
 def test_batched_equals_one_episode_at_a_time(make_agent):
-    agent = _memory_agent(make_agent)
+    agent = memory_agent(make_agent)
     episodes, steps = 3, 10
     frames = _frames(episodes, steps)
     batched = [agent.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]
@@ -79,7 +79,7 @@ def test_batched_equals_one_episode_at_a_time(make_agent):
 
 
 def test_memory_follows_the_keyframe_selector(make_agent):
-    agent = _memory_agent(make_agent)
+    agent = memory_agent(make_agent)
     frames = _frames(1, 14, seed=3)
     for t in range(14):
         agent.select_action([_obs(0, frames[0, t])])

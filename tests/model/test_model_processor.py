@@ -8,11 +8,12 @@ import json
 import numpy as np
 import pytest
 import torch
+from test_model_inference import memory_agent
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.model.action_tokenizer import CODEBOOK
-from openfly_agent.model.config import ActionHeadConfig, GroundingConfig, KeyframeConfig
+from openfly_agent.model.config import ActionHeadConfig
 from openfly_agent.model.processor import OpenFlyProcessor
 
 INSTRUCTION = "Fly to the red tower and turn left."
@@ -109,19 +110,6 @@ def test_save_and_load_the_processor(make_agent, tmp_path):
         assert other.encode("fly to the tower", 4) == agent.processor.encode("fly to the tower", 4)
 
 
-def _scripted_agent(make_agent):
-    """Actions change with the image (visual tokens amplified), every predicted box counts and every change
-    point gives a keyframe set, so the memory fills during a short episode."""
-    agent = make_agent(
-        seed=1,
-        grounding=GroundingConfig(dim=32, num_heads=2, visibility_weight=0.0),
-        keyframes=KeyframeConfig(theta=0.0),
-    )
-    with torch.no_grad():
-        agent.projector.fc3.weight.mul_(10.0)
-    return agent
-
-
 class _Spy:
     """Records the inputs of an agent's text embedding, vision backbone and decoder calls."""
 
@@ -139,7 +127,7 @@ class _Spy:
 def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_agent):
     """For the same frame, history and instruction, `forward(collated batch)` and `predict_step` give the model
     the same token ids, masks, pixel values and, through them, the same decoder input (action included)."""
-    agent = _scripted_agent(make_agent)
+    agent = memory_agent(make_agent)  # the memory fills during a short episode
     rng = np.random.default_rng(4)
     frames = rng.integers(0, 256, (12, 40, 40, 3), dtype=np.uint8)  # not the model's size: resized by both
     obs = lambda t: {"episode_id": "e", "instruction": INSTRUCTION, "rgb": frames[t], "pose": (0, 0, 9, 0)}  # noqa: E731
