@@ -8,19 +8,24 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from .config_checks import check_choice, check_positive, fill_tiny_fields
+from .vision_config import (
+    CNN_STRIDE,
+    DINOSIGLIP_TIMM_IDS,
+    DINOSIGLIP_WIDTHS,
+    RESIZE_MODES,
+    TINY_CNN_VISION,
+    TINY_VISION,
+    VISION_DINOSIGLIP_224,
+    VISION_PRESETS,
+    VISION_TINY,
+    VISION_TINY_CNN,
+    VisionConfig,
+)
+
 MODE_OPENFLY = "openfly"
 MODE_OPENVLA_COMPAT = "openvla_compat"
 MODES = (MODE_OPENFLY, MODE_OPENVLA_COMPAT)
-
-VISION_DINOSIGLIP_224 = "dinosiglip-224px"
-VISION_TINY = "tiny"  # two small ViTs of the dinosiglip structure
-VISION_TINY_CNN = "tiny-cnn"  # a small ResNet with the same token grid (model/conv_vision.py)
-VISION_PRESETS = (VISION_DINOSIGLIP_224, VISION_TINY, VISION_TINY_CNN)
-CNN_STRIDE = 16  # tiny-cnn: pixels per token side (the ResNet's output stride)
-# The real timm architectures of the `dinosiglip-224px` preset (weights come from a checkpoint, never
-# downloaded).
-DINOSIGLIP_TIMM_IDS = ("vit_large_patch14_reg4_dinov2", "vit_so400m_patch14_siglip_224")
-DINOSIGLIP_WIDTHS = (1024, 1152)
 
 LLM_LLAMA2_7B = "llama2-7b"
 LLM_TINY = "tiny"
@@ -37,8 +42,6 @@ DECODE_NEAREST = "nearest"
 DECODE_RULES = (DECODE_EXACT, DECODE_NEAREST)
 NUM_ACTION_SLOTS = 256  # both heads use the last 256 ids below `action_head.vocab_end`
 
-RESIZE_MODES = ("bicubic", "area")
-
 # Llama-2-7B's architecture (meta-llama/Llama-2-7b-hf config.json); weights always come from a checkpoint.
 LLAMA2_7B_ARCH = {
     "hidden_size": 4096,
@@ -47,122 +50,8 @@ LLAMA2_7B_ARCH = {
     "num_attention_heads": 32,
     "rms_norm_eps": 1e-5,
 }
-# Sizes of the `tiny` presets, taken by the tiny-only fields left at None (ignored by the 7B presets, which
-# reject them when set).
-TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
-TINY_CNN_VISION = {"cnn_channels": [32, 64, 96, 128], "cnn_stem_width": 16}
+# Sizes of the `tiny` LLM preset, taken by the tiny-only fields left at None (rejected by the 7B preset when set).
 TINY_LLM = {"hidden_size": 128, "num_layers": 2, "num_heads": 4, "intermediate_size": 344}
-
-
-def _check_choice(section: str, name: str, value: str, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ValueError(f"{section}.{name}={value!r} is not supported; use one of {list(choices)}")
-
-
-def _check_positive(section: str, name: str, value: float) -> None:
-    if value <= 0:
-        raise ValueError(f"{section}.{name} must be > 0, got {value}")
-
-
-def _fill_tiny_fields(section: str, cfg, is_tiny: bool, defaults: dict[str, int]) -> None:
-    """Tiny preset: fill the unset tiny-only fields with `defaults`. Other presets: reject any that is set."""
-    for name, default in defaults.items():
-        value = getattr(cfg, name)
-        if is_tiny and value is None:
-            setattr(cfg, name, default)
-        elif not is_tiny and value is not None:
-            raise ValueError(
-                f"{section}.{name}={value} is read by the tiny preset only; {section}.preset={cfg.preset} fixes "
-                f"the architecture, so remove {section}.{name} (or use {section}.preset=tiny)"
-            )
-
-
-@dataclass
-class VisionConfig:
-    """The vision backbone: uint8 frames -> one feature vector per cell of a square token grid.
-
-    `dinosiglip-224px` builds the real timm architectures (224 px, patch 14, 256 patches,
-    1024 + 1152 = 2176-d); `tiny` builds two small ViTs of the same structure from `image_size`,
-    `patch_size`, `width`, `fused_width`, `depth` and `num_heads` (None takes `TINY_VISION`). Both read the
-    output of the second-to-last block, without the final norm. `tiny-cnn` (the CPU default) is a small timm
-    ResNet of output stride 16 with `cnn_channels` stage widths (None takes `TINY_CNN_VISION`): a 128 px frame
-    gives the same 8 x 8 token grid, into the same projector and LLM (model/conv_vision.py). `image_size` and
-    `resize` also define the image preprocessing (the processor's image transform).
-    """
-
-    preset: str = VISION_TINY_CNN
-    image_size: int = 128  # square input side in pixels; must be a multiple of patch_size
-    patch_size: int = CNN_STRIDE  # pixels per token side (tiny-cnn: the ResNet's stride, 16)
-    width: int | None = None  # tiny only: DINO-style ViT width
-    fused_width: int | None = None  # tiny only: SigLIP-style ViT width
-    depth: int | None = None  # tiny only: blocks per ViT (features come from block depth - 2)
-    num_heads: int | None = None  # tiny only
-    cnn_channels: list[int] | None = (
-        None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
-    )
-    cnn_stem_width: int | None = None  # tiny-cnn only: channels of the stem convolution
-    resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
-
-    def __post_init__(self) -> None:
-        _check_choice("vision", "preset", self.preset, VISION_PRESETS)
-        _check_choice("vision", "resize", self.resize, RESIZE_MODES)
-        _fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
-        _fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
-        if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
-            raise ValueError(
-                f"vision.preset=dinosiglip-224px needs image_size=224 and patch_size=14 "
-                f"(got {self.image_size}, {self.patch_size}); use preset=tiny for other sizes"
-            )
-        for name in ("image_size", "patch_size"):
-            _check_positive("vision", name, getattr(self, name))
-        if self.image_size % self.patch_size:
-            raise ValueError(
-                f"vision.image_size={self.image_size} must be a multiple of "
-                f"vision.patch_size={self.patch_size}"
-            )
-        if self.preset == VISION_TINY_CNN:
-            if self.patch_size != CNN_STRIDE:
-                raise ValueError(
-                    f"vision.preset=tiny-cnn has a stride of {CNN_STRIDE}: set patch_size={CNN_STRIDE}"
-                )
-            if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0 or self.cnn_stem_width <= 0:
-                raise ValueError(
-                    f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
-                    f"vision.cnn_stem_width={self.cnn_stem_width} positive"
-                )
-        if self.preset != VISION_TINY:
-            return
-        for name in TINY_VISION:
-            _check_positive("vision", name, getattr(self, name))
-        if self.depth < 2:
-            raise ValueError(f"vision.depth={self.depth}: need >= 2 blocks (features of the second-to-last)")
-        for name in ("width", "fused_width"):
-            if getattr(self, name) % self.num_heads:
-                raise ValueError(
-                    f"vision.{name}={getattr(self, name)} must be divisible by num_heads={self.num_heads}"
-                )
-
-    @property
-    def grid_side(self) -> int:
-        """Patches per image side (16 for 224 px / patch 14)."""
-        return self.image_size // self.patch_size
-
-    @property
-    def num_patches(self) -> int:
-        """P, patch tokens per frame."""
-        return self.grid_side**2
-
-    @property
-    def featurizer_widths(self) -> tuple[int, int]:
-        """Widths of (featurizer, fused_featurizer); tiny-cnn has no fused featurizer (width 0)."""
-        if self.preset == VISION_TINY_CNN:
-            return (self.cnn_channels[-1], 0)
-        return DINOSIGLIP_WIDTHS if self.preset == VISION_DINOSIGLIP_224 else (self.width, self.fused_width)
-
-    @property
-    def feature_dim(self) -> int:
-        """Fused per-patch feature width (2176 for dinosiglip-224px)."""
-        return sum(self.featurizer_widths)
 
 
 @dataclass
@@ -172,7 +61,7 @@ class ProjectorConfig:
     hidden_ratio: int = 4
 
     def __post_init__(self) -> None:
-        _check_positive("projector", "hidden_ratio", self.hidden_ratio)
+        check_positive("projector", "hidden_ratio", self.hidden_ratio)
 
 
 @dataclass
@@ -199,17 +88,17 @@ class LLMConfig:
     pad_token_id: int | None = None
 
     def __post_init__(self) -> None:
-        _check_choice("llm", "preset", self.preset, LLM_PRESETS)
-        _fill_tiny_fields("llm", self, self.preset == LLM_TINY, TINY_LLM)
+        check_choice("llm", "preset", self.preset, LLM_PRESETS)
+        fill_tiny_fields("llm", self, self.preset == LLM_TINY, TINY_LLM)
         if self.vocab_size is not None and self.vocab_size <= NUM_ACTION_SLOTS:
             raise ValueError(
                 f"llm.vocab_size={self.vocab_size} must exceed the {NUM_ACTION_SLOTS} action ids"
             )
-        _check_positive("llm", "max_length", self.max_length)
+        check_positive("llm", "max_length", self.max_length)
         if self.preset != LLM_TINY:
             return
         for name in TINY_LLM:
-            _check_positive("llm", name, getattr(self, name))
+            check_positive("llm", name, getattr(self, name))
         if self.hidden_size % self.num_heads:
             raise ValueError(
                 f"llm.hidden_size={self.hidden_size} must be divisible by llm.num_heads={self.num_heads}"
@@ -267,7 +156,7 @@ class GroundingConfig:
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads"):
-            _check_positive("grounding", name, getattr(self, name))
+            check_positive("grounding", name, getattr(self, name))
         if self.dim % self.num_heads:
             raise ValueError(
                 f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"
@@ -324,7 +213,7 @@ class MemoryConfig:
     def __post_init__(self) -> None:
         if self.capacity < 0:
             raise ValueError(f"memory.capacity={self.capacity} must be >= 0")
-        _check_positive("memory", "grid", self.grid)
+        check_positive("memory", "grid", self.grid)
 
 
 @dataclass
@@ -351,8 +240,8 @@ class ActionHeadConfig:
     box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
 
     def __post_init__(self) -> None:
-        _check_choice("action_head", "type", self.type, ACTION_HEADS)
-        _check_choice("action_head", "decode_rule", self.decode_rule, DECODE_RULES)
+        check_choice("action_head", "type", self.type, ACTION_HEADS)
+        check_choice("action_head", "decode_rule", self.decode_rule, DECODE_RULES)
         if self.n_bins != NUM_ACTION_SLOTS:
             raise ValueError(f"action_head.n_bins={self.n_bins}: only {NUM_ACTION_SLOTS} bins are supported")
         if self.vocab_end is not None and self.vocab_end < NUM_ACTION_SLOTS:
@@ -377,7 +266,7 @@ class ModelConfig:
     action_head: ActionHeadConfig = field(default_factory=ActionHeadConfig)
 
     def __post_init__(self) -> None:
-        _check_choice("model", "mode", self.mode, MODES)
+        check_choice("model", "mode", self.mode, MODES)
         side = self.vision.grid_side
         if side % self.memory.grid:
             raise ValueError(
@@ -529,7 +418,17 @@ _SECTION_TYPES = {
     "action_head": ActionHeadConfig,
 }
 
-__all__ = [
+__all__ = [  # the vision section's names are re-exported: model.config is the one place to import config from
+    "CNN_STRIDE",
+    "DINOSIGLIP_TIMM_IDS",
+    "DINOSIGLIP_WIDTHS",
+    "RESIZE_MODES",
+    "TINY_CNN_VISION",
+    "TINY_VISION",
+    "VISION_DINOSIGLIP_224",
+    "VISION_PRESETS",
+    "VISION_TINY",
+    "VISION_TINY_CNN",
     "ActionHeadConfig",
     "GroundingConfig",
     "KeyframeConfig",
@@ -557,7 +456,7 @@ class LoraSettings:
     init: str = "gaussian"  # peft init_lora_weights
 
     def __post_init__(self) -> None:
-        _check_positive("lora", "rank", self.rank)
-        _check_positive("lora", "alpha", self.alpha)
+        check_positive("lora", "rank", self.rank)
+        check_positive("lora", "alpha", self.alpha)
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"lora.dropout={self.dropout} must be in [0, 1)")

@@ -1,0 +1,114 @@
+"""The vision section of the model config: backbone presets, input size and the tiny-only sizes; stdlib only.
+
+Part of the typed model config (model/config.py, which re-exports these names).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .config_checks import check_choice, check_positive, fill_tiny_fields
+
+VISION_DINOSIGLIP_224 = "dinosiglip-224px"
+VISION_TINY = "tiny"  # two small ViTs of the dinosiglip structure
+VISION_TINY_CNN = "tiny-cnn"  # a small ResNet with the same token grid (model/conv_vision.py)
+VISION_PRESETS = (VISION_DINOSIGLIP_224, VISION_TINY, VISION_TINY_CNN)
+CNN_STRIDE = 16  # tiny-cnn: pixels per token side (the ResNet's output stride)
+# The real timm architectures of the `dinosiglip-224px` preset (weights come from a checkpoint, never
+# downloaded).
+DINOSIGLIP_TIMM_IDS = ("vit_large_patch14_reg4_dinov2", "vit_so400m_patch14_siglip_224")
+DINOSIGLIP_WIDTHS = (1024, 1152)
+
+RESIZE_MODES = ("bicubic", "area")
+# Sizes of the `tiny` and `tiny-cnn` presets, taken by the tiny-only fields left at None (rejected by the 7B preset
+# when set).
+TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
+TINY_CNN_VISION = {"cnn_channels": [32, 64, 96, 128], "cnn_stem_width": 16}
+
+
+@dataclass
+class VisionConfig:
+    """The vision backbone: uint8 frames -> one feature vector per cell of a square token grid.
+
+    `dinosiglip-224px` builds the real timm architectures (224 px, patch 14, 256 patches,
+    1024 + 1152 = 2176-d); `tiny` builds two small ViTs of the same structure from `image_size`,
+    `patch_size`, `width`, `fused_width`, `depth` and `num_heads` (None takes `TINY_VISION`). Both read the
+    output of the second-to-last block, without the final norm. `tiny-cnn` (the CPU default) is a small timm
+    ResNet of output stride 16 with `cnn_channels` stage widths (None takes `TINY_CNN_VISION`): a 128 px frame
+    gives the same 8 x 8 token grid, into the same projector and LLM (model/conv_vision.py). `image_size` and
+    `resize` also define the image preprocessing (the processor's image transform).
+    """
+
+    preset: str = VISION_TINY_CNN
+    image_size: int = 128  # square input side in pixels; must be a multiple of patch_size
+    patch_size: int = CNN_STRIDE  # pixels per token side (tiny-cnn: the ResNet's stride, 16)
+    width: int | None = None  # tiny only: DINO-style ViT width
+    fused_width: int | None = None  # tiny only: SigLIP-style ViT width
+    depth: int | None = None  # tiny only: blocks per ViT (features come from block depth - 2)
+    num_heads: int | None = None  # tiny only
+    cnn_channels: list[int] | None = (
+        None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
+    )
+    cnn_stem_width: int | None = None  # tiny-cnn only: channels of the stem convolution
+    resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
+
+    def __post_init__(self) -> None:
+        check_choice("vision", "preset", self.preset, VISION_PRESETS)
+        check_choice("vision", "resize", self.resize, RESIZE_MODES)
+        fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
+        fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
+        if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
+            raise ValueError(
+                f"vision.preset=dinosiglip-224px needs image_size=224 and patch_size=14 "
+                f"(got {self.image_size}, {self.patch_size}); use preset=tiny for other sizes"
+            )
+        for name in ("image_size", "patch_size"):
+            check_positive("vision", name, getattr(self, name))
+        if self.image_size % self.patch_size:
+            raise ValueError(
+                f"vision.image_size={self.image_size} must be a multiple of "
+                f"vision.patch_size={self.patch_size}"
+            )
+        if self.preset == VISION_TINY_CNN:
+            if self.patch_size != CNN_STRIDE:
+                raise ValueError(
+                    f"vision.preset=tiny-cnn has a stride of {CNN_STRIDE}: set patch_size={CNN_STRIDE}"
+                )
+            if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0 or self.cnn_stem_width <= 0:
+                raise ValueError(
+                    f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
+                    f"vision.cnn_stem_width={self.cnn_stem_width} positive"
+                )
+        if self.preset != VISION_TINY:
+            return
+        for name in TINY_VISION:
+            check_positive("vision", name, getattr(self, name))
+        if self.depth < 2:
+            raise ValueError(f"vision.depth={self.depth}: need >= 2 blocks (features of the second-to-last)")
+        for name in ("width", "fused_width"):
+            if getattr(self, name) % self.num_heads:
+                raise ValueError(
+                    f"vision.{name}={getattr(self, name)} must be divisible by num_heads={self.num_heads}"
+                )
+
+    @property
+    def grid_side(self) -> int:
+        """Patches per image side (16 for 224 px / patch 14)."""
+        return self.image_size // self.patch_size
+
+    @property
+    def num_patches(self) -> int:
+        """P, patch tokens per frame."""
+        return self.grid_side**2
+
+    @property
+    def featurizer_widths(self) -> tuple[int, int]:
+        """Widths of (featurizer, fused_featurizer); tiny-cnn has no fused featurizer (width 0)."""
+        if self.preset == VISION_TINY_CNN:
+            return (self.cnn_channels[-1], 0)
+        return DINOSIGLIP_WIDTHS if self.preset == VISION_DINOSIGLIP_224 else (self.width, self.fused_width)
+
+    @property
+    def feature_dim(self) -> int:
+        """Fused per-patch feature width (2176 for dinosiglip-224px)."""
+        return sum(self.featurizer_widths)
