@@ -73,6 +73,9 @@ class RecipeConfig:
     train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
     processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
     torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts
+    # train.py --optim.horizon of every stage: `time` decays the lr over the stage's minutes when they end
+    # before its steps (the budgets here are wall time), `steps` over the steps only
+    lr_horizon: str = "time"
     grounding: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=8.0))
     navigation: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=10.0))
     dagger: DaggerSettings = field(default_factory=DaggerSettings)
@@ -81,6 +84,9 @@ class RecipeConfig:
     def __post_init__(self) -> None:
         _check(self.processes >= 1, f"processes must be >= 1, got {self.processes}")
         _check(self.torch_threads >= 1, f"torch_threads must be >= 1, got {self.torch_threads}")
+        _check(
+            self.lr_horizon in ("steps", "time"), f"lr_horizon must be steps or time, not {self.lr_horizon!r}"
+        )
         _check(
             self.navigation.steps > 0, "navigation.steps must be > 0: the recipe trains a navigating agent"
         )

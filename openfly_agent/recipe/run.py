@@ -74,6 +74,7 @@ def _train_step(
         f"--output_dir={folder}",
         f"--steps={budget.steps}",
         f"--time_limit_minutes={budget.minutes}",
+        f"--optim.horizon={cfg.lr_horizon}",
         *args,
         *budget.args,
     ]  # fmt: skip

@@ -15,6 +15,7 @@ PRECISIONS = ("no", "bf16", "fp16")
 STAGE_GROUNDING, STAGE_NAVIGATION = "grounding", "navigation"
 STAGES = (STAGE_GROUNDING, STAGE_NAVIGATION)
 SCHEDULES = ("constant", "cosine", "linear")
+HORIZONS = ("steps", "time")  # where the lr decay ends: the step budget, or whichever of steps and time first
 TRACKERS = ("tensorboard", "wandb", "none")
 INIT_FORMATS = ("auto", "openfly", "openvla")
 
@@ -75,6 +76,9 @@ class OptimConfig:
     schedule: str = "cosine"  # constant | cosine | linear
     warmup_steps: int = 0
     min_lr_ratio: float = 0.0  # floor of cosine / linear as a fraction of lr
+    # where the decay ends: `steps`, or `time`: at `steps` or at `time_limit_minutes`, whichever comes first
+    # (a run that its time limit cuts still ends at the floor; the recipe's stages have time budgets)
+    horizon: str = "steps"
     max_grad_norm: float | None = 1.0  # None disables clipping
 
     def __post_init__(self) -> None:
@@ -82,6 +86,7 @@ class OptimConfig:
         _require(self.weight_decay >= 0, f"optim.weight_decay must be >= 0, got {self.weight_decay}")
         _require(all(0 <= b < 1 for b in self.betas), f"optim.betas must be in [0, 1), got {self.betas}")
         _require(self.schedule in SCHEDULES, f"optim.schedule={self.schedule!r}: choose one of {SCHEDULES}")
+        _require(self.horizon in HORIZONS, f"optim.horizon={self.horizon!r}: choose one of {HORIZONS}")
         _require(self.warmup_steps >= 0, f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
         _require(
             0 <= self.min_lr_ratio <= 1, f"optim.min_lr_ratio must be in [0, 1], not {self.min_lr_ratio}"
@@ -200,7 +205,8 @@ class TrainConfig:
     freeze_stage: str = "full"  # full | frozen_vision | heads_only | lora (LoRA adapters, the `lora` section)
     steps: int | None = None  # optimizer steps of the run (wins over `epochs` when both are set)
     epochs: float | None = 1.0  # passes over the train split, used when `steps` is null
-    time_limit_minutes: float | None = None  # also stop (and save) once this much wall time has passed
+    # also stop (and save) once this much training time has passed, counted over resumes
+    time_limit_minutes: float | None = None
     stop_after_steps: int | None = None  # tests: exit after this step WITHOUT the final save (a crash)
     # run folder (checkpoints/, logs/, tokenizer/), relative to the working directory
     output_dir: str = "outputs/train/tiny"
@@ -229,6 +235,10 @@ class TrainConfig:
         _require(
             self.time_limit_minutes is None or self.time_limit_minutes > 0,
             f"time_limit_minutes must be > 0 or null, got {self.time_limit_minutes}",
+        )
+        _require(
+            self.optim.horizon != "time" or self.time_limit_minutes is not None,
+            "optim.horizon=time decays the lr over the time budget: set --time_limit_minutes",
         )
 
     @property

@@ -14,6 +14,17 @@ logger = logging.getLogger(__name__)
 SCHEDULES = ("constant", "cosine", "linear")
 
 
+class ScheduleClock:
+    """The fraction of a run's time budget already used, as the schedule reads it (0 for a step horizon).
+
+    The trainer sets `fraction` after every optimizer step from the time every process agrees on
+    (training/stops.py), so all processes apply the same learning rate.
+    """
+
+    def __init__(self) -> None:
+        self.fraction = 0.0
+
+
 def make_param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
     """Split the trainable parameters into a decayed group (matrices) and an undecayed one (biases, norms).
 
@@ -71,13 +82,19 @@ def make_optimizer(
 
 
 def lr_multiplier(
-    step: int, schedule: str, warmup_steps: int, total_steps: int, min_lr_ratio: float = 0.0
+    step: int,
+    schedule: str,
+    warmup_steps: int,
+    total_steps: int,
+    min_lr_ratio: float = 0.0,
+    time_fraction: float = 0.0,
 ) -> float:
     """The factor applied to the base lr after `step` optimizer steps (step 0 is the first update).
 
     Warmup ramps linearly from 1/(warmup_steps+1) to 1 over `warmup_steps` steps; then `constant` stays at 1,
     `cosine` follows half a cosine down to `min_lr_ratio` at `total_steps`, `linear` falls in a straight line
-    to `min_lr_ratio` at `total_steps`.
+    to `min_lr_ratio` at `total_steps`. With a time budget, `time_fraction` is the part of it already used:
+    the decay is as far along as the further of the two budgets (a run cut by its time limit ends low).
     """
     if schedule not in SCHEDULES:
         raise ValueError(f"optim.schedule must be one of {SCHEDULES}, got {schedule!r}")
@@ -86,7 +103,7 @@ def lr_multiplier(
     if schedule == "constant":
         return 1.0
     decay_steps = max(total_steps - warmup_steps, 1)
-    progress = min((step - warmup_steps) / decay_steps, 1.0)
+    progress = min(max((step - warmup_steps) / decay_steps, time_fraction), 1.0)
     if schedule == "cosine":
         shape = 0.5 * (1.0 + math.cos(math.pi * progress))
     else:
@@ -100,10 +117,17 @@ def make_scheduler(
     warmup_steps: int,
     total_steps: int,
     min_lr_ratio: float = 0.0,
+    clock: ScheduleClock | None = None,
 ) -> torch.optim.lr_scheduler.LambdaLR:
-    """A `LambdaLR` following `lr_multiplier`; its state (step count) is saved with the training state."""
+    """A `LambdaLR` following `lr_multiplier`; its state (step count) is saved with the training state.
+
+    With a `clock` (time horizon), each `scheduler.step()` also reads the used fraction of the time budget.
+    """
     if schedule not in SCHEDULES:
         raise ValueError(f"optim.schedule must be one of {SCHEDULES}, got {schedule!r}")
     return torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda step: lr_multiplier(step, schedule, warmup_steps, total_steps, min_lr_ratio)
+        optimizer,
+        lambda step: lr_multiplier(
+            step, schedule, warmup_steps, total_steps, min_lr_ratio, clock.fraction if clock else 0.0
+        ),
     )

@@ -30,6 +30,8 @@ class TrainerState:
         step_in_epoch: optimizer steps already done in `epoch` (batches to skip on resume).
         samples_seen: training samples consumed (all processes).
         world_size: processes of the run that saved it (the data order is the same at any world size).
+        train_seconds: training wall time of the run up to the save, resumes included (the time limit and the
+            time horizon of the lr schedule count from it).
     """
 
     step: int = 0
@@ -37,6 +39,7 @@ class TrainerState:
     step_in_epoch: int = 0
     samples_seen: int = 0
     world_size: int = 1
+    train_seconds: int = 0
 
     def advance(self, samples: int, steps_per_epoch: int, world_size: int) -> None:
         """Count one optimizer step of `samples` samples; the epoch rolls over after `steps_per_epoch` steps."""

@@ -24,15 +24,30 @@ class StopFlags:
     manager: the handlers are installed on entry (main thread only) and the previous ones restored on exit.
 
     Args:
+    The time limit counts training time over the run's resumes: `elapsed_before_s` (saved in the checkpoint)
+    plus the wall time since construction. `used_fraction` is the part of the limit used as of the last
+    `reason()`, the value of rank 0 on every process (the lr schedule of a time horizon reads it).
+
+    Args:
         accelerator: the run's Accelerator (the flags are all-reduced across its processes).
-        time_limit_minutes: wall time after which the run stops (None: no limit), counted from construction.
+        time_limit_minutes: training time after which the run stops (None: no limit).
+        elapsed_before_s: training seconds of the run before this process started (a resumed run).
     """
 
-    def __init__(self, accelerator: Accelerator, time_limit_minutes: float | None) -> None:
+    def __init__(
+        self, accelerator: Accelerator, time_limit_minutes: float | None, elapsed_before_s: float = 0.0
+    ) -> None:
         self.accelerator = accelerator
-        self.deadline = None if time_limit_minutes is None else time.monotonic() + 60.0 * time_limit_minutes
+        self.limit_s = None if time_limit_minutes is None else 60.0 * time_limit_minutes
+        self.elapsed_before_s = elapsed_before_s
+        self.started = time.monotonic()
+        self.used_fraction = 0.0 if self.limit_s is None else min(elapsed_before_s / self.limit_s, 1.0)
         self.signal_name: str | None = None
         self._previous: dict[int, Any] = {}
+
+    def elapsed_s(self) -> float:
+        """Training seconds of the run so far (this process's clock), resumes included."""
+        return self.elapsed_before_s + time.monotonic() - self.started
 
     def __enter__(self) -> StopFlags:
         if threading.current_thread() is threading.main_thread():  # signal handlers live in the main thread
@@ -53,11 +68,19 @@ class StopFlags:
 
     def reason(self) -> str | None:
         """'signal' or 'time' when any process must stop now, else None (one all-reduce per call)."""
-        time_up = self.deadline is not None and time.monotonic() >= self.deadline
+        elapsed = self.elapsed_s()
         if self.accelerator.num_processes == 1:  # nothing to agree on: no tensor, no device sync per step
-            return "signal" if self.signal_name is not None else "time" if time_up else None
-        flags = torch.tensor(
-            [float(self.signal_name is not None), float(time_up)], device=self.accelerator.device
-        )
-        signalled, timed_out = (self.accelerator.reduce(flags, reduction="sum") > 0).tolist()
-        return "signal" if signalled else "time" if timed_out else None
+            signalled = self.signal_name is not None
+        else:  # rank 0's clock for everyone; a signal on any process counts
+            main_elapsed = elapsed if self.accelerator.is_main_process else 0.0
+            flags = torch.tensor(
+                [float(self.signal_name is not None), main_elapsed],
+                dtype=torch.float64,
+                device=self.accelerator.device,
+            )
+            signal_count, elapsed = self.accelerator.reduce(flags, reduction="sum").tolist()
+            signalled = signal_count > 0
+        if self.limit_s is not None:
+            self.used_fraction = min(elapsed / self.limit_s, 1.0)
+        time_up = self.limit_s is not None and elapsed >= self.limit_s
+        return "signal" if signalled else "time" if time_up else None

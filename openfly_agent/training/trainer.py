@@ -25,7 +25,7 @@ from openfly_agent.training.evaluate import evaluate, make_eval_loader
 from openfly_agent.training.export import export_merged_lora
 from openfly_agent.training.loaders import epoch_batches, make_train_loader
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
-from openfly_agent.training.optim import make_optimizer, make_scheduler
+from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
 from openfly_agent.training.preflight import check_dataset_root, check_output_dir
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
@@ -85,7 +85,10 @@ def train(cfg: TrainConfig) -> TrainResult:
     total_steps = cfg.steps or max(1, math.ceil(cfg.epochs * sampler.steps_per_epoch))
     optim = cfg.optim
     optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps)
-    scheduler = make_scheduler(optimizer, optim.schedule, optim.warmup_steps, total_steps, optim.min_lr_ratio)
+    clock = ScheduleClock() if optim.horizon == "time" else None  # the used part of the time budget
+    scheduler = make_scheduler(
+        optimizer, optim.schedule, optim.warmup_steps, total_steps, optim.min_lr_ratio, clock
+    )
     model, optimizer, train_loader, scheduler = accelerator.prepare(agent, optimizer, train_loader, scheduler)
     register_state_hooks(accelerator)  # checkpoints keep trainable tensors only
     eval_batch = cfg.validation.per_device_batch_size or cfg.batch.per_device_batch_size
@@ -114,8 +117,11 @@ def train(cfg: TrainConfig) -> TrainResult:
     )
     model.train()
     last_checkpoint, saved_step, reason = None, None, None
+    stops = StopFlags(accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
+    if clock is not None:
+        clock.fraction = stops.used_fraction
     # The bar, the stop-signal handlers and the trackers are closed on every way out, an error included.
-    with progress, StopFlags(accelerator, cfg.time_limit_minutes) as stops, closing_trackers(accelerator):
+    with progress, stops, closing_trackers(accelerator):
         while state.step < total_steps and reason is None:
             for batch in epoch_batches(train_loader, train_set, state, accelerator):
                 with accelerator.accumulate(model):  # gradients sync on the last micro-batch of a step
@@ -146,6 +152,7 @@ def train(cfg: TrainConfig) -> TrainResult:
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
                     log_metrics(accelerator, "val", evaluate(model, val_loader, accelerator), state.step)
                 if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
+                    state.train_seconds = int(stops.elapsed_s())
                     last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
                     saved_step = state.step
                 if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
@@ -155,6 +162,8 @@ def train(cfg: TrainConfig) -> TrainResult:
                 if state.step >= total_steps:
                     break
                 reason = stops.reason()  # the time limit or SIGTERM / SIGUSR1 on any process
+                if clock is not None:
+                    clock.fraction = stops.used_fraction  # read by the next scheduler.step()
                 if reason is not None:
                     logger.info("stopping at step %d (%s)", state.step, reason)
                     break
@@ -162,6 +171,7 @@ def train(cfg: TrainConfig) -> TrainResult:
 
         # 5. The end: a checkpoint of the last step, the LoRA merge, the offline evaluation of the test split.
         if saved_step != state.step:
+            state.train_seconds = int(stops.elapsed_s())
             last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
         if reason == "signal":
             logger.warning(

@@ -68,7 +68,7 @@ def test_checkpoint_name_and_keep_last_validation(tmp_path):
 
 
 def test_trainer_state_round_trip_and_errors(tmp_path):
-    state = TrainerState(step=7, epoch=1, step_in_epoch=2, samples_seen=56, world_size=2)
+    state = TrainerState(step=7, epoch=1, step_in_epoch=2, samples_seen=56, world_size=2, train_seconds=93)
     state.save(tmp_path)
     assert TrainerState.load(tmp_path) == state
     (tmp_path / "trainer_state.json").write_text(json.dumps({"step": -1}))

@@ -108,3 +108,11 @@ def test_batch_config_rejects_non_multiple():
         BatchConfig(global_batch_size=12, per_device_batch_size=8)
     with pytest.raises(ValueError, match="optim.lr"):
         OptimConfig(lr=0.0)
+
+
+def test_a_time_horizon_needs_a_time_limit():
+    with pytest.raises(ValueError, match="time_limit_minutes"):
+        TrainConfig(optim=OptimConfig(horizon="time"))
+    assert TrainConfig(optim=OptimConfig(horizon="time"), time_limit_minutes=5.0).optim.horizon == "time"
+    with pytest.raises(ValueError, match="optim.horizon"):
+        OptimConfig(horizon="epochs")

@@ -10,7 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from openfly_agent.training.optim import lr_multiplier, make_optimizer, make_param_groups, make_scheduler
+from openfly_agent.training.optim import (
+    ScheduleClock,
+    lr_multiplier,
+    make_optimizer,
+    make_param_groups,
+    make_scheduler,
+)
 from openfly_agent.training.sampler import EpochShuffleSampler
 
 
@@ -87,6 +93,31 @@ def test_scheduler_drives_optimizer_lr():
     assert lrs == pytest.approx(
         [1.0, 0.5 * (1 + math.cos(math.pi / 4)), 0.5, 0.5 * (1 + math.cos(3 * math.pi / 4))]
     )
+
+
+def test_a_time_fraction_moves_the_decay_to_the_further_of_the_two_budgets():
+    # warmup 2 of 10 steps; at step 2 the step budget has not started decaying, half the time is used
+    assert lr_multiplier(2, "cosine", 2, 10, time_fraction=0.5) == pytest.approx(0.5)
+    assert lr_multiplier(2, "linear", 2, 10, min_lr_ratio=0.2, time_fraction=0.25) == pytest.approx(0.8)
+    # step 8 is 3/4 of the decay: the steps are further along than a quarter of the time
+    assert lr_multiplier(8, "linear", 2, 10, time_fraction=0.25) == pytest.approx(0.25)
+    assert lr_multiplier(3, "cosine", 2, 10, min_lr_ratio=0.1, time_fraction=1.0) == pytest.approx(0.1)
+    assert lr_multiplier(0, "cosine", 2, 10, time_fraction=0.9) == pytest.approx(1 / 3)  # warmup is in steps
+    assert lr_multiplier(5, "constant", 2, 10, time_fraction=0.9) == 1.0
+
+
+def test_a_scheduler_with_a_clock_follows_the_used_time():
+    net = _net()
+    opt = make_optimizer(net, lr=1.0, weight_decay=0.0, betas=(0.9, 0.99))
+    clock = ScheduleClock()
+    sched = make_scheduler(opt, "linear", warmup_steps=0, total_steps=1000, clock=clock)
+    lrs = []
+    for fraction in (0.25, 0.5, 1.0):
+        clock.fraction = fraction
+        opt.step()
+        sched.step()
+        lrs.append(opt.param_groups[0]["lr"])
+    assert lrs == pytest.approx([0.75, 0.5, 0.0])
 
 
 def test_sampler_order_depends_only_on_seed_and_epoch():

@@ -180,3 +180,33 @@ def test_sigterm_saves_a_checkpoint_and_resume_finishes(generated_dataset, tmp_p
     )
     resumed = train_in_process(resume)
     assert resumed.state.step == stopped_at + 2
+
+
+def _logged(output_dir, key: str) -> dict[int, float]:
+    values = {}
+    for line in (output_dir / "logs" / "metrics.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if key in record:
+            values[record["step"]] = record[key]
+    return values
+
+
+def test_a_time_horizon_decays_the_lr_over_the_time_limit_counted_over_resumes(generated_dataset, tmp_path):
+    """optim.horizon=time: a run cut by its time limit ends at the lr floor, and a resume spends what is left."""
+    overrides = {
+        "steps": 100_000, "time_limit_minutes": 0.05, "optim__horizon": "time", "optim__schedule": "linear",
+        "optim__warmup_steps": 0, "optim__min_lr_ratio": 0.0, "checkpoint__save_interval": 0,
+        "validation__final_eval": "false",
+    }  # fmt: skip
+    result = train_in_process(make_config(generated_dataset, tmp_path, **overrides))
+    assert result.stopped_early and 1 <= result.state.step < 100_000
+    lrs = _logged(tmp_path, "train/lr")
+    peak = make_config(generated_dataset, tmp_path, **overrides).optim.lr
+    steps = sorted(lrs)  # each step's lr reads the time used up to the step before: the last one is near 0
+    assert lrs[steps[-1]] < 0.1 * peak and lrs[steps[0]] == pytest.approx(peak, rel=1e-3)
+    assert all(lrs[a] >= lrs[b] for a, b in zip(steps, steps[1:]))  # 100,000 steps alone would hardly decay
+    saved = json.loads((CheckpointManager(tmp_path, 5).latest() / TRAINER_STATE_NAME).read_text())
+    assert saved["train_seconds"] >= 3
+    # the whole budget is spent: a resume with the same limit stops after one step instead of starting over
+    resumed = train_in_process(make_config(generated_dataset, tmp_path, resume="true", **overrides))
+    assert resumed.state.step == result.state.step + 1
