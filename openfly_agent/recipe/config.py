@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
+from openfly_agent.training.config import HORIZONS
 
 
 def _check(condition: bool, message: str) -> None:
@@ -84,9 +85,7 @@ class RecipeConfig:
     def __post_init__(self) -> None:
         _check(self.processes >= 1, f"processes must be >= 1, got {self.processes}")
         _check(self.torch_threads >= 1, f"torch_threads must be >= 1, got {self.torch_threads}")
-        _check(
-            self.lr_horizon in ("steps", "time"), f"lr_horizon must be steps or time, not {self.lr_horizon!r}"
-        )
+        _check(self.lr_horizon in HORIZONS, f"lr_horizon={self.lr_horizon!r}: choose one of {HORIZONS}")
         _check(
             self.navigation.steps > 0, "navigation.steps must be > 0: the recipe trains a navigating agent"
         )

@@ -100,14 +100,7 @@ def _config_args(args: list[str]) -> list[str]:
 
 def _parse_generate(args: list[str]):
     """GenerateConfig from YAML + overrides; a bad value or option is an InputError naming the field."""
-    import draccus
-
-    try:
-        return parse_config(GenerateConfig, _config_args(args))
-    except UnknownOptionError as err:
-        raise InputError(str(err)) from None
-    except draccus.utils.ParsingError as err:
-        raise InputError(f"bad generate config: {root_cause(err)}") from None
+    return _parse_command_config(GenerateConfig, args, "generate")
 
 
 def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] = ()) -> str:
