@@ -107,7 +107,12 @@ def _tokens(text: str) -> list[str]:
         tokens = text.split()
     cleaned = []
     for token in tokens:
-        token = token.strip("[]")
+        if token.startswith("[") and token.endswith("]") and "=" not in token:  # `[--flag]`: optional
+            token = token[1:-1]
+        while token.startswith("[") and token.count("[") > token.count("]"):  # `[--flag value]` split
+            token = token[1:]
+        while token.endswith("]") and token.count("]") > token.count("["):  # keeps `--roots=[a,b]`
+            token = token[:-1]
         if token and token not in ("...", "|"):
             cleaned.append(token)
     return cleaned

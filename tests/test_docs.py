@@ -176,6 +176,13 @@ def test_the_stale_eval_command_of_issue_14_is_caught():
     assert len(COMMANDS) > 50 and {c.kind for c in COMMANDS} >= {"train", "eval", "toolchain", "hub", "sim"}
 
 
+def test_list_values_keep_their_brackets_and_optional_flags_lose_theirs():
+    from docs_commands import parse_command
+
+    command = parse_command("docs/x.md", 0, "python train.py [--resume] --data.extra_train_roots=[a,b]")
+    assert command.args == ["--resume", "--data.extra_train_roots=[a,b]"]
+
+
 # -- running the blocks --------------------------------------------------------------------------------
 def _executable(command: DocCommand) -> bool:
     key = command.kind if command.kind in ("train", "eval") else f"{command.kind}:{command.sub}"
