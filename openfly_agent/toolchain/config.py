@@ -295,6 +295,9 @@ class DaggerRoundConfig:
     expert_mix: float = 0.0  # probability that the expert's action is flown instead of the agent's
     max_policy_steps: int = 60  # agent-flown states at most; then the expert flies to the goal
     max_steps: int = 150  # states at most (a rollout without a STOP by then is dropped)
+    # the expert labels STOP at every state within this 3-D distance of the goal (0: only where A* stops,
+    # within planner.goal_tolerance_m). Half the 20-m success radius leaves a margin for a late STOP.
+    stop_radius_m: float = 10.0
     num_envs: int = 16  # rollouts in lockstep (the agent's batch)
     seed: int = 0  # seed of the episode draw and of expert_mix
 
@@ -306,6 +309,10 @@ class DaggerRoundConfig:
             "dagger round: need 0 <= max_policy_steps <= max_steps",
         )
         _check(self.num_envs >= 1, "dagger round: num_envs must be >= 1")
+        _check(
+            0.0 <= self.stop_radius_m < C.SUCCESS_RADIUS_M,
+            f"dagger round: stop_radius_m must be in [0, {C.SUCCESS_RADIUS_M}) (the success radius)",
+        )
 
 
 @dataclass

@@ -61,13 +61,21 @@ class AStarExpert:
 
     Legs are passed in order; reaching a leg's goal (within tolerance) moves on to the next one, STOP at
     the last. Plans are reused while the executed actions follow them (`reuse_plans`), re-planned after a
-    deviation.
+    deviation. `stop_radius_m` widens the last goal: STOP anywhere within that 3-D distance of it (the
+    task counts a STOP within the success radius; 0 keeps the planner's tolerance).
     """
 
-    def __init__(self, astar: ActionSpaceAStar, goals: list[np.ndarray], reuse_plans: bool = True):
+    def __init__(
+        self,
+        astar: ActionSpaceAStar,
+        goals: list[np.ndarray],
+        reuse_plans: bool = True,
+        stop_radius_m: float = 0.0,
+    ):
         self.astar, self.goals, self.leg = astar, [np.asarray(g, dtype=np.float64) for g in goals], 0
         self.reuse_plans = reuse_plans  # False: plan afresh at every pose (labels depend on the pose only)
         self.tolerance = astar.cfg.goal_tolerance_m
+        self.stop_radius_m = max(float(stop_radius_m), self.tolerance)
         self._labels: list[int] = []
         self._poses: list[Pose] = []
 
@@ -87,7 +95,8 @@ class AStarExpert:
         return self._labels.pop(0)
 
     def _reached(self, pose: Pose, leg: int) -> bool:
-        return float(np.linalg.norm(pose.position - self.goals[leg])) <= self.tolerance
+        radius = self.stop_radius_m if leg == len(self.goals) - 1 else self.tolerance
+        return float(np.linalg.norm(pose.position - self.goals[leg])) <= radius
 
 
 class NoisyExpertPolicy:

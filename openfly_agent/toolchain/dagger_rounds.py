@@ -6,7 +6,8 @@ policy call per step). At every visited state the A* expert (`AStarExpert`, re-p
 from wherever the agent is) gives the label; the executed action is the agent's, or the expert's with
 probability `expert_mix` (a beta-mixture), and always the expert's when the agent's action would hit an obstacle
 or stop early. After `max_policy_steps` steps the expert flies the rest of the way, so every episode ends with
-the expert's STOP at the goal. The written episodes keep the source episode's instruction, target and camera
+the expert's STOP, given at every state within `stop_radius_m` of the goal (the A* plan alone stops only within
+its 3-m tolerance, so rollouts that reach the goal area would teach the agent to fly on past it). The written episodes keep the source episode's instruction, target and camera
 pitch; `positions[t + 1]` follows the executed action, not the label (that is the point of the relabelling).
 """
 
@@ -252,7 +253,9 @@ def run_dagger_round(policy: BatchPolicy, cfg: DaggerRoundConfig, progress: bool
                 embedded_scene(seed, generate_cfg.scenes), generate_cfg
             )
         goal = np.asarray(episode.goal, dtype=np.float64)
-        return AStarExpert(prepared[episode.scene_id].astar, [goal], reuse_plans=False)
+        return AStarExpert(
+            prepared[episode.scene_id].astar, [goal], reuse_plans=False, stop_radius_m=cfg.stop_radius_m
+        )
 
     index_of = {e.episode_id: i for i, e in todo}
     written = dropped = 0

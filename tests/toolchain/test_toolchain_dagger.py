@@ -89,6 +89,28 @@ def test_multi_leg_expert_moves_on_after_each_goal(scene):
     assert labels.count(C.ACTION_STOP) == 1
 
 
+def test_the_stop_radius_gives_stop_near_the_last_goal_only(scene):
+    astar, _ = scene
+    goals = [np.array([-60.0, 60.0, 20.0]), GOAL]
+    near, far = Pose(*(GOAL + [0.0, 8.0, 0.0]), 0.0), Pose(*(GOAL + [0.0, 12.0, 0.0]), 0.0)
+    assert AStarExpert(astar, [GOAL], stop_radius_m=10.0).action(near) == C.ACTION_STOP
+    assert AStarExpert(astar, [GOAL], stop_radius_m=10.0).action(far) != C.ACTION_STOP
+    assert AStarExpert(astar, [GOAL]).action(near) != C.ACTION_STOP  # A*'s own 3.1-m tolerance
+    first_leg = Pose(*(goals[0] + [8.0, 0.0, 0.0]), 0.0)  # within 10 m of the first goal: not reached
+    expert = AStarExpert(astar, goals, stop_radius_m=10.0)
+    assert expert.action(first_leg) != C.ACTION_STOP and expert.leg == 0
+    poses, labels = rollout_with_relabel(
+        AStarExpert(astar, [GOAL], stop_radius_m=10.0),
+        NoisyExpertPolicy(0.0, np.random.default_rng(0)),
+        START,
+        _no_frames,
+        0,
+        150,
+    )
+    distances = [float(np.linalg.norm(p.position - GOAL)) for p in poses]
+    assert labels[-1] == C.ACTION_STOP and distances[-1] <= 10.0 and min(distances[:-1]) > 10.0
+
+
 def test_rollout_gives_up_after_max_steps(scene):
     astar, _ = scene
     with pytest.raises(Rejected) as err:

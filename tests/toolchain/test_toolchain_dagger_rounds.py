@@ -75,9 +75,13 @@ def test_labels_are_the_experts_action_from_each_visited_state(dagger_round):
             scene = embedded_scene(parse_scene_id(episode.scene_id), generate_cfg.scenes)
             planners[episode.scene_id] = prepare_scene(scene, generate_cfg).astar
         assert episode.actions[-1] == C.ACTION_STOP and (episode.actions[:-1] != C.ACTION_STOP).all()
+        distances = np.linalg.norm(episode.positions - episode.goal, axis=1)
+        assert distances[-1] <= cfg.stop_radius_m and (distances[:-1] > cfg.stop_radius_m).all()
         for t in range(len(episode)):
             pose = Pose(*episode.positions[t], float(episode.yaws[t]))
-            expert = AStarExpert(planners[episode.scene_id], [episode.goal], reuse_plans=False)
+            expert = AStarExpert(
+                planners[episode.scene_id], [episode.goal], reuse_plans=False, stop_radius_m=cfg.stop_radius_m
+            )
             assert expert.action(pose) == episode.actions[t], (episode.episode_id, t)
         for t in range(len(episode) - 1):  # each move is one model action, not necessarily the label
             start = Pose(*episode.positions[t], float(episode.yaws[t]))
@@ -107,3 +111,9 @@ def test_a_round_resumes_without_running_written_rollouts_again(dagger_round):
     assert resumed["written"] == 0 and resumed["rollouts"] == summary["rollouts"]
     if summary["dropped"] == 0:
         assert again.calls == 0  # nothing left to fly
+
+
+@pytest.mark.parametrize("radius", [-1.0, C.SUCCESS_RADIUS_M])
+def test_the_stop_radius_must_lie_inside_the_success_radius(radius):
+    with pytest.raises(ValueError, match="stop_radius_m"):
+        DaggerRoundConfig(stop_radius_m=radius)
