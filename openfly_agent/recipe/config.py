@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
+from openfly_agent.toolchain.config import DaggerRoundConfig
 from openfly_agent.training.config import HORIZONS
 
 
@@ -35,6 +36,8 @@ class DaggerSettings:
     episodes: int = 300  # rollouts per round (train episodes drawn without replacement)
     max_policy_steps: int = 40  # agent-flown states per rollout at most; then the expert flies to the goal
     expert_mix: float = 0.0  # probability that the expert's action is flown instead of the agent's
+    # the expert's STOP at every state within this distance of the goal (0: only within A*'s tolerance)
+    stop_radius_m: float = DaggerRoundConfig.stop_radius_m
     num_envs: int = 16  # rollouts in lockstep (the agent's batch)
     train: StageBudget = field(default_factory=lambda: StageBudget(steps=300, minutes=5.0))
 
@@ -71,6 +74,9 @@ class RecipeConfig:
     dataset_root: str = "outputs/datasets/embedded-small"  # generated when missing
     toolchain_config: str = "configs/toolchain/embedded-small.yaml"  # how the dataset is generated
     grounding_root: str = "outputs/datasets/grounding-small"  # the referring-expression dataset (generated)
+    # toolchain YAMLs of more navigation data, each generated into its own output_dir; their train splits join
+    # the navigation stage and the DAgger rounds (the test splits stay dataset_root's)
+    extra_toolchain_configs: list[str] = field(default_factory=list)
     train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
     processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
     torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts

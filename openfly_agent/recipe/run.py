@@ -21,7 +21,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from openfly_agent.recipe.config import RecipeConfig, StageBudget
-from openfly_agent.utils.config import REPO_ROOT, resolve_config_path
+from openfly_agent.toolchain.config import GenerateConfig
+from openfly_agent.utils.config import REPO_ROOT, load_yaml_config, resolve_config_path
 from openfly_agent.utils.processes import start_group, stop_group
 
 logger = logging.getLogger(__name__)
@@ -94,6 +95,13 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
             out / "dataset",
         ),
     ]  # fmt: skip
+    extra_roots = []
+    for k, config in enumerate(cfg.extra_toolchain_configs, 1):
+        path = resolve_config_path(config)
+        root = load_yaml_config(GenerateConfig, path, []).output_dir
+        generate = toolchain + ["generate", "--config", str(path), f"--output_dir={root}"]
+        steps.append(RecipeStep(f"dataset-extra{k}", KIND_DATA, generate, out / f"dataset-extra{k}"))
+        extra_roots.append(root)
     init: list[str] = []
     if cfg.grounding.steps:
         steps.append(
@@ -108,11 +116,12 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         grounding_args = ["--stage=grounding", f"--data.grounding_root={cfg.grounding_root}"]
         steps.append(_train_step(cfg, "grounding", out / "grounding", cfg.grounding, grounding_args))
         init = [f"--init.checkpoint={out / 'grounding'}", "--init.matching=true"]
-    steps.append(_train_step(cfg, "navigation", out / "navigation", cfg.navigation, init))
-    latest, rounds = out / "navigation", []
+    navigation_args = init + ([_extra_roots_flag(extra_roots)] if extra_roots else [])
+    steps.append(_train_step(cfg, "navigation", out / "navigation", cfg.navigation, navigation_args))
+    latest, extra_train = out / "navigation", list(extra_roots)
     for k in range(1, cfg.dagger.rounds + 1):
         round_dir = out / "dagger" / f"r{k}"
-        rounds.append(str(round_dir / "data"))
+        extra_train.append(str(round_dir / "data"))
         d = cfg.dagger
         steps.append(
             RecipeStep(
@@ -122,7 +131,8 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
                     "dagger-round", f"--checkpoint={latest}", f"--torch_threads={cfg.torch_threads}",
                     f"--source_root={cfg.dataset_root}", f"--output_dir={round_dir / 'data'}",
                     f"--round_name=r{k}", f"--episodes={d.episodes}", f"--max_policy_steps={d.max_policy_steps}",
-                    f"--expert_mix={d.expert_mix}", f"--num_envs={d.num_envs}", f"--seed={k}",
+                    f"--expert_mix={d.expert_mix}", f"--stop_radius_m={d.stop_radius_m}", f"--num_envs={d.num_envs}",
+                    f"--seed={k}",
                 ],
                 round_dir / "data",
                 {"OMP_NUM_THREADS": str(cfg.torch_threads)},
@@ -131,7 +141,7 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         round_args = [
             f"--init.checkpoint={latest}",
             "--init.matching=true",
-            "--data.extra_train_roots=[" + ",".join(rounds) + "]",
+            _extra_roots_flag(extra_train),
         ]
         steps.append(_train_step(cfg, f"dagger-r{k}-train", round_dir / "train", d.train, round_args))
         latest = round_dir / "train"
@@ -152,6 +162,10 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         )
     )  # fmt: skip
     return steps
+
+
+def _extra_roots_flag(roots: list) -> str:
+    return "--data.extra_train_roots=[" + ",".join(str(r) for r in roots) + "]"
 
 
 def _with_resume(step: RecipeStep, retrained: bool) -> list[str]:

@@ -24,7 +24,7 @@ def _flag(command: list[str], name: str) -> str | None:
 
 
 def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
-    cfg = RecipeConfig(output_dir=str(tmp_path / "r"), dagger=DaggerSettings(rounds=2))
+    cfg = RecipeConfig(output_dir=str(tmp_path / "r"), dagger=DaggerSettings(rounds=2, stop_radius_m=7.5))
     steps = recipe_steps(cfg)
     assert [s.name for s in steps] == [
         "dataset", "grounding-data", "grounding", "navigation", "dagger-r1-rollouts", "dagger-r1-train",
@@ -37,6 +37,7 @@ def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
     assert _flag(by_name["navigation"].command, "init.matching") == "true"
     assert _flag(by_name["dagger-r1-rollouts"].command, "checkpoint") == str(out / "navigation")
     assert _flag(by_name["dagger-r2-rollouts"].command, "checkpoint") == str(out / "dagger" / "r1" / "train")
+    assert _flag(by_name["dagger-r1-rollouts"].command, "stop_radius_m") == "7.5"
     r1, r2 = out / "dagger" / "r1" / "data", out / "dagger" / "r2" / "data"
     assert _flag(by_name["dagger-r1-train"].command, "data.extra_train_roots") == f"[{r1}]"
     assert _flag(by_name["dagger-r2-train"].command, "data.extra_train_roots") == f"[{r1},{r2}]"
@@ -45,6 +46,23 @@ def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
     assert _flag(by_name["grounding"].command, "steps") == str(cfg.grounding.steps)
     assert _flag(by_name["dagger-r2-train"].command, "time_limit_minutes") == str(cfg.dagger.train.minutes)
     assert {_flag(s.command, "optim.horizon") for s in steps if s.kind == KIND_TRAIN} == {"time"}
+
+
+def test_extra_datasets_are_generated_and_join_navigation_and_dagger_training(tmp_path):
+    cfg = RecipeConfig(
+        output_dir=str(tmp_path),
+        extra_toolchain_configs=["configs/toolchain/embedded-small-extra.yaml"],
+        dagger=DaggerSettings(rounds=1),
+    )
+    by_name = {s.name: s for s in recipe_steps(cfg)}
+    extra = "outputs/datasets/embedded-small-extra"  # the output_dir of that toolchain YAML
+    generate = by_name["dataset-extra1"].command
+    assert generate[-1] == f"--output_dir={extra}" and generate[-2].endswith("embedded-small-extra.yaml")
+    assert _flag(by_name["navigation"].command, "data.extra_train_roots") == f"[{extra}]"
+    r1 = tmp_path / "dagger" / "r1" / "data"
+    assert _flag(by_name["dagger-r1-train"].command, "data.extra_train_roots") == f"[{extra},{r1}]"
+    assert _flag(by_name["grounding"].command, "data.extra_train_roots") is None
+    assert _flag(by_name["dagger-r1-rollouts"].command, "source_root") == cfg.dataset_root
 
 
 def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluated(tmp_path):
@@ -64,6 +82,7 @@ def test_the_shipped_recipes_and_ablations_parse():
         cfg = load_yaml_config(RecipeConfig, path, [])
         assert cfg.navigation.steps > 0 and cfg.eval.max_episodes == 0, path  # full test splits
         assert resolve_config_path(cfg.train_config).is_file(), path
+        assert all(resolve_config_path(c).is_file() for c in cfg.extra_toolchain_configs), path
 
 
 def _script(tmp_path, name: str, kind: str, code: str) -> RecipeStep:
