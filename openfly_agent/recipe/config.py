@@ -44,6 +44,14 @@ class DaggerSettings:
     def __post_init__(self) -> None:
         _check(self.rounds >= 0, f"dagger.rounds must be >= 0, got {self.rounds}")
         _check(self.episodes >= 1, f"dagger.episodes must be >= 1, got {self.episodes}")
+        # the round's own checks now, not after the training stages before it
+        DaggerRoundConfig(
+            episodes=self.episodes,
+            expert_mix=self.expert_mix,
+            max_policy_steps=self.max_policy_steps,
+            stop_radius_m=self.stop_radius_m,
+            num_envs=self.num_envs,
+        )
 
 
 @dataclass

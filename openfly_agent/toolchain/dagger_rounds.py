@@ -7,8 +7,9 @@ from wherever the agent is) gives the label; the executed action is the agent's,
 probability `expert_mix` (a beta-mixture), and always the expert's when the agent's action would hit an obstacle
 or stop early. After `max_policy_steps` steps the expert flies the rest of the way, so every episode ends with
 the expert's STOP, given at every state within `stop_radius_m` of the goal (the A* plan alone stops only within
-its 3-m tolerance, so rollouts that reach the goal area would teach the agent to fly on past it). The written episodes keep the source episode's instruction, target and camera
-pitch; `positions[t + 1]` follows the executed action, not the label (that is the point of the relabelling).
+its 3-m tolerance, so rollouts that reach the goal area would teach the agent to fly on past it). The written
+episodes keep the source episode's instruction, target and camera pitch; `positions[t + 1]` follows the executed
+action, not the label (that is the point of the relabelling).
 """
 
 from __future__ import annotations

@@ -75,6 +75,11 @@ def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluat
     assert _flag(steps[2].command, "checkpoint") == str(tmp_path / "navigation")
 
 
+def test_a_dagger_setting_the_round_rejects_fails_when_the_recipe_is_configured():
+    with pytest.raises(ValueError, match="stop_radius_m"):
+        DaggerSettings(stop_radius_m=25.0)
+
+
 def test_the_shipped_recipes_and_ablations_parse():
     configs = sorted((REPO_ROOT / "configs" / "recipe").rglob("*.yaml"))
     assert len(configs) >= 9  # main job, recipe, 7 ablations
