@@ -66,8 +66,14 @@ def test_oracle_and_stop_at_start_on_a_generated_split(dataset, tmp_path):
             assert stop["episodes"] == len(episodes)
             assert stop["sr_pct"] == pytest.approx(100.0 * np.mean([d < 20.0 for d in distances]))
             assert stop["ne_m"] == pytest.approx(np.mean(distances))
+            assert stop["stopped_far_pct"] == pytest.approx(100.0 - stop["sr_pct"])  # never moved
+            assert oracle["step_limit_pct"] == stop["step_limit_pct"] == 0.0
     summary = (tmp_path / "summary.md").read_text()
     assert "| oracle | " in summary and "| stop | " in summary
+    assert (
+        f"### {C.SPLIT_TEST_UNSEEN} - where the episodes end" in summary
+        and "| stop / `standard` |" in summary
+    )
     assert list((tmp_path / "oracle" / "plots" / C.SPLIT_TEST_UNSEEN).glob("*.png"))
     # Every table equals the one recomputed from the JSONL alone.
     for name in ("oracle", "stop"):

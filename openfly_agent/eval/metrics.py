@@ -30,7 +30,13 @@ _MEAN_KEYS = {
     "stopped": ("stop_rate_pct", 100.0),
     "collided": ("collision_rate_pct", 100.0),
     "num_collisions": ("collisions_per_episode", 1.0),
+    "stopped_far": ("stopped_far_pct", 100.0),
+    "stopped_after_passing": ("stopped_after_passing_pct", 100.0),
+    "ended_by_collision": ("collision_end_pct", 100.0),
+    "step_limit": ("step_limit_pct", 100.0),
 }
+# How an episode ends; exactly one per episode, so their rates sum to 100 % (with SR as "success").
+OUTCOMES = ("success", "stopped_far", "stopped_after_passing", "collision_end", "step_limit")
 
 
 def _points(value, name: str, episode_id: str, min_rows: int = 1) -> np.ndarray:
@@ -204,7 +210,8 @@ def episode_metrics(traj: EpisodeTrajectory, profile: MetricProfile | str) -> di
     Returns:
         A JSON-friendly dict: episode_id, scene_id, profile, ne (m), success, oracle_success, spl,
         ndtw, sdtw, path_length (m), steps (actions evaluated, STOP included), stopped, collided,
-        num_collisions, ended_by_collision.
+        num_collisions, ended_by_collision, outcome (`episode_outcome`) and its flags stopped_far,
+        stopped_after_passing, step_limit.
     """
     profile = get_profile(profile)
     positions, stopped, collisions, ended_by_collision = _evaluated_part(traj, profile)
@@ -230,6 +237,7 @@ def episode_metrics(traj: EpisodeTrajectory, profile: MetricProfile | str) -> di
         spl = 1.0  # nothing to travel and nothing travelled: perfectly efficient by convention
 
     ndtw_value = ndtw(positions[:, :dims], traj.reference_path[:, :dims], profile.success_radius)
+    outcome = episode_outcome(success, stopped, oracle_success, ended_by_collision)
     return {
         "episode_id": traj.episode_id,
         "scene_id": traj.scene_id,
@@ -246,7 +254,28 @@ def episode_metrics(traj: EpisodeTrajectory, profile: MetricProfile | str) -> di
         "collided": bool(collisions),
         "num_collisions": len(collisions),
         "ended_by_collision": ended_by_collision,
+        "outcome": outcome,
+        "stopped_far": outcome == "stopped_far",
+        "stopped_after_passing": outcome == "stopped_after_passing",
+        "step_limit": outcome == "step_limit",
     }
+
+
+def episode_outcome(success: bool, stopped: bool, oracle_success: bool, ended_by_collision: bool) -> str:
+    """Where a failed episode went wrong, one of `OUTCOMES`.
+
+    "stopped_far": a STOP that never came within the success radius (the agent went somewhere else);
+    "stopped_after_passing": a STOP outside the radius after the path was within it (it flew past or
+    stopped short on the way back); "collision_end": a collision ended it (`end_fail` profiles);
+    "step_limit": it never stopped (the step budget ran out, or a profile that needs no STOP).
+    """
+    if success:
+        return "success"
+    if ended_by_collision:
+        return "collision_end"
+    if stopped:
+        return "stopped_after_passing" if oracle_success else "stopped_far"
+    return "step_limit"
 
 
 def _summarise(rows: Sequence[dict]) -> dict:
@@ -267,7 +296,9 @@ def aggregate(per_episode: Sequence[dict], by: str | None = "scene") -> dict:
     Returns:
         {"profile", "overall": {...}, "per_<by>": {group: {...}}, "<by>_mean": {...}} where each
         summary holds `episodes`, `ne_m`, `sr_pct`, `osr_pct`, `spl_pct`, `ndtw_pct`, `sdtw_pct`,
-        `path_length_m`, `steps`, `stop_rate_pct`, `collision_rate_pct`, `collisions_per_episode`;
+        `path_length_m`, `steps`, `stop_rate_pct`, `collision_rate_pct`, `collisions_per_episode` and
+        the outcome rates `stopped_far_pct`, `stopped_after_passing_pct`, `collision_end_pct`,
+        `step_limit_pct` (with `sr_pct` they sum to 100);
         `<by>_mean` is the unweighted mean over groups (how the OpenFly README averages scenes).
     """
     rows = list(per_episode)

@@ -20,7 +20,13 @@ from openfly_agent.eval.episodes import target_landmark
 from openfly_agent.eval.metrics import episode_metrics
 from openfly_agent.eval.plots import plot_topdown, safe_name
 from openfly_agent.eval.records import EpisodeRecord
-from openfly_agent.eval.report import comparison_markdown, policy_results, results_markdown, trajectory_of
+from openfly_agent.eval.report import (
+    comparison_markdown,
+    outcomes_markdown,
+    policy_results,
+    results_markdown,
+    trajectory_of,
+)
 from openfly_agent.eval.scene_map import FootprintCache
 
 logger = logging.getLogger(__name__)
@@ -119,6 +125,7 @@ def write_summary(cfg: EvalConfig, all_results: list[dict], root: Path) -> str:
     """summary.md / summary.json comparing every policy of the run; returns the Markdown."""
     text = "## Closed-loop evaluation (overall, per split and metric profile)\n\n"
     text += comparison_markdown(all_results, cfg.profiles)
+    text += "\n" + outcomes_markdown(all_results, cfg.profiles)
     text += f"\nPer-scene tables: {root}/<policy>/results.md; plots: {root}/<policy>/plots/\n"
     write_text_atomic(root / SUMMARY_MD, text)
     summary = {

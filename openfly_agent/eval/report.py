@@ -26,6 +26,15 @@ COLUMNS = (
     ("collision_rate_pct", "Coll. (%)", 1),
     ("stop_rate_pct", "Stop (%)", 1),
 )
+# Where the episodes end (`eval.metrics.OUTCOMES`; the rates of a row sum to 100).
+OUTCOME_COLUMNS = (
+    ("episodes", "Episodes", 0),
+    ("sr_pct", "Success (%)", 1),
+    ("stopped_far_pct", "STOP, never within radius (%)", 1),
+    ("stopped_after_passing_pct", "STOP after passing within (%)", 1),
+    ("collision_end_pct", "Collision end (%)", 1),
+    ("step_limit_pct", "Step limit (%)", 1),
+)
 
 
 def trajectory_of(record: EpisodeRecord) -> EpisodeTrajectory:
@@ -110,14 +119,14 @@ def _fmt(value: float, decimals: int) -> str:
     return f"{value:.{decimals}f}" if decimals else str(int(round(value)))
 
 
-def _row(name: str, summary: dict) -> str:
-    cells = [_fmt(summary[key], d) if key in summary else "" for key, _, d in COLUMNS]
+def _row(name: str, summary: dict, columns: Sequence[tuple] = COLUMNS) -> str:
+    cells = [_fmt(summary[key], d) if key in summary else "" for key, _, d in columns]
     return "| " + " | ".join([name, *cells]) + " |"
 
 
-def _header(first: str) -> list[str]:
-    titles = [first, *(title for _, title, _ in COLUMNS)]
-    return ["| " + " | ".join(titles) + " |", "|" + "|".join(["---"] + ["---:"] * len(COLUMNS)) + "|"]
+def _header(first: str, columns: Sequence[tuple] = COLUMNS) -> list[str]:
+    titles = [first, *(title for _, title, _ in columns)]
+    return ["| " + " | ".join(titles) + " |", "|" + "|".join(["---"] + ["---:"] * len(columns)) + "|"]
 
 
 def results_markdown(results: dict) -> str:
@@ -131,6 +140,26 @@ def results_markdown(results: dict) -> str:
                 scene_mean = dict(table["scene_mean"], episodes=table["overall"]["episodes"])
                 lines.append(_row("**scene mean**", scene_mean))
             lines += [_row("**overall**", table["overall"]), ""]
+    lines += ["## Where the episodes end", "", *_header("Split / profile", OUTCOME_COLUMNS)]
+    for split, by_profile in results["splits"].items():
+        for profile, table in by_profile.items():
+            lines.append(_row(f"{split} / `{profile}`", table["overall"], OUTCOME_COLUMNS))
+    return "\n".join(lines + [""])
+
+
+def outcomes_markdown(all_results: Sequence[dict], profiles: Sequence[str]) -> str:
+    """One table per split of where each policy's episodes end, a row per policy and profile."""
+    splits = list(dict.fromkeys(s for r in all_results for s in r["splits"]))
+    lines = []
+    for split in splits:
+        lines += [f"### {split} - where the episodes end", "", *_header("Policy / profile", OUTCOME_COLUMNS)]
+        for results in all_results:
+            for profile in profiles:
+                table = results["splits"].get(split, {}).get(profile)
+                if table is not None:
+                    name = f"{results['policy']} / `{profile}`"
+                    lines.append(_row(name, table["overall"], OUTCOME_COLUMNS))
+        lines.append("")
     return "\n".join(lines)
 
 

@@ -11,10 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from openfly_agent.eval.metrics import (
+    OUTCOMES,
     EpisodeTrajectory,
     aggregate,
     dtw_distance,
     episode_metrics,
+    episode_outcome,
     evaluate_profiles,
     ndtw,
     trajectory_from_actions,
@@ -203,6 +205,50 @@ def test_aggregate_per_scene_overall_and_scene_mean():
         aggregate(rows + [episode_metrics(_traj([0]), OPENFLY)])
     with pytest.raises(ValueError, match="no episodes"):
         aggregate([])
+
+
+@pytest.mark.parametrize(
+    ("actions", "collisions", "standard", "openfly"),
+    [
+        ([9, 1, 0], (), "success", "success"),  # x = 12, NE 18, STOP
+        ([1, 0], (), "stopped_far", "stopped_far"),  # x = 3, NE 27: never within 20 m
+        ([9] * 6 + [0], (), "stopped_after_passing", "stopped_after_passing"),  # x = 27 (NE 3) ... 54 (NE 24)
+        ([9, 9, 1, 0], (2,), "collision_end", "success"),  # openfly ignores the collision
+        ([9], (), "step_limit", "step_limit"),  # x = 9, NE 21, no STOP
+        ([9, 9], (), "step_limit", "success"),  # x = 18, NE 12: openfly needs no STOP
+    ],
+)
+def test_episode_outcome_of_hand_built_flights(actions, collisions, standard, openfly):
+    traj = _traj(actions, collision_steps=collisions)
+    for profile, expected in ((STANDARD, standard), (OPENFLY, openfly)):
+        row = episode_metrics(traj, profile)
+        assert row["outcome"] == expected, profile.name
+        assert row["success"] == (expected == "success")
+        assert [row[flag] for flag in ("stopped_far", "stopped_after_passing", "step_limit")] == [
+            expected == flag for flag in ("stopped_far", "stopped_after_passing", "step_limit")
+        ]
+
+
+def test_outcome_rates_sum_to_one_hundred_with_sr():
+    rows = [
+        episode_metrics(_traj(actions, collision_steps=c), STANDARD)
+        for actions, c in (([9, 1, 0], ()), ([1, 0], ()), ([1, 0], ()), ([9, 9, 1, 0], (2,)), ([9], ()))
+    ]
+    overall = aggregate(rows)["overall"]
+    assert overall["sr_pct"] == pytest.approx(20.0) and overall["stopped_far_pct"] == pytest.approx(40.0)
+    assert overall["collision_end_pct"] == pytest.approx(20.0) and overall["step_limit_pct"] == pytest.approx(
+        20.0
+    )
+    assert overall["stopped_after_passing_pct"] == 0.0
+    rates = ("sr_pct", "stopped_far_pct", "stopped_after_passing_pct", "collision_end_pct", "step_limit_pct")
+    assert len(rates) == len(OUTCOMES) and sum(overall[k] for k in rates) == pytest.approx(100.0)
+
+
+@given(success=st.booleans(), stopped=st.booleans(), oracle=st.booleans(), collision_end=st.booleans())
+def test_every_flag_combination_has_exactly_one_outcome(success, stopped, oracle, collision_end):
+    outcome = episode_outcome(success, stopped, oracle, collision_end)
+    assert outcome in OUTCOMES
+    assert (outcome == "success") == success
 
 
 def test_bad_trajectories_name_the_episode_and_field():
