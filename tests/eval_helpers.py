@@ -77,10 +77,11 @@ class PoseSimulator:
         return None
 
 
-def generate_tiny_dataset(root) -> None:
+def generate_tiny_dataset(root, seed: int = 0) -> None:
     """A generated embedded dataset small enough for tests (~5 s): 2 scenes of 300 m, 64 px frames.
 
-    Scene 0 gives train and test_seen episodes (half each), scene 1 (unseen seed) test_unseen.
+    Scene 0 gives train and test_seen episodes (half each), scene 1 (unseen seed) test_unseen; another `seed`
+    gives other routes (other episode ids) in the same scenes.
     """
     from openfly_agent.toolchain.config import (
         CategoryConfig,
@@ -97,7 +98,7 @@ def generate_tiny_dataset(root) -> None:
     )  # fmt: skip
     route = RouteConfig(height_min_m=10, height_max_m=40, min_dist_m=40, max_dist_m=90, with_turn_prob=0.3)
     cfg = GenerateConfig(
-        output_dir=str(root), workers=1, scenes=scenes, route=route, plots=False,
+        output_dir=str(root), seed=seed, workers=1, scenes=scenes, route=route, plots=False,
         categories=CategoryConfig(height_bins_m=[25, 40], length_bins_m=[50, 100]),
         render=RenderConfig(width=64, height=64),
     )  # fmt: skip

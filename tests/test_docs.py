@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 from docs_commands import REPO, DocCommand, DocSnippet, doc_commands, doc_snippets
+from eval_helpers import generate_tiny_dataset
 
 from openfly_agent import constants as C
 from openfly_agent.recipe.config import RecipeConfig
@@ -207,8 +208,6 @@ def _blocks() -> list:
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:
-    from eval_helpers import generate_tiny_dataset
-
     root = tmp_path_factory.mktemp("docs-data")
     generate_tiny_dataset(root)
     return root
@@ -238,9 +237,16 @@ def _value(args: list[str], flag: str) -> str | None:
 
 
 def _prepare(command: DocCommand, work: Path, small_agent: Path) -> None:
-    """What the command reads and an earlier step would have written: a checkpoint run folder, results."""
+    """What the command reads and an earlier step would have written (a step that does not run here, such as
+    a DAgger round, or an earlier block): a checkpoint run folder, a train root, results."""
     checkpoint = _value(command.args, "--checkpoint")
-    if checkpoint and command.kind in ("eval", "hub") and not (work / checkpoint).exists():
+    if command.kind == "train":
+        checkpoint = _value(command.args, "--init.checkpoint")
+        roots = (_value(command.args, "--data.extra_train_roots") or "").strip("[]").split(",")
+        for index, root in enumerate(roots):
+            if root and not (work / root).exists():  # other routes: an episode may be in one root only
+                generate_tiny_dataset(work / root, seed=index + 1)
+    if checkpoint and command.kind in ("eval", "hub", "train") and not (work / checkpoint).exists():
         run = Path(checkpoint)
         run = run.parent.parent if run.name == "last" else run
         shutil.copytree(small_agent, work / run / "checkpoints" / small_agent.name)
