@@ -24,6 +24,27 @@ def test_shipped_configs_load_and_keep_unseen_scenes_apart(name):
     assert (800 <= attempts <= 2000) if name == "embedded-small" else attempts >= 100_000
 
 
+@pytest.mark.parametrize("name", ["embedded-small-extra", "embedded-small-cities"])
+def test_extra_train_configs_add_train_routes_only_and_never_touch_a_test_city(name):
+    small = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small.yaml")
+    extra = load_yaml_config(GenerateConfig, CONFIGS / f"{name}.yaml")
+    assert extra.output_dir != small.output_dir and extra.seed != small.seed  # other routes, own root
+    assert extra.scenes.unseen_seeds == [] and extra.scenes.test_seen_fraction == 0.0  # train split only
+    assert not set(extra.scenes.train_seeds) & set(small.scenes.unseen_seeds)
+    assert (extra.render, extra.route, extra.map) == (small.render, small.route, small.map)  # same task
+
+
+def test_the_second_unseen_split_uses_cities_no_other_config_trains_or_tests_on():
+    held_out = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small-unseen-more.yaml")
+    assert held_out.scenes.train_seeds == [] and held_out.scenes.unseen_seeds
+    others = ["embedded-small", "embedded-small-extra", "embedded-small-cities"]
+    for name in others:
+        cfg = load_yaml_config(GenerateConfig, CONFIGS / f"{name}.yaml")
+        used = set(cfg.scenes.train_seeds) | set(cfg.scenes.unseen_seeds)
+        assert not used & set(held_out.scenes.unseen_seeds), name
+        assert (held_out.render, held_out.route, held_out.map) == (cfg.render, cfg.route, cfg.map), name
+
+
 def test_config_flag_aliases_and_overrides():
     assert _config_args(["--config", "a.yaml", "--config=b.yaml", "--x=1"]) == [
         "--config_path",
