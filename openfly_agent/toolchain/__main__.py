@@ -15,6 +15,7 @@ from pathlib import Path
 
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.eval.agent_policy import AgentPolicy as BatchAgentPolicy
+from openfly_agent.eval.agent_policy import checkpoint_folder
 from openfly_agent.toolchain.config import DaggerRoundConfig, GenerateConfig, GroundingDataConfig
 from openfly_agent.toolchain.dagger import AgentPolicy
 from openfly_agent.toolchain.dagger_rounds import run_dagger_round
@@ -165,13 +166,18 @@ def cmd_summarize(args: list[str]) -> None:
 
 
 def load_agent(checkpoint: str, agent_class: str):
-    """`module:Class` with a `from_pretrained(path)` classmethod (default: the OpenFlyAgent)."""
+    """`module:Class` with a `from_pretrained(path)` classmethod (default: the OpenFlyAgent), given the
+    checkpoint folder behind `checkpoint` (a folder, a training run or its pointer, or a Hub id)."""
     module_name, _, class_name = agent_class.partition(":")
     try:
         cls = getattr(importlib.import_module(module_name), class_name)
     except (ImportError, AttributeError) as err:
         raise InputError(f"--agent_class {agent_class!r} cannot be imported: {err}") from None
-    return cls.from_pretrained(checkpoint)
+    try:
+        folder = checkpoint_folder(checkpoint)
+    except FileNotFoundError as err:
+        raise InputError(str(err)) from None
+    return cls.from_pretrained(str(folder))
 
 
 DAGGER_OPTIONS = [

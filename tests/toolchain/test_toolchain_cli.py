@@ -70,3 +70,16 @@ def test_unknown_command_prints_usage(capsys):
     assert main(["train"]) == 2
     err = capsys.readouterr().err
     assert "unknown command 'train'" in err and "usage" in err
+
+
+@pytest.mark.parametrize("command", ["dagger-round", "dagger"])
+def test_a_missing_checkpoint_is_one_line_naming_it(command, tmp_path, capsys):
+    missing = str(tmp_path / "run" / "navigation")
+    args = [command, f"--checkpoint={missing}", f"--output_dir={tmp_path / 'out'}"]
+    if command == "dagger-round":
+        args.append(f"--source_root={tmp_path / 'data'}")
+    else:
+        args += ["--config", str(CONFIGS / "embedded-small.yaml")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"--checkpoint {missing!r}" in err and "Traceback" not in err
