@@ -132,6 +132,7 @@ def _header(first: str, columns: Sequence[tuple] = COLUMNS) -> list[str]:
 def results_markdown(results: dict) -> str:
     """Per-scene and overall Markdown tables of one policy's results, one per split and profile."""
     lines = [f"# Closed-loop results: {results['policy']}", ""]
+    outcomes = ["## Where the episodes end", "", *_header("Split / profile", OUTCOME_COLUMNS)]
     for split, by_profile in results["splits"].items():
         for profile, table in by_profile.items():
             lines += [f"## {split} - profile `{profile}`", "", *_header("Scene")]
@@ -140,18 +141,19 @@ def results_markdown(results: dict) -> str:
                 scene_mean = dict(table["scene_mean"], episodes=table["overall"]["episodes"])
                 lines.append(_row("**scene mean**", scene_mean))
             lines += [_row("**overall**", table["overall"]), ""]
-    lines += ["## Where the episodes end", "", *_header("Split / profile", OUTCOME_COLUMNS)]
-    for split, by_profile in results["splits"].items():
-        for profile, table in by_profile.items():
-            lines.append(_row(f"{split} / `{profile}`", table["overall"], OUTCOME_COLUMNS))
-    return "\n".join(lines + [""])
+            outcomes.append(_row(f"{split} / `{profile}`", table["overall"], OUTCOME_COLUMNS))
+    return "\n".join(lines + outcomes + [""])
+
+
+def _splits_of(all_results: Sequence[dict]) -> list[str]:
+    """Every split of the policies' results, in order of first appearance."""
+    return list(dict.fromkeys(s for r in all_results for s in r["splits"]))
 
 
 def outcomes_markdown(all_results: Sequence[dict], profiles: Sequence[str]) -> str:
     """One table per split of where each policy's episodes end, a row per policy and profile."""
-    splits = list(dict.fromkeys(s for r in all_results for s in r["splits"]))
     lines = []
-    for split in splits:
+    for split in _splits_of(all_results):
         lines += [f"### {split} - where the episodes end", "", *_header("Policy / profile", OUTCOME_COLUMNS)]
         for results in all_results:
             for profile in profiles:
@@ -165,9 +167,8 @@ def outcomes_markdown(all_results: Sequence[dict], profiles: Sequence[str]) -> s
 
 def comparison_markdown(all_results: Sequence[dict], profiles: Sequence[str]) -> str:
     """One table per split and profile with a row per policy (overall, episode-weighted means)."""
-    splits = list(dict.fromkeys(s for r in all_results for s in r["splits"]))
     lines = []
-    for split in splits:
+    for split in _splits_of(all_results):
         for profile in profiles:
             lines += [f"### {split} - profile `{profile}`", "", *_header("Policy")]
             for results in all_results:
