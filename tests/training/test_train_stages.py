@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -99,3 +102,28 @@ def test_matching_refuses_a_missing_checkpoint(generated_dataset, tmp_path):
     )
     with pytest.raises(PreflightError, match="does not exist"):
         train_in_process(cfg)
+
+
+def test_grounding_errors_of_a_run_match_its_own_test_iou(grounding_run, tmp_path):
+    out, result = grounding_run
+    report = tmp_path / "errors.json"
+    script = Path(__file__).resolve().parents[2] / "bench" / "grounding_errors.py"
+    done = subprocess.run(
+        [sys.executable, str(script), "--run", str(out), "--max_samples", "0", "--batch_size", "3",
+         "--threads", "1", "--json", str(report)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    errors = json.loads(report.read_text())
+    assert errors["samples"] == result.final_metrics["samples"] == 8  # the run's whole test split
+    # the same checkpoint on the same samples: the breakdown's mean is the run's own test IoU
+    assert errors["mean_iou"] == pytest.approx(result.final_metrics["box_iou"], abs=1e-5)
+    assert sum(entry["count"] for entry in errors["by_area"]) == errors["count"] > 0
+    assert "| mean IoU |" in done.stdout
+
+
+def test_grounding_errors_refuse_a_folder_that_is_not_a_run(tmp_path):
+    from openfly_agent.training.grounding_errors import collect_target_boxes
+
+    with pytest.raises(FileNotFoundError, match="not a training run"):
+        collect_target_boxes(tmp_path)
