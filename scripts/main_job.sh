@@ -4,7 +4,8 @@
 #   2. the navigation recipe at the main job's budget (configs/recipe/main_job.yaml; openfly_agent/recipe):
 #      embedded-small dataset -> referring-expression dataset -> grounding stage -> navigation stage ->
 #      one DAgger round -> closed-loop evaluation on the full test_seen and test_unseen splits next to the
-#      random / stop / forward / oracle / box_servo baselines, and the table
+#      random / stop / forward / oracle / box_servo baselines, and the table; the same on the test_unseen split
+#      of four more unseen cities (configs/toolchain/embedded-small-unseen-more.yaml)
 # Every stage picks up where it stopped, so re-running the script after an interruption finishes the job.
 # Knobs (environment): RUN (output folder, default outputs/main_job), RECIPE_CONFIG (e.g.
 # configs/recipe/tiny-recipe.yaml or an ablation of configs/recipe/ablations/), RECIPE_ARGS (more recipe
@@ -21,4 +22,7 @@ start=$(date +%s)
 # shellcheck disable=SC2086  # RECIPE_ARGS is a list of overrides
 "$VENV/bin/python" -m openfly_agent.recipe --config_path "$RECIPE_CONFIG" --output_dir "$RUN" $RECIPE_ARGS
 echo "[main_job $(( $(date +%s) - start ))s] done. Table: $RUN/eval/summary.md; per-scene tables: $RUN/eval/<policy>/results.md"
+for table in "$RUN"/eval-*/summary.md; do
+  if [ -f "$table" ]; then echo "more unseen cities (recipe eval.more_cities): $table"; fi
+done
 echo "top-down plots (ground truth vs agent): $RUN/eval/agent/plots/<split>/*.png (baselines: $RUN/eval/<baseline>/plots/)"

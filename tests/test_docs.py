@@ -16,12 +16,13 @@ import importlib
 import importlib.util
 import json
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
 
 import pytest
-from docs_commands import REPO, DocCommand, DocSnippet, doc_commands, doc_snippets
+from docs_commands import DOC_FILES, REPO, DocCommand, DocSnippet, doc_commands, doc_snippets
 from eval_helpers import generate_tiny_dataset
 
 from openfly_agent import constants as C
@@ -175,6 +176,15 @@ def test_the_stale_eval_command_of_issue_14_is_caught():
     with pytest.raises(UnknownOptionError, match="--agent_path"):
         check_command(stale)
     assert len(COMMANDS) > 50 and {c.kind for c in COMMANDS} >= {"train", "eval", "toolchain", "hub", "sim"}
+
+
+def test_every_config_file_the_docs_name_exists():
+    """Also in prose and in environment variables (`RECIPE_CONFIG=configs/...`), which no parser reads."""
+    named = [
+        (doc, path) for doc in DOC_FILES for path in re.findall(r"configs/[\w./-]+\.yaml", doc.read_text())
+    ]
+    missing = [f"{doc.relative_to(REPO)}: {path}" for doc, path in named if not (REPO / path).is_file()]
+    assert len(named) > 50 and not missing, "\n".join(missing)
 
 
 def test_list_values_keep_their_brackets_and_optional_flags_lose_theirs():

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from pathlib import Path
 
 import draccus
 
@@ -49,7 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write(f"{PROG}: interrupted; run the same command again to resume\n")
         return 130
-    logger.info("recipe complete: table in %s/eval/summary.md", cfg.output_dir)
+    tables = [f"{cfg.output_dir}/eval/summary.md"]
+    tables += [f"{cfg.output_dir}/eval-{Path(c).stem}/summary.md" for c in cfg.eval.more_cities]
+    logger.info("recipe complete: tables in %s", ", ".join(tables))
     return 0
 
 

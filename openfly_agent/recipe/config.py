@@ -63,6 +63,10 @@ class EvalSettings:
     # evaluated next to the agent (box_servo: the reflex on the true target box, the perception bar)
     baselines: list[str] = field(default_factory=lambda: ["random", "stop", "forward", "oracle", "box_servo"])
     max_episodes: int = 0  # per split, evenly spaced (0: the full splits)
+    # toolchain YAMLs of more unseen cities (e.g. configs/toolchain/embedded-small-unseen-more.yaml): each is
+    # generated into its own output_dir and its test_unseen split evaluated with the same policies into
+    # <output_dir>/eval-<config name>/, so the agent is also measured on cities no choice was made on
+    more_cities: list[str] = field(default_factory=list)
     batch_size: int = 16  # episodes in lockstep
     torch_threads: int = 2  # torch threads of the evaluation process
 

@@ -8,6 +8,7 @@ stopped on the next run. A stage is complete when its marker file exists (writte
     grounding data -> grounding stage -> navigation stage (init: grounding, matching tensors)
         -> DAgger round k: rollouts of the latest agent + training on all data (init: the latest agent)
         -> closed-loop evaluation of the final agent with every baseline
+        -> the same on the test_unseen split of each of `eval.more_cities` (generated with the datasets)
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from openfly_agent import constants as C
 from openfly_agent.recipe.config import RecipeConfig, StageBudget
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.utils.config import REPO_ROOT, load_yaml_config, resolve_config_path
@@ -102,6 +104,13 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         generate = toolchain + ["generate", "--config", str(path), f"--output_dir={root}"]
         steps.append(RecipeStep(f"dataset-extra{k}", KIND_DATA, generate, out / f"dataset-extra{k}"))
         extra_roots.append(root)
+    more_cities = []  # (config name, dataset root) of the evaluation's more unseen cities, generated up front
+    for config in cfg.eval.more_cities:
+        path = resolve_config_path(config)
+        root = load_yaml_config(GenerateConfig, path, []).output_dir
+        generate = toolchain + ["generate", "--config", str(path), f"--output_dir={root}"]
+        steps.append(RecipeStep(f"dataset-{path.stem}", KIND_DATA, generate, out / f"dataset-{path.stem}"))
+        more_cities.append((path.stem, root))
     init: list[str] = []
     if cfg.grounding.steps:
         steps.append(
@@ -145,23 +154,26 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         ]
         steps.append(_train_step(cfg, f"dagger-r{k}-train", round_dir / "train", d.train, round_args))
         latest = round_dir / "train"
-    e = cfg.eval
-    steps.append(
-        RecipeStep(
-            "eval",
-            KIND_EVAL,
-            [
-                sys.executable, str(REPO_ROOT / "eval.py"), "--checkpoint", str(latest), "--sim", "embedded",
-                "--split", *e.splits, "--baselines", *e.baselines, "--dataset_root", cfg.dataset_root,
-                "--output_dir", str(out / "eval"), "--batch_size", str(e.batch_size),
-                "--torch_threads", str(e.torch_threads),
-                *(["--max_episodes", str(e.max_episodes)] if e.max_episodes else []),
-            ],
-            out / "eval",
-            {"OMP_NUM_THREADS": str(e.torch_threads)},
+    steps.append(_eval_step(cfg, "eval", latest, cfg.eval.splits, cfg.dataset_root, out / "eval"))
+    for name, root in more_cities:
+        steps.append(
+            _eval_step(cfg, f"eval-{name}", latest, [C.SPLIT_TEST_UNSEEN], root, out / f"eval-{name}")
         )
-    )  # fmt: skip
     return steps
+
+
+def _eval_step(
+    cfg: RecipeConfig, name: str, checkpoint: Path, splits: list[str], dataset_root: str, folder: Path
+) -> RecipeStep:
+    """eval.py on the embedded simulator: the agent at `checkpoint` and every baseline on `splits`."""
+    e = cfg.eval
+    command = [
+        sys.executable, str(REPO_ROOT / "eval.py"), "--checkpoint", str(checkpoint), "--sim", "embedded",
+        "--split", *splits, "--baselines", *e.baselines, "--dataset_root", dataset_root,
+        "--output_dir", str(folder), "--batch_size", str(e.batch_size), "--torch_threads", str(e.torch_threads),
+        *(["--max_episodes", str(e.max_episodes)] if e.max_episodes else []),
+    ]  # fmt: skip
+    return RecipeStep(name, KIND_EVAL, command, folder, {"OMP_NUM_THREADS": str(e.torch_threads)})
 
 
 def _extra_roots_flag(roots: list) -> str:

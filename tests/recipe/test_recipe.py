@@ -6,7 +6,14 @@ import sys
 
 import pytest
 
-from openfly_agent.recipe import DaggerSettings, RecipeConfig, StageBudget, recipe_steps, run_recipe
+from openfly_agent.recipe import (
+    DaggerSettings,
+    EvalSettings,
+    RecipeConfig,
+    StageBudget,
+    recipe_steps,
+    run_recipe,
+)
 from openfly_agent.recipe import run as recipe_run
 from openfly_agent.recipe.__main__ import main as recipe_main
 from openfly_agent.recipe.run import DONE_MARKER, KIND_DATA, KIND_EVAL, KIND_TRAIN, RecipeStep
@@ -21,6 +28,13 @@ def _flag(command: list[str], name: str) -> str | None:
         if arg == f"--{name}":
             return command[i + 1]
     return None
+
+
+def _values(command: list[str], name: str) -> list[str]:
+    """The values after `--name` up to the next option."""
+    start = command.index(f"--{name}") + 1
+    end = next((i for i in range(start, len(command)) if command[i].startswith("--")), len(command))
+    return command[start:end]
 
 
 def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
@@ -75,6 +89,34 @@ def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluat
     assert _flag(steps[2].command, "checkpoint") == str(tmp_path / "navigation")
 
 
+def test_more_cities_are_generated_with_the_datasets_and_their_unseen_split_evaluated(tmp_path):
+    more = "configs/toolchain/embedded-small-unseen-more.yaml"
+    cfg = RecipeConfig(
+        output_dir=str(tmp_path), dagger=DaggerSettings(rounds=0), eval=EvalSettings(more_cities=[more])
+    )
+    steps = recipe_steps(cfg)
+    assert [s.name for s in steps] == [
+        "dataset", "dataset-embedded-small-unseen-more", "grounding-data", "grounding", "navigation", "eval",
+        "eval-embedded-small-unseen-more",
+    ]  # fmt: skip
+    by_name = {s.name: s for s in steps}
+    root = "outputs/datasets/embedded-small-unseen-more"  # the output_dir of that toolchain YAML
+    generate = by_name["dataset-embedded-small-unseen-more"].command
+    assert generate[-1] == f"--output_dir={root}" and generate[-2].endswith(more.split("/")[-1])
+    evaluate, main = by_name["eval-embedded-small-unseen-more"], by_name["eval"]
+    assert evaluate.kind == KIND_EVAL and evaluate.folder == tmp_path / "eval-embedded-small-unseen-more"
+    assert (
+        _flag(evaluate.command, "dataset_root") == root and _flag(evaluate.command, "split") == "test_unseen"
+    )
+    assert (
+        _flag(evaluate.command, "checkpoint")
+        == _flag(main.command, "checkpoint")
+        == str(tmp_path / "navigation")
+    )
+    assert _values(evaluate.command, "baselines") == _values(main.command, "baselines") == cfg.eval.baselines
+    assert _flag(main.command, "dataset_root") == cfg.dataset_root  # the main splits stay embedded-small's
+
+
 def test_a_dagger_setting_the_round_rejects_fails_when_the_recipe_is_configured():
     with pytest.raises(ValueError, match="stop_radius_m"):
         DaggerSettings(stop_radius_m=25.0)
@@ -88,6 +130,7 @@ def test_the_shipped_recipes_and_ablations_parse():
         assert cfg.navigation.steps > 0 and cfg.eval.max_episodes == 0, path  # full test splits
         assert resolve_config_path(cfg.train_config).is_file(), path
         assert all(resolve_config_path(c).is_file() for c in cfg.extra_toolchain_configs), path
+        assert all(resolve_config_path(c).is_file() for c in cfg.eval.more_cities), path
 
 
 def _script(tmp_path, name: str, kind: str, code: str) -> RecipeStep:
