@@ -99,18 +99,15 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
     ]  # fmt: skip
     extra_roots = []
     for k, config in enumerate(cfg.extra_toolchain_configs, 1):
-        path = resolve_config_path(config)
-        root = load_yaml_config(GenerateConfig, path, []).output_dir
-        generate = toolchain + ["generate", "--config", str(path), f"--output_dir={root}"]
-        steps.append(RecipeStep(f"dataset-extra{k}", KIND_DATA, generate, out / f"dataset-extra{k}"))
+        step, root = _generate_step(config, f"dataset-extra{k}", out)
+        steps.append(step)
         extra_roots.append(root)
     more_cities = []  # (config name, dataset root) of the evaluation's more unseen cities, generated up front
     for config in cfg.eval.more_cities:
-        path = resolve_config_path(config)
-        root = load_yaml_config(GenerateConfig, path, []).output_dir
-        generate = toolchain + ["generate", "--config", str(path), f"--output_dir={root}"]
-        steps.append(RecipeStep(f"dataset-{path.stem}", KIND_DATA, generate, out / f"dataset-{path.stem}"))
-        more_cities.append((path.stem, root))
+        name = resolve_config_path(config).stem
+        step, root = _generate_step(config, f"dataset-{name}", out)
+        steps.append(step)
+        more_cities.append((name, root))
     init: list[str] = []
     if cfg.grounding.steps:
         steps.append(
@@ -160,6 +157,14 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
             _eval_step(cfg, f"eval-{name}", latest, [C.SPLIT_TEST_UNSEEN], root, out / f"eval-{name}")
         )
     return steps
+
+
+def _generate_step(config: str, name: str, out: Path) -> tuple[RecipeStep, str]:
+    """`toolchain generate` of a toolchain YAML into its own output_dir; returns the step and that root."""
+    path = resolve_config_path(config)
+    root = load_yaml_config(GenerateConfig, path, []).output_dir
+    command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config", str(path)]
+    return RecipeStep(name, KIND_DATA, command + [f"--output_dir={root}"], out / name), root
 
 
 def _eval_step(
