@@ -36,7 +36,7 @@ def main() -> None:
 
     import torch  # lazy: --help stays fast
 
-    from openfly_agent.training.grounding_errors import (
+    from openfly_agent.training.grounding_errors import (  # lazy: torch and the model; --help stays fast
         collect_target_boxes,
         errors_markdown,
         grounding_errors,
