@@ -198,28 +198,29 @@ def collect_target_boxes(
     data = stage_data(cfg, load_splits(cfg), agent)
     outputs = []
     hook = agent.grounding_head.register_forward_hook(lambda _module, _inputs, output: outputs.append(output))
-    boxes, visible, cells, hits = [], [], [], 0
+    preds, targets, cells, hits = [], [], [], 0  # visible targets only
     indices = eval_indices(len(data.test), max_samples)
     try:
         for first in range(0, len(indices), batch_size):
             batch = data.collate([data.test[i] for i in indices[first : first + batch_size]])
             agent(batch)
             output = outputs.pop()
-            seen = batch[C.BOX_VISIBLE].bool()
+            seen = batch[C.BOX_VISIBLE].bool()  # (B,)
             hits += int(((output.visibility > 0) == seen).sum())
-            boxes.append((output.boxes, batch[C.BOX].float()))
-            visible.append(seen)
-            cells.append(output.cell_logits)
+            preds.append(output.boxes[seen])
+            targets.append(batch[C.BOX].float()[seen])
+            if output.cell_logits is not None:
+                cells.append(output.cell_logits[seen])
     finally:
         hook.remove()
-    mask = torch.cat(visible) if visible else torch.zeros(0, dtype=torch.bool)
+    pred, target = torch.cat([torch.zeros(0, 4), *preds]), torch.cat([torch.zeros(0, 4), *targets])
     logger.info(
-        "%d of %d samples of %s have a visible target", int(mask.sum()), len(indices), cfg.data.test_split
+        "%d of %d samples of %s have a visible target", len(target), len(indices), cfg.data.test_split
     )
     return TargetBoxes(
-        pred=torch.cat([p for p, _ in boxes])[mask] if boxes else torch.zeros(0, 4),
-        target=torch.cat([t for _, t in boxes])[mask] if boxes else torch.zeros(0, 4),
-        cell_logits=torch.cat(cells)[mask] if cells and cells[0] is not None else None,
+        pred=pred,
+        target=target,
+        cell_logits=torch.cat(cells) if cells else None,
         split=cfg.data.test_split,
         samples=len(indices),
         visibility_accuracy=hits / len(indices) if indices else float("nan"),
