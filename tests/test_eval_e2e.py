@@ -137,6 +137,42 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
     assert Image.open(gif_file).n_frames == len(record.actions)  # one frame per decision
 
 
+def test_agent_true_box_flies_on_the_simulators_target_boxes(dataset, tmp_path, monkeypatch):
+    """`agent_true_box`: the same checkpoint, its box token and memory fed the true target box at every step."""
+    from openfly_agent.eval import rollout
+    from openfly_agent.eval.box_servo import OBS_TARGET_BOX
+    from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP
+
+    episodes = load_openfly_dataset(dataset, C.SPLIT_TRAIN)
+    save_small_agent(tmp_path / "ckpt", [e.instruction for e in episodes])
+    true_boxes, real = {}, rollout._policy_obs
+
+    def spy(running, with_target_box=False):
+        obs = real(running, with_target_box)
+        if with_target_box:
+            true_boxes[(obs[OBS_EPISODE_ID], obs[OBS_STEP])] = obs[OBS_TARGET_BOX]
+        return obs
+
+    monkeypatch.setattr(rollout, "_policy_obs", spy)
+    cfg = _cfg(
+        dataset, tmp_path / "out", policy="agent", baselines=["agent_true_box"], checkpoint=str(tmp_path / "ckpt"),
+        max_steps=6, plots=0, max_episodes=2, batch_size=2,
+    )  # fmt: skip
+    outcome = run(cfg)
+    records = read_all_logs(tmp_path / "out" / "agent_true_box")
+    assert len(records) == 4 and set(outcome["results"]) == {"agent", "agent_true_box"}
+    steps = [(r, t) for r in records for t in range(len(r.actions))]
+    assert len(true_boxes) == len(steps)  # only this policy was handed the true boxes
+    assert any(true_boxes.values()) and any(box is None for box in true_boxes.values())
+    for record, t in steps:  # the box it flew on is the simulator's, not its head's
+        expected = true_boxes[(record.episode_id, t)]
+        assert (record.boxes[t] is None) == (expected is None)
+        if expected is not None:
+            assert record.boxes[t] == pytest.approx(expected, abs=1e-6)
+    agent = read_all_logs(tmp_path / "out" / "agent")
+    assert [r.boxes for r in agent] != [r.boxes for r in records]
+
+
 def test_agent_resumed_after_a_kill_equals_an_uninterrupted_run_bit_for_bit(dataset, tmp_path):
     """A kill after some episodes, then the same command: every record, predicted boxes included, is exactly
     the uninterrupted run's (lockstep groups are recomputed whole, with the same companions)."""

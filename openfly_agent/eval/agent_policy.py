@@ -14,6 +14,7 @@ import logging
 from pathlib import Path
 
 from openfly_agent import constants as C
+from openfly_agent.eval.box_servo import OBS_TARGET_BOX
 from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
 from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
@@ -30,13 +31,18 @@ class AgentPolicy:
     Args:
         agent: an `OpenFlyAgent` (or anything with `select_action`, `reset`).
         name: the policy name in tables and folders.
+        true_boxes: feed the simulator's true target box to the agent in place of its grounding head's
+            (`agent_true_box`: the agent with perfect grounding; the runner adds `target_box` to observations).
     """
 
     needs_frames = True
 
-    def __init__(self, agent, name: str = "agent"):
+    def __init__(self, agent, name: str = "agent", true_boxes: bool = False):
+        if true_boxes and not hasattr(agent, "predict_step"):
+            raise ValueError(f"{name}: the agent has no predict_step to take true boxes")
         self.agent = agent
         self.name = name
+        self.needs_target_box = true_boxes
         self._details: dict[str, dict] = {}
 
     def reset(self, episode_ids: list[str]) -> None:
@@ -54,7 +60,10 @@ class AgentPolicy:
         with torch.inference_mode():
             if not hasattr(self.agent, "predict_step"):
                 return [int(a) for a in self.agent.select_action(inputs)]
-            results = self.agent.predict_step(inputs)
+            if self.needs_target_box:
+                results = self.agent.predict_step(inputs, [obs[OBS_TARGET_BOX] for obs in observations])
+            else:
+                results = self.agent.predict_step(inputs)
         for obs, result in zip(inputs, results):
             self._details[obs[OBS_EPISODE_ID]] = _details(self.agent, obs[OBS_EPISODE_ID], result)
         return [int(result.action) for result in results]

@@ -132,5 +132,6 @@ def make_baseline(
     if name == "box_servo":
         return BoxServoPolicy(box_servo)
     raise ValueError(
-        f"unknown baseline {name!r}; choose one of {BASELINE_NAMES} (or 'agent' with a checkpoint)"
+        f"unknown baseline {name!r}; choose one of {BASELINE_NAMES} "
+        "(or 'agent' / 'agent_true_box' with a checkpoint)"
     )

@@ -27,7 +27,12 @@ class EngineUnreachableError(EvalInputError):
     host and port."""
 
 
-POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo")
+AGENT_TRUE_BOX = (
+    "agent_true_box"  # the agent of --checkpoint fed the simulator's true target box (embedded only)
+)
+AGENT_POLICIES = ("agent", AGENT_TRUE_BOX)  # the policies that load --checkpoint
+TRUE_BOX_POLICIES = ("box_servo", AGENT_TRUE_BOX)  # the policies that read the true target box
+POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo", AGENT_TRUE_BOX)
 SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
 PROFILE_NAMES = ("openfly", "standard")
 ORACLE_MODES = ("auto", "replay", "teleport")
@@ -102,7 +107,7 @@ class EvalConfig:
     `<output_dir>/summary.md` (every policy side by side).
     """
 
-    policy: str = "agent"  # agent | random | stop | forward | oracle | box_servo
+    policy: str = "agent"  # agent | random | stop | forward | oracle | box_servo | agent_true_box
     # policy agent: our checkpoint folder (or its run folder / `last` pointer), an OpenVLA / OpenFly-Agent
     # folder, or a Hub id
     checkpoint: str | None = None
@@ -143,15 +148,17 @@ class EvalConfig:
                 raise ValueError(f"policy / baselines entry {name!r}: choose from {POLICY_NAMES}")
         if len({self.policy, *self.baselines}) != 1 + len(self.baselines):
             raise ValueError(f"policy {self.policy!r} and baselines {self.baselines} must not repeat a name")
-        if "box_servo" in (self.policy, *self.baselines) and self.sim.type != "embedded":
-            raise ValueError(
-                "box_servo reads the true target box, which only the embedded simulator gives: drop it from "
-                f"--baselines with --sim.type={self.sim.type}"
-            )
-        if "agent" in (self.policy, *self.baselines) and not self.checkpoint:
-            raise ValueError(
-                "policy 'agent' needs --checkpoint=<folder or Hub id> (or pick a baseline with --policy)"
-            )
+        for name in set(TRUE_BOX_POLICIES) & {self.policy, *self.baselines}:
+            if self.sim.type != "embedded":
+                raise ValueError(
+                    f"{name} reads the true target box, which only the embedded simulator gives: drop it from "
+                    f"--baselines with --sim.type={self.sim.type}"
+                )
+        for name in set(AGENT_POLICIES) & {self.policy, *self.baselines}:
+            if not self.checkpoint:
+                raise ValueError(
+                    f"policy {name!r} needs --checkpoint=<folder or Hub id> (or pick a baseline with --policy)"
+                )
         for split in self.split:
             if split not in C.SPLITS:
                 raise ValueError(f"split {split!r}: choose from {C.SPLITS}")
@@ -188,7 +195,7 @@ class EvalConfig:
             "sim_height": self.sim.height,
             "sim_occupancy": self.sim.occupancy_pcd,
         }
-        if policy == "agent":
+        if policy in AGENT_POLICIES:
             identity.update(
                 checkpoint=self.checkpoint,
                 unnorm_key=self.agent.unnorm_key,

@@ -16,7 +16,14 @@ from openfly_agent.data.schema import Episode
 from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
 from openfly_agent.eval.baselines import make_baseline
 from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
-from openfly_agent.eval.config import EngineUnreachableError, EvalConfig, EvalInputError, SimSettings
+from openfly_agent.eval.config import (
+    AGENT_POLICIES,
+    AGENT_TRUE_BOX,
+    EngineUnreachableError,
+    EvalConfig,
+    EvalInputError,
+    SimSettings,
+)
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
 from openfly_agent.sim.bridges.airsim import AirSimBridge
@@ -193,10 +200,12 @@ def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render
 
 
 def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: ProcessInfo):
-    """The policy called `name`: the agent of `cfg.checkpoint`, or a baseline."""
-    if name != "agent":
+    """The policy called `name`: the agent of `cfg.checkpoint` (`agent_true_box`: fed the true target box), or a
+    baseline."""
+    if name not in AGENT_POLICIES:
         return make_baseline(
             name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode, box_servo=cfg.box_servo
         )
     device = resolve_device(cfg.device, getattr(info.state, "device", None))
-    return AgentPolicy(load_agent(cfg.checkpoint, cfg.agent, device))
+    agent = load_agent(cfg.checkpoint, cfg.agent, device)
+    return AgentPolicy(agent, name, true_boxes=name == AGENT_TRUE_BOX)

@@ -15,7 +15,7 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig
 from openfly_agent.eval.episodes import target_landmark
 from openfly_agent.eval.metrics import episode_metrics
 from openfly_agent.eval.plots import plot_topdown, safe_name
@@ -45,13 +45,13 @@ def write_text_atomic(path: Path, text: str) -> None:
 def run_meta(cfg: EvalConfig, policy: str) -> dict:
     """Settings recorded next to the numbers."""
     return {
-        "checkpoint": cfg.checkpoint if policy == "agent" else None,
+        "checkpoint": cfg.checkpoint if policy in AGENT_POLICIES else None,
         "dataset_root": cfg.dataset_root,
         "sim": cfg.sim.type,
         "max_steps": cfg.max_steps,
         "batch_size": cfg.batch_size,
         "seed": cfg.seed,
-        "unnorm_key": cfg.agent.unnorm_key if policy == "agent" else None,
+        "unnorm_key": cfg.agent.unnorm_key if policy in AGENT_POLICIES else None,
     }
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.agent_policy import checkpoint_fingerprint
-from openfly_agent.eval.config import EvalConfig, EvalInputError
+from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
     log_name,
@@ -64,7 +64,7 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
 def result_identity(cfg: EvalConfig, policy: str) -> dict:
     """`cfg.result_identity(policy)`, plus the fingerprint of the agent's weights."""
     identity = cfg.result_identity(policy)
-    if policy == "agent":
+    if policy in AGENT_POLICIES:
         identity["weights"] = checkpoint_fingerprint(cfg.checkpoint)
     return identity
 

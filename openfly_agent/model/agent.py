@@ -34,11 +34,11 @@ from openfly_agent.constants import (
 )
 
 from .agent_io import AgentPersistence
-from .box_token import BoxTokenEmbedding, insert_before_targets, jitter_boxes, last_true_index
+from .box_token import BoxTokenEmbedding, given_boxes, insert_before_targets, jitter_boxes, last_true_index
 from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT, ModelConfig, config_to_dict
 from .conv_vision import ConvVisionBackbone
 from .decoding import decode_one, greedy_decode
-from .episode import EpisodeState, StepResult, check_observations
+from .episode import Box, EpisodeState, StepResult, check_observations
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, GroundingOutput, grounding_loss
@@ -315,8 +315,14 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         return [result.action for result in self.predict_step(observations)]
 
     @torch.no_grad()
-    def predict_step(self, observations: list[dict[str, Any]]) -> list[StepResult]:
+    def predict_step(
+        self, observations: list[dict[str, Any]], true_boxes: list[Box | None] | None = None
+    ) -> list[StepResult]:
         """`select_action` with details: action logits (or bin tokens) and the predicted landmark box.
+
+        `true_boxes` (one (cx, cy, w, h) or None = not visible per observation; evaluation only) replaces the
+        grounding head's prediction in the box token and the keyframe memory: the agent with perfect
+        grounding, which splits its gap to the expert into perception and policy.
 
         One step of every observed episode in one left-padded prefill: encode the current frames, build
         `[BOS] [memory] [current] [prompt]` per episode (the training layout without the action tokens), read
@@ -355,6 +361,10 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             padding + 1 + torch.tensor(memory_sizes, device=mask.device)
         )  # after [pad] [BOS] [memory]
         boxes, visible = self._predict_boxes(hidden, mask, first_image)
+        if true_boxes is not None:
+            if len(true_boxes) != len(observations):
+                raise ValueError(f"{len(true_boxes)} true boxes for {len(observations)} observations")
+            boxes, visible = given_boxes(true_boxes, device)
         if self.box_token_embed is not None:  # [.. prompt] [BOX]: one cached step, the action is read there
             token = self.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)
             hidden, mask = decode_one(self, token, mask, output.past_key_values)

@@ -26,6 +26,14 @@ def box_features(boxes: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
     return features * visible.to(features.dtype)[:, None]
 
 
+def given_boxes(boxes: list, device=None) -> tuple[torch.Tensor, list[bool]]:
+    """A list of (cx, cy, w, h) or None (not visible) -> (B, 4) float boxes (zeros where None), (B,) visibility."""
+    rows = [[0.0] * 4 if box is None else [float(v) for v in box] for box in boxes]
+    if any(len(row) != 4 for row in rows):
+        raise ValueError(f"boxes must be (cx, cy, w, h) or None, got {boxes}")
+    return torch.tensor(rows, dtype=torch.float32, device=device), [box is not None for box in boxes]
+
+
 def jitter_boxes(boxes: torch.Tensor, std: float) -> torch.Tensor:
     """Training noise on (B, 4) cxcywh: the centre moves by N(0, std), width and height scale by exp(N(0, 2 std))."""
     if std <= 0:

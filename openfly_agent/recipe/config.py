@@ -60,8 +60,11 @@ class EvalSettings:
 
     # the test splits, evaluated in full by default
     splits: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
-    # evaluated next to the agent (box_servo: the reflex on the true target box, the perception bar)
-    baselines: list[str] = field(default_factory=lambda: ["random", "stop", "forward", "oracle", "box_servo"])
+    # evaluated next to the agent (box_servo: the reflex on the true target box, the perception bar;
+    # agent_true_box: the same agent fed the true target box, so the gap to it is what its grounding costs)
+    baselines: list[str] = field(
+        default_factory=lambda: ["random", "stop", "forward", "oracle", "box_servo", "agent_true_box"]
+    )
     max_episodes: int = 0  # per split, evenly spaced (0: the full splits)
     # toolchain YAMLs of more unseen cities (e.g. configs/toolchain/embedded-small-unseen-more.yaml): each is
     # generated into its own output_dir and its test_unseen split evaluated with the same policies into

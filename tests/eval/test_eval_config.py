@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from openfly_agent.eval.cli import list_fields, normalize_argv
-from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.config import EvalConfig, SimSettings
 from openfly_agent.utils.config import parse_config
 
 
@@ -62,6 +62,16 @@ def test_shorthands_leave_draccus_forms_alone():
     ("kwargs", "message"),
     [
         ({"policy": "agent"}, "needs --checkpoint"),
+        ({"policy": "random", "baselines": ["agent_true_box"]}, "'agent_true_box' needs --checkpoint"),
+        (
+            {
+                "policy": "agent",
+                "checkpoint": "c",
+                "baselines": ["agent_true_box"],
+                "sim": SimSettings(type="airsim"),
+            },
+            "agent_true_box reads the true target box",
+        ),
         ({"policy": "greedy"}, "choose from"),
         ({"policy": "random", "baselines": ["random"]}, "must not repeat"),
         ({"policy": "stop", "split": ["val"]}, "split 'val'"),
@@ -80,6 +90,9 @@ def test_result_identity_tracks_what_changes_results():
     b = EvalConfig(policy="random", seed=2, batch_size=64, plots=0)
     assert a.result_identity("random") != b.result_identity("random")
     assert a.result_identity("stop") == b.result_identity("stop")  # batch size and plots never change results
+    c, d = (EvalConfig(policy="agent", checkpoint=name, baselines=["agent_true_box"]) for name in ("c", "d"))
+    assert c.result_identity("agent_true_box") != d.result_identity("agent_true_box")  # its weights
+    assert c.result_identity("agent_true_box") != c.result_identity("agent")  # never resumes the agent's log
 
 
 @pytest.mark.parametrize(

@@ -169,3 +169,33 @@ def test_compat_mode_runs_the_released_layout(make_agent):
     patches, cls = agent.vision_backbone.forward_with_cls(pixels)
     manual = agent.projector(torch.cat([cls, patches[..., agent.vision_backbone.dino_dim :].mean(1)], -1))
     torch.testing.assert_close(state.history_tokens[3], manual[0], rtol=1e-5, atol=1e-5)
+
+
+def test_true_boxes_replace_the_grounding_heads_prediction(make_agent):
+    agent = make_agent(seed=1, keyframes=KeyframeConfig(theta=0.0))  # with a visibility logit
+    with torch.no_grad():
+        agent.projector.fc3.weight.mul_(10.0)
+    assert agent.box_token_embed is not None
+    frames = _frames(2, 4, seed=5)
+    own = [agent.predict_step([_obs(e, frames[e, t]) for e in range(2)]) for t in range(4)]
+    agent.reset()
+    # fed its own predictions as the "true" boxes, the agent acts exactly as before, memory included
+    for t in range(4):
+        given = [r.box if r.box_visible else None for r in own[t]]
+        results = agent.predict_step([_obs(e, frames[e, t]) for e in range(2)], true_boxes=given)
+        for result, reference in zip(results, own[t]):
+            assert result.action == reference.action and result.box_visible == reference.box_visible
+            torch.testing.assert_close(result.action_logits, reference.action_logits, rtol=1e-4, atol=1e-4)
+    agent.reset()
+    box = (0.2, 0.7, 0.1, 0.3)
+    visible, hidden = agent.predict_step(
+        [_obs(0, frames[0, 0]), _obs(1, frames[0, 0])], true_boxes=[box, None]
+    )
+    assert visible.box == pytest.approx(box) and visible.box_visible
+    assert not hidden.box_visible and agent.episodes["ep1"].box_areas == [None]
+    # the same frame and instruction, only the box differs: the box token changes the logits
+    agent.reset()
+    (elsewhere,) = agent.predict_step([_obs(0, frames[0, 0])], true_boxes=[(0.8, 0.3, 0.4, 0.2)])
+    assert (elsewhere.action_logits - visible.action_logits).abs().max() > 1e-4
+    with pytest.raises(ValueError, match="true boxes for"):
+        agent.predict_step([_obs(0, frames[0, 1])], true_boxes=[box, box])
