@@ -153,9 +153,12 @@ class GroundingConfig:
     )
     cells: bool = True  # per-cell scoring and box centre (False: the paper's box regression, the 7B presets)
     cell_weight: float = 1.0  # weight of the cell cross-entropy (with `cells`)
+    # with `cells`: each token cell is scored as subcells x subcells sub-cells (logits from its hidden state), so
+    # the centre and the cross-entropy live on a grid subcells times finer than the tokens (1: the token grid)
+    subcells: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("num_layers", "num_queries", "dim", "num_heads"):
+        for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
             check_positive("grounding", name, getattr(self, name))
         if self.dim % self.num_heads:
             raise ValueError(

@@ -5,7 +5,9 @@ built in (docs/BENCHMARKS.md, "Tiny preset"). The ResNet's four stages downsampl
 dilated instead of strided), so a 128 px frame gives an 8 x 8 grid, the patch grid of a ViT with patch 16; a
 learned position embedding is added to every cell (convolution features alone say little about *where* a cell
 is, and the LLM's rotary positions only give relative offsets). The output (N, P, C) goes into the same
-projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs).
+projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs). With
+`vision.cnn_fine_fusion` each token also gets the second stage's stride-8 features of the 2 x 2 cells under it
+(concatenated, projected by `fine_proj` and added): a landmark of a few pixels keeps its own features.
 """
 
 from __future__ import annotations
@@ -52,6 +54,10 @@ class ConvVisionBackbone(nn.Module):
         )
         self.grid_side = cfg.grid_side
         self.pos_embed = nn.Parameter(torch.zeros(cfg.num_patches, cfg.cnn_channels[-1]))
+        # the second stage (stride 8) under each token: 2 x 2 cells of cnn_channels[1], to the token width
+        self.fine_proj = (
+            nn.Linear(4 * cfg.cnn_channels[1], cfg.cnn_channels[-1]) if cfg.cnn_fine_fusion else None
+        )
         # no buffers for the constants: transformers builds models on the meta device when loading, and a
         # non-persistent buffer would come back uninitialised
 
@@ -72,7 +78,17 @@ class ConvVisionBackbone(nn.Module):
         mean = torch.tensor(IMAGENET_MEAN, dtype=dtype, device=device).view(1, 3, 1, 1)
         std = torch.tensor(IMAGENET_STD, dtype=dtype, device=device).view(1, 3, 1, 1)
         x = ((pixels.to(dtype) / 255.0 - mean) / std).contiguous(memory_format=torch.channels_last)
-        features = self.featurizer.forward_features(x)  # (N, C, g, g)
+        if self.fine_proj is None:
+            features = self.featurizer.forward_features(x)  # (N, C, g, g)
+        else:  # stage index 2 = layer2, stride 8: (N, C_1, 2g, 2g) -> (N, 4 C_1, g, g) -> (N, C, g, g)
+            features, (fine,) = self.featurizer.forward_intermediates(x, indices=[2])
+            n, c, side = fine.shape[0], fine.shape[1], fine.shape[2] // 2
+            # each token's 2 x 2 cells, channel-major (pixel_unshuffle's order; its backward aborts on
+            # channels-last tensors in torch 2.13)
+            fine = (
+                fine.reshape(n, c, side, 2, side, 2).permute(0, 2, 4, 1, 3, 5).reshape(n, side, side, 4 * c)
+            )
+            features = features + self.fine_proj(fine).permute(0, 3, 1, 2)
         return features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
 
     def forward_with_cls(self, pixels: torch.Tensor) -> tuple[torch.Tensor, None]:

@@ -9,7 +9,9 @@ query starts from the hidden state of the last prompt token (it has read the who
 scales and shifts each cell's features (FiLM), an MLP gives one logit per cell, and the box centre is the
 softmax-weighted cell centre plus a bounded offset; a cross-entropy over which cell holds the box centre
 joins the loss (`cell_weight`). Dense, per-cell supervision learns much faster than one regressed box
-(docs/BENCHMARKS.md, "Grounding").
+(docs/BENCHMARKS.md, "Grounding"). With `subcells` = s > 1 each cell's MLP gives s x s logits, one per
+sub-cell: the softmax, the centre and the cross-entropy then live on a grid s times finer than the tokens (a
+small far target covers a fraction of one 16 px cell at 128 px).
 """
 
 from __future__ import annotations
@@ -65,20 +67,26 @@ class GroundingOutput:
 
 
 class CellScorer(nn.Module):
-    """FiLM cell scoring: the query's code scales and shifts every cell's features, an MLP gives its logit."""
+    """FiLM cell scoring: the query's code scales and shifts every cell's features, an MLP gives its logit (one per
+    sub-cell with `subcells` > 1, on the grid `subcells` times finer than the cells)."""
 
-    def __init__(self, dim: int) -> None:
+    def __init__(self, dim: int, grid_side: int, subcells: int = 1) -> None:
         super().__init__()
+        self.grid_side, self.subcells = grid_side, subcells
         self.norm = nn.LayerNorm(dim)
         self.scale, self.shift = nn.Linear(dim, dim), nn.Linear(dim, dim)
         # no bias on the last layer: a constant added to every cell's logit changes neither the softmax nor the
         # cell cross-entropy, so its gradient is rounding noise that Adam would turn into lr-sized steps
-        self.score = nn.Sequential(nn.GELU(), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1, bias=False))
+        self.score = nn.Sequential(
+            nn.GELU(), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, subcells**2, bias=False)
+        )
 
     def forward(self, cells: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
-        """cells (B, P, d), code (B, d) -> (B, P) logits."""
+        """cells (B, g * g, d), code (B, d) -> (B, (g * s) ** 2) logits on the fine grid, row-major."""
         modulated = self.norm(cells) * (1 + self.scale(code)[:, None]) + self.shift(code)[:, None]
-        return self.score(modulated).squeeze(-1)
+        logits = self.score(modulated)  # (B, g * g, s * s)
+        g, s = self.grid_side, self.subcells
+        return logits.view(-1, g, g, s, s).permute(0, 1, 3, 2, 4).reshape(-1, (g * s) ** 2)
 
 
 class GroundingHead(nn.Module):
@@ -105,9 +113,9 @@ class GroundingHead(nn.Module):
             return
         if not grid_side:
             raise ValueError("grounding.cells needs the frame's token grid side")
-        self.grid_side = grid_side
+        self.grid_side, self.fine_side = grid_side, grid_side * cfg.subcells
         self.text_query = nn.Linear(llm_dim, cfg.dim)  # the last prompt token starts the query
-        self.cell_scorer = CellScorer(cfg.dim)
+        self.cell_scorer = CellScorer(cfg.dim, grid_side, cfg.subcells)
         self.box_mlp = nn.Sequential(nn.Linear(2 * cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, 4))
 
     def forward(
@@ -141,14 +149,20 @@ class GroundingHead(nn.Module):
         cells = torch.gather(
             memory, 1, image_positions[..., None].expand(-1, -1, memory.shape[-1])
         )  # (B, P, d)
-        cell_logits = self.cell_scorer(cells, pooled)  # (B, P)
-        weights = cell_logits.softmax(dim=-1)  # (B, P)
-        context = (weights[..., None] * cells).sum(dim=1)  # (B, d)
+        cell_logits = self.cell_scorer(cells, pooled)  # (B, F), F = (g * s)^2 fine cells
+        weights = cell_logits.softmax(dim=-1)  # (B, F)
+        context = (coarse_weights(weights, self.grid_side)[..., None] * cells).sum(dim=1)  # (B, d)
         raw = self.box_mlp(torch.cat([pooled, context], dim=-1))  # (B, 4)
-        centre = weights @ cell_centres(self.grid_side, weights.device, weights.dtype)  # (B, 2)
-        cxcy = (centre + torch.tanh(raw[:, :2]) / self.grid_side).clamp(0.0, 1.0)
+        centre = weights @ cell_centres(self.fine_side, weights.device, weights.dtype)  # (B, 2)
+        cxcy = (centre + torch.tanh(raw[:, :2]) / self.fine_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
         return GroundingOutput(boxes, visibility, cell_logits)
+
+
+def coarse_weights(fine: torch.Tensor, grid_side: int) -> torch.Tensor:
+    """(B, (g * s)^2) weights on a fine row-major grid -> (B, g * g), each cell the sum of its s x s sub-cells."""
+    s = int(round((fine.shape[-1] ** 0.5) / grid_side))
+    return fine.view(-1, grid_side, s, grid_side, s).sum(dim=(2, 4)).reshape(-1, grid_side**2)
 
 
 def cell_centres(grid_side: int, device=None, dtype=torch.float32) -> torch.Tensor:

@@ -50,6 +50,9 @@ class VisionConfig:
         None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
     )
     cnn_stem_width: int | None = None  # tiny-cnn only: channels of the stem convolution
+    # tiny-cnn only: add to each token the stride-8 features of the 2 x 2 cells under it (the second stage's
+    # output, concatenated and projected to the token width), for small far landmarks
+    cnn_fine_fusion: bool = False
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
     def __post_init__(self) -> None:
@@ -79,6 +82,8 @@ class VisionConfig:
                     f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
                     f"vision.cnn_stem_width={self.cnn_stem_width} positive"
                 )
+        elif self.cnn_fine_fusion:
+            raise ValueError(f"vision.cnn_fine_fusion is a tiny-cnn option (preset={self.preset})")
         if self.preset != VISION_TINY:
             return
         for name in TINY_VISION:

@@ -7,18 +7,31 @@ import torch
 
 from openfly_agent.model.config import GroundingConfig, MemoryConfig, MergingConfig, openfly_7b_config
 from openfly_agent.model.grounding import (
+    CellScorer,
     GroundingHead,
     GroundingOutput,
     box_cells,
+    cell_centres,
+    coarse_weights,
     grounding_loss,
     iou_and_giou,
 )
+from openfly_agent.model.vision_config import VisionConfig
 
 LOG_KEYS = {"loss", "action_loss", "grounding_loss", "action_accuracy", "box_iou", "num_visible_boxes"}
 
 
-def test_forward_backward_reaches_every_parameter(make_agent, make_batch):
-    agent = make_agent().train()
+FINE_GROUNDING = {  # tiny-cnn at 64 px with the stride-8 fusion, and the head scoring 2 x 2 sub-cells per cell
+    "vision": VisionConfig(
+        image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16, cnn_fine_fusion=True
+    ),  # (narrower ResNets crash oneDNN's channels-last backward in torch 2.13)
+    "grounding": GroundingConfig(dim=32, num_heads=2, subcells=2),
+}
+
+
+@pytest.mark.parametrize("overrides", [{}, FINE_GROUNDING], ids=["small", "fine_grounding"])
+def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overrides):
+    agent = make_agent(**overrides).train()
     loss, logs = agent(make_batch(agent, batch_size=3))
     assert torch.isfinite(loss)
     assert set(logs) >= LOG_KEYS and all(isinstance(v, float) for v in logs.values())
@@ -215,3 +228,52 @@ def test_tiny_preset_forward(tiny_tokenizer, make_batch):
     assert visual.shape == (2, 64 + 2, 128)  # 8x8 patches + K = 2 sets of (8 / 8)^2 tokens
     loss, _ = agent(batch)
     assert torch.isfinite(loss)
+
+
+def test_subcell_logits_are_laid_out_on_the_fine_grid_row_major():
+    scorer = CellScorer(dim=4, grid_side=2, subcells=2)
+
+    class Known(torch.nn.Module):  # cell k (row-major), sub-cell (r, c) -> logit 4 k + 2 r + c
+        def forward(self, x):
+            return (torch.arange(4.0)[:, None] * 4 + torch.arange(4.0)[None]).expand(x.shape[0], 4, 4)
+
+    scorer.score = Known()
+    fine = scorer(torch.randn(1, 4, 4), torch.randn(1, 4)).view(4, 4)
+    # fine row 0 = top sub-row of cells 0 and 1; row 1 = their bottom sub-row; rows 2-3 the same for cells 2, 3
+    expected = torch.tensor(
+        [[0, 1, 4, 5], [2, 3, 6, 7], [8, 9, 12, 13], [10, 11, 14, 15]], dtype=torch.float32
+    )
+    assert torch.equal(fine, expected)
+    weights = torch.arange(16.0)[None]  # fine row-major values 0..15
+    assert coarse_weights(weights, 2).tolist() == [
+        [0 + 1 + 4 + 5, 2 + 3 + 6 + 7, 8 + 9 + 12 + 13, 10 + 11 + 14 + 15]
+    ]
+    assert torch.equal(coarse_weights(weights, 4), weights)  # no sub-cells: unchanged
+
+
+def test_subcell_head_learns_which_quarter_of_a_cell_holds_the_target():
+    torch.manual_seed(0)
+    cfg = GroundingConfig(dim=32, num_heads=2, cells=True, subcells=2)
+    head = GroundingHead(24, cfg, grid_side=2)
+    # 4 image tokens (a 2 x 2 grid), then 2 prompt tokens; the last one names one of the 16 fine cells
+    fine_cell = torch.arange(16)
+    hidden = torch.randn(16, 6, 24) * 0.1
+    hidden[:, :4] += torch.eye(4, 24) * 3
+    hidden[:, 5, 4:20] = torch.eye(16) * 3
+    mask = torch.ones(16, 6, dtype=torch.bool)
+    image, last = torch.arange(4).expand(16, 4), torch.full((16,), 5)
+    centres = cell_centres(4)  # (16, 2) fine cell centres, row-major
+    targets = torch.cat([centres[fine_cell], torch.full((16, 2), 0.2)], dim=1)
+    optimizer = torch.optim.Adam(head.parameters(), lr=1e-2)
+    for _ in range(300):
+        loss, logs = grounding_loss(
+            head(hidden, mask, image, last), targets, torch.ones(16, dtype=torch.bool), cfg
+        )
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    out = head(hidden, mask, image, last)
+    assert out.cell_logits.shape == (16, 16)
+    assert out.cell_logits.argmax(-1).tolist() == fine_cell.tolist()
+    assert box_cells(out.boxes, 4).tolist() == fine_cell.tolist()  # each centre in its own quarter-cell
+    assert logs["box_iou"] > 0.7
