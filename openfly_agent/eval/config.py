@@ -27,9 +27,8 @@ class EngineUnreachableError(EvalInputError):
     host and port."""
 
 
-AGENT_TRUE_BOX = (
-    "agent_true_box"  # the agent of --checkpoint fed the simulator's true target box (embedded only)
-)
+# the agent of --checkpoint fed the simulator's true target box (embedded only)
+AGENT_TRUE_BOX = "agent_true_box"
 AGENT_POLICIES = ("agent", AGENT_TRUE_BOX)  # the policies that load --checkpoint
 TRUE_BOX_POLICIES = ("box_servo", AGENT_TRUE_BOX)  # the policies that read the true target box
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo", AGENT_TRUE_BOX)
