@@ -360,10 +360,11 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         first_image = (
             padding + 1 + torch.tensor(memory_sizes, device=mask.device)
         )  # after [pad] [BOS] [memory]
-        boxes, visible = self._predict_boxes(hidden, mask, first_image)
-        if true_boxes is not None:
-            if len(true_boxes) != len(observations):
-                raise ValueError(f"{len(true_boxes)} true boxes for {len(observations)} observations")
+        if true_boxes is None:
+            boxes, visible = self._predict_boxes(hidden, mask, first_image)
+        elif len(true_boxes) != len(observations):
+            raise ValueError(f"{len(true_boxes)} true boxes for {len(observations)} observations")
+        else:  # the head's prediction would be discarded: not computed
             boxes, visible = given_boxes(true_boxes, device)
         if self.box_token_embed is not None:  # [.. prompt] [BOX]: one cached step, the action is read there
             token = self.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)

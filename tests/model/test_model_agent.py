@@ -165,6 +165,17 @@ def test_grounding_head_outputs_unit_boxes():
     torch.testing.assert_close(head(hidden2, mask).boxes[1], out.boxes[1])
 
 
+def _fit_head(head, inputs, targets, cfg, steps: int) -> dict[str, float]:
+    """Adam (lr 1e-2) on the grounding loss of `head(*inputs)` against `targets` (all visible); the last logs."""
+    optimizer = torch.optim.Adam(head.parameters(), lr=1e-2)
+    for _ in range(steps):
+        loss, logs = grounding_loss(head(*inputs), targets, torch.ones(len(targets), dtype=torch.bool), cfg)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    return logs
+
+
 def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
     torch.manual_seed(0)
     head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True), grid_side=2)
@@ -180,15 +191,7 @@ def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
     last = torch.full((4,), 5)
     centres = torch.tensor([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
     targets = torch.cat([centres[target_cell], torch.full((4, 2), 0.3)], dim=1)
-    optimizer = torch.optim.Adam(head.parameters(), lr=1e-2)
-    cfg = GroundingConfig(dim=16, num_heads=2, cells=True)
-    for _ in range(150):
-        loss, logs = grounding_loss(
-            head(hidden, mask, image, last), targets, torch.ones(4, dtype=torch.bool), cfg
-        )
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    logs = _fit_head(head, (hidden, mask, image, last), targets, GroundingConfig(dim=16, num_heads=2), 150)
     out = head(hidden, mask, image, last)
     assert out.cell_logits.argmax(-1).tolist() == target_cell.tolist()
     assert logs["box_iou"] > 0.8
@@ -264,14 +267,7 @@ def test_subcell_head_learns_which_quarter_of_a_cell_holds_the_target():
     image, last = torch.arange(4).expand(16, 4), torch.full((16,), 5)
     centres = cell_centres(4)  # (16, 2) fine cell centres, row-major
     targets = torch.cat([centres[fine_cell], torch.full((16, 2), 0.2)], dim=1)
-    optimizer = torch.optim.Adam(head.parameters(), lr=1e-2)
-    for _ in range(300):
-        loss, logs = grounding_loss(
-            head(hidden, mask, image, last), targets, torch.ones(16, dtype=torch.bool), cfg
-        )
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    logs = _fit_head(head, (hidden, mask, image, last), targets, cfg, 300)
     out = head(hidden, mask, image, last)
     assert out.cell_logits.shape == (16, 16)
     assert out.cell_logits.argmax(-1).tolist() == fine_cell.tolist()
