@@ -49,7 +49,7 @@ from .memory_encoding import MemoryEncoding
 from .pretrained_config import OpenFlyAgentConfig
 from .processor import OpenFlyProcessor
 from .projector import FusedMLPProjector
-from .sequence import left_pad, position_ids_from_mask, splice_after_bos
+from .sequence import left_pad, left_pad_ids, position_ids_from_mask, splice_after_bos
 from .tokenizer import load_tokenizer
 from .vision import build_vision_backbone
 
@@ -83,7 +83,7 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             )
         self.model_cfg = cfg
         llm_dim = cfg.llm.resolved_hidden_size
-        self.vision_backbone = build_vision_backbone(cfg.vision)
+        self.vision_backbone = build_vision_backbone(cfg.vision, llm_dim)
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         self.grounding_head = (
@@ -140,6 +140,8 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             init.normal_(module.box_queries, std=0.02)
         elif isinstance(module, ConvVisionBackbone):
             init.trunc_normal_(module.pos_embed, std=0.02)
+            if module.instruction_film is not None:
+                module.instruction_film.reset_to_identity()
 
     @property
     def tokenizer(self):
@@ -178,19 +180,22 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         """(B, L) ids -> (B, L, D) input embeddings."""
         return unwrap_causal_lm(self.language_model).get_input_embeddings()(input_ids)
 
-    def encode_visual(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_visual(
+        self, batch: dict[str, Any], instruction: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Visual tokens of a training batch: memory (oldest first) then the current frame.
 
         A grounding batch may hold fewer frames than sequences: `frame_index` (B,) says which frame of
-        `pixel_values` (F, 3, H, W) each sequence reads (each frame is encoded once).
+        `pixel_values` (F, 3, H, W) each sequence reads (each frame is encoded once, or once per sequence
+        under its (B, D) `instruction` code).
 
         Returns:
             (B, M + P, D) tokens and their (B, M + P) bool mask (False on missing memory sets).
         """
-        current = self.projector(self.vision_backbone(batch[PIXEL_VALUES]))  # (F, P, D)
-        if batch.get(FRAME_INDEX) is not None:
-            current = current[batch[FRAME_INDEX].to(current.device)]  # (B, P, D)
-        memory, memory_mask = self.encode_memory_batch(batch)  # (B, M, D), (B, M)
+        current = self.projector(
+            self.encode_frames(batch[PIXEL_VALUES], instruction, batch.get(FRAME_INDEX))
+        )  # (B, P, D)
+        memory, memory_mask = self.encode_memory_batch(batch, instruction)  # (B, M, D), (B, M)
         if memory.shape[0] != current.shape[0]:  # a grounding batch has no memory: one empty row per sequence
             memory = current.new_zeros(current.shape[0], 0, current.shape[-1])  # (B, 0, D)
             memory_mask = torch.zeros(current.shape[0], 0, dtype=torch.bool, device=current.device)
@@ -231,7 +236,10 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         labels = batch.get(LABELS)
         if labels is None:
             labels = torch.full_like(input_ids, IGNORE_INDEX)
-        visual, visual_mask = self.encode_visual(batch)
+        prompt = batch[ATTENTION_MASK].bool() & (labels == IGNORE_INDEX)  # BOS + prompt, never the targets
+        visual, visual_mask = self.encode_visual(
+            batch, self.instruction_code(input_ids[:, 1:], prompt[:, 1:])
+        )
         embeds, mask, labels = splice_after_bos(
             self.embed_text(input_ids), batch[ATTENTION_MASK], labels, visual, visual_mask
         )  # [BOS] [memory] [current] [prompt] [action]: (B, L', D), (B, L'), (B, L')
@@ -336,7 +344,13 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         states = [self._episode_state(obs[EPISODE_ID], obs[OBS_INSTRUCTION]) for obs in observations]
         device = self.projector.fc1.weight.device
         pixels = torch.stack([self.processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
-        patches, dino_cls = self.vision_backbone.forward_with_cls(pixels)  # (B, P, D_v), (B, D_dino)
+        prompts, prompt_mask = left_pad_ids([state.prompt_ids[1:] for state in states], device)  # (B, L)
+        instruction = self.instruction_code(prompts, prompt_mask)  # (B, D) or None
+        patches, dino_cls = (
+            self.vision_backbone.forward_with_cls(pixels)
+            if instruction is None
+            else (self.vision_backbone(pixels, instruction), None)
+        )  # (B, P, D_v), (B, D_dino) or None
         current = self.projector(patches)  # (B, P, D)
         compat = self.model_cfg.mode == MODE_OPENVLA_COMPAT
         own_history = self.history_tokens(patches, dino_cls) if compat else None  # (B, D)

@@ -7,7 +7,9 @@ learned position embedding is added to every cell (convolution features alone sa
 is, and the LLM's rotary positions only give relative offsets). The output (N, P, C) goes into the same
 projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs). With
 `vision.cnn_fine_fusion` each token also gets the second stage's stride-8 features of the 2 x 2 cells under it
-(concatenated, projected by `fine_proj` and added): a landmark of a few pixels keeps its own features.
+(concatenated, projected by `fine_proj` and added): a landmark of a few pixels keeps its own features. With
+`vision.cnn_instruction_film` the third and fourth stages run once per sequence, their inputs scaled and shifted
+by the instruction (model/instruction_film.py); the stem and the first two stages still run once per frame.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import torch
 from torch import nn
 
 from .config import CNN_STRIDE, VisionConfig
+from .instruction_film import InstructionFiLM
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -43,9 +46,10 @@ class ConvVisionBackbone(nn.Module):
 
     Args:
         cfg: vision section of the model config (`tiny-cnn`: image_size, cnn_channels, cnn_stem_width).
+        text_dim: width of the instruction code (the LLM's embedding width; needed by `cnn_instruction_film`).
     """
 
-    def __init__(self, cfg: VisionConfig) -> None:
+    def __init__(self, cfg: VisionConfig, text_dim: int | None = None) -> None:
         super().__init__()
         self.cfg = cfg
         self.image_size = cfg.image_size
@@ -58,6 +62,12 @@ class ConvVisionBackbone(nn.Module):
         self.fine_proj = (
             nn.Linear(4 * cfg.cnn_channels[1], cfg.cnn_channels[-1]) if cfg.cnn_fine_fusion else None
         )
+        self.instruction_film = None
+        if cfg.cnn_instruction_film:
+            if not text_dim:
+                raise ValueError("vision.cnn_instruction_film needs the width of the instruction code")
+            # the inputs of the third and fourth stages: the outputs of the second and third
+            self.instruction_film = InstructionFiLM(text_dim, (cfg.cnn_channels[1], cfg.cnn_channels[2]))
         # no buffers for the constants: transformers builds models on the meta device when loading, and a
         # non-persistent buffer would come back uninitialised
 
@@ -66,34 +76,73 @@ class ConvVisionBackbone(nn.Module):
         """C, the width of each cell feature."""
         return self.pos_embed.shape[-1]
 
-    def forward(self, pixels: torch.Tensor) -> torch.Tensor:
-        """(N, 3, H, W) uint8 RGB -> (N, P, C) features of the (H / 16) x (W / 16) cells, row-major."""
+    def forward(
+        self,
+        pixels: torch.Tensor,
+        instruction: torch.Tensor | None = None,
+        frame_index: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """(F, 3, H, W) uint8 RGB -> (N, P, C) features of the (H / 16) x (W / 16) cells, row-major.
+
+        Args:
+            pixels: the frames.
+            instruction: (N, D_text) instruction code of each sequence (`cnn_instruction_film` only, needed).
+            frame_index: (N,) long, the frame each sequence reads (None: N = F, sequence i reads frame i).
+        """
         size = self.image_size
         if pixels.dtype != torch.uint8 or pixels.ndim != 4 or tuple(pixels.shape[1:]) != (3, size, size):
             raise ValueError(
                 f"vision backbone expects uint8 RGB pixels of shape (N, 3, {size}, {size}); got "
                 f"{pixels.dtype} {tuple(pixels.shape)}"
             )
+        if (instruction is None) != (self.instruction_film is None):
+            raise ValueError(
+                "an instruction code goes with vision.cnn_instruction_film and only with it "
+                f"(option {'on' if self.instruction_film is not None else 'off'})"
+            )
         dtype, device = self.pos_embed.dtype, pixels.device
         mean = torch.tensor(IMAGENET_MEAN, dtype=dtype, device=device).view(1, 3, 1, 1)
         std = torch.tensor(IMAGENET_STD, dtype=dtype, device=device).view(1, 3, 1, 1)
         x = ((pixels.to(dtype) / 255.0 - mean) / std).contiguous(memory_format=torch.channels_last)
-        if self.fine_proj is None:
-            features = self.featurizer.forward_features(x)  # (N, C, g, g)
-        else:  # stage index 2 = layer2, stride 8: (N, C_1, 2g, 2g) -> (N, 4 C_1, g, g) -> (N, C, g, g)
-            features, (fine,) = self.featurizer.forward_intermediates(x, indices=[2])
-            n, c, side = fine.shape[0], fine.shape[1], fine.shape[2] // 2
-            # each token's 2 x 2 cells, channel-major (pixel_unshuffle's order; its backward aborts on
-            # channels-last tensors in torch 2.13)
-            fine = (
-                fine.reshape(n, c, side, 2, side, 2).permute(0, 2, 4, 1, 3, 5).reshape(n, side, side, 4 * c)
-            )
-            features = features + self.fine_proj(fine).permute(0, 3, 1, 2)
+        if self.instruction_film is not None:
+            features = self._conditioned_features(x, instruction, frame_index)  # (N, C, g, g)
+        else:
+            features = self._frame_features(x)  # (F, C, g, g)
+            if frame_index is not None:
+                features = features[frame_index.to(features.device)]  # (N, C, g, g)
         return features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
 
-    def forward_with_cls(self, pixels: torch.Tensor) -> tuple[torch.Tensor, None]:
+    def _frame_features(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalised (F, 3, H, W) -> (F, C, g, g), without instruction."""
+        if self.fine_proj is None:
+            return self.featurizer.forward_features(x)  # (F, C, g, g)
+        # stage index 2 = layer2, stride 8: (F, C_1, 2g, 2g) -> (F, 4 C_1, g, g) -> (F, C, g, g)
+        features, (fine,) = self.featurizer.forward_intermediates(x, indices=[2])
+        n, c, side = fine.shape[0], fine.shape[1], fine.shape[2] // 2
+        # each token's 2 x 2 cells, channel-major (pixel_unshuffle's order; its backward aborts on channels-last
+        # tensors in torch 2.13)
+        fine = fine.reshape(n, c, side, 2, side, 2).permute(0, 2, 4, 1, 3, 5).reshape(n, side, side, 4 * c)
+        return features + self.fine_proj(fine).permute(0, 3, 1, 2)
+
+    def _conditioned_features(
+        self, x: torch.Tensor, instruction: torch.Tensor, frame_index: torch.Tensor | None
+    ) -> torch.Tensor:
+        """Normalised (F, 3, H, W) -> (N, C, g, g): stem and stages 1-2 per frame, stages 3-4 per sequence."""
+        net = self.featurizer
+        x = net.layer2(net.layer1(net.maxpool(net.act1(net.bn1(net.conv1(x))))))  # (F, C_1, 2g, 2g)
+        if frame_index is not None:
+            x = x[frame_index.to(x.device)]  # (N, C_1, 2g, 2g)
+        if instruction.shape[0] != x.shape[0]:
+            raise ValueError(f"{instruction.shape[0]} instruction codes for {x.shape[0]} sequences")
+        (scale_3, shift_3), (scale_4, shift_4) = self.instruction_film(instruction.to(x.dtype))
+        x = net.layer3(x * scale_3 + shift_3)  # (N, C_2, g, g)
+        return net.layer4(x * scale_4 + shift_4)  # (N, C, g, g)
+
+    def forward_with_cls(
+        self, pixels: torch.Tensor, instruction: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, None]:
         """The ViT backbones' `(patches, cls)` interface; a CNN has no CLS token (None)."""
-        return self.forward(pixels), None
+        return self.forward(pixels, instruction), None
 
     def set_grad_checkpointing(self, enable: bool = True) -> None:
         """Activation checkpointing of the ResNet stages (timm)."""

@@ -53,6 +53,9 @@ class VisionConfig:
     # tiny-cnn only: add to each token the stride-8 features of the 2 x 2 cells under it (the second stage's
     # output, concatenated and projected to the token width), for small far landmarks
     cnn_fine_fusion: bool = False
+    # tiny-cnn only: the instruction's mean prompt-token embedding scales and shifts the channels entering the
+    # third and fourth ResNet stages (FiLM): the cell features are computed for the landmark asked for
+    cnn_instruction_film: bool = False
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
     def __post_init__(self) -> None:
@@ -82,8 +85,12 @@ class VisionConfig:
                     f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
                     f"vision.cnn_stem_width={self.cnn_stem_width} positive"
                 )
-        elif self.cnn_fine_fusion:
-            raise ValueError(f"vision.cnn_fine_fusion is a tiny-cnn option (preset={self.preset})")
+            if self.cnn_fine_fusion and self.cnn_instruction_film:
+                raise ValueError("vision.cnn_fine_fusion and vision.cnn_instruction_film: choose one")
+        else:
+            for name in ("cnn_fine_fusion", "cnn_instruction_film"):
+                if getattr(self, name):
+                    raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
         if self.preset != VISION_TINY:
             return
         for name in TINY_VISION:

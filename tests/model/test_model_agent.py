@@ -29,7 +29,17 @@ FINE_GROUNDING = {  # tiny-cnn at 64 px with the stride-8 fusion, and the head s
 }
 
 
-@pytest.mark.parametrize("overrides", [{}, FINE_GROUNDING], ids=["small", "fine_grounding"])
+INSTRUCTION_FILM = {  # tiny-cnn at 64 px whose stages 3-4 are conditioned on the instruction
+    "vision": VisionConfig(
+        image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16, cnn_instruction_film=True
+    ),
+    "grounding": GroundingConfig(dim=32, num_heads=2),
+}
+
+
+@pytest.mark.parametrize(
+    "overrides", [{}, FINE_GROUNDING, INSTRUCTION_FILM], ids=["small", "fine_grounding", "instruction_film"]
+)
 def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overrides):
     agent = make_agent(**overrides).train()
     loss, logs = agent(make_batch(agent, batch_size=3))
@@ -38,6 +48,32 @@ def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overri
     loss.backward()
     no_grad = [name for name, p in agent.named_parameters() if p.grad is None]
     assert no_grad == []  # DDP-safe: nothing unused
+
+
+def test_the_instruction_code_never_reads_the_action_target(make_agent, make_batch):
+    agent = make_agent(**INSTRUCTION_FILM)
+    codes = []
+    backbone = agent.vision_backbone.forward
+    agent.vision_backbone.forward = lambda pixels, code, index=None: (
+        codes.append(code),
+        backbone(pixels, code, index),
+    )[1]
+    batch = make_batch(agent, batch_size=3)
+    other = dict(batch, labels=batch["labels"].clone(), input_ids=batch["input_ids"].clone())
+    targets = batch["labels"] != -100
+    other["input_ids"][targets] = (
+        batch["input_ids"][targets] + 1 - agent.action_tokenizer.action_token_begin
+    ) % 10 + (agent.action_tokenizer.action_token_begin)  # another action
+    other["labels"][targets] = other["input_ids"][targets]
+    with torch.no_grad():
+        agent(batch), agent(other)
+    current, memory, other_current, other_memory = codes  # the current frames', then the memory frames'
+    torch.testing.assert_close(current, other_current)
+    torch.testing.assert_close(memory, other_memory)
+    prompt = batch["attention_mask"].bool() & ~targets
+    prompt[:, 0] = False  # BOS
+    expected = agent.embed_text(batch["input_ids"])[0][prompt[0]].mean(dim=0)
+    torch.testing.assert_close(current[0], expected)
 
 
 def test_visual_token_count_tiny(make_agent, make_batch):

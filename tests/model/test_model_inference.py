@@ -17,6 +17,7 @@ from openfly_agent.model.config import (
 from openfly_agent.model.decoding import greedy_decode
 from openfly_agent.model.episode import compat_history_indices
 from openfly_agent.model.sequence import left_pad
+from openfly_agent.model.vision_config import VisionConfig
 
 INSTRUCTIONS = [
     "Fly to the red tower and turn left.",
@@ -58,10 +59,30 @@ def _obs(episode: int, frame: np.ndarray) -> dict:
     }
 
 
-def test_batched_equals_one_episode_at_a_time(make_agent):
-    agent = memory_agent(make_agent)
+FILM_VISION = VisionConfig(  # tiny-cnn at 64 px, stages 3-4 conditioned on the instruction
+    image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16, cnn_instruction_film=True
+)
+
+
+def film_agent(make_agent):
+    """`memory_agent` with the instruction-conditioned backbone, its FiLM away from the identity. The agent's
+    fresh init (std 0.02 convolutions) leaves an eval-mode ResNet nearly blind: Kaiming init and a louder
+    projector make the actions follow the frames, so that memory fills."""
+    agent = memory_agent(make_agent, vision=FILM_VISION)
+    with torch.no_grad():
+        torch.nn.init.normal_(agent.vision_backbone.instruction_film.net[-1].weight, std=0.5)
+        for module in agent.vision_backbone.modules():
+            if isinstance(module, torch.nn.Conv2d):
+                torch.nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
+        agent.projector.fc1.weight.mul_(10.0)
+    return agent
+
+
+@pytest.mark.parametrize("conditioned", [False, True], ids=["plain", "instruction_film"])
+def test_batched_equals_one_episode_at_a_time(make_agent, conditioned):
+    agent = film_agent(make_agent) if conditioned else memory_agent(make_agent)
     episodes, steps = 3, 10
-    frames = _frames(episodes, steps)
+    frames = _frames(episodes, steps, size=agent.model_cfg.vision.image_size)
     batched = [agent.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]
     batched_memory = {e: agent.episodes[f"ep{e}"].memory.keys() for e in range(episodes)}
     assert any(batched_memory.values()), "the scripted run should fill some memory"
@@ -76,6 +97,25 @@ def test_batched_equals_one_episode_at_a_time(make_agent):
             )
             np.testing.assert_allclose(single.box, batched[t][e].box, rtol=1e-4, atol=1e-5)
         assert agent.episodes[f"ep{e}"].memory.keys() == batched_memory[e]
+
+
+def test_instruction_film_reads_the_training_code_online(make_agent, make_batch):
+    agent = film_agent(make_agent)
+    codes = []
+    backbone = agent.vision_backbone.forward
+    agent.vision_backbone.forward = lambda pixels, code, index=None: (
+        codes.append(code),
+        backbone(pixels, code, index),
+    )[1]
+    agent(make_batch(agent, batch_size=1))
+    # make_batch's first instruction (tests/model/conftest.py), online
+    instruction = "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower."
+    frame = _frames(1, 1, size=64)[0, 0]
+    agent.predict_step([dict(_obs(0, frame), instruction=instruction)])
+    training, online = codes[0], codes[-1]  # the current frame's code in each
+    torch.testing.assert_close(online, training)
+    (other,) = [codes.clear(), agent.predict_step([dict(_obs(1, frame), instruction="Go straight.")])][1]
+    assert (codes[0] - training).abs().max() > 1e-4
 
 
 def test_memory_follows_the_keyframe_selector(make_agent):
