@@ -20,19 +20,32 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
     """One sample per grounding frame: its RGB and `expressions_per_frame` of its expressions with their boxes.
 
     The expressions of a frame are drawn without replacement (all of them when it has fewer) from a generator
-    seeded by (seed, epoch, index), so a sample is reproducible and `set_epoch` shows other expressions.
+    seeded by (seed, epoch, index), so a sample is reproducible and `set_epoch` shows other expressions. With
+    `area_power` p > 0 an expression is drawn with probability proportional to its box area to the power p:
+    most landmarks in a frame are far and tiny (two thirds of embedded-small's expressions cover under 2 % of
+    the frame, against 9 % of the navigation targets), and p shifts the draws toward the sizes navigation needs.
 
     Args:
         frames: rows of the grounding dataset (`read_grounding_frames`).
         expressions_per_frame: sequences per frame (the frame is encoded once for all of them).
         seed: seed of the draws.
+        area_power: exponent of the box area in the draw weights (0: uniform).
     """
 
-    def __init__(self, frames: list[GroundingFrame], expressions_per_frame: int = 4, seed: int = 0) -> None:
+    def __init__(
+        self,
+        frames: list[GroundingFrame],
+        expressions_per_frame: int = 4,
+        seed: int = 0,
+        area_power: float = 0.0,
+    ) -> None:
         if expressions_per_frame < 1:
             raise ValueError(f"expressions_per_frame={expressions_per_frame} must be >= 1")
+        if area_power < 0:
+            raise ValueError(f"area_power={area_power} must be >= 0")
         self.frames = [f for f in frames if f.expressions]
         self.expressions_per_frame, self.seed, self.epoch = expressions_per_frame, seed, 0
+        self.area_power = float(area_power)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -45,13 +58,21 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         frame = self.frames[index]
         rng = np.random.default_rng([self.seed, self.epoch, index])
         count = min(self.expressions_per_frame, len(frame.expressions))
-        picks = np.sort(rng.choice(len(frame.expressions), size=count, replace=False))
+        picks = np.sort(rng.choice(len(frame.expressions), size=count, replace=False, p=self._weights(frame)))
         return {
             GROUNDING_KIND: EXPRESSION_SAMPLE,
             C.OBS_RGB: frame.rgb(),
             EXPRESSIONS: [frame.expressions[k] for k in picks],
             BOXES: frame.boxes[picks].astype(np.float32),  # (k, 4), all visible
         }
+
+    def _weights(self, frame: GroundingFrame) -> np.ndarray | None:
+        """Draw probabilities of a frame's expressions: box area ** area_power, normalised (None: uniform)."""
+        if not self.area_power:
+            return None
+        areas = np.clip(frame.boxes[:, 2] * frame.boxes[:, 3], 1e-6, None).astype(np.float64)  # (E,)
+        weights = areas**self.area_power
+        return weights / weights.sum()
 
 
 class GroundingMixture(torch.utils.data.Dataset):

@@ -75,7 +75,9 @@ def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
         raise PreflightError(str(err)) from err
     if not frames:
         raise PreflightError(f"data.grounding_root {data.grounding_root} has no frames of the train split")
-    expressions = GroundingFrameDataset(frames, data.expressions_per_frame, seed=cfg.seed)
+    expressions = GroundingFrameDataset(
+        frames, data.expressions_per_frame, seed=cfg.seed, area_power=data.expression_area_power
+    )
     targets = {
         split: InstructionTargets(splits.dataset(split, cfg, agent, history="none"))
         for split in dict.fromkeys((data.train_split, data.val_split, data.test_split))

@@ -33,6 +33,27 @@ def _frame(index: int, count: int) -> GroundingFrame:
     )  # fmt: skip
 
 
+def test_area_power_draws_expressions_in_proportion_to_their_box_area():
+    frame = _frame(0, 3)
+    frame.boxes[:, 2:] = [[0.1, 0.1], [0.1, 0.3], [0.3, 0.2]]  # areas 0.01, 0.03, 0.06
+    uniform = GroundingFrameDataset([frame], expressions_per_frame=1)
+    assert uniform._weights(frame) is None
+    by_area = GroundingFrameDataset([frame], expressions_per_frame=1, seed=3, area_power=1.0)
+    np.testing.assert_allclose(by_area._weights(frame), [0.1, 0.3, 0.6])
+    np.testing.assert_allclose(
+        GroundingFrameDataset([frame], area_power=0.5)._weights(frame),
+        np.sqrt([1, 3, 6]) / np.sqrt([1, 3, 6]).sum(),
+    )
+    counts = np.zeros(3)
+    for epoch in range(2000):
+        by_area.set_epoch(epoch)
+        counts[int(by_area[0][EXPRESSIONS][0].rsplit(" ", 1)[1])] += 1
+    np.testing.assert_allclose(counts / counts.sum(), [0.1, 0.3, 0.6], atol=0.03)
+    assert len(GroundingFrameDataset([frame], expressions_per_frame=5, area_power=1.0)[0][EXPRESSIONS]) == 3
+    with pytest.raises(ValueError, match="area_power"):
+        GroundingFrameDataset([frame], area_power=-1.0)
+
+
 class _Steps:
     """A stand-in for a navigation step dataset: instruction, frame, target box."""
 
