@@ -123,7 +123,7 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
 
     @torch.no_grad()
     def _init_weights(self, module: torch.nn.Module) -> None:
-        """Fresh init of the non-transformers modules (timm ViT tokens, LayerScale, box queries)."""
+        """Fresh init of the non-transformers modules (timm ViT tokens, LayerScale, box queries, tiny-cnn)."""
         from timm.layers import LayerScale
         from timm.models.vision_transformer import VisionTransformer
 
@@ -139,9 +139,7 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         elif isinstance(module, GroundingHead):
             init.normal_(module.box_queries, std=0.02)
         elif isinstance(module, ConvVisionBackbone):
-            init.trunc_normal_(module.pos_embed, std=0.02)
-            if module.instruction_film is not None:
-                module.instruction_film.reset_to_identity()
+            module.init_weights()
 
     @property
     def tokenizer(self):

@@ -10,6 +10,9 @@ from dataclasses import dataclass, field
 
 from .config_checks import check_choice, check_positive, fill_tiny_fields
 from .vision_config import (
+    CNN_INIT_NORMAL,
+    CNN_INIT_TIMM,
+    CNN_INITS,
     CNN_STRIDE,
     DINOSIGLIP_TIMM_IDS,
     DINOSIGLIP_WIDTHS,
@@ -422,6 +425,9 @@ _SECTION_TYPES = {
 }
 
 __all__ = [  # the vision section's names are re-exported: model.config is the one place to import config from
+    "CNN_INITS",
+    "CNN_INIT_NORMAL",
+    "CNN_INIT_TIMM",
     "CNN_STRIDE",
     "DINOSIGLIP_TIMM_IDS",
     "DINOSIGLIP_WIDTHS",

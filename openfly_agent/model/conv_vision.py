@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from transformers import initialization as init
 
-from .config import CNN_STRIDE, VisionConfig
+from .config import CNN_INIT_TIMM, CNN_STRIDE, VisionConfig
 from .instruction_film import InstructionFiLM
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
@@ -70,6 +71,25 @@ class ConvVisionBackbone(nn.Module):
             self.instruction_film = InstructionFiLM(text_dim, (cfg.cnn_channels[1], cfg.cnn_channels[2]))
         # no buffers for the constants: transformers builds models on the meta device when loading, and a
         # non-persistent buffer would come back uninitialised
+
+    @torch.no_grad()
+    def init_weights(self) -> None:
+        """Fresh init, run by the agent after its generic one (every conv N(0, 0.02), every BN gamma 1): the
+        position embedding, the instruction FiLM at the identity and, with `vision.cnn_init=timm`, timm's own
+        ResNet init (Kaiming-normal convs, fan-out; the last BN of each residual branch zero, so every block
+        starts as its shortcut). transformers' init functions skip tensors loaded from a checkpoint."""
+        from timm.models.resnet import BasicBlock
+
+        init.trunc_normal_(self.pos_embed, std=0.02)
+        if self.instruction_film is not None:
+            self.instruction_film.reset_to_identity()
+        if self.cfg.cnn_init != CNN_INIT_TIMM:
+            return
+        for module in self.featurizer.modules():
+            if isinstance(module, nn.Conv2d):
+                init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
+            elif isinstance(module, BasicBlock):
+                init.zeros_(module.bn2.weight)
 
     @property
     def feature_dim(self) -> int:

@@ -20,6 +20,9 @@ DINOSIGLIP_TIMM_IDS = ("vit_large_patch14_reg4_dinov2", "vit_so400m_patch14_sigl
 DINOSIGLIP_WIDTHS = (1024, 1152)
 
 RESIZE_MODES = ("bicubic", "area")
+CNN_INIT_NORMAL = "normal"  # tiny-cnn init: every conv N(0, 0.02) and BN gamma 1 (the agent's generic init)
+CNN_INIT_TIMM = "timm"  # tiny-cnn init: timm's ResNet init (Kaiming-normal convs, last BN of each block zero)
+CNN_INITS = (CNN_INIT_NORMAL, CNN_INIT_TIMM)
 # Sizes of the `tiny` and `tiny-cnn` presets, taken by the tiny-only fields left at None (rejected by the 7B preset
 # when set).
 TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
@@ -49,18 +52,24 @@ class VisionConfig:
     cnn_channels: list[int] | None = (
         None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
     )
-    cnn_stem_width: int | None = None  # tiny-cnn only: channels of the stem convolution
+    # tiny-cnn only: timm's `stem_width`, which only its deep stems read: the plain 7 x 7 stem used here has 64
+    # channels whatever this says (kept so that existing configs load; docs/ARCHITECTURE.md)
+    cnn_stem_width: int | None = None
     # tiny-cnn only: add to each token the stride-8 features of the 2 x 2 cells under it (the second stage's
     # output, concatenated and projected to the token width), for small far landmarks
     cnn_fine_fusion: bool = False
     # tiny-cnn only: the instruction's mean prompt-token embedding scales and shifts the channels entering the
     # third and fourth ResNet stages (FiLM): the cell features are computed for the landmark asked for
     cnn_instruction_film: bool = False
+    # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
+    # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)
+    cnn_init: str = CNN_INIT_NORMAL
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
     def __post_init__(self) -> None:
         check_choice("vision", "preset", self.preset, VISION_PRESETS)
         check_choice("vision", "resize", self.resize, RESIZE_MODES)
+        check_choice("vision", "cnn_init", self.cnn_init, CNN_INITS)
         fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
         fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
         if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
@@ -91,6 +100,8 @@ class VisionConfig:
             for name in ("cnn_fine_fusion", "cnn_instruction_film"):
                 if getattr(self, name):
                     raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
+            if self.cnn_init != CNN_INIT_NORMAL:
+                raise ValueError(f"vision.cnn_init is a tiny-cnn option (preset={self.preset})")
         if self.preset != VISION_TINY:
             return
         for name in TINY_VISION:

@@ -1,4 +1,5 @@
-"""The tiny-cnn backbone: token grid, and the stride-8 fusion's layout (each token gets its own 2 x 2 cells)."""
+"""The tiny-cnn backbone: token grid, the stride-8 fusion's layout (each token gets its own 2 x 2 cells), the
+instruction FiLM and the ResNet's init."""
 
 from __future__ import annotations
 
@@ -92,3 +93,47 @@ def test_instruction_film_needs_its_code_and_is_a_tiny_cnn_option():
         VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_instruction_film=True)
     with pytest.raises(ValueError, match="choose one"):
         VisionConfig(**SMALL, cnn_fine_fusion=True, cnn_instruction_film=True)
+
+
+def _resnet(make_agent, cnn_init: str) -> torch.nn.Module:
+    """The ResNet of a fresh agent (default stage widths 32-64-96-128) after the agent's own init."""
+    return make_agent(vision=VisionConfig(image_size=64, cnn_init=cnn_init)).vision_backbone.featurizer
+
+
+def test_cnn_init_timm_gives_kaiming_convs_and_blocks_that_start_as_their_shortcut(make_agent):
+    timm_init, normal = _resnet(make_agent, "timm"), _resnet(make_agent, "normal")
+    # Kaiming normal, fan-out, ReLU gain: std = sqrt(2 / (k * k * out_channels))
+    expected = {
+        "conv1": (2 / (7 * 7 * 64)) ** 0.5,  # timm's plain stem: 7 x 7 to 64 channels, 0.0253
+        "layer1.0.conv1": (2 / (3 * 3 * 32)) ** 0.5,  # 0.0833
+        "layer4.0.conv2": (2 / (3 * 3 * 128)) ** 0.5,  # 0.0417
+        "layer2.0.downsample.0": (2 / (1 * 1 * 64)) ** 0.5,  # 1 x 1 shortcut, 0.177
+    }
+    for name, std in expected.items():
+        assert timm_init.get_submodule(name).weight.std().item() == pytest.approx(std, rel=0.1), name
+        assert normal.get_submodule(name).weight.std().item() == pytest.approx(0.02, rel=0.1), name
+    for layer in ("layer1", "layer2", "layer3", "layer4"):
+        block = f"{layer}.0"
+        assert torch.all(timm_init.get_submodule(f"{block}.bn2").weight == 0), block
+        assert torch.all(normal.get_submodule(f"{block}.bn2").weight == 1), block
+        assert torch.all(timm_init.get_submodule(f"{block}.bn1").weight == 1), block
+
+
+def test_cnn_init_leaves_loaded_weights_alone(make_agent, tmp_path):
+    from openfly_agent.model.agent import OpenFlyAgent
+
+    agent = make_agent(vision=VisionConfig(image_size=64, cnn_init="timm"))
+    with torch.no_grad():  # as after training: no longer what a fresh init gives
+        for parameter in agent.vision_backbone.parameters():
+            parameter.add_(0.5)
+    agent.save_pretrained(tmp_path)
+    loaded = OpenFlyAgent.from_pretrained(tmp_path).vision_backbone.state_dict()
+    own = agent.vision_backbone.state_dict()
+    assert own.keys() == loaded.keys() and all(torch.equal(own[k], loaded[k]) for k in own)
+
+
+def test_cnn_init_choices_and_presets():
+    with pytest.raises(ValueError, match="cnn_init"):
+        VisionConfig(**SMALL, cnn_init="kaiming")
+    with pytest.raises(ValueError, match="tiny-cnn option"):
+        VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_init="timm")
