@@ -49,7 +49,7 @@ from .memory_encoding import MemoryEncoding
 from .pretrained_config import OpenFlyAgentConfig
 from .processor import OpenFlyProcessor
 from .projector import FusedMLPProjector
-from .sequence import left_pad, left_pad_ids, position_ids_from_mask, splice_after_bos
+from .sequence import left_pad, position_ids_from_mask, splice_after_bos
 from .tokenizer import load_tokenizer
 from .vision import build_vision_backbone
 
@@ -342,8 +342,7 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         states = [self._episode_state(obs[EPISODE_ID], obs[OBS_INSTRUCTION]) for obs in observations]
         device = self.projector.fc1.weight.device
         pixels = torch.stack([self.processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
-        prompts, prompt_mask = left_pad_ids([state.prompt_ids[1:] for state in states], device)  # (B, L)
-        instruction = self.instruction_code(prompts, prompt_mask)  # (B, D) or None
+        instruction = self.episode_instruction_code([state.prompt_ids for state in states], device)  # (B, D)
         patches, dino_cls = (
             self.vision_backbone.forward_with_cls(pixels)
             if instruction is None

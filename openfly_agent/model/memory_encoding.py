@@ -24,6 +24,7 @@ from .config import MODE_OPENVLA_COMPAT
 from .instruction_film import mean_prompt_embedding
 from .memory import grid_pool
 from .merging import choose_reference, merge_into_reference
+from .sequence import left_pad_ids
 
 
 class MemoryEncoding:
@@ -35,6 +36,16 @@ class MemoryEncoding:
         if not self.model_cfg.vision.cnn_instruction_film:
             return None
         return mean_prompt_embedding(self.embed_text(input_ids), prompt_mask.to(input_ids.device))
+
+    def episode_instruction_code(
+        self, prompt_ids: list[list[int]], device: torch.device
+    ) -> torch.Tensor | None:
+        """Online: the (B, D) code of each episode's prompt ids ([BOS] + prompt, as the training rows' prompt
+        positions), left-padded; None without `vision.cnn_instruction_film` (nothing is padded then)."""
+        if not self.model_cfg.vision.cnn_instruction_film:
+            return None
+        prompts, prompt_mask = left_pad_ids([ids[1:] for ids in prompt_ids], device)  # (B, L), BOS dropped
+        return self.instruction_code(prompts, prompt_mask)
 
     def encode_frames(
         self,

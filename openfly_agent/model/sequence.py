@@ -60,7 +60,9 @@ def left_pad(sequences: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]
     return embeds, mask
 
 
-def left_pad_ids(rows: list[list[int]], device=None) -> tuple[torch.Tensor, torch.Tensor]:
+def left_pad_ids(
+    rows: list[list[int]], device: torch.device | str | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Token id lists -> (B, L_max) long ids left-padded with 0 and their (B, L_max) bool mask."""
     longest = max(len(row) for row in rows)
     ids = torch.zeros(len(rows), longest, dtype=torch.long)
