@@ -50,14 +50,9 @@ def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overri
     assert no_grad == []  # DDP-safe: nothing unused
 
 
-def test_the_instruction_code_never_reads_the_action_target(make_agent, make_batch):
+def test_the_instruction_code_never_reads_the_action_target(make_agent, make_batch, record_instruction_codes):
     agent = make_agent(**INSTRUCTION_FILM)
-    codes = []
-    backbone = agent.vision_backbone.forward
-    agent.vision_backbone.forward = lambda pixels, code, index=None: (
-        codes.append(code),
-        backbone(pixels, code, index),
-    )[1]
+    codes = record_instruction_codes(agent)
     batch = make_batch(agent, batch_size=3)
     other = dict(batch, labels=batch["labels"].clone(), input_ids=batch["input_ids"].clone())
     targets = batch["labels"] != -100

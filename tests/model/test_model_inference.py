@@ -99,14 +99,9 @@ def test_batched_equals_one_episode_at_a_time(make_agent, conditioned):
         assert agent.episodes[f"ep{e}"].memory.keys() == batched_memory[e]
 
 
-def test_instruction_film_reads_the_training_code_online(make_agent, make_batch):
+def test_instruction_film_reads_the_training_code_online(make_agent, make_batch, record_instruction_codes):
     agent = film_agent(make_agent)
-    codes = []
-    backbone = agent.vision_backbone.forward
-    agent.vision_backbone.forward = lambda pixels, code, index=None: (
-        codes.append(code),
-        backbone(pixels, code, index),
-    )[1]
+    codes = record_instruction_codes(agent)
     agent(make_batch(agent, batch_size=1))
     # make_batch's first instruction (tests/model/conftest.py), online
     instruction = "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower."
