@@ -159,10 +159,16 @@ class GroundingConfig:
     # with `cells`: each token cell is scored as subcells x subcells sub-cells (logits from its hidden state), so
     # the centre and the cross-entropy live on a grid subcells times finer than the tokens (1: the token grid)
     subcells: int = 1
+    # with `cells`, at inference: the centre and the size's context come from the (2w + 1) x (2w + 1) cells around
+    # the best-scoring one (their softmax renormalised); null: from every cell, as in training (a two-peaked score
+    # then puts the centre between two landmarks). Checkpoints older than the option load with the default.
+    centre_window: int | None = 1
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
             check_positive("grounding", name, getattr(self, name))
+        if self.centre_window is not None and self.centre_window < 0:
+            raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
         if self.dim % self.num_heads:
             raise ValueError(
                 f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"

@@ -11,7 +11,10 @@ softmax-weighted cell centre plus a bounded offset; a cross-entropy over which c
 joins the loss (`cell_weight`). Dense, per-cell supervision learns much faster than one regressed box
 (docs/BENCHMARKS.md, "Grounding"). With `subcells` = s > 1 each cell's MLP gives s x s logits, one per
 sub-cell: the softmax, the centre and the cross-entropy then live on a grid s times finer than the tokens (a
-small far target covers a fraction of one 16 px cell at 128 px).
+small far target covers a fraction of one 16 px cell at 128 px). With `centre_window` = w, at inference (eval
+mode), the softmax that places the centre (and pools the size's context) is renormalised over the
+(2w + 1) x (2w + 1) cells around the best-scoring cell, so a score with two peaks picks one instead of averaging
+them; training keeps the softmax over every cell (trained with the window, the head grounded no better).
 """
 
 from __future__ import annotations
@@ -114,6 +117,7 @@ class GroundingHead(nn.Module):
         if not grid_side:
             raise ValueError("grounding.cells needs the frame's token grid side")
         self.grid_side, self.fine_side = grid_side, grid_side * cfg.subcells
+        self.centre_window = cfg.centre_window
         self.text_query = nn.Linear(llm_dim, cfg.dim)  # the last prompt token starts the query
         self.cell_scorer = CellScorer(cfg.dim, grid_side, cfg.subcells)
         self.box_mlp = nn.Sequential(nn.Linear(2 * cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, 4))
@@ -150,13 +154,27 @@ class GroundingHead(nn.Module):
             memory, 1, image_positions[..., None].expand(-1, -1, memory.shape[-1])
         )  # (B, P, d)
         cell_logits = self.cell_scorer(cells, pooled)  # (B, F), F = (g * s)^2 fine cells
-        weights = cell_logits.softmax(dim=-1)  # (B, F)
+        window = None if self.training else self.centre_window  # a decoding rule: training reads every cell
+        weights = windowed_softmax(cell_logits, self.fine_side, window)  # (B, F)
         context = (coarse_weights(weights, self.grid_side)[..., None] * cells).sum(dim=1)  # (B, d)
         raw = self.box_mlp(torch.cat([pooled, context], dim=-1))  # (B, 4)
         centre = weights @ cell_centres(self.fine_side, weights.device, weights.dtype)  # (B, 2)
         cxcy = (centre + torch.tanh(raw[:, :2]) / self.fine_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
         return GroundingOutput(boxes, visibility, cell_logits)
+
+
+def windowed_softmax(logits: torch.Tensor, grid_side: int, window: int | None) -> torch.Tensor:
+    """(B, g * g) row-major cell logits -> (B, g * g) softmax over the (2w + 1) x (2w + 1) cells around each row's
+    argmax (zero elsewhere; clipped at the grid's edge), or over every cell when `window` is None."""
+    if window is None:
+        return logits.softmax(dim=-1)
+    best = logits.argmax(dim=-1)  # (B,)
+    index = torch.arange(grid_side * grid_side, device=logits.device)  # (F,)
+    row_gap = (index[None] // grid_side - (best // grid_side)[:, None]).abs()  # (B, F)
+    col_gap = (index[None] % grid_side - (best % grid_side)[:, None]).abs()  # (B, F)
+    inside = (row_gap <= window) & (col_gap <= window)
+    return logits.masked_fill(~inside, float("-inf")).softmax(dim=-1)
 
 
 def coarse_weights(fine: torch.Tensor, grid_side: int) -> torch.Tensor:

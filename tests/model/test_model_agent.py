@@ -15,6 +15,7 @@ from openfly_agent.model.grounding import (
     coarse_weights,
     grounding_loss,
     iou_and_giou,
+    windowed_softmax,
 )
 from openfly_agent.model.vision_config import VisionConfig
 
@@ -209,7 +210,8 @@ def _fit_head(head, inputs, targets, cfg, steps: int) -> dict[str, float]:
 
 def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
     torch.manual_seed(0)
-    head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True), grid_side=2)
+    cfg = GroundingConfig(dim=16, num_heads=2, cells=True)
+    head = GroundingHead(24, cfg, grid_side=2)
     with pytest.raises(ValueError, match="grid side"):
         GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True))
     # sequence: 4 image tokens (a 2 x 2 grid) then 2 prompt tokens; the prompt's last token names the cell
@@ -222,11 +224,52 @@ def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
     last = torch.full((4,), 5)
     centres = torch.tensor([[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]])
     targets = torch.cat([centres[target_cell], torch.full((4, 2), 0.3)], dim=1)
-    logs = _fit_head(head, (hidden, mask, image, last), targets, GroundingConfig(dim=16, num_heads=2), 150)
+    logs = _fit_head(head, (hidden, mask, image, last), targets, cfg, 150)
     out = head(hidden, mask, image, last)
     assert out.cell_logits.argmax(-1).tolist() == target_cell.tolist()
     assert logs["box_iou"] > 0.8
     assert box_cells(out.boxes, 2).tolist() == target_cell.tolist()
+
+
+def test_windowed_softmax_keeps_the_cells_around_the_best_one():
+    logits = torch.tensor([[3.0, 1.0, 0.0, 1.0, 2.0, 0.0, 0.0, 0.0, 2.5]])  # 3 x 3, best cell 0 (top left)
+    torch.testing.assert_close(windowed_softmax(logits, 3, None), logits.softmax(-1))
+    assert windowed_softmax(logits, 3, 0).tolist() == [[1.0] + [0.0] * 8]
+    near = torch.tensor([3.0, 1.0, 1.0, 2.0]).exp()  # cells 0, 1, 3, 4: the 2 x 2 corner of the 3 x 3 window
+    expected = torch.zeros(9)
+    expected[[0, 1, 3, 4]] = near / near.sum()
+    torch.testing.assert_close(windowed_softmax(logits, 3, 1)[0], expected)
+    torch.testing.assert_close(windowed_softmax(logits, 3, 2), logits.softmax(-1))  # the window covers the grid
+
+
+def test_a_centre_window_picks_one_of_two_peaks_instead_of_their_middle():
+    logits = torch.full((1, 9), -10.0)
+    logits[0, 0], logits[0, 8] = 5.0, 4.9  # two landmarks scored almost alike, in opposite corners of a 3 x 3 grid
+    centres = cell_centres(3)
+    everywhere = windowed_softmax(logits, 3, None) @ centres
+    around_best = windowed_softmax(logits, 3, 1) @ centres
+    assert 0.4 < float(everywhere[0, 0]) < 0.5 and 0.4 < float(everywhere[0, 1]) < 0.5  # between the two
+    torch.testing.assert_close(around_best, torch.tensor([[1 / 6, 1 / 6]]), atol=1e-4, rtol=0)  # on the best
+    with pytest.raises(ValueError, match="centre_window"):
+        GroundingConfig(centre_window=-1)
+
+
+def test_the_centre_window_is_a_decoding_rule_training_reads_every_cell():
+    torch.manual_seed(0)
+    head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True, centre_window=1), grid_side=4)
+    hidden = torch.randn(8, 18, 24)  # 16 image tokens (a 4 x 4 grid), then 2 prompt tokens
+    inputs = (hidden, torch.ones(8, 18, dtype=torch.bool), torch.arange(16).expand(8, 16), torch.full((8,), 17))
+    head.eval()
+    windowed = head(*inputs)
+    head.centre_window = None
+    everywhere = head(*inputs)
+    head.train()
+    head.centre_window = 1
+    training = head(*inputs)
+    torch.testing.assert_close(training.boxes, everywhere.boxes)  # ignored in training
+    assert not torch.allclose(windowed.boxes, everywhere.boxes)  # applied at inference
+    torch.testing.assert_close(windowed.cell_logits, everywhere.cell_logits)  # the scores themselves unchanged
+    assert GroundingConfig().centre_window == 1  # the tiny preset's default
 
 
 def test_activation_checkpointing_gives_the_same_gradients(make_agent, make_batch):
