@@ -2,8 +2,8 @@
 # The README's main job on the embedded default, on a fresh Linux machine (2 CPU cores are enough):
 #   1. set up .venv (scripts/setup.sh; cheap when already done)
 #   2. the navigation recipe at the main job's budget (configs/recipe/main_job.yaml; openfly_agent/recipe):
-#      embedded-small dataset -> referring-expression dataset -> grounding stage -> navigation stage ->
-#      one DAgger round -> closed-loop evaluation on the full test_seen and test_unseen splits next to the
+#      embedded-small dataset -> referring-expression dataset -> grounding stage -> navigation stage (no DAgger
+#      round at this budget) -> closed-loop evaluation on the full test_seen and test_unseen splits next to the
 #      random / stop / forward / oracle / box_servo baselines, and the table; the same on the test_unseen split
 #      of four more unseen cities (configs/toolchain/embedded-small-unseen-more.yaml)
 # Every stage picks up where it stopped, so re-running the script after an interruption finishes the job.
