@@ -32,6 +32,11 @@ def main() -> None:
     parser.add_argument("--batch_size", type=int, default=32)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    parser.add_argument(
+        "--centre_window",
+        default="checkpoint",
+        help="decode with this grounding.centre_window (an int, or none: every cell); default: the checkpoint's",
+    )
     args = parser.parse_args()
 
     import torch  # lazy: --help stays fast
@@ -44,8 +49,12 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
+    window = args.centre_window
+    if window not in ("checkpoint", "none") and not window.isdigit():
+        parser.error(f"--centre_window must be checkpoint, none or an int >= 0, got {window!r}")
+    window = None if window == "none" else int(window) if window.isdigit() else window
     boxes = collect_target_boxes(
-        args.run, args.checkpoint, args.split, args.max_samples or None, args.batch_size
+        args.run, args.checkpoint, args.split, args.max_samples or None, args.batch_size, window
     )
     errors = grounding_errors(boxes.pred, boxes.target, boxes.cell_logits)
     errors.update(split=boxes.split, samples=boxes.samples, visibility_accuracy=boxes.visibility_accuracy)

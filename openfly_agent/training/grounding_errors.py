@@ -168,6 +168,7 @@ def collect_target_boxes(
     split: str | None = None,
     max_samples: int | None = 1024,
     batch_size: int = 32,
+    centre_window: int | None | str = "checkpoint",
 ) -> TargetBoxes:
     """Run a training run's agent over evenly spaced samples of a split and keep its target boxes.
 
@@ -178,6 +179,8 @@ def collect_target_boxes(
         split: the split to read (default: the run's `data.test_split`).
         max_samples: evenly spaced samples of the split (None: all of them).
         batch_size: samples per forward.
+        centre_window: the head's `grounding.centre_window` at inference (an int, or None for every cell);
+            "checkpoint" keeps the checkpoint's.
 
     Raises:
         FileNotFoundError: no `train_config.json` in `run_dir`, or no checkpoint.
@@ -195,6 +198,8 @@ def collect_target_boxes(
     agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
     if agent.grounding_head is None:
         raise ValueError(f"{folder}: the agent has no grounding head (model.grounding.enabled=false)")
+    if centre_window != "checkpoint":
+        agent.grounding_head.centre_window = centre_window
     data = stage_data(cfg, load_splits(cfg), agent)
     outputs = []
     hook = agent.grounding_head.register_forward_hook(lambda _module, _inputs, output: outputs.append(output))

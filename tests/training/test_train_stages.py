@@ -122,6 +122,17 @@ def test_grounding_errors_of_a_run_match_its_own_test_iou(grounding_run, tmp_pat
     assert "| mean IoU |" in done.stdout
 
 
+def test_grounding_errors_decode_with_the_centre_window_asked_for(grounding_run):
+    from openfly_agent.training.grounding_errors import collect_target_boxes
+
+    out, _ = grounding_run
+    every = collect_target_boxes(out, max_samples=8, batch_size=4, centre_window=None)
+    best_cell = collect_target_boxes(out, max_samples=8, batch_size=4, centre_window=0)
+    assert len(every.target) > 0
+    assert torch.equal(every.cell_logits, best_cell.cell_logits)  # the same scores, decoded two ways
+    assert not torch.equal(every.pred, best_cell.pred)
+
+
 def test_grounding_errors_refuse_a_folder_that_is_not_a_run(tmp_path):
     from openfly_agent.training.grounding_errors import collect_target_boxes
 
