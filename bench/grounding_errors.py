@@ -21,6 +21,17 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 
+def centre_window_arg(value: str) -> int | None | str:
+    """--centre_window: "checkpoint" (keep the checkpoint's), "none" (every cell) or an int >= 0."""
+    if value == "checkpoint":
+        return value
+    if value == "none":
+        return None
+    if not value.isdigit():
+        raise argparse.ArgumentTypeError(f"checkpoint, none or an int >= 0, got {value!r}")
+    return int(value)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -34,6 +45,7 @@ def main() -> None:
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     parser.add_argument(
         "--centre_window",
+        type=centre_window_arg,
         default="checkpoint",
         help="decode with this grounding.centre_window (an int, or none: every cell); default: the checkpoint's",
     )
@@ -49,12 +61,8 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
-    window = args.centre_window
-    if window not in ("checkpoint", "none") and not window.isdigit():
-        parser.error(f"--centre_window must be checkpoint, none or an int >= 0, got {window!r}")
-    window = None if window == "none" else int(window) if window.isdigit() else window
     boxes = collect_target_boxes(
-        args.run, args.checkpoint, args.split, args.max_samples or None, args.batch_size, window
+        args.run, args.checkpoint, args.split, args.max_samples or None, args.batch_size, args.centre_window
     )
     errors = grounding_errors(boxes.pred, boxes.target, boxes.cell_logits)
     errors.update(split=boxes.split, samples=boxes.samples, visibility_accuracy=boxes.visibility_accuracy)

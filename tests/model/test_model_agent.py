@@ -239,17 +239,14 @@ def test_windowed_softmax_keeps_the_cells_around_the_best_one():
     expected = torch.zeros(9)
     expected[[0, 1, 3, 4]] = near / near.sum()
     torch.testing.assert_close(windowed_softmax(logits, 3, 1)[0], expected)
-    torch.testing.assert_close(
-        windowed_softmax(logits, 3, 2), logits.softmax(-1)
-    )  # the window covers the grid
+    # a window that covers the grid: the plain softmax
+    torch.testing.assert_close(windowed_softmax(logits, 3, 2), logits.softmax(-1))
 
 
 def test_a_centre_window_picks_one_of_two_peaks_instead_of_their_middle():
     logits = torch.full((1, 9), -10.0)
-    logits[0, 0], logits[0, 8] = (
-        5.0,
-        4.9,
-    )  # two landmarks scored almost alike, in opposite corners of a 3 x 3 grid
+    # two landmarks scored almost alike, in opposite corners of a 3 x 3 grid
+    logits[0, 0], logits[0, 8] = 5.0, 4.9
     centres = cell_centres(3)
     everywhere = windowed_softmax(logits, 3, None) @ centres
     around_best = windowed_softmax(logits, 3, 1) @ centres
@@ -278,9 +275,8 @@ def test_the_centre_window_is_a_decoding_rule_training_reads_every_cell():
     training = head(*inputs)
     torch.testing.assert_close(training.boxes, everywhere.boxes)  # ignored in training
     assert not torch.allclose(windowed.boxes, everywhere.boxes)  # applied at inference
-    torch.testing.assert_close(
-        windowed.cell_logits, everywhere.cell_logits
-    )  # the scores themselves unchanged
+    # the scores themselves unchanged
+    torch.testing.assert_close(windowed.cell_logits, everywhere.cell_logits)
     assert GroundingConfig().centre_window == 1  # the tiny preset's default
 
 
