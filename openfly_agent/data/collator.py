@@ -118,6 +118,10 @@ class NavigationCollator:
             C.BOX_VISIBLE: visible,
             C.ACTION: torch.tensor([int(s[C.ACTION]) for s in samples], dtype=torch.long),
         }
+        if all(C.TARGET_ATTRIBUTES in s for s in samples):
+            batch[C.TARGET_ATTRIBUTES] = torch.as_tensor(
+                np.stack([s[C.TARGET_ATTRIBUTES] for s in samples]), dtype=torch.long
+            )  # (B, 4)
         if self.with_metadata:
             batch[C.EPISODE_ID] = [s[C.EPISODE_ID] for s in samples]
             batch[C.STEP_INDEX] = torch.tensor([int(s[C.STEP_INDEX]) for s in samples], dtype=torch.long)
@@ -142,15 +146,20 @@ class GroundingCollator:
     def __call__(self, samples: Sequence[dict]) -> dict[str, torch.Tensor]:
         if not samples:
             raise ValueError("cannot collate an empty list of samples")
-        prompts, boxes, visible, frame_index = [], [], [], []
+        prompts, boxes, visible, frame_index, attributes = [], [], [], [], []
+        # a sequence without attributes gets -1 ids, which the attribute loss skips
+        unknown = np.full(4, -1, dtype=np.int64)
         for frame, sample in enumerate(samples):
             if sample[GROUNDING_KIND] == EXPRESSION_SAMPLE:
+                count = len(sample[EXPRESSIONS])
+                attributes.extend(sample.get(C.TARGET_ATTRIBUTES, [unknown] * count))
                 for expression, box in zip(sample[EXPRESSIONS], sample[BOXES]):
                     prompts.append(self.processor.grounding_prompt(expression))
                     boxes.append(np.asarray(box, dtype=np.float32))
                     visible.append(True)
                     frame_index.append(frame)
             else:
+                attributes.append(sample.get(C.TARGET_ATTRIBUTES, unknown))
                 prompts.append(self.processor.navigation_prompt(sample[C.OBS_INSTRUCTION]))
                 shown = bool(sample[C.BOX_VISIBLE])
                 boxes.append(
@@ -159,7 +168,7 @@ class GroundingCollator:
                 visible.append(shown)
                 frame_index.append(frame)
         text = self.processor(prompts)  # input_ids, attention_mask (B, L); no labels: nothing to supervise
-        return {
+        batch = {
             C.INPUT_IDS: text[C.INPUT_IDS],
             C.ATTENTION_MASK: text[C.ATTENTION_MASK],
             C.PIXEL_VALUES: torch.stack(
@@ -169,3 +178,6 @@ class GroundingCollator:
             C.BOX: torch.from_numpy(np.stack(boxes)),  # (B, 4)
             C.BOX_VISIBLE: torch.tensor(visible, dtype=torch.bool),  # (B,)
         }
+        if any(C.TARGET_ATTRIBUTES in s for s in samples):
+            batch[C.TARGET_ATTRIBUTES] = torch.as_tensor(np.stack(attributes), dtype=torch.long)  # (B, 4)
+        return batch

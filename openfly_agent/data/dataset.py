@@ -7,7 +7,7 @@ injected by the caller, so `data/` never imports `model/`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import numpy as np
@@ -80,6 +80,7 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         set_size: int,
         keyframe_selector: KeyframeSelector | None = None,
         seed: int = 0,
+        target_attributes: Callable[[str, str], np.ndarray] | None = None,
     ):
         if history not in HISTORY_MODES:
             raise ValueError(f"history={history!r}: choose one of {HISTORY_MODES}")
@@ -96,6 +97,8 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         self.episodes = list(episodes)
         self.frames = frames
         self.keyframe_selector = keyframe_selector
+        # (scene id, landmark id) -> (4,) attribute ids of the target (model.grounding.attribute_weight)
+        self.target_attributes = target_attributes
         self.seed, self.epoch = seed, 0
         index = [
             (e, t)
@@ -164,7 +167,7 @@ class NavigationStepDataset(torch.utils.data.Dataset):
             for frame_set in self.memory_indices(index)
         ]
         box, visible = self._box(episode, t)
-        return {
+        sample = {
             C.OBS_INSTRUCTION: episode.instruction,
             C.OBS_RGB: self.frames.frame(episode, t),
             C.MEMORY: memory,
@@ -174,6 +177,10 @@ class NavigationStepDataset(torch.utils.data.Dataset):
             C.EPISODE_ID: episode.episode_id,
             C.STEP_INDEX: t,
         }
+        if self.target_attributes is not None:
+            target = episode.landmark_ids[-1] if episode.landmark_ids else ""
+            sample[C.TARGET_ATTRIBUTES] = self.target_attributes(episode.scene_id, target)
+        return sample
 
 
 def make_step_dataset(

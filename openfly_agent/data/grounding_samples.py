@@ -3,6 +3,8 @@ navigation steps seen as (instruction, target box) pairs, mixed in one dataset (
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
@@ -30,6 +32,8 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         expressions_per_frame: sequences per frame (the frame is encoded once for all of them).
         seed: seed of the draws.
         area_power: exponent of the box area in the draw weights (0: uniform).
+        target_attributes: (scene id, landmark id) -> (4,) attribute ids; each sample then carries the
+            attributes of its expressions' landmarks, (k, 4) (model.grounding.attribute_weight).
     """
 
     def __init__(
@@ -38,6 +42,7 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         expressions_per_frame: int = 4,
         seed: int = 0,
         area_power: float = 0.0,
+        target_attributes: Callable[[str, str], np.ndarray] | None = None,
     ) -> None:
         if expressions_per_frame < 1:
             raise ValueError(f"expressions_per_frame={expressions_per_frame} must be >= 1")
@@ -46,6 +51,7 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         self.frames = [f for f in frames if f.expressions]
         self.expressions_per_frame, self.seed, self.epoch = expressions_per_frame, seed, 0
         self.area_power = float(area_power)
+        self.target_attributes = target_attributes
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -59,12 +65,17 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         rng = np.random.default_rng([self.seed, self.epoch, index])
         count = min(self.expressions_per_frame, len(frame.expressions))
         picks = np.sort(rng.choice(len(frame.expressions), size=count, replace=False, p=self._weights(frame)))
-        return {
+        sample = {
             GROUNDING_KIND: EXPRESSION_SAMPLE,
             C.OBS_RGB: frame.rgb(),
             EXPRESSIONS: [frame.expressions[k] for k in picks],
             BOXES: frame.boxes[picks].astype(np.float32),  # (k, 4), all visible
         }
+        if self.target_attributes is not None:
+            sample[C.TARGET_ATTRIBUTES] = np.stack(
+                [self.target_attributes(frame.scene_id, frame.landmark_ids[k]) for k in picks]
+            )  # (k, 4)
+        return sample
 
     def _weights(self, frame: GroundingFrame) -> np.ndarray | None:
         """Draw probabilities of a frame's expressions: box area ** area_power, normalised (None: uniform)."""
@@ -117,11 +128,15 @@ class GroundingMixture(torch.utils.data.Dataset):
 
 
 def instruction_sample(step: dict) -> dict:
-    """A navigation step as a grounding sample: the instruction and the target's box (no memory, no action)."""
-    return {
+    """A navigation step as a grounding sample: the instruction and the target's box (no memory, no action), and
+    the target's attributes when the step has them."""
+    sample = {
         GROUNDING_KIND: INSTRUCTION_SAMPLE,
         C.OBS_RGB: step[C.OBS_RGB],
         C.OBS_INSTRUCTION: step[C.OBS_INSTRUCTION],
         C.BOX: np.asarray(step[C.BOX], dtype=np.float32),
         C.BOX_VISIBLE: bool(step[C.BOX_VISIBLE]),
     }
+    if C.TARGET_ATTRIBUTES in step:
+        sample[C.TARGET_ATTRIBUTES] = step[C.TARGET_ATTRIBUTES]
+    return sample

@@ -31,6 +31,7 @@ from openfly_agent.constants import (
     OBS_INSTRUCTION,
     OBS_RGB,
     PIXEL_VALUES,
+    TARGET_ATTRIBUTES,
 )
 
 from .agent_io import AgentPersistence
@@ -261,8 +262,9 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         if self.grounding_head is not None and BOX in batch:
             first_image = visual.shape[1] - self.model_cfg.vision.num_patches + 1  # after BOS and the memory
             output = self.ground(hidden, readable, first_image)
+            targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
             g_loss, g_logs = grounding_loss(
-                output, batch[BOX], batch[BOX_VISIBLE].bool(), self.model_cfg.grounding
+                output, *targets, self.model_cfg.grounding, batch.get(TARGET_ATTRIBUTES)
             )
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
             logs.update(g_logs, grounding_loss=float(g_loss.detach()))

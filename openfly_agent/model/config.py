@@ -163,6 +163,12 @@ class GroundingConfig:
     # the best-scoring one (their softmax renormalised); null: from every cell, as in training (a two-peaked score
     # then puts the centre between two landmarks). Checkpoints older than the option load with the default.
     centre_window: int | None = 1
+    # with `cells`: weight of the attribute loss, the cross-entropy of the target landmark's colour, type, size and
+    # feature (`TARGET_ATTRIBUTES`, embedded cities only) read from the head's query (what it took from the text)
+    # and from the cell under the target's centre (what the frame shows there); 0: no attribute classifiers
+    attribute_weight: float = 0.0
+    # classes of each attribute (colour, type, size, feature): the embedded city's vocabularies (sim/city_vocab.py)
+    attribute_classes: list[int] = field(default_factory=lambda: [12, 6, 3, 8])
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
@@ -173,9 +179,15 @@ class GroundingConfig:
             raise ValueError(
                 f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"
             )
-        for name in ("loss_weight", "l1_weight", "visibility_weight", "cell_weight"):
+        for name in ("loss_weight", "l1_weight", "visibility_weight", "cell_weight", "attribute_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"grounding.{name} must be >= 0, got {getattr(self, name)}")
+        if len(self.attribute_classes) != 4 or min(self.attribute_classes) < 2:
+            raise ValueError(
+                f"grounding.attribute_classes={self.attribute_classes}: 4 counts of >= 2 classes"
+            )
+        if self.attribute_weight and not self.cells:
+            raise ValueError("grounding.attribute_weight needs grounding.cells (the target's cell is read)")
 
 
 @dataclass

@@ -10,11 +10,16 @@ projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on
 (concatenated, projected by `fine_proj` and added): a landmark of a few pixels keeps its own features. With
 `vision.cnn_instruction_film` the third and fourth stages run once per sequence, their inputs scaled and shifted
 by the instruction (model/instruction_film.py); the stem and the first two stages still run once per frame.
+With `vision.cnn_colour_stats` each token also gets a projection of its cell's colour statistics
+(`cell_colour_stats`): trained from scratch on these objectives the ResNet's features lose a landmark's colour
+(a linear probe reads it from them at chance, from the cell's raw RGB statistics at 0.72), and colour is half of
+what tells one landmark of an instruction from its neighbours.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 from transformers import initialization as init
 
@@ -23,6 +28,23 @@ from .instruction_film import InstructionFiLM
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+COLOUR_STATS = 18  # per cell: mean and standard deviation of the 3 channels, the means of its 2 x 2 quarters
+
+
+def cell_colour_stats(x: torch.Tensor, cell: int) -> torch.Tensor:
+    """Normalised (F, 3, H, W) pixels -> (F, COLOUR_STATS, H / cell, W / cell) colour statistics of each cell:
+    the channel means, the channel standard deviations and the channel means of the cell's 2 x 2 quarters."""
+    x = x.contiguous()  # the reshapes below assume the default layout
+    mean = F.avg_pool2d(x, cell)  # (F, 3, g, g)
+    std = (F.avg_pool2d(x * x, cell) - mean * mean).clamp_min(0.0).add(1e-6).sqrt()  # (F, 3, g, g)
+    quarters = F.avg_pool2d(x, cell // 2)  # (F, 3, 2g, 2g)
+    n, channels, side = quarters.shape[0], quarters.shape[1], quarters.shape[2] // 2
+    quarters = (
+        quarters.reshape(n, channels, side, 2, side, 2)
+        .permute(0, 1, 3, 5, 2, 4)
+        .reshape(n, 4 * channels, side, side)
+    )  # (F, 12, g, g), channel-major, then quarter row, quarter column
+    return torch.cat([mean, std, quarters], dim=1)
 
 
 def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
@@ -63,6 +85,7 @@ class ConvVisionBackbone(nn.Module):
         self.fine_proj = (
             nn.Linear(4 * cfg.cnn_channels[1], cfg.cnn_channels[-1]) if cfg.cnn_fine_fusion else None
         )
+        self.colour_proj = nn.Linear(COLOUR_STATS, cfg.cnn_channels[-1]) if cfg.cnn_colour_stats else None
         self.instruction_film = None
         if cfg.cnn_instruction_film:
             if not text_dim:
@@ -130,7 +153,13 @@ class ConvVisionBackbone(nn.Module):
             features = self._frame_features(x)  # (F, C, g, g)
             if frame_index is not None:
                 features = features[frame_index.to(features.device)]  # (N, C, g, g)
-        return features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
+        tokens = features.flatten(2).transpose(1, 2) + self.pos_embed.to(features.dtype)  # (N, P, C)
+        if self.colour_proj is None:
+            return tokens
+        colour = cell_colour_stats(x, CNN_STRIDE).flatten(2).transpose(1, 2)  # (F, P, COLOUR_STATS)
+        if frame_index is not None:
+            colour = colour[frame_index.to(colour.device)]  # (N, P, COLOUR_STATS)
+        return tokens + self.colour_proj(colour)
 
     def _frame_features(self, x: torch.Tensor) -> torch.Tensor:
         """Normalised (F, 3, H, W) -> (F, C, g, g), without instruction."""

@@ -67,6 +67,10 @@ class GroundingOutput:
     boxes: torch.Tensor  # (B, 4) cxcywh in [0, 1]
     visibility: torch.Tensor  # (B,) logits
     cell_logits: torch.Tensor | None = None  # (B, P) one logit per cell of the current frame (`cells` only)
+    # with `attribute_weight`: attribute logits (A = sum of `attribute_classes`) from the query, (B, A), and of
+    # every token cell, (B, P, A)
+    query_attributes: torch.Tensor | None = None
+    cell_attributes: torch.Tensor | None = None
 
 
 class CellScorer(nn.Module):
@@ -121,6 +125,11 @@ class GroundingHead(nn.Module):
         self.text_query = nn.Linear(llm_dim, cfg.dim)  # the last prompt token starts the query
         self.cell_scorer = CellScorer(cfg.dim, grid_side, cfg.subcells)
         self.box_mlp = nn.Sequential(nn.Linear(2 * cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, 4))
+        # the attributes of the target (colour, type, size, feature logits, concatenated) from the query and from
+        # each cell: supervision that makes both sides represent what tells one landmark from another
+        classes = sum(cfg.attribute_classes)
+        self.query_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
+        self.cell_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
 
     def forward(
         self,
@@ -161,7 +170,11 @@ class GroundingHead(nn.Module):
         centre = weights @ cell_centres(self.fine_side, weights.device, weights.dtype)  # (B, 2)
         cxcy = (centre + torch.tanh(raw[:, :2]) / self.fine_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
-        return GroundingOutput(boxes, visibility, cell_logits)
+        if self.query_attributes is None:
+            return GroundingOutput(boxes, visibility, cell_logits)
+        return GroundingOutput(
+            boxes, visibility, cell_logits, self.query_attributes(pooled), self.cell_attributes(cells)
+        )
 
 
 def windowed_softmax(logits: torch.Tensor, grid_side: int, window: int | None) -> torch.Tensor:
@@ -227,19 +240,23 @@ def grounding_loss(
     target_boxes: torch.Tensor,
     visible: torch.Tensor,
     cfg: GroundingConfig,
+    attributes: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """GIoU + l1_weight * L1 on visible boxes (mean), + visibility_weight * BCE on every sample, + cell_weight *
-    cross-entropy of the cell holding the box centre (visible boxes, when the head scores cells).
+    cross-entropy of the cell holding the box centre (visible boxes, when the head scores cells), +
+    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them).
 
     Args:
         output: the head's prediction (boxes (B, 4) cxcywh, visibility logits (B,), cell logits (B, P) or None).
         target_boxes: (B, 4) ground truth cxcywh (ignored where not visible).
         visible: (B,) bool ground-truth visibility mask.
         cfg: grounding config (weights).
+        attributes: (B, 4) long target attribute ids, -1 where unknown (None: no attribute term).
 
     Returns:
         The scalar loss and float logs: `box_iou` (mean IoU over visible boxes, 0 when none),
-        `num_visible_boxes`, `giou_loss`, `l1_loss`, `visibility_loss`, `cell_loss`.
+        `num_visible_boxes`, `giou_loss`, `l1_loss`, `visibility_loss`, `cell_loss` (and `attribute_loss`,
+        `query_color_accuracy`, `cell_color_accuracy` with the attribute term).
     """
     pred_boxes, visibility_logits = output.boxes, output.visibility
     visible = visible.bool()
@@ -261,6 +278,10 @@ def grounding_loss(
     loss = (
         giou_term + cfg.l1_weight * l1_term + cfg.visibility_weight * vis_term + cfg.cell_weight * cell_term
     )
+    attribute_logs = {}
+    if output.query_attributes is not None and attributes is not None:
+        attribute_term, attribute_logs = attribute_loss(output, target_boxes, visible, attributes, cfg)
+        loss = loss + cfg.attribute_weight * attribute_term
     logs = {
         "box_iou": float(iou.detach().mean()) if count else 0.0,
         "num_visible_boxes": float(count),
@@ -268,5 +289,46 @@ def grounding_loss(
         "l1_loss": float(l1_term.detach()),
         "visibility_loss": float(vis_term.detach()),
         "cell_loss": float(cell_term.detach()),
+        **attribute_logs,
     }
     return loss, logs
+
+
+def attribute_loss(
+    output: GroundingOutput,
+    target_boxes: torch.Tensor,
+    visible: torch.Tensor,
+    attributes: torch.Tensor,
+    cfg: GroundingConfig,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Mean cross-entropy of each attribute (colour, type, size, feature) of the target, from the query on every
+    row and from the token cell holding the target's centre on rows where it is visible (-1 ids are skipped).
+
+    Returns the loss and logs: `attribute_loss` and the colour accuracies `query_color_accuracy` and
+    `cell_color_accuracy` (each absent when no row has a known colour to read)."""
+    attributes = attributes.to(output.query_attributes.device).long()  # (B, 4)
+    side = int(round(output.cell_attributes.shape[1] ** 0.5))  # the token grid (sub-cells are not classified)
+    rows = torch.nonzero(visible.to(attributes.device), as_tuple=True)[0]  # (V,)
+    cells = box_cells(target_boxes[rows].to(output.cell_attributes.device).float(), side)  # (V,)
+    at_target = output.cell_attributes[rows, cells]  # (V, A)
+    terms, logs, first = [], {}, 0
+    for k, count in enumerate(cfg.attribute_classes):
+        for name, logits, labels in (
+            ("query", output.query_attributes, attributes[:, k]),
+            ("cell", at_target, attributes[rows, k]),
+        ):
+            known = labels >= 0
+            if not bool(known.any()):
+                continue
+            part = logits[known, first : first + count].float()  # (n, count)
+            terms.append(F.cross_entropy(part, labels[known]))
+            if k == 0:
+                accuracy = (part.argmax(dim=-1) == labels[known]).float().mean()
+                logs[f"{name}_color_accuracy"] = float(accuracy)
+        first += count
+    # both classifiers stay in the graph when a batch gives one of them nothing to read (DDP needs every gradient)
+    term = (output.query_attributes.sum() + output.cell_attributes.sum()) * 0.0
+    if terms:
+        term = term + torch.stack(terms).mean()
+    logs["attribute_loss"] = float(term.detach())
+    return term, logs

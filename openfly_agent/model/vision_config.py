@@ -61,6 +61,10 @@ class VisionConfig:
     # tiny-cnn only: the instruction's mean prompt-token embedding scales and shifts the channels entering the
     # third and fourth ResNet stages (FiLM): the cell features are computed for the landmark asked for
     cnn_instruction_film: bool = False
+    # tiny-cnn only: add to each token a projection of its cell's colour statistics (mean and spread of the
+    # normalised RGB over the cell, the means of its 2 x 2 quarters): the trained ResNet's features keep a
+    # landmark's type but not its colour (docs/BENCHMARKS.md, "A colour path for the tiny-cnn")
+    cnn_colour_stats: bool = False
     # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
     # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)
     cnn_init: str = CNN_INIT_NORMAL
@@ -97,7 +101,7 @@ class VisionConfig:
             if self.cnn_fine_fusion and self.cnn_instruction_film:
                 raise ValueError("vision.cnn_fine_fusion and vision.cnn_instruction_film: choose one")
         else:
-            for name in ("cnn_fine_fusion", "cnn_instruction_film"):
+            for name in ("cnn_fine_fusion", "cnn_instruction_film", "cnn_colour_stats"):
                 if getattr(self, name):
                     raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
             if self.cnn_init != CNN_INIT_NORMAL:

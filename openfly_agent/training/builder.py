@@ -27,6 +27,7 @@ from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
 from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
+from openfly_agent.training.attribute_targets import LandmarkAttributes, vocabulary_sizes
 from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
 from openfly_agent.training.init_matching import load_matching_weights
 from openfly_agent.training.modes import apply_training_mode
@@ -55,6 +56,8 @@ class Splits:
 
     episodes: dict[str, list[Episode]]
     frames: FrameStore | FrameStores
+    # (scene id, landmark id) -> (4,) attribute ids, with `model.grounding.attribute_weight` (attribute_targets.py)
+    attributes: LandmarkAttributes | None = None
 
     def dataset(
         self, split: str, cfg: TrainConfig, agent: OpenFlyAgent, history: str | None = None
@@ -69,6 +72,7 @@ class Splits:
             set_size=cfg.model.keyframes.set_size,
             keyframe_selector=agent.keyframe_selector,
             seed=cfg.seed,
+            target_attributes=self.attributes,
         )
 
 
@@ -80,8 +84,9 @@ def load_splits(cfg: TrainConfig) -> Splits:
     episodes = {split: load_split(data, split) for split in names}
     frames = FrameStore(data.root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
     check_frames_readable(frames, episodes[data.train_split])
+    attributes = attribute_lookup(cfg)
     if not data.extra_train_roots:
-        return Splits(episodes, frames)
+        return Splits(episodes, frames, attributes)
     stores = [(frames, [e for split in names for e in episodes[split]])]
     for root in data.extra_train_roots:
         extra = load_split(dataclasses.replace(data, root=root), data.train_split)
@@ -91,9 +96,27 @@ def load_splits(cfg: TrainConfig) -> Splits:
         stores.append((store, extra))
         episodes[data.train_split] = episodes[data.train_split] + extra
     try:
-        return Splits(episodes, FrameStores(stores))
+        return Splits(episodes, FrameStores(stores), attributes)
     except ValueError as err:  # an episode id in two roots
         raise PreflightError(f"data.extra_train_roots: {err}") from err
+
+
+def attribute_lookup(cfg: TrainConfig) -> LandmarkAttributes | None:
+    """The target attributes' lookup when the grounding head learns them (`model.grounding.attribute_weight`)."""
+    grounding = cfg.model.grounding
+    if not (grounding.enabled and grounding.attribute_weight):
+        return None
+    if list(grounding.attribute_classes) != vocabulary_sizes():
+        raise PreflightError(
+            f"model.grounding.attribute_classes={grounding.attribute_classes} != the embedded city's vocabularies "
+            f"{vocabulary_sizes()} (colour, type, size, feature)"
+        )
+    try:
+        return LandmarkAttributes.for_dataset(cfg.data.root)
+    except FileNotFoundError as err:
+        raise PreflightError(
+            f"model.grounding.attribute_weight needs an embedded-city dataset: {err}"
+        ) from err
 
 
 def prepare_agent(

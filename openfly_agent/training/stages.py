@@ -76,7 +76,11 @@ def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
     if not frames:
         raise PreflightError(f"data.grounding_root {data.grounding_root} has no frames of the train split")
     expressions = GroundingFrameDataset(
-        frames, data.expressions_per_frame, seed=cfg.seed, area_power=data.expression_area_power
+        frames,
+        data.expressions_per_frame,
+        seed=cfg.seed,
+        area_power=data.expression_area_power,
+        target_attributes=splits.attributes,
     )
     targets = {
         split: InstructionTargets(splits.dataset(split, cfg, agent, history="none"))

@@ -143,3 +143,18 @@ def test_collator_encodes_each_frame_once_and_points_every_sequence_at_its_frame
     np.testing.assert_allclose(batch[C.BOX][:2].numpy(), samples[0][BOXES])
     with pytest.raises(ValueError, match="empty"):
         GroundingCollator(_Processor())([])
+
+
+def test_attributes_follow_each_expression_and_unknown_rows_are_minus_one():
+    def lookup(scene_id: str, landmark_id: str) -> np.ndarray:  # "lm<k>" -> [k, k + 1, 0, scene seed]
+        k = int(landmark_id.removeprefix("lm"))
+        return np.array([k, k + 1, 0, int(scene_id.split("-")[1])], dtype=np.int64)
+
+    expressions = GroundingFrameDataset([_frame(3, 2), _frame(4, 3)], 3, target_attributes=lookup)
+    first = expressions[0]  # both expressions of a two-landmark frame, in order
+    assert first[C.TARGET_ATTRIBUTES].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0]]
+    instruction = GroundingMixture(expressions, _Steps(2), 0.5)[3]  # a navigation step without attributes
+    batch = GroundingCollator(_Processor())([first, instruction])
+    assert batch[C.TARGET_ATTRIBUTES].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0], [-1, -1, -1, -1]]
+    plain = GroundingCollator(_Processor())([GroundingFrameDataset([_frame(3, 2)], 3)[0]])
+    assert C.TARGET_ATTRIBUTES not in plain  # no lookup, no key: the loss then has no attribute term

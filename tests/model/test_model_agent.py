@@ -38,12 +38,29 @@ INSTRUCTION_FILM = {  # tiny-cnn at 64 px whose stages 3-4 are conditioned on th
 }
 
 
+COLOUR_STATS = {  # tiny-cnn at 64 px with each token's cell colour statistics
+    "vision": VisionConfig(
+        image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16, cnn_colour_stats=True
+    ),
+    "grounding": GroundingConfig(dim=32, num_heads=2),
+}
+
+
+ATTRIBUTES = {"grounding": GroundingConfig(dim=32, num_heads=2, attribute_weight=1.0)}  # the attribute loss
+
+
 @pytest.mark.parametrize(
-    "overrides", [{}, FINE_GROUNDING, INSTRUCTION_FILM], ids=["small", "fine_grounding", "instruction_film"]
+    "overrides",
+    [{}, FINE_GROUNDING, INSTRUCTION_FILM, COLOUR_STATS, ATTRIBUTES],
+    ids=["small", "fine_grounding", "instruction_film", "colour_stats", "attributes"],
 )
 def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overrides):
     agent = make_agent(**overrides).train()
-    loss, logs = agent(make_batch(agent, batch_size=3))
+    batch = make_batch(agent, batch_size=3)
+    if agent.model_cfg.grounding.attribute_weight:  # colour, type, size, feature ids; -1 unknown
+        batch["target_attributes"] = torch.tensor([[0, 1, 2, 3], [11, 5, 0, -1], [-1, -1, -1, -1]])
+        batch["box_visible"] = torch.tensor([True, True, False])
+    loss, logs = agent(batch)
     assert torch.isfinite(loss)
     assert set(logs) >= LOG_KEYS and all(isinstance(v, float) for v in logs.values())
     loss.backward()

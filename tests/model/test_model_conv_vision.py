@@ -1,12 +1,12 @@
 """The tiny-cnn backbone: token grid, the stride-8 fusion's layout (each token gets its own 2 x 2 cells), the
-instruction FiLM and the ResNet's init."""
+instruction FiLM, the colour statistics and the ResNet's init."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from openfly_agent.model.conv_vision import ConvVisionBackbone
+from openfly_agent.model.conv_vision import COLOUR_STATS, ConvVisionBackbone, cell_colour_stats
 from openfly_agent.model.vision_config import VisionConfig
 
 SMALL = {"image_size": 64, "cnn_channels": [16, 16, 16, 32], "cnn_stem_width": 16}  # narrower aborts oneDNN
@@ -51,6 +51,54 @@ def test_fine_fusion_adds_each_tokens_own_stride_8_cells():
 def test_fine_fusion_is_a_tiny_cnn_option():
     with pytest.raises(ValueError, match="tiny-cnn option"):
         VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_fine_fusion=True)
+
+
+def test_cell_colour_stats_by_hand():
+    # one 4 x 4 frame of 2 x 2 cells (cell = 2 px, quarters of 1 px): channel 0 counts 0..15, channel 1 is 1
+    # in the left column of pixels, channel 2 is constant 5
+    x = torch.zeros(1, 3, 4, 4)
+    x[0, 0] = torch.arange(16.0).view(4, 4)
+    x[0, 1, :, 0] = 1.0
+    x[0, 2] = 5.0
+    stats = cell_colour_stats(x, 2)  # (1, 18, 2, 2)
+    assert stats.shape == (1, COLOUR_STATS, 2, 2)
+    # top-left cell: pixels 0, 1, 4, 5 in channel 0; 1, 0, 1, 0 in channel 1; 5 in channel 2
+    torch.testing.assert_close(stats[0, :3, 0, 0], torch.tensor([2.5, 0.5, 5.0]))
+    torch.testing.assert_close(stats[0, 3:6, 0, 0], torch.tensor([2.0616, 0.5, 0.0010]), atol=1e-4, rtol=0)
+    # its quarters are its pixels, channel-major then row-major: channel 0 = 0, 1, 4, 5; channel 1 = 1, 0, 1, 0
+    torch.testing.assert_close(stats[0, 6:10, 0, 0], torch.tensor([0.0, 1.0, 4.0, 5.0]))
+    torch.testing.assert_close(stats[0, 10:14, 0, 0], torch.tensor([1.0, 0.0, 1.0, 0.0]))
+    torch.testing.assert_close(stats[0, 14:18, 0, 0], torch.full((4,), 5.0))
+    # bottom-right cell: pixels 10, 11, 14, 15 in channel 0, no left column in channel 1
+    torch.testing.assert_close(stats[0, :3, 1, 1], torch.tensor([12.5, 0.0, 5.0]))
+    torch.testing.assert_close(stats[0, 6:10, 1, 1], torch.tensor([10.0, 11.0, 14.0, 15.0]))
+
+
+def test_colour_stats_add_a_projection_of_each_cells_statistics():
+    torch.manual_seed(0)
+    plain = ConvVisionBackbone(VisionConfig(**SMALL)).eval()
+    coloured = ConvVisionBackbone(VisionConfig(**SMALL, cnn_colour_stats=True)).eval()
+    coloured.load_state_dict(plain.state_dict(), strict=False)  # same ResNet and position embedding
+    assert plain.colour_proj is None and coloured.colour_proj.in_features == COLOUR_STATS
+    with torch.no_grad():
+        pixels = _pixels()
+        extra = coloured(pixels) - plain(pixels)  # (N, 16, 32): only the colour term
+        x = (pixels.float() / 255 - torch.tensor([0.485, 0.456, 0.406])[:, None, None]) / torch.tensor(
+            [0.229, 0.224, 0.225]
+        )[:, None, None]
+        cell = x[:, :, 16:32, 48:64]  # token (1, 3) of the 4 x 4 grid: rows 16-31, columns 48-63
+        mean, std = cell.mean(dim=(2, 3)), cell.std(dim=(2, 3), unbiased=False)  # (N, 3)
+        quarter = x[:, :, 16:24, 56:64].mean(dim=(2, 3))  # its top-right quarter, (N, 3)
+        stats = torch.zeros(2, COLOUR_STATS)
+        stats[:, :3], stats[:, 3:6] = mean, std
+        stats[:, 6:18] = cell_colour_stats(x, 16)[:, 6:, 1, 3]
+        torch.testing.assert_close(stats[:, [7, 11, 15]], quarter, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(extra[:, 1 * 4 + 3], coloured.colour_proj(stats), rtol=1e-4, atol=1e-4)
+        # the sequences of a frame index read their frame's statistics
+        index = torch.tensor([1, 1, 0])
+        torch.testing.assert_close(coloured(pixels, frame_index=index), coloured(pixels)[index])
+    with pytest.raises(ValueError, match="tiny-cnn option"):
+        VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_colour_stats=True)
 
 
 def _film_backbone(scale: float = 0.0) -> ConvVisionBackbone:

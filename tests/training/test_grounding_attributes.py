@@ -1,0 +1,119 @@
+"""training/grounding_attributes.py: where a missed centre lands (hand-built boxes), instruction names, the linear
+probe on data with and without signal, and the probe of a real (tiny) run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import run_script
+
+from openfly_agent.sim.scene import Landmark
+from openfly_agent.training.grounding_attributes import (
+    LANDINGS,
+    READINGS,
+    AttributeProbe,
+    centre_landing,
+    named_in,
+    probe_accuracy,
+    probe_table,
+)
+
+BOXES = {
+    "target": np.array([0.5, 0.5, 0.2, 0.2]),
+    "route": np.array([0.2, 0.2, 0.2, 0.2]),
+    "big": np.array([0.8, 0.8, 0.4, 0.4]),
+    "small": np.array([0.8, 0.8, 0.1, 0.1]),
+}
+
+
+def test_centre_landing_prefers_the_target_then_the_route_then_the_smallest_other_box():
+    assert centre_landing((0.5, 0.5), "target", BOXES, ["route"]) == ("target", "target")
+    assert centre_landing((0.2, 0.2), "target", BOXES, ["route"]) == ("earlier route landmark", "route")
+    # (0.8, 0.8) is inside "big" and "small": the smaller box is the claim
+    assert centre_landing((0.8, 0.8), "target", BOXES, ["route"]) == ("other landmark", "small")
+    assert centre_landing((0.7, 0.7), "target", BOXES, ["route"]) == ("other landmark", "big")
+    assert centre_landing((0.05, 0.95), "target", BOXES, ["route"]) == ("no landmark", None)
+    # a target out of view cannot be hit; the box edge is outside (strict)
+    assert centre_landing((0.5, 0.5), "gone", {}, []) == ("no landmark", None)
+    edge = {"target": np.array([0.5, 0.5, 0.25, 0.25])}  # exact in binary: x = 0.625 is its right edge
+    assert centre_landing((0.625, 0.5), "target", edge, []) == ("no landmark", None)
+    assert centre_landing((0.6, 0.5), "target", edge, []) == ("target", "target")
+    assert set(LANDINGS) == {"target", "earlier route landmark", "other landmark", "no landmark"}
+
+
+def _landmark(color: str, type_name: str) -> Landmark:
+    return Landmark(
+        "b1", type_name, color, "mid-rise", "rectangular", "none", (0.0, 0.0, 0.0), (1.0, 1.0, 1.0)
+    )
+
+
+def test_named_in_needs_colour_then_type_in_one_phrase():
+    instruction = "Fly toward the tall red tower with a dome, then turn left to the blue office building."
+    assert named_in(instruction, _landmark("red", "tower"))
+    assert named_in(instruction, _landmark("blue", "office building"))
+    assert not named_in(
+        instruction, _landmark("blue", "tower")
+    )  # "blue" comes after the tower, in another phrase
+    assert not named_in(instruction, _landmark("red", "house"))
+
+
+def test_probe_reads_a_separable_attribute_and_not_noise():
+    rng = np.random.default_rng(0)
+    labels = rng.choice(["red", "blue", "gray"], size=400).tolist()
+    centres = {"red": [3.0, 0.0], "blue": [0.0, 3.0], "gray": [-3.0, -3.0]}
+    signal = np.array([centres[y] for y in labels]) + rng.normal(0, 0.5, size=(400, 2))
+    train_acc, test_acc = probe_accuracy(signal[:300], labels[:300], signal[300:], labels[300:])
+    assert train_acc > 0.95 and test_acc > 0.95
+    noise = rng.normal(size=(400, 16))
+    _, test_acc = probe_accuracy(noise[:300], labels[:300], noise[300:], labels[300:])
+    assert test_acc < 0.55  # three balanced classes: chance is a third
+
+
+def test_probe_of_a_tiny_run_reads_every_visible_target(reference_run):
+    out, _ = reference_run
+    probe = AttributeProbe(out, batch_size=4)
+    test = probe.read("test", 8, render=True)
+    train = probe.read("train", 8, render=False)
+    visible = len(test.attributes["color"])
+    assert visible > 0 and sum(test.landings.values()) == visible
+    assert test.shared["misses"] == test.landings["other landmark"]
+    for reading in READINGS:
+        assert len(test.features[reading]) == visible
+    assert test.features["cell pixels"][0].shape == (18,)
+    rows = probe_table(train, test)
+    assert {(r["reading"], r["attribute"]) for r in rows} == {
+        (r, a) for r in READINGS for a in ("color", "type")
+    }
+    assert all(
+        0.0 <= r["test"] <= 1.0 and 0.0 <= r["majority"] <= 1.0 for r in rows
+    )  # train majority on test
+
+
+def test_bench_script_prints_and_writes_the_figures(reference_run, tmp_path):
+    out, _ = reference_run
+    report = tmp_path / "attributes.json"
+    args = [
+        "--run",
+        str(out),
+        "--max_samples",
+        "8",
+        "--train_samples",
+        "8",
+        "--threads",
+        "1",
+        "--json",
+        str(report),
+    ]
+    done = run_script(args, script=Path(__file__).resolve().parents[2] / "bench" / "grounding_attributes.py")
+    assert done.returncode == 0, done.stderr[-2000:]
+    figures = json.loads(report.read_text())
+    assert sum(figures["landings"].values()) > 0 and len(figures["probes"]) == 2 * len(READINGS)
+    assert "| landing | share |" in done.stdout and "| head query | color |" in done.stdout
+
+
+def test_probe_refuses_a_folder_that_is_not_a_run(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        AttributeProbe(tmp_path)
