@@ -40,7 +40,7 @@ def main() -> None:
     import torch  # lazy: --help stays fast
 
     from openfly_agent.training.grounding_attributes import (  # lazy: torch, the model and the simulator
-        ATTRIBUTES,
+        ATTRIBUTE_FIELDS,
         LANDINGS,
         AttributeProbe,
         probe_table,
@@ -61,7 +61,9 @@ def main() -> None:
     for name in LANDINGS:
         print(f"| {name} | {test.landings[name] / max(landed, 1):.1%} |")
     misses = test.shared["misses"]
-    shared = {name: test.shared[name] / max(misses, 1) for name in (*ATTRIBUTES, "named in the instruction")}
+    shared = {
+        name: test.shared[name] / max(misses, 1) for name in (*ATTRIBUTE_FIELDS, "named in the instruction")
+    }
     print(f"\nmisses on another landmark ({misses}), sharing the target's: ")
     print(", ".join(f"{name} {share:.0%}" for name, share in shared.items()))
     print("\n| reading of the target's cell | attribute | probe train | probe test | majority |")

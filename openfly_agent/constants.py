@@ -59,9 +59,7 @@ ATTENTION_MASK = "attention_mask"  # (B, L) long
 LABELS = "labels"  # (B, L) long, -100 everywhere but the action token(s)
 PIXEL_VALUES = "pixel_values"  # (B, 3, H, W) uint8, current frame
 MEMORY_PIXEL_VALUES = "memory_pixel_values"  # (B, K, S, 3, H, W) uint8, keyframe sets oldest first
-TARGET_ATTRIBUTES = (
-    "target_attributes"  # (B, 4) long: the target landmark's colour, type, size, feature ids (-1: unknown)
-)
+TARGET_ATTRIBUTES = "target_attributes"  # (B, 4) long: target's colour, type, size, feature ids (-1: unknown)
 MEMORY_FRAME_MASK = "memory_frame_mask"  # (B, K, S) bool, frame s of set k is real
 MEMORY_BOXES = "memory_boxes"  # (B, K, S, 4) float, (cx, cy, w, h) in [0, 1]
 MEMORY_BOX_VISIBLE = "memory_box_visible"  # (B, K, S) bool

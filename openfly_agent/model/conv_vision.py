@@ -31,6 +31,13 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 COLOUR_STATS = 18  # per cell: mean and standard deviation of the 3 channels, the means of its 2 x 2 quarters
 
 
+def normalised_pixels(pixels: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """(F, 3, H, W) uint8 RGB -> the ResNet's input: [0, 1] scaled, then ImageNet mean and std per channel."""
+    mean = torch.tensor(IMAGENET_MEAN, dtype=dtype, device=pixels.device).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD, dtype=dtype, device=pixels.device).view(1, 3, 1, 1)
+    return (pixels.to(dtype) / 255.0 - mean) / std
+
+
 def cell_colour_stats(x: torch.Tensor, cell: int) -> torch.Tensor:
     """Normalised (F, 3, H, W) pixels -> (F, COLOUR_STATS, H / cell, W / cell) colour statistics of each cell:
     the channel means, the channel standard deviations and the channel means of the cell's 2 x 2 quarters."""
@@ -143,10 +150,7 @@ class ConvVisionBackbone(nn.Module):
                 "an instruction code goes with vision.cnn_instruction_film and only with it "
                 f"(option {'on' if self.instruction_film is not None else 'off'})"
             )
-        dtype, device = self.pos_embed.dtype, pixels.device
-        mean = torch.tensor(IMAGENET_MEAN, dtype=dtype, device=device).view(1, 3, 1, 1)
-        std = torch.tensor(IMAGENET_STD, dtype=dtype, device=device).view(1, 3, 1, 1)
-        x = ((pixels.to(dtype) / 255.0 - mean) / std).contiguous(memory_format=torch.channels_last)
+        x = normalised_pixels(pixels, self.pos_embed.dtype).contiguous(memory_format=torch.channels_last)
         if self.instruction_film is not None:
             features = self._conditioned_features(x, instruction, frame_index)  # (N, C, g, g)
         else:

@@ -63,7 +63,7 @@ class VisionConfig:
     cnn_instruction_film: bool = False
     # tiny-cnn only: add to each token a projection of its cell's colour statistics (mean and spread of the
     # normalised RGB over the cell, the means of its 2 x 2 quarters): the trained ResNet's features keep a
-    # landmark's type but not its colour (docs/BENCHMARKS.md, "A colour path for the tiny-cnn")
+    # landmark's type but not its colour (docs/BENCHMARKS.md, "Which landmark the head picks")
     cnn_colour_stats: bool = False
     # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
     # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)

@@ -9,19 +9,27 @@ are -1, which the loss skips.
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
 
-from openfly_agent.sim.city import COLORS, FEATURES, SIZES, TYPES, CityConfig, generate_city, parse_scene_id
+from openfly_agent.sim.city import (
+    COLORS,
+    FEATURES,
+    SIZES,
+    TYPES,
+    City,
+    CityConfig,
+    generate_city,
+    parse_scene_id,
+)
+from openfly_agent.sim.scene import Landmark
 from openfly_agent.toolchain.grounding import source_render_settings
-
-logger = logging.getLogger(__name__)
 
 VOCABULARIES = (tuple(COLORS), TYPES, SIZES, FEATURES)  # colour, type, size, feature
 ATTRIBUTE_FIELDS = ("color", "type", "size", "feature")  # the `Landmark` fields, in the same order
 UNKNOWN = np.full(len(VOCABULARIES), -1, dtype=np.int64)
+_CLASS_IDS = [{name: k for k, name in enumerate(vocabulary)} for vocabulary in VOCABULARIES]
 
 
 def vocabulary_sizes() -> list[int]:
@@ -29,8 +37,15 @@ def vocabulary_sizes() -> list[int]:
     return [len(vocabulary) for vocabulary in VOCABULARIES]
 
 
+def attribute_ids(landmark: Landmark) -> np.ndarray:
+    """(4,) int64 class ids of a landmark's colour, type, size and feature (-1 for a value outside the vocabulary)."""
+    values = [getattr(landmark, name) for name in ATTRIBUTE_FIELDS]
+    return np.array([ids.get(value, -1) for ids, value in zip(_CLASS_IDS, values)], dtype=np.int64)
+
+
 class LandmarkAttributes:
-    """(scene id, landmark id) -> (4,) int64 attribute ids of an embedded city's landmark, -1 when unknown.
+    """The embedded cities of a dataset, generated once per scene: their `City`, their landmarks, and (called)
+    (scene id, landmark id) -> (4,) int64 attribute ids, -1 when unknown.
 
     Args:
         city_config: the city settings the dataset was generated with (`for_dataset` reads them).
@@ -38,7 +53,9 @@ class LandmarkAttributes:
 
     def __init__(self, city_config: CityConfig) -> None:
         self.city_config = city_config
-        self._scenes: dict[str, dict[str, np.ndarray]] = {}
+        self._cities: dict[str, City | None] = {}
+        self._landmarks: dict[str, dict[str, Landmark]] = {}
+        self._ids: dict[str, dict[str, np.ndarray]] = {}
 
     @classmethod
     def for_dataset(cls, root: str | Path) -> LandmarkAttributes:
@@ -47,22 +64,26 @@ class LandmarkAttributes:
         return cls(city_config)
 
     def __call__(self, scene_id: str, landmark_id: str) -> np.ndarray:
-        return self._scene(scene_id).get(landmark_id, UNKNOWN)
+        if scene_id not in self._ids:
+            landmarks = self.landmarks(scene_id)
+            self._ids[scene_id] = {key: attribute_ids(landmark) for key, landmark in landmarks.items()}
+        return self._ids[scene_id].get(landmark_id, UNKNOWN)
 
-    def _scene(self, scene_id: str) -> dict[str, np.ndarray]:
-        if scene_id not in self._scenes:
+    def city(self, scene_id: str) -> City | None:
+        """The embedded city of `scene_id` (None for a scene that is not one: no attributes)."""
+        if scene_id not in self._cities:
             try:
                 seed = parse_scene_id(scene_id)
             except ValueError:
-                self._scenes[scene_id] = {}  # not an embedded city: no attributes
-                return self._scenes[scene_id]
-            index = [{name: k for k, name in enumerate(vocabulary)} for vocabulary in VOCABULARIES]
-            table = {}
-            for building in generate_city(seed, self.city_config).buildings:
-                landmark = building.landmark
-                values = [getattr(landmark, name) for name in ATTRIBUTE_FIELDS]
-                table[landmark.landmark_id] = np.array(
-                    [ids.get(value, -1) for ids, value in zip(index, values)], dtype=np.int64
-                )
-            self._scenes[scene_id] = table
-        return self._scenes[scene_id]
+                self._cities[scene_id] = None
+            else:
+                self._cities[scene_id] = generate_city(seed, self.city_config)
+        return self._cities[scene_id]
+
+    def landmarks(self, scene_id: str) -> dict[str, Landmark]:
+        """landmark id -> `Landmark` of the scene's city (empty for a scene that is not embedded)."""
+        if scene_id not in self._landmarks:
+            city = self.city(scene_id)
+            buildings = city.buildings if city is not None else ()
+            self._landmarks[scene_id] = {b.landmark.landmark_id: b.landmark for b in buildings}
+        return self._landmarks[scene_id]

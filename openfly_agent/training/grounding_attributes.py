@@ -30,10 +30,10 @@ import torch
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
-from openfly_agent.model.conv_vision import IMAGENET_MEAN, IMAGENET_STD, cell_colour_stats
-from openfly_agent.sim.city import City, generate_city, parse_scene_id
+from openfly_agent.model.conv_vision import cell_colour_stats, normalised_pixels
 from openfly_agent.sim.scene import Landmark
 from openfly_agent.toolchain.grounding import source_render_settings
+from openfly_agent.training.attribute_targets import ATTRIBUTE_FIELDS, LandmarkAttributes
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.evaluate import eval_indices
@@ -44,7 +44,6 @@ from openfly_agent.utils.geometry import Pose
 logger = logging.getLogger(__name__)
 
 LANDINGS = ("target", "earlier route landmark", "other landmark", "no landmark")
-ATTRIBUTES = ("color", "type", "size", "feature")
 READINGS = ("cell pixels", "backbone token", "head cell feature", "head query")
 
 
@@ -111,7 +110,7 @@ class CellReadings:
     """The readings of the target's cell, the target's attributes (one row per visible target), the landings."""
 
     features: dict[str, list[np.ndarray]] = field(default_factory=lambda: {name: [] for name in READINGS})
-    attributes: dict[str, list[str]] = field(default_factory=lambda: {name: [] for name in ATTRIBUTES})
+    attributes: dict[str, list[str]] = field(default_factory=lambda: {name: [] for name in ATTRIBUTE_FIELDS})
     landings: Counter = field(default_factory=Counter)
     shared: Counter = field(default_factory=Counter)  # misses on another landmark: attributes shared, names
 
@@ -146,22 +145,10 @@ class AttributeProbe:
             )
         self.batch_size, self.grid = batch_size, self.agent.grounding_head.grid_side
         self.width, self.height, self.city_config = source_render_settings(cfg.data.root)
-        self._cities: dict[str, tuple[City, dict[str, Landmark]]] = {}
+        self.cities = LandmarkAttributes(self.city_config)
         self._head_cells: list[torch.Tensor] = []
         self._queries: list[torch.Tensor] = []
         self._outputs: list = []
-
-    def city(self, scene_id: str) -> City:
-        """An embedded city, generated once per scene with the dataset's city settings."""
-        if scene_id not in self._cities:
-            city = generate_city(parse_scene_id(scene_id), self.city_config)
-            self._cities[scene_id] = city, {b.landmark.landmark_id: b.landmark for b in city.buildings}
-        return self._cities[scene_id][0]
-
-    def landmarks(self, scene_id: str) -> dict[str, Landmark]:
-        """landmark id -> Landmark of an embedded city."""
-        self.city(scene_id)
-        return self._cities[scene_id][1]
 
     @torch.no_grad()
     def read(self, split: str, max_samples: int | None, render: bool) -> CellReadings:
@@ -228,9 +215,7 @@ class AttributeProbe:
 
     def _pixel_stats(self, pixels: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) uint8 -> (B, P, 18) colour statistics of the token grid's cells."""
-        mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
-        std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
-        x = (pixels.float() / 255.0 - mean) / std
+        x = normalised_pixels(pixels, torch.float32)
         cell = pixels.shape[-1] // self.grid
         return cell_colour_stats(x, cell).flatten(2).transpose(1, 2)
 
@@ -241,17 +226,17 @@ class AttributeProbe:
         return row * self.grid + col
 
     def _add(self, readings: CellReadings, episode, cells: dict[str, torch.Tensor | None]) -> None:
-        target = self.landmarks(episode.scene_id).get(episode.landmark_ids[-1])
+        target = self.cities.landmarks(episode.scene_id).get(episode.landmark_ids[-1])
         if target is None:
             return
         for reading, values in cells.items():
             if values is not None:
                 readings.features[reading].append(values.float().numpy())
-        for name in ATTRIBUTES:
+        for name in ATTRIBUTE_FIELDS:
             readings.attributes[name].append(getattr(target, name))
 
     def _land(self, readings, sim, episode, t, centre) -> None:
-        sim.register_city(self.city(episode.scene_id))  # the city already generated for its landmarks
+        sim.register_city(self.cities.city(episode.scene_id))  # the city already generated for its landmarks
         x, y, z = (float(v) for v in episode.positions[t])
         observation = sim.render(episode.scene_id, Pose(x, y, z, float(episode.yaws[t])), episode.pitch_deg)
         target_id = episode.landmark_ids[-1]
@@ -259,11 +244,11 @@ class AttributeProbe:
             tuple(centre), target_id, observation.boxes or {}, list(episode.landmark_ids[:-1])
         )
         readings.landings[landing] += 1
-        landmarks = self.landmarks(episode.scene_id)
+        landmarks = self.cities.landmarks(episode.scene_id)
         if landing != LANDINGS[2] or target_id not in landmarks or hit not in landmarks:
             return
         readings.shared["misses"] += 1
-        for name in ATTRIBUTES:
+        for name in ATTRIBUTE_FIELDS:
             readings.shared[name] += getattr(landmarks[hit], name) == getattr(landmarks[target_id], name)
         readings.shared["named in the instruction"] += named_in(episode.instruction, landmarks[hit])
 
