@@ -139,6 +139,8 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             init.constant_(module.gamma, module.init_values)
         elif isinstance(module, GroundingHead):
             init.normal_(module.box_queries, std=0.02)
+            if module.attribute_match_weight is not None:
+                init.ones_(module.attribute_match_weight)
         elif isinstance(module, ConvVisionBackbone):
             module.init_weights()
 

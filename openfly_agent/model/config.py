@@ -169,6 +169,9 @@ class GroundingConfig:
     attribute_weight: float = 0.0
     # classes of each attribute (colour, type, size, feature): the embedded city's vocabularies (sim/city_vocab.py)
     attribute_classes: list[int] = field(default_factory=lambda: [12, 6, 3, 8])
+    # with `attribute_weight`: each cell's logit gains sum_k w_k x E_query[log p_cell(attribute k)], the agreement
+    # of the cell's attribute prediction with the query's (w_k learned, start at 1)
+    attribute_match: bool = False
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
@@ -188,6 +191,10 @@ class GroundingConfig:
             )
         if self.attribute_weight and not self.cells:
             raise ValueError("grounding.attribute_weight needs grounding.cells (the target's cell is read)")
+        if self.attribute_match and not self.attribute_weight:
+            raise ValueError(
+                "grounding.attribute_match needs grounding.attribute_weight > 0 (it reads both sides)"
+            )
 
 
 @dataclass

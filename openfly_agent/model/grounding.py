@@ -15,6 +15,9 @@ small far target covers a fraction of one 16 px cell at 128 px). With `centre_wi
 mode), the softmax that places the centre (and pools the size's context) is renormalised over the
 (2w + 1) x (2w + 1) cells around the best-scoring cell, so a score with two peaks picks one instead of averaging
 them; training keeps the softmax over every cell (trained with the window, the head grounded no better).
+With `attribute_weight` the head also names the target's attributes from its query and from every cell
+(`attribute_loss`); with `attribute_match` each cell's logit gains the agreement of the two (`attribute_match`),
+so a cell whose colour the query names scores higher without the FiLM scorer having to discover the match.
 """
 
 from __future__ import annotations
@@ -130,6 +133,11 @@ class GroundingHead(nn.Module):
         classes = sum(cfg.attribute_classes)
         self.query_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
         self.cell_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
+        self.attribute_classes = list(cfg.attribute_classes)
+        # with `attribute_match`: one learned weight per attribute of the cells' attribute agreement with the query
+        self.attribute_match_weight = (
+            nn.Parameter(torch.ones(len(cfg.attribute_classes))) if cfg.attribute_match else None
+        )
 
     def forward(
         self,
@@ -163,6 +171,14 @@ class GroundingHead(nn.Module):
             memory, 1, image_positions[..., None].expand(-1, -1, memory.shape[-1])
         )  # (B, P, d)
         cell_logits = self.cell_scorer(cells, pooled)  # (B, F), F = (g * s)^2 fine cells
+        query_attributes = cell_attributes = None
+        if self.query_attributes is not None:
+            query_attributes, cell_attributes = self.query_attributes(pooled), self.cell_attributes(cells)
+        if self.attribute_match_weight is not None:
+            match = attribute_match(
+                query_attributes, cell_attributes, self.attribute_classes, self.attribute_match_weight
+            )  # (B, P)
+            cell_logits = cell_logits + fine_grid(match, self.grid_side, self.fine_side // self.grid_side)
         window = None if self.training else self.centre_window  # a decoding rule: training reads every cell
         weights = windowed_softmax(cell_logits, self.fine_side, window)  # (B, F)
         context = (coarse_weights(weights, self.grid_side)[..., None] * cells).sum(dim=1)  # (B, d)
@@ -170,11 +186,33 @@ class GroundingHead(nn.Module):
         centre = weights @ cell_centres(self.fine_side, weights.device, weights.dtype)  # (B, 2)
         cxcy = (centre + torch.tanh(raw[:, :2]) / self.fine_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
-        if self.query_attributes is None:
-            return GroundingOutput(boxes, visibility, cell_logits)
-        return GroundingOutput(
-            boxes, visibility, cell_logits, self.query_attributes(pooled), self.cell_attributes(cells)
-        )
+        return GroundingOutput(boxes, visibility, cell_logits, query_attributes, cell_attributes)
+
+
+def attribute_match(
+    query_logits: torch.Tensor, cell_logits: torch.Tensor, classes: list[int], weights: torch.Tensor
+) -> torch.Tensor:
+    """How well each cell's attributes agree with the query's: sum over attributes k of weights[k] x the expected
+    log-probability, under the cell's distribution of attribute k, of the class the query names (its softmax).
+
+    query_logits (B, A), cell_logits (B, P, A), A = sum(classes) -> (B, P), <= 0 for non-negative weights.
+    """
+    match, first = 0.0, 0
+    for k, count in enumerate(classes):
+        query = query_logits[:, first : first + count].float().softmax(dim=-1)  # (B, C)
+        cell = cell_logits[..., first : first + count].float().log_softmax(dim=-1)  # (B, P, C)
+        match = match + weights[k] * (cell * query[:, None]).sum(dim=-1)
+        first += count
+    return match
+
+
+def fine_grid(per_cell: torch.Tensor, grid_side: int, subcells: int) -> torch.Tensor:
+    """(B, g * g) row-major values per token cell -> (B, (g * s) ** 2), each sub-cell its cell's value."""
+    if subcells == 1:
+        return per_cell
+    grid = per_cell.view(-1, grid_side, grid_side)
+    grid = grid.repeat_interleave(subcells, dim=1).repeat_interleave(subcells, dim=2)
+    return grid.reshape(per_cell.shape[0], -1)
 
 
 def windowed_softmax(logits: torch.Tensor, grid_side: int, window: int | None) -> torch.Tensor:

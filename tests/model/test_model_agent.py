@@ -47,12 +47,15 @@ COLOUR_STATS = {  # tiny-cnn at 64 px with each token's cell colour statistics
 
 
 ATTRIBUTES = {"grounding": GroundingConfig(dim=32, num_heads=2, attribute_weight=1.0)}  # the attribute loss
+ATTRIBUTE_MATCH = {  # the attribute loss, and the cells' attribute agreement with the query in their scores
+    "grounding": GroundingConfig(dim=32, num_heads=2, attribute_weight=1.0, attribute_match=True)
+}
 
 
 @pytest.mark.parametrize(
     "overrides",
-    [{}, FINE_GROUNDING, INSTRUCTION_FILM, COLOUR_STATS, ATTRIBUTES],
-    ids=["small", "fine_grounding", "instruction_film", "colour_stats", "attributes"],
+    [{}, FINE_GROUNDING, INSTRUCTION_FILM, COLOUR_STATS, ATTRIBUTES, ATTRIBUTE_MATCH],
+    ids=["small", "fine_grounding", "instruction_film", "colour_stats", "attributes", "attribute_match"],
 )
 def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overrides):
     agent = make_agent(**overrides).train()
