@@ -110,7 +110,7 @@ def time_steps(agent, batch: int, steps: int, warmup: int) -> tuple[float, float
 def run(presets: list[str], batches: list[int], steps: int, warmup: int) -> None:
     """Print one JSON line per (preset, history, batch)."""
     cuda = torch.cuda.is_available()
-    machine = torch.cuda.get_device_name(0) if cuda else f"{platform.processor() or platform.machine()} CPU"
+    cpu_name = f"{platform.processor() or platform.machine()} CPU"
     for preset in presets:
         big = preset != "tiny"
         device = "cuda" if big else "cpu"  # the tiny preset is the CPU configuration
@@ -127,7 +127,7 @@ def run(presets: list[str], batches: list[int], steps: int, warmup: int) -> None
                     "batch": batch,
                     "visual_tokens_per_step": cfg.visual_tokens_per_step(),
                     "ms_per_step": None,
-                    "machine": machine,
+                    "machine": torch.cuda.get_device_name(0) if device == "cuda" and cuda else cpu_name,
                     "threads": torch.get_num_threads(),
                 }
                 if agent is not None:

@@ -31,7 +31,7 @@ def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:
     Non-reentrant checkpointing, so frozen inputs (LoRA, frozen vision) need no `requires_grad` tricks.
     Returns the names of the modules switched on.
     """
-    agent.activation_checkpointing_enable(activation_checkpointing_kwargs={"use_reentrant": False})
+    switch_on_decoder_checkpointing(agent)
     switched = [name for name, m in agent.named_modules() if getattr(m, "gradient_checkpointing", False)]
     for name, module in agent.named_modules():
         is_timm = hasattr(module, "set_grad_checkpointing") and hasattr(module, "grad_checkpointing")
@@ -40,3 +40,15 @@ def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:
             switched.append(name)
     logger.info("gradient checkpointing on %d modules", len(switched))
     return switched
+
+
+def switch_on_decoder_checkpointing(agent: nn.Module) -> None:
+    """transformers' non-reentrant checkpointing of the decoder layers, under the name this transformers has:
+    `activation_checkpointing_enable` in recent 5.x releases, `gradient_checkpointing_enable` before (5.17,
+    seen on a GPU machine, has only the old name; 5.24 keeps it as a deprecated alias)."""
+    kwargs = {"use_reentrant": False}
+    enable = getattr(agent, "activation_checkpointing_enable", None)
+    if enable is not None:
+        enable(activation_checkpointing_kwargs=kwargs)
+    else:
+        agent.gradient_checkpointing_enable(gradient_checkpointing_kwargs=kwargs)

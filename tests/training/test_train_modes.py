@@ -58,6 +58,24 @@ def test_gradient_checkpointing_gives_the_same_loss_and_gradients(generated_data
         torch.testing.assert_close(agent.get_parameter(name).grad, grad, rtol=1e-4, atol=1e-6, msg=name)
 
 
+def test_decoder_checkpointing_uses_the_older_transformers_name_when_the_new_one_is_missing():
+    from openfly_agent.training.modes import switch_on_decoder_checkpointing
+
+    class OlderTransformersModel(torch.nn.Module):  # transformers 5.17: no activation_checkpointing_enable
+        def gradient_checkpointing_enable(self, gradient_checkpointing_kwargs=None):
+            self.called_with = gradient_checkpointing_kwargs
+
+    class NewerTransformersModel(OlderTransformersModel):
+        def activation_checkpointing_enable(self, activation_checkpointing_kwargs=None):
+            self.new_called_with = activation_checkpointing_kwargs
+
+    older, newer = OlderTransformersModel(), NewerTransformersModel()
+    switch_on_decoder_checkpointing(older)
+    switch_on_decoder_checkpointing(newer)
+    assert older.called_with == {"use_reentrant": False}
+    assert newer.new_called_with == {"use_reentrant": False} and not hasattr(newer, "called_with")
+
+
 def test_init_checkpoint_of_another_architecture_fails_before_training(
     reference_run, generated_dataset, tmp_path
 ):
