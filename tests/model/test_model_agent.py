@@ -301,13 +301,15 @@ def test_the_centre_window_is_a_decoding_rule_training_reads_every_cell():
 
 
 def test_activation_checkpointing_gives_the_same_gradients(make_agent, make_batch):
+    from openfly_agent.training.modes import switch_on_decoder_checkpointing
+
     agent = make_agent().train()
     batch = make_batch(agent)
     torch.manual_seed(0)  # the same box-token jitter in both passes
     agent(batch)[0].backward()
     plain = {n: p.grad.clone() for n, p in agent.named_parameters()}
     agent.zero_grad()
-    agent.activation_checkpointing_enable()
+    switch_on_decoder_checkpointing(agent)  # the transformers name that exists (5.17 lacks the new one)
     assert agent.vision_backbone.featurizer.grad_checkpointing
     torch.manual_seed(0)
     agent(batch)[0].backward()
