@@ -98,6 +98,8 @@ class DataConfig:
         expressions_per_frame: grounding stage: expressions per grounding frame in a batch (one encode each).
         expression_area_power: grounding stage: draw a frame's expressions with probability proportional to
             their box area to this power (0: uniform; most are far, tiny landmarks, unlike navigation targets).
+        group_by_kind: grounding stage: each micro-batch holds expression frames only or navigation steps only, so
+            the short expression prompts are not padded to the navigation instructions' length.
     """
 
     # dataset root (relative to the working directory); the toolchain writes embedded-small there
@@ -117,6 +119,7 @@ class DataConfig:
     instruction_fraction: float = 0.25
     expressions_per_frame: int = 4
     expression_area_power: float = 0.0
+    group_by_kind: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.instruction_fraction < 1.0:

@@ -33,7 +33,8 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         seed: seed of the draws.
         area_power: exponent of the box area in the draw weights (0: uniform).
         target_attributes: (scene id, landmark id) -> (4,) attribute ids; each sample then carries the
-            attributes of its expressions' landmarks, (k, 4) (model.grounding.attribute_weight).
+            attributes of its expressions' landmarks, (k, 4) (model.grounding.attribute_weight), and the boxes
+            and attributes of every landmark of the frame, (E, 4) each (model.grounding.dense_attribute_weight).
     """
 
     def __init__(
@@ -72,9 +73,12 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
             BOXES: frame.boxes[picks].astype(np.float32),  # (k, 4), all visible
         }
         if self.target_attributes is not None:
-            sample[C.TARGET_ATTRIBUTES] = np.stack(
-                [self.target_attributes(frame.scene_id, frame.landmark_ids[k]) for k in picks]
-            )  # (k, 4)
+            every = np.stack(
+                [self.target_attributes(frame.scene_id, key) for key in frame.landmark_ids]
+            )  # (E, 4)
+            sample[C.TARGET_ATTRIBUTES] = every[picks]  # (k, 4)
+            sample[C.LANDMARK_BOXES] = frame.boxes.astype(np.float32)  # (E, 4)
+            sample[C.LANDMARK_ATTRIBUTES] = every
         return sample
 
     def _weights(self, frame: GroundingFrame) -> np.ndarray | None:
@@ -119,6 +123,10 @@ class GroundingMixture(torch.utils.data.Dataset):
         self.expressions.set_epoch(epoch)
         if self.instructions is not None and hasattr(self.instructions, "set_epoch"):
             self.instructions.set_epoch(epoch)
+
+    def sample_groups(self) -> list[int]:
+        """The kind of each sample: 0 for an expression frame, 1 for a navigation step (grouped batches)."""
+        return [0] * len(self.expressions) + [1] * self.num_instructions
 
     def __getitem__(self, index: int) -> dict:
         if index < len(self.expressions):

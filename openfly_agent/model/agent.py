@@ -31,7 +31,6 @@ from openfly_agent.constants import (
     OBS_INSTRUCTION,
     OBS_RGB,
     PIXEL_VALUES,
-    TARGET_ATTRIBUTES,
 )
 
 from .agent_io import AgentPersistence
@@ -42,7 +41,7 @@ from .decoding import decode_one, greedy_decode
 from .episode import Box, EpisodeState, StepResult, check_observations
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
-from .grounding import GroundingHead, GroundingOutput, grounding_loss
+from .grounding import GroundingHead, GroundingOutput, grounding_labels, grounding_loss
 from .keyframes import KeyframeSelector
 from .llm import build_language_model, unwrap_causal_lm
 from .memory import MemoryBank
@@ -266,7 +265,7 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             output = self.ground(hidden, readable, first_image)
             targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
             g_loss, g_logs = grounding_loss(
-                output, *targets, self.model_cfg.grounding, batch.get(TARGET_ATTRIBUTES)
+                output, *targets, self.model_cfg.grounding, *grounding_labels(batch)
             )
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
             logs.update(g_logs, grounding_loss=float(g_loss.detach()))

@@ -9,10 +9,13 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from .config_checks import check_choice, check_positive, fill_tiny_fields
+from .grounding_config import GroundingConfig
 from .vision_config import (
     CNN_INIT_NORMAL,
     CNN_INIT_TIMM,
     CNN_INITS,
+    CNN_STEM_PATCH4,
+    CNN_STEMS,
     CNN_STRIDE,
     DINOSIGLIP_TIMM_IDS,
     DINOSIGLIP_WIDTHS,
@@ -132,68 +135,6 @@ class PromptConfig:
         if "{expression}" not in self.grounding_template:
             raise ValueError(
                 f"prompt.grounding_template={self.grounding_template!r} must contain the placeholder {{expression}}"
-            )
-
-
-@dataclass
-class GroundingConfig:
-    """Landmark grounding head: learned queries cross-attend to the LLM hidden states and regress a box.
-
-    `cells` (the tiny preset) adds per-cell scoring of the current frame: the query starts from the last prompt
-    token, FiLM-scores every cell, the box centre is the softmax-weighted cell centre plus an offset, and
-    `cell_weight` x the cross-entropy of the cell holding the box centre joins the loss (model/grounding.py).
-    """
-
-    enabled: bool = True
-    num_layers: int = 3
-    num_queries: int = 1
-    dim: int = 128  # 256 in the 7B preset
-    num_heads: int = 4  # 8 in the 7B preset
-    loss_weight: float = 1.0  # weight of the grounding loss in the total loss
-    l1_weight: float = 1.0  # grounding loss = GIoU + l1_weight * L1 (visible boxes) + visibility_weight * BCE
-    visibility_weight: float = (
-        0.5  # 0 disables the visibility logit's loss (predicted boxes then always count)
-    )
-    cells: bool = True  # per-cell scoring and box centre (False: the paper's box regression, the 7B presets)
-    cell_weight: float = 1.0  # weight of the cell cross-entropy (with `cells`)
-    # with `cells`: each token cell is scored as subcells x subcells sub-cells (logits from its hidden state), so
-    # the centre and the cross-entropy live on a grid subcells times finer than the tokens (1: the token grid)
-    subcells: int = 1
-    # with `cells`, at inference: the centre and the size's context come from the (2w + 1) x (2w + 1) cells around
-    # the best-scoring one (their softmax renormalised); null: from every cell, as in training (a two-peaked score
-    # then puts the centre between two landmarks). Checkpoints older than the option load with the default.
-    centre_window: int | None = 1
-    # with `cells`: weight of the attribute loss, the cross-entropy of the target landmark's colour, type, size and
-    # feature (`TARGET_ATTRIBUTES`, embedded cities only) read from the head's query (what it took from the text)
-    # and from the cell under the target's centre (what the frame shows there); 0: no attribute classifiers
-    attribute_weight: float = 0.0
-    # classes of each attribute (colour, type, size, feature): the embedded city's vocabularies (sim/city_vocab.py)
-    attribute_classes: list[int] = field(default_factory=lambda: [12, 6, 3, 8])
-    # with `attribute_weight`: each cell's logit gains sum_k w_k x E_query[log p_cell(attribute k)], the agreement
-    # of the cell's attribute prediction with the query's (w_k learned, start at 1)
-    attribute_match: bool = False
-
-    def __post_init__(self) -> None:
-        for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
-            check_positive("grounding", name, getattr(self, name))
-        if self.centre_window is not None and self.centre_window < 0:
-            raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
-        if self.dim % self.num_heads:
-            raise ValueError(
-                f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"
-            )
-        for name in ("loss_weight", "l1_weight", "visibility_weight", "cell_weight", "attribute_weight"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"grounding.{name} must be >= 0, got {getattr(self, name)}")
-        if len(self.attribute_classes) != 4 or min(self.attribute_classes) < 2:
-            raise ValueError(
-                f"grounding.attribute_classes={self.attribute_classes}: 4 counts of >= 2 classes"
-            )
-        if self.attribute_weight and not self.cells:
-            raise ValueError("grounding.attribute_weight needs grounding.cells (the target's cell is read)")
-        if self.attribute_match and not self.attribute_weight:
-            raise ValueError(
-                "grounding.attribute_match needs grounding.attribute_weight > 0 (it reads both sides)"
             )
 
 
@@ -453,6 +394,8 @@ __all__ = [  # the vision section's names are re-exported: model.config is the o
     "CNN_INITS",
     "CNN_INIT_NORMAL",
     "CNN_INIT_TIMM",
+    "CNN_STEMS",
+    "CNN_STEM_PATCH4",
     "CNN_STRIDE",
     "DINOSIGLIP_TIMM_IDS",
     "DINOSIGLIP_WIDTHS",

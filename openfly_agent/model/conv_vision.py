@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import initialization as init
 
-from .config import CNN_INIT_TIMM, CNN_STRIDE, VisionConfig
+from .config import CNN_INIT_TIMM, CNN_STEM_PATCH4, CNN_STRIDE, VisionConfig
 from .instruction_film import InstructionFiLM
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
@@ -54,13 +54,18 @@ def cell_colour_stats(x: torch.Tensor, cell: int) -> torch.Tensor:
     return torch.cat([mean, std, quarters], dim=1)
 
 
-def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
-    """A timm ResNet of BasicBlocks, one block per stage, output stride 16, no pooling or classifier."""
+def build_resnet(channels: tuple[int, ...], stem_width: int, stem: str) -> nn.Module:
+    """A timm ResNet of BasicBlocks, one block per stage, output stride 16, no pooling or classifier.
+
+    `stem` = `patch4` swaps timm's stem (7 x 7 stride-2 conv, then a 3 x 3 stride-2 max pool) for one 4 x 4
+    stride-4 conv: the same 64 channels at the same stride 4 into the first stage, without the two
+    full-resolution maps (half the input side, 64 channels) whose conv, BN, ReLU and pool dominate a CPU step.
+    """
     from timm.models.resnet import BasicBlock, ResNet
 
     if len(channels) != 4:
         raise ValueError(f"vision.cnn_channels needs 4 stage widths, got {list(channels)}")
-    return ResNet(
+    net = ResNet(
         BasicBlock,
         [1, 1, 1, 1],
         channels=tuple(channels),
@@ -69,6 +74,12 @@ def build_resnet(channels: tuple[int, ...], stem_width: int) -> nn.Module:
         num_classes=0,
         global_pool="",
     )
+    if stem == CNN_STEM_PATCH4:
+        net.conv1 = nn.Conv2d(
+            3, net.conv1.out_channels, kernel_size=4, stride=4, bias=False
+        )  # (F, 64, H/4, W/4)
+        net.maxpool = nn.Identity()
+    return net
 
 
 class ConvVisionBackbone(nn.Module):
@@ -83,7 +94,7 @@ class ConvVisionBackbone(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.image_size = cfg.image_size
-        self.featurizer = build_resnet(tuple(cfg.cnn_channels), cfg.cnn_stem_width).to(
+        self.featurizer = build_resnet(tuple(cfg.cnn_channels), cfg.cnn_stem_width, cfg.cnn_stem).to(
             memory_format=torch.channels_last
         )
         self.grid_side = cfg.grid_side

@@ -22,13 +22,17 @@ so a cell whose colour the query names scores higher without the FiLM scorer hav
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from openfly_agent.constants import LANDMARK_ATTRIBUTES, LANDMARK_BOXES, TARGET_ATTRIBUTES
+
 from .config import GroundingConfig
+from .landmark_cells import dense_attribute_loss
 
 
 class CrossAttentionLayer(nn.Module):
@@ -273,16 +277,29 @@ def box_cells(boxes: torch.Tensor, grid_side: int) -> torch.Tensor:
     return row * grid_side + col
 
 
+def grounding_labels(
+    batch: Mapping,
+) -> tuple[torch.Tensor | None, tuple[torch.Tensor, torch.Tensor] | None]:
+    """A batch's labels for `grounding_loss` beyond the box: (target attribute ids (B, 4) or None, (landmark
+    boxes (B, M, 4), landmark attribute ids (B, M, 4)) or None)."""
+    landmarks = None
+    if LANDMARK_BOXES in batch:
+        landmarks = (batch[LANDMARK_BOXES], batch[LANDMARK_ATTRIBUTES])
+    return batch.get(TARGET_ATTRIBUTES), landmarks
+
+
 def grounding_loss(
     output: GroundingOutput,
     target_boxes: torch.Tensor,
     visible: torch.Tensor,
     cfg: GroundingConfig,
     attributes: torch.Tensor | None = None,
+    landmarks: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """GIoU + l1_weight * L1 on visible boxes (mean), + visibility_weight * BCE on every sample, + cell_weight *
     cross-entropy of the cell holding the box centre (visible boxes, when the head scores cells), +
-    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them).
+    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them), +
+    dense_attribute_weight * `dense_attribute_loss` of every labelled cell (when the batch has `landmarks`).
 
     Args:
         output: the head's prediction (boxes (B, 4) cxcywh, visibility logits (B,), cell logits (B, P) or None).
@@ -290,6 +307,8 @@ def grounding_loss(
         visible: (B,) bool ground-truth visibility mask.
         cfg: grounding config (weights).
         attributes: (B, 4) long target attribute ids, -1 where unknown (None: no attribute term).
+        landmarks: (boxes (B, M, 4), attribute ids (B, M, 4)) of every landmark of each row's frame
+            (model/landmark_cells.py; None: no dense term).
 
     Returns:
         The scalar loss and float logs: `box_iou` (mean IoU over visible boxes, 0 when none),
@@ -320,6 +339,12 @@ def grounding_loss(
     if output.query_attributes is not None and attributes is not None:
         attribute_term, attribute_logs = attribute_loss(output, target_boxes, visible, attributes, cfg)
         loss = loss + cfg.attribute_weight * attribute_term
+    if output.cell_attributes is not None and cfg.dense_attribute_weight and landmarks is not None:
+        dense_term, dense_logs = dense_attribute_loss(
+            output.cell_attributes, *landmarks, cfg.attribute_classes
+        )
+        loss = loss + cfg.dense_attribute_weight * dense_term
+        attribute_logs.update(dense_logs)
     logs = {
         "box_iou": float(iou.detach().mean()) if count else 0.0,
         "num_visible_boxes": float(count),

@@ -23,6 +23,9 @@ RESIZE_MODES = ("bicubic", "area")
 CNN_INIT_NORMAL = "normal"  # tiny-cnn init: every conv N(0, 0.02) and BN gamma 1 (the agent's generic init)
 CNN_INIT_TIMM = "timm"  # tiny-cnn init: timm's ResNet init (Kaiming-normal convs, last BN of each block zero)
 CNN_INITS = (CNN_INIT_NORMAL, CNN_INIT_TIMM)
+CNN_STEM_RESNET = "resnet"  # tiny-cnn stem: timm's 7 x 7 stride-2 conv (64 ch) + 3 x 3 stride-2 max pool
+CNN_STEM_PATCH4 = "patch4"  # tiny-cnn stem: one 4 x 4 stride-4 conv (64 channels), no pool: no full-res maps
+CNN_STEMS = (CNN_STEM_RESNET, CNN_STEM_PATCH4)
 # Sizes of the `tiny` and `tiny-cnn` presets, taken by the tiny-only fields left at None (rejected by the 7B preset
 # when set).
 TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
@@ -68,12 +71,17 @@ class VisionConfig:
     # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
     # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)
     cnn_init: str = CNN_INIT_NORMAL
+    # tiny-cnn only: the ResNet's stem (CNN_STEMS), both stride 4 with 64 channels into the first stage: `resnet`
+    # (timm's, whose 64-channel maps at half the input resolution took about 30 % of a CPU training step) or
+    # `patch4` (a 4 x 4 stride-4 convolution, as a ViT's patch embedding; docs/BENCHMARKS.md, "The patch stem")
+    cnn_stem: str = CNN_STEM_RESNET
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
     def __post_init__(self) -> None:
         check_choice("vision", "preset", self.preset, VISION_PRESETS)
         check_choice("vision", "resize", self.resize, RESIZE_MODES)
         check_choice("vision", "cnn_init", self.cnn_init, CNN_INITS)
+        check_choice("vision", "cnn_stem", self.cnn_stem, CNN_STEMS)
         fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
         fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
         if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
@@ -104,8 +112,9 @@ class VisionConfig:
             for name in ("cnn_fine_fusion", "cnn_instruction_film", "cnn_colour_stats"):
                 if getattr(self, name):
                     raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
-            if self.cnn_init != CNN_INIT_NORMAL:
-                raise ValueError(f"vision.cnn_init is a tiny-cnn option (preset={self.preset})")
+            for name, default in (("cnn_init", CNN_INIT_NORMAL), ("cnn_stem", CNN_STEM_RESNET)):
+                if getattr(self, name) != default:
+                    raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
         if self.preset != VISION_TINY:
             return
         for name in TINY_VISION:

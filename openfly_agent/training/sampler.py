@@ -52,3 +52,40 @@ class EpochShuffleSampler(Sampler[int]):
         generator = torch.Generator().manual_seed(self.seed + self.epoch)
         order = torch.randperm(self.num_samples, generator=generator)
         return iter(order[: len(self)].tolist())
+
+
+class GroupedShuffleSampler(EpochShuffleSampler):
+    """`EpochShuffleSampler` whose every micro-batch holds samples of one group (e.g. the grounding stage's
+    expression frames or its navigation frames), so a batch of short prompts is not padded to the long ones.
+
+    Each group is shuffled, cut into whole micro-batches (a group's remainder is dropped for the epoch), and
+    the micro-batches of all groups are shuffled together: the order still depends only on (seed, epoch), each
+    group keeps its share of the samples, and a step's global batch mixes groups across its micro-batches.
+
+    Args:
+        groups: (num_samples,) group id of each sample.
+        micro_batch_size: samples per micro-batch (`batch.per_device_batch_size`).
+        global_batch_size, seed: as `EpochShuffleSampler`.
+    """
+
+    def __init__(self, groups: list[int], micro_batch_size: int, global_batch_size: int, seed: int) -> None:
+        if micro_batch_size <= 0 or global_batch_size % micro_batch_size:
+            raise ValueError(
+                f"micro_batch_size={micro_batch_size} must divide global_batch_size={global_batch_size}"
+            )
+        self.groups = torch.as_tensor(groups, dtype=torch.long)  # (num_samples,)
+        self.micro_batch_size = micro_batch_size
+        whole = sum(int(n) // micro_batch_size * micro_batch_size for n in torch.bincount(self.groups))
+        super().__init__(whole, global_batch_size, seed)
+
+    def __iter__(self) -> Iterator[int]:
+        generator = torch.Generator().manual_seed(self.seed + self.epoch)
+        chunks = []
+        for group in torch.unique(self.groups).tolist():
+            members = torch.nonzero(self.groups == group).flatten()  # (n,)
+            members = members[torch.randperm(len(members), generator=generator)]
+            whole = len(members) // self.micro_batch_size * self.micro_batch_size
+            chunks.extend(members[:whole].split(self.micro_batch_size))
+        order = torch.randperm(len(chunks), generator=generator).tolist()
+        indices = torch.cat([chunks[k] for k in order])  # (num_samples,)
+        return iter(indices[: len(self)].tolist())

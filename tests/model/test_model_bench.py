@@ -21,3 +21,27 @@ def test_time_steps_runs_with_a_full_memory(make_agent):
     median, mean = bench.time_steps(agent, batch=2, steps=1, warmup=0)
     assert median > 0 and mean > 0
     assert all(len(state.memory) == 2 for state in agent.episodes.values())
+
+
+def test_backbone_step_times_each_stem(monkeypatch, capsys):
+    import json
+
+    import torch
+
+    bench = importlib.import_module("bench.backbone_step")
+    lines = []
+    threads = (
+        torch.get_num_threads()
+    )  # the bench sets them for the process: later in-process runs need them back
+    try:
+        for stem in ("resnet", "patch4"):
+            argv = ["backbone_step.py", "--stem", stem, "--batch", "2", "--image_size", "64", "--steps", "2"]
+            monkeypatch.setattr("sys.argv", [*argv, "--warmup", "0", "--threads", "1"])
+            bench.main()
+            lines.append(json.loads(capsys.readouterr().out))
+    finally:
+        torch.set_num_threads(threads)
+    assert [line["stem"] for line in lines] == ["resnet", "patch4"]
+    assert all(line["ms_per_step"] > 0 for line in lines)
+    # only the stem's conv differs: 3 x 64 x (7 x 7 - 4 x 4) weights fewer
+    assert lines[0]["parameters"] - lines[1]["parameters"] == 3 * 64 * (49 - 16)

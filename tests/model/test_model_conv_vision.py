@@ -185,3 +185,35 @@ def test_cnn_init_choices_and_presets():
         VisionConfig(**SMALL, cnn_init="kaiming")
     with pytest.raises(ValueError, match="tiny-cnn option"):
         VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_init="timm")
+
+
+def test_patch4_stem_is_one_4x4_stride_4_conv_into_the_same_first_stage():
+    torch.manual_seed(0)
+    plain = ConvVisionBackbone(VisionConfig(**SMALL)).eval()
+    patch = ConvVisionBackbone(VisionConfig(**SMALL, cnn_stem="patch4")).eval()
+    conv = patch.featurizer.conv1
+    assert (conv.kernel_size, conv.stride, conv.out_channels) == ((4, 4), (4, 4), 64)
+    assert isinstance(patch.featurizer.maxpool, torch.nn.Identity)
+    # everything after the stem is the same module tree: the resnet stem's state loads but for conv1's kernel
+    missing, unexpected = patch.load_state_dict(
+        {k: v for k, v in plain.state_dict().items() if k != "featurizer.conv1.weight"}, strict=False
+    )
+    assert (missing, unexpected) == (["featurizer.conv1.weight"], [])
+    with torch.no_grad():
+        x = (_pixels().float() / 255 - torch.tensor([0.485, 0.456, 0.406])[:, None, None]) / torch.tensor(
+            [0.229, 0.224, 0.225]
+        )[:, None, None]
+        # the stem by hand: conv, BN, ReLU, no pool -> (N, 64, 16, 16), a quarter of the 64 px side
+        stem = patch.featurizer.act1(patch.featurizer.bn1(torch.nn.functional.conv2d(x, conv.weight, stride=4)))
+        assert stem.shape == (2, 64, 16, 16)
+        net = patch.featurizer
+        features = net.layer4(net.layer3(net.layer2(net.layer1(stem))))  # (N, 32, 4, 4)
+        expected = features.flatten(2).transpose(1, 2) + patch.pos_embed
+        torch.testing.assert_close(patch(_pixels()), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_cnn_stem_choices_and_presets():
+    with pytest.raises(ValueError, match="cnn_stem"):
+        VisionConfig(**SMALL, cnn_stem="patch8")
+    with pytest.raises(ValueError, match="tiny-cnn option"):
+        VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_stem="patch4")
