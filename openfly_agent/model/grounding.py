@@ -32,7 +32,7 @@ from torch import nn
 from openfly_agent.constants import LANDMARK_ATTRIBUTES, LANDMARK_BOXES, TARGET_ATTRIBUTES
 
 from .config import GroundingConfig
-from .landmark_cells import dense_attribute_loss
+from .landmark_cells import box_cells, dense_attribute_loss
 
 
 class CrossAttentionLayer(nn.Module):
@@ -268,13 +268,6 @@ def iou_and_giou(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor
     hull_wh = (torch.max(p[:, 2:], t[:, 2:]) - torch.min(p[:, :2], t[:, :2])).clamp(min=0)
     hull = hull_wh[:, 0] * hull_wh[:, 1]
     return iou, iou - (hull - union) / hull.clamp(min=1e-9)
-
-
-def box_cells(boxes: torch.Tensor, grid_side: int) -> torch.Tensor:
-    """(N, 4) cxcywh -> (N,) index of the cell holding each box centre (row-major on a grid_side grid)."""
-    col = (boxes[:, 0] * grid_side).long().clamp(0, grid_side - 1)
-    row = (boxes[:, 1] * grid_side).long().clamp(0, grid_side - 1)
-    return row * grid_side + col
 
 
 def grounding_labels(

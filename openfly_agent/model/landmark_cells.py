@@ -17,6 +17,13 @@ import torch
 import torch.nn.functional as F
 
 
+def box_cells(boxes: torch.Tensor, grid_side: int) -> torch.Tensor:
+    """(..., 4) cxcywh -> (...) index of the cell holding each box centre (row-major on a grid_side grid)."""
+    col = (boxes[..., 0] * grid_side).long().clamp(0, grid_side - 1)
+    row = (boxes[..., 1] * grid_side).long().clamp(0, grid_side - 1)
+    return row * grid_side + col
+
+
 def landmark_cell_labels(boxes: torch.Tensor, attributes: torch.Tensor, side: int) -> torch.Tensor:
     """Each cell's attribute ids under the rule above.
 
@@ -34,10 +41,9 @@ def landmark_cell_labels(boxes: torch.Tensor, attributes: torch.Tensor, side: in
     cell_x, cell_y = centre_x.reshape(1, 1, -1), centre_y.reshape(1, 1, -1)  # (1, 1, P)
     cx, cy, w, h = (boxes[..., k : k + 1] for k in range(4))  # (B, M, 1) each
     holds_cell_centre = ((cell_x - cx).abs() <= w / 2) & ((cell_y - cy).abs() <= h / 2)  # (B, M, P)
-    col = (boxes[..., 0] * side).long().clamp(0, side - 1)
-    row = (boxes[..., 1] * side).long().clamp(0, side - 1)
-    centre_cell = row * side + col  # (B, M)
-    holds_box_centre = centre_cell[..., None] == torch.arange(side * side, device=boxes.device)  # (B, M, P)
+    holds_box_centre = box_cells(boxes, side)[..., None] == torch.arange(
+        side * side, device=boxes.device
+    )  # (B, M, P)
     real = (boxes[..., 2] > 0) & (boxes[..., 3] > 0)  # (B, M)
     shows = (holds_cell_centre | holds_box_centre) & real[..., None]  # (B, M, P)
     area = (boxes[..., 2] * boxes[..., 3])[..., None].expand_as(shows)  # (B, M, P)
