@@ -43,6 +43,7 @@ from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, GroundingOutput, grounding_labels, grounding_loss
 from .keyframes import KeyframeSelector
+from .length_groups import run_in_length_groups
 from .llm import build_language_model, unwrap_causal_lm
 from .memory import MemoryBank
 from .memory_encoding import MemoryEncoding
@@ -253,7 +254,12 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             embeds, mask, labels, at = insert_before_targets(embeds, mask, labels, token)
             readable = mask.bool() & (labels == IGNORE_INDEX)
             readable[torch.arange(readable.shape[0], device=readable.device), at] = False
-        hidden = self.run_llm(embeds, mask).last_hidden_state  # (B, L', D)
+        hidden = run_in_length_groups(
+            lambda rows, rows_mask: self.run_llm(rows, rows_mask).last_hidden_state,
+            embeds,
+            mask,
+            self.model_cfg.llm.length_groups,
+        )  # (B, L', D)
         loss = hidden.new_zeros(())
         logs = {}
         if has_actions:

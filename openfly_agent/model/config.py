@@ -88,6 +88,10 @@ class LLMConfig:
     intermediate_size: int | None = None  # tiny only
     max_length: int = 2048
     attn_implementation: str = "sdpa"  # sdpa | eager | flash_attention_2 (passed to transformers)
+    # training forward: the decoder stack runs on up to this many groups of rows of similar length, each cut to
+    # its longest row (model/length_groups.py; same loss, fewer padded positions); 1 runs the padded batch in one
+    # call (the 7B presets)
+    length_groups: int = 3
     # Special token ids (taken from the tokenizer when the model is built with one).
     bos_token_id: int = 1
     eos_token_id: int = 2
@@ -101,6 +105,7 @@ class LLMConfig:
                 f"llm.vocab_size={self.vocab_size} must exceed the {NUM_ACTION_SLOTS} action ids"
             )
         check_positive("llm", "max_length", self.max_length)
+        check_positive("llm", "length_groups", self.length_groups)
         if self.preset != LLM_TINY:
             return
         for name in TINY_LLM:
@@ -312,7 +317,10 @@ def openfly_7b_config(**overrides) -> ModelConfig:
     cfg = ModelConfig(
         vision=VisionConfig(preset=VISION_DINOSIGLIP_224, image_size=224, patch_size=14),
         llm=LLMConfig(
-            preset=LLM_LLAMA2_7B, vocab_size=LLAMA2_PADDED_VOCAB, pad_token_id=LLAMA2_TOKENIZER_VOCAB
+            preset=LLM_LLAMA2_7B,
+            vocab_size=LLAMA2_PADDED_VOCAB,
+            pad_token_id=LLAMA2_TOKENIZER_VOCAB,
+            length_groups=1,
         ),
         prompt=PromptConfig(),
         action_head=ActionHeadConfig(vocab_end=LLAMA2_TOKENIZER_VOCAB, box_token=False),

@@ -179,3 +179,22 @@ def test_grounding_stage_trains_the_dense_attribute_term_with_grouped_batches(
     records = [json.loads(line) for line in (tmp_path / "logs" / "metrics.jsonl").read_text().splitlines()]
     dense = [r["train/dense_attribute_loss"] for r in records if "train/dense_attribute_loss" in r]
     assert dense and all(value >= 0 for value in dense) and max(dense) > 0
+
+
+def test_grounding_step_bench_times_the_stage_and_counts_its_padding(
+    generated_dataset, grounding_root, tmp_path
+):
+    import importlib
+
+    bench = importlib.import_module("bench.grounding_step")
+    threads = torch.get_num_threads()
+    overrides = [
+        f"--data.root={generated_dataset}", f"--data.grounding_root={grounding_root}", f"--output_dir={tmp_path}",
+        "--batch.global_batch_size=4", "--batch.per_device_batch_size=4", "--data.generate_if_missing=false",
+        "--model.llm.length_groups=2",
+    ]  # fmt: skip
+    record = bench.main(["--steps", "2", "--warmup", "1", "--threads", "1", "--", *overrides])
+    assert record["ms_per_micro_step"] > 0 and record["micro_batch_rows"] >= 4
+    assert 0 < record["attended_tokens"] <= record["padded_tokens"]
+    assert record["overrides"] == overrides
+    assert torch.get_num_threads() == threads  # restored for the in-process runs that follow
