@@ -158,7 +158,13 @@ def check_command(command: DocCommand) -> None:
         path = REPO / command.sub
         assert path.is_file(), f"{where}: no file {command.sub}"
         source = path.read_text()
-        for flag in [a.split("=", 1)[0] for a in command.args if a.startswith("--")]:
+        args, forwarded = command.args, []
+        if "--" in args:  # a bench that builds a training run: what follows a bare -- are train.py's options
+            from openfly_agent.training.config import TrainConfig
+
+            args, forwarded = args[: args.index("--")], args[args.index("--") + 1 :]
+            check_options(TrainConfig, forwarded)
+        for flag in [a.split("=", 1)[0] for a in args if a.startswith("--")]:
             assert f'"{flag}"' in source, f"{where}: {command.sub} has no option {flag}"
 
 
@@ -176,6 +182,24 @@ def test_the_stale_eval_command_of_issue_14_is_caught():
     with pytest.raises(UnknownOptionError, match="--agent_path"):
         check_command(stale)
     assert len(COMMANDS) > 50 and {c.kind for c in COMMANDS} >= {"train", "eval", "toolchain", "hub", "sim"}
+
+
+def test_a_bench_forwards_what_follows_a_bare_dash_dash_to_train_options():
+    from docs_commands import parse_command
+
+    from openfly_agent.utils.cli_help import UnknownOptionError
+
+    good = parse_command(
+        "docs/x.md", 0, "python bench/grounding_step.py --steps 2 -- --model.llm.length_groups=3"
+    )
+    check_command(good)
+    stale = parse_command(
+        "docs/x.md", 0, "python bench/grounding_step.py --steps 2 -- --model.llm.length_grups=3"
+    )
+    with pytest.raises(UnknownOptionError, match="length_grups"):
+        check_command(stale)
+    with pytest.raises(AssertionError, match="no option --step"):
+        check_command(parse_command("docs/x.md", 0, "python bench/grounding_step.py --step 2"))
 
 
 def test_every_config_file_the_docs_name_exists():
@@ -256,6 +280,15 @@ def _prepare(command: DocCommand, work: Path, small_agent: Path) -> None:
         for index, root in enumerate(roots):
             if root and not (work / root).exists():  # other routes: an episode may be in one root only
                 generate_tiny_dataset(work / root, seed=index + 1)
+        grounding = _value(command.args, "--data.grounding_root")
+        if grounding and not (work / grounding).exists():  # a grounding stage: its referring expressions
+            from openfly_agent.toolchain.grounding import generate_grounding
+
+            source = work / (_value(command.args, "--data.root") or DATASET)
+            generate_grounding(
+                GroundingDataConfig(source_root=str(source), output_dir=str(work / grounding), yaw_copies=0),
+                progress=False,
+            )
     if checkpoint and command.kind in ("eval", "hub", "train") and not (work / checkpoint).exists():
         run = Path(checkpoint)
         run = run.parent.parent if run.name == "last" else run
