@@ -80,6 +80,8 @@ def run_in_length_groups(
     Returns:
         (B, L, D) hidden states; when grouped, zeros past the longest row of each row's group.
     """
+    if max_groups == 1:  # one call: no lengths to read (a device sync on a GPU)
+        return run(embeds, mask)
     lengths = (last_true_index(mask.bool()) + 1).tolist()
     groups = plan_length_groups(lengths, max_groups)
     if len(groups) <= 1:
