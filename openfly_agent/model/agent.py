@@ -4,7 +4,7 @@ A `transformers.PreTrainedModel`, so save / load (safetensors, sharding), AutoMo
 `push_to_hub` come from transformers. Inputs are prepared by `self.processor` (model/processor.py), in training
 (through the collator) and in inference alike. Training: `forward(batch) -> (loss, logs)`. Closed-loop
 inference, as lerobot's policies: `select_action(observations)` / `predict_step` / `reset(episode_ids)`, with
-each running episode's state (model/episode.py) in `self.episodes`.
+each running episode's state (model/episode.py) in `self.episodes` (model/agent_inference.py).
 """
 
 from __future__ import annotations
@@ -22,42 +22,38 @@ from openfly_agent.constants import (
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
-    EPISODE_ID,
     FRAME_INDEX,
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
     MODEL_TYPE,
-    OBS_INSTRUCTION,
-    OBS_RGB,
     PIXEL_VALUES,
 )
 
+from .agent_inference import ClosedLoopInference
 from .agent_io import AgentPersistence
-from .box_token import BoxTokenEmbedding, given_boxes, insert_before_targets, jitter_boxes, last_true_index
-from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT, ModelConfig, config_to_dict
+from .box_token import BoxTokenEmbedding, insert_before_targets, jitter_boxes, last_true_index
+from .config import HEAD_DISCRETE, ModelConfig, config_to_dict
 from .conv_vision import ConvVisionBackbone
-from .decoding import decode_one, greedy_decode
-from .episode import Box, EpisodeState, StepResult, check_observations
+from .episode import EpisodeState
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
 from .grounding import GroundingHead, GroundingOutput, grounding_labels, grounding_loss
 from .keyframes import KeyframeSelector
 from .length_groups import run_in_length_groups
 from .llm import build_language_model, unwrap_causal_lm
-from .memory import MemoryBank
 from .memory_encoding import MemoryEncoding
 from .pretrained_config import OpenFlyAgentConfig
 from .processor import OpenFlyProcessor
 from .projector import FusedMLPProjector
-from .sequence import left_pad, position_ids_from_mask, splice_after_bos
+from .sequence import position_ids_from_mask, splice_after_bos
 from .tokenizer import load_tokenizer
 from .vision import build_vision_backbone
 
 logger = logging.getLogger(__name__)
 
 
-class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
+class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTrainedModel):
     """OpenFly-Agent under OpenVLA's module names (`vision_backbone`, `projector`, `language_model`).
 
     Args:
@@ -268,7 +264,9 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
             logs.update(action_loss=float(action_loss.detach()), action_accuracy=accuracy)
         if self.grounding_head is not None and BOX in batch:
             first_image = visual.shape[1] - self.model_cfg.vision.num_patches + 1  # after BOS and the memory
-            output = self.ground(hidden, readable, first_image)
+            output = self.ground(
+                hidden, readable, first_image, visual[:, -self.model_cfg.vision.num_patches :]
+            )
             targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
             g_loss, g_logs = grounding_loss(
                 output, *targets, self.model_cfg.grounding, *grounding_labels(batch)
@@ -282,18 +280,22 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
         logs["loss"] = float(loss.detach())
         return loss, logs
 
-    def ground(self, hidden: torch.Tensor, readable: torch.Tensor, first_image) -> GroundingOutput:
+    def ground(
+        self, hidden: torch.Tensor, readable: torch.Tensor, first_image, current: torch.Tensor | None = None
+    ) -> GroundingOutput:
         """The grounding head on a sequence's hidden states.
 
         Args:
             hidden: (B, L, D) LLM hidden states.
             readable: (B, L) bool, the positions the head may read (image + prompt; no padding, targets or box).
             first_image: (B,) long or int, position of each row's first current-frame token.
+            current: (B, P, D) the current frame's visual tokens as they entered the LLM (read with
+                `grounding.visual_skip`).
         """
         p = self.model_cfg.vision.num_patches
         first = torch.as_tensor(first_image, device=hidden.device).reshape(-1, 1)  # (B or 1, 1)
         image_positions = (first + torch.arange(p, device=hidden.device)[None]).expand(hidden.shape[0], p)
-        return self.grounding_head(hidden, readable, image_positions, last_true_index(readable))
+        return self.grounding_head(hidden, readable, image_positions, last_true_index(readable), current)
 
     def _action_loss(self, hidden: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, float]:
         targets = labels[:, 1:]  # next-token targets
@@ -316,163 +318,6 @@ class OpenFlyAgent(MemoryEncoding, AgentPersistence, PreTrainedModel):
                 float((predicted == target)[is_action].float().mean()) if bool(is_action.any()) else 0.0
             )
         return loss, accuracy
-
-    # --- closed-loop inference --------------------------------------------------------------------
-    def select_action(self, observations: list[dict[str, Any]]) -> list[int]:
-        """One action per observation, all episodes in one batch, each with its own memory.
-
-        Args:
-            observations: dicts with `episode_id`, `instruction`, `rgb` ((H, W, 3) uint8) and `pose`.
-
-        Returns:
-            Action ids 0..9, in the order of `observations`.
-        """
-        return [result.action for result in self.predict_step(observations)]
-
-    @torch.no_grad()
-    def predict_step(
-        self, observations: list[dict[str, Any]], true_boxes: list[Box | None] | None = None
-    ) -> list[StepResult]:
-        """`select_action` with details: action logits (or bin tokens) and the predicted landmark box.
-
-        `true_boxes` (one (cx, cy, w, h) or None = not visible per observation; evaluation only) replaces the
-        grounding head's prediction in the box token and the keyframe memory: the agent with perfect
-        grounding, which splits its gap to the expert into perception and policy.
-
-        One step of every observed episode in one left-padded prefill: encode the current frames, build
-        `[BOS] [memory] [current] [prompt]` per episode (the training layout without the action tokens), read
-        the action at the last position (`discrete`) or decode 8 bin tokens greedily with the KV cache
-        (`openvla_bins`), predict the landmark box, then record the step in the episode's state and push
-        keyframe sets that completed into its memory. Each frame is encoded once; the prompt once per episode.
-        """
-        if not observations:
-            return []
-        check_observations(observations)
-        states = [self._episode_state(obs[EPISODE_ID], obs[OBS_INSTRUCTION]) for obs in observations]
-        device = self.projector.fc1.weight.device
-        pixels = torch.stack([self.processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
-        instruction = self.episode_instruction_code([state.prompt_ids for state in states], device)  # (B, D)
-        patches, dino_cls = (
-            self.vision_backbone.forward_with_cls(pixels)
-            if instruction is None
-            else (self.vision_backbone(pixels, instruction), None)
-        )  # (B, P, D_v), (B, D_dino) or None
-        current = self.projector(patches)  # (B, P, D)
-        compat = self.model_cfg.mode == MODE_OPENVLA_COMPAT
-        own_history = self.history_tokens(patches, dino_cls) if compat else None  # (B, D)
-
-        sequences, memory_sizes = [], []
-        for row, state in enumerate(states):
-            if compat:
-                memory = state.compat_history(own_history[row], self.model_cfg.memory.capacity)  # (K, D)
-            else:
-                memory = torch.cat([current[row, :0], *state.memory.tokens()], dim=0)  # (M, D), oldest first
-            prompt = self.embed_text(torch.tensor(state.prompt_ids, device=device))  # (L, D)
-            sequences.append(
-                torch.cat([prompt[:1], memory.to(current.dtype), current[row], prompt[1:]], dim=0)
-            )
-            memory_sizes.append(memory.shape[0])
-        embeds, mask = left_pad(sequences)  # (B, L_max, D), (B, L_max)
-        use_cache = self.action_tokenizer.head != HEAD_DISCRETE or self.box_token_embed is not None
-        output = self.run_llm(embeds, mask, use_cache=use_cache)
-        hidden = output.last_hidden_state  # (B, L_max, D)
-        padding = mask.shape[1] - mask.sum(dim=1)  # (B,) left padding of each row
-        first_image = (
-            padding + 1 + torch.tensor(memory_sizes, device=mask.device)
-        )  # after [pad] [BOS] [memory]
-        if true_boxes is None:
-            boxes, visible = self._predict_boxes(hidden, mask, first_image)
-        elif len(true_boxes) != len(observations):
-            raise ValueError(f"{len(true_boxes)} true boxes for {len(observations)} observations")
-        else:  # the head's prediction would be discarded: not computed
-            boxes, visible = given_boxes(true_boxes, device)
-        if self.box_token_embed is not None:  # [.. prompt] [BOX]: one cached step, the action is read there
-            token = self.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)
-            hidden, mask = decode_one(self, token, mask, output.past_key_values)
-        actions, details = self._decode_actions(hidden, mask, output.past_key_values)
-        boxes = boxes.float().cpu()
-
-        results = []
-        for row, state in enumerate(states):
-            box = tuple(float(v) for v in boxes[row])
-            results.append(StepResult(actions[row], details[row].cpu(), box, bool(visible[row])))
-            frame = state.record(actions[row], box if visible[row] else None)
-            if compat:
-                state.keep_history_token(frame, own_history[row], self.model_cfg.memory.capacity)
-            else:
-                state.frame_features[frame] = patches[row]
-        if not compat:
-            self._update_memories(states)
-        return results
-
-    def reset(self, episode_ids: list[str] | None = None) -> None:
-        """Forget the memory of the listed episodes (every episode when None)."""
-        if episode_ids is None:
-            self.episodes.clear()
-        for episode_id in episode_ids or []:
-            self.episodes.pop(episode_id, None)
-
-    def _episode_state(self, episode_id: str, instruction: str) -> EpisodeState:
-        """The state of a running episode, or a new one with its prompt tokenised by the processor."""
-        state = self.episodes.get(episode_id)
-        if state is not None:
-            if state.instruction != instruction:
-                raise ValueError(
-                    f"episode {episode_id!r} changed its instruction: reset([{episode_id!r}]) first"
-                )
-            return state
-        if self.processor is None:
-            raise ValueError(
-                "select_action needs a tokenizer: pass one to from_model_config / from_pretrained"
-            )
-        prompt_ids, _ = self.processor.encode(self.processor.navigation_prompt(instruction))
-        state = EpisodeState(instruction, prompt_ids, MemoryBank(self.model_cfg.memory.capacity))
-        self.episodes[episode_id] = state
-        return state
-
-    def _decode_actions(self, hidden, mask, cache) -> tuple[list[int], list[torch.Tensor]]:
-        """Discrete: argmax over the 10 action ids at the last position. Bins: 8 greedy tokens, decoded."""
-        last = self.lm_logits(hidden[:, -1])  # (B, V)
-        if self.action_tokenizer.head == HEAD_DISCRETE:
-            ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=last.device)
-            logits = last[:, ids]  # (B, 10)
-            return [int(a) for a in logits.argmax(dim=-1)], list(logits)
-        tokens = greedy_decode(self, last, mask, cache, self.action_tokenizer.num_action_tokens)  # (B, 8)
-        return [self.processor.decode_action(row.tolist()) for row in tokens], list(tokens)
-
-    def _predict_boxes(self, hidden, mask, first_image) -> tuple[torch.Tensor, list[bool]]:
-        """(B, 4) predicted boxes and whether each counts as visible (prefill of left-padded rows)."""
-        batch = hidden.shape[0]
-        if self.grounding_head is None:
-            return hidden.new_zeros(batch, 4), [False] * batch
-        output = self.ground(hidden, mask.bool(), first_image)
-        if self.model_cfg.grounding.visibility_weight == 0:
-            return output.boxes.float(), [True] * batch  # no visibility training: every box counts
-        return output.boxes.float(), [bool(v) for v in output.visibility > 0]
-
-    def _update_memories(self, states: list[EpisodeState]) -> None:
-        """Push newly completed keyframe sets (same selector as the dataset, predicted boxes) into the FIFOs."""
-        pending = []  # (state, frames)
-        for state in states:
-            for frames in self.keyframe_selector.select(state.actions, state.box_areas, state.step):
-                if tuple(frames) not in state.memory:
-                    pending.append((state, frames))
-            state.forget_features_before(state.step - self.keyframe_selector.set_size)
-        if not pending:
-            return
-        size = max(len(frames) for _, frames in pending)
-        first = next(iter(pending[0][0].frame_features.values()))
-        features = first.new_zeros(len(pending), size, *first.shape)  # (N, S, P, D_v)
-        frame_mask = torch.zeros(len(pending), size, dtype=torch.bool, device=first.device)  # (N, S)
-        boxes = torch.zeros(len(pending), size, 4, device=first.device)  # (N, S, 4)
-        for row, (state, frames) in enumerate(pending):
-            for col, frame in enumerate(frames):
-                features[row, col] = state.frame_features[frame]
-                boxes[row, col] = torch.tensor(state.boxes[frame], device=first.device)
-            frame_mask[row, : len(frames)] = True
-        tokens = self.memory_set_tokens(features, frame_mask, boxes, frame_mask)  # (N, m, D)
-        for row, (state, frames) in enumerate(pending):
-            state.memory.push(tuple(frames), tokens[row])
 
     # --- training set-up ---------------------------------------------------------------------------
     def freeze(self, stage: str) -> dict[str, int]:

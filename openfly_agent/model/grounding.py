@@ -18,6 +18,11 @@ them; training keeps the softmax over every cell (trained with the window, the h
 With `attribute_weight` the head also names the target's attributes from its query and from every cell
 (`attribute_loss`); with `attribute_match` each cell's logit gains the agreement of the two (`attribute_match`),
 so a cell whose colour the query names scores higher without the FiLM scorer having to discover the match.
+With `cell_fusion_layers` = n > 0 each cell first cross-attends (n layers) to the same readable sequence as the
+queries: in a causal LLM the frame's tokens precede the prompt, so without them a cell's features never see the
+instruction and only the query's FiLM code binds the two. With `visual_skip` each cell also gets a projection of
+the frame's visual token at its position (the LLM's input there), so what the LLM's layers mix away still reaches
+the scorer.
 """
 
 from __future__ import annotations
@@ -130,6 +135,10 @@ class GroundingHead(nn.Module):
         self.grid_side, self.fine_side = grid_side, grid_side * cfg.subcells
         self.centre_window = cfg.centre_window
         self.text_query = nn.Linear(llm_dim, cfg.dim)  # the last prompt token starts the query
+        self.visual_proj = nn.Linear(llm_dim, cfg.dim) if cfg.visual_skip else None
+        self.cell_layers = nn.ModuleList(
+            [CrossAttentionLayer(cfg.dim, cfg.num_heads) for _ in range(cfg.cell_fusion_layers)]
+        )
         self.cell_scorer = CellScorer(cfg.dim, grid_side, cfg.subcells)
         self.box_mlp = nn.Sequential(nn.Linear(2 * cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, 4))
         # the attributes of the target (colour, type, size, feature logits, concatenated) from the query and from
@@ -149,6 +158,7 @@ class GroundingHead(nn.Module):
         key_mask: torch.Tensor,
         image_positions: torch.Tensor | None = None,
         last_positions: torch.Tensor | None = None,
+        visual_cells: torch.Tensor | None = None,
     ) -> GroundingOutput:
         """Predict one box per sequence.
 
@@ -157,6 +167,8 @@ class GroundingHead(nn.Module):
             key_mask: (B, L) bool, positions the head may read (image + prompt, never padding/targets).
             image_positions: (B, P) long, positions of the current frame's tokens (`cells` only).
             last_positions: (B,) long, position of each row's last prompt token (`cells` only).
+            visual_cells: (B, P, D_llm) the current frame's visual tokens, the LLM's inputs at `image_positions`
+                (needed with `visual_skip`).
         """
         memory = self.input_proj(hidden.to(self.input_proj.weight.dtype))  # (B, L, d)
         batch = hidden.shape[0]
@@ -174,6 +186,14 @@ class GroundingHead(nn.Module):
         cells = torch.gather(
             memory, 1, image_positions[..., None].expand(-1, -1, memory.shape[-1])
         )  # (B, P, d)
+        if self.visual_proj is not None:
+            if visual_cells is None:
+                raise ValueError(
+                    "grounding.visual_skip needs the current frame's visual tokens (visual_cells)"
+                )
+            cells = cells + self.visual_proj(visual_cells.to(self.visual_proj.weight.dtype))  # (B, P, d)
+        for layer in self.cell_layers:
+            cells = layer(cells, memory, key_mask)  # (B, P, d): each cell reads the prompt (and the frame)
         cell_logits = self.cell_scorer(cells, pooled)  # (B, F), F = (g * s)^2 fine cells
         query_attributes = cell_attributes = None
         if self.query_attributes is not None:

@@ -52,6 +52,14 @@ class GroundingConfig:
     # takes the attributes of the smallest landmark whose box holds its centre or whose centre it holds;
     # model/landmark_cells.py); 0: only the target's cell is supervised
     dense_attribute_weight: float = 0.0
+    # with `cells`: layers in which every cell of the current frame cross-attends to the readable sequence (the
+    # prompt's tokens, the frame's other cells, the memory) before it is scored, so a cell's features see the
+    # words; 0: the cells are the LLM's hidden states as they are (a causal LLM puts the frame before the prompt)
+    cell_fusion_layers: int = 0
+    # with `cells`: each cell also gets a projection of the current frame's visual token there (the projector's
+    # output, as it enters the LLM), a skip past the LLM, whose layers mix the cells and lose what tells
+    # one landmark from another (its colour); false: the cells are the LLM's hidden states only
+    visual_skip: bool = False
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
@@ -70,6 +78,14 @@ class GroundingConfig:
             raise ValueError(
                 f"grounding.attribute_classes={self.attribute_classes}: 4 counts of >= 2 classes"
             )
+        if self.cell_fusion_layers < 0:
+            raise ValueError(f"grounding.cell_fusion_layers must be >= 0, got {self.cell_fusion_layers}")
+        if self.cell_fusion_layers and not self.cells:
+            raise ValueError(
+                "grounding.cell_fusion_layers needs grounding.cells (it updates the scored cells)"
+            )
+        if self.visual_skip and not self.cells:
+            raise ValueError("grounding.visual_skip needs grounding.cells (it adds to the scored cells)")
         if self.attribute_weight and not self.cells:
             raise ValueError("grounding.attribute_weight needs grounding.cells (the target's cell is read)")
         if self.dense_attribute_weight and not self.attribute_weight:

@@ -51,12 +51,18 @@ ATTRIBUTE_MATCH = {  # the attribute loss, and the cells' attribute agreement wi
     "grounding": GroundingConfig(dim=32, num_heads=2, attribute_weight=1.0, attribute_match=True)
 }
 
+FUSED_CELLS = {  # cells that cross-attend to the prompt and get the frame's visual tokens
+    "grounding": GroundingConfig(dim=32, num_heads=2, cell_fusion_layers=2, visual_skip=True)
+}
+
 
 @pytest.mark.parametrize(
     "overrides",
-    [{}, FINE_GROUNDING, INSTRUCTION_FILM, COLOUR_STATS, ATTRIBUTES, ATTRIBUTE_MATCH],
-    ids=["small", "fine_grounding", "instruction_film", "colour_stats", "attributes", "attribute_match"],
-)
+    [{}, FINE_GROUNDING, INSTRUCTION_FILM, COLOUR_STATS, ATTRIBUTES, ATTRIBUTE_MATCH, FUSED_CELLS],
+    ids=[
+        "small", "fine_grounding", "instruction_film", "colour_stats", "attributes", "attribute_match", "fused_cells"
+    ],
+)  # fmt: skip
 def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overrides):
     agent = make_agent(**overrides).train()
     batch = make_batch(agent, batch_size=3)

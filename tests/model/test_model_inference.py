@@ -33,7 +33,7 @@ def memory_agent(make_agent, **overrides):
     every change point yields a keyframe set (all predicted boxes visible, theta = 0)."""
     agent = make_agent(
         seed=1,
-        grounding=GroundingConfig(dim=32, num_heads=2, visibility_weight=0.0),
+        grounding=overrides.pop("grounding", GroundingConfig(dim=32, num_heads=2, visibility_weight=0.0)),
         keyframes=KeyframeConfig(theta=0.0),
         **overrides,
     )
@@ -78,9 +78,17 @@ def film_agent(make_agent):
     return agent
 
 
-@pytest.mark.parametrize("conditioned", [False, True], ids=["plain", "instruction_film"])
-def test_batched_equals_one_episode_at_a_time(make_agent, conditioned):
-    agent = film_agent(make_agent) if conditioned else memory_agent(make_agent)
+FUSED_HEAD = GroundingConfig(  # cells that read the prompt and the frame's visual tokens
+    dim=32, num_heads=2, visibility_weight=0.0, cell_fusion_layers=1, visual_skip=True
+)
+
+
+@pytest.mark.parametrize("variant", ["plain", "instruction_film", "fused_head"])
+def test_batched_equals_one_episode_at_a_time(make_agent, variant):
+    if variant == "instruction_film":
+        agent = film_agent(make_agent)
+    else:
+        agent = memory_agent(make_agent, **({"grounding": FUSED_HEAD} if variant == "fused_head" else {}))
     episodes, steps = 3, 10
     frames = _frames(episodes, steps, size=agent.model_cfg.vision.image_size)
     batched = [agent.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]

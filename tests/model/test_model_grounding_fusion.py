@@ -1,0 +1,78 @@
+"""The grounding head's cells beyond the LLM's hidden states (model/grounding.py): `grounding.cell_fusion_layers`
+(the cells read the prompt) and `grounding.visual_skip` (the cells get the frame's visual tokens)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from openfly_agent.model.config import GroundingConfig
+from openfly_agent.model.grounding import GroundingHead
+
+# a 2 x 2 grid at positions 1-4 of a 7-position sequence; position 5 is a prompt token, 6 padding (not readable)
+IMAGE_POSITIONS = torch.tensor([[1, 2, 3, 4]])
+LAST_PROMPT = torch.tensor([5])
+KEY_MASK = torch.tensor([[True, True, True, True, True, True, False]])
+
+
+def _head(layers: int, visual_skip: bool = False) -> GroundingHead:
+    torch.manual_seed(0)
+    cfg = GroundingConfig(
+        dim=8, num_heads=2, attribute_weight=1.0, cell_fusion_layers=layers, visual_skip=visual_skip
+    )
+    return GroundingHead(16, cfg, grid_side=2).eval()
+
+
+def _cell_side(head: GroundingHead, hidden: torch.Tensor, visual: torch.Tensor | None = None) -> torch.Tensor:
+    """(1, 4, A) attribute logits of the cells: what the cell side holds, before the query's FiLM."""
+    with torch.no_grad():
+        return head(hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT, visual).cell_attributes
+
+
+def test_fused_cells_read_the_prompt_and_plain_cells_do_not():
+    hidden = torch.randn(1, 7, 16)
+    changed_prompt = hidden.clone()
+    changed_prompt[0, 5] += 3.0
+    plain, fused = _head(0), _head(2)
+    torch.testing.assert_close(_cell_side(plain, hidden), _cell_side(plain, changed_prompt))
+    assert not torch.allclose(_cell_side(fused, hidden), _cell_side(fused, changed_prompt))
+
+
+def test_fused_cells_ignore_unreadable_positions():
+    hidden = torch.randn(1, 7, 16)
+    changed_padding = hidden.clone()
+    changed_padding[0, 6] += 3.0
+    fused = _head(1)
+    torch.testing.assert_close(_cell_side(fused, hidden), _cell_side(fused, changed_padding))
+
+
+def test_the_visual_skip_adds_each_cells_own_visual_token():
+    hidden, visual = torch.randn(1, 7, 16), torch.randn(1, 4, 16)
+    head = _head(0, visual_skip=True)
+    changed = visual.clone()
+    changed[0, 2] += 3.0  # the third cell's token only
+    moved = (_cell_side(head, hidden, changed) - _cell_side(head, hidden, visual)).abs().sum(dim=-1)  # (1, 4)
+    assert moved[0, 2] > 0 and moved[0, [0, 1, 3]].tolist() == [0.0, 0.0, 0.0]
+    with torch.no_grad():  # a zero projection leaves the cells as without the skip
+        head.visual_proj.weight.zero_()
+        head.visual_proj.bias.zero_()
+    zero_skip = _cell_side(head, hidden, visual)
+    with pytest.raises(ValueError, match="visual_skip needs the current frame's visual tokens"):
+        _cell_side(head, hidden)
+    head.visual_proj = None  # the same weights without the skip
+    torch.testing.assert_close(zero_skip, _cell_side(head, hidden))
+
+
+def test_no_fusion_layers_keep_the_state_dict_of_earlier_checkpoints():
+    assert not any(name.startswith(("cell_layers", "visual_proj")) for name in _head(0).state_dict())
+    names = {name.split(".")[1] for name in _head(2).state_dict() if name.startswith("cell_layers")}
+    assert names == {"0", "1"}
+
+
+def test_fusion_options_are_checked():
+    with pytest.raises(ValueError, match="cell_fusion_layers must be >= 0"):
+        GroundingConfig(cell_fusion_layers=-1)
+    with pytest.raises(ValueError, match="cell_fusion_layers needs grounding.cells"):
+        GroundingConfig(cells=False, cell_fusion_layers=1)
+    with pytest.raises(ValueError, match="visual_skip needs grounding.cells"):
+        GroundingConfig(cells=False, visual_skip=True)
