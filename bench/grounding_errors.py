@@ -49,6 +49,11 @@ def main() -> None:
         default="checkpoint",
         help="decode with this grounding.centre_window (an int, or none: every cell); default: the checkpoint's",
     )
+    parser.add_argument(
+        "--live_weights",
+        action="store_true",
+        help="score the live weights of the checkpoint's training state (a run with optim.ema_decay exports the average)",
+    )
     args = parser.parse_args()
 
     import torch  # lazy: --help stays fast
@@ -62,7 +67,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     boxes = collect_target_boxes(
-        args.run, args.checkpoint, args.split, args.max_samples or None, args.batch_size, args.centre_window
+        args.run,
+        args.checkpoint,
+        args.split,
+        args.max_samples or None,
+        args.batch_size,
+        args.centre_window,
+        args.live_weights,
     )
     errors = grounding_errors(boxes.pred, boxes.target, boxes.cell_logits)
     errors.update(split=boxes.split, samples=boxes.samples, visibility_accuracy=boxes.visibility_accuracy)

@@ -80,6 +80,9 @@ class OptimConfig:
     # (a run that its time limit cuts still ends at the floor; the recipe's stages have time budgets)
     horizon: str = "steps"
     max_grad_norm: float | None = 1.0  # None disables clipping
+    # an exponential moving average of the weights (training/ema.py): validation, the test evaluation and every
+    # checkpoint's model folder use it; e.g. 0.999 (warmed up); None: the live weights
+    ema_decay: float | None = None
 
     def __post_init__(self) -> None:
         _require(self.lr > 0, f"optim.lr must be > 0, got {self.lr}")
@@ -94,6 +97,10 @@ class OptimConfig:
         _require(
             self.max_grad_norm is None or self.max_grad_norm > 0,
             f"optim.max_grad_norm must be > 0 or null, got {self.max_grad_norm}",
+        )
+        _require(
+            self.ema_decay is None or 0 < self.ema_decay < 1,
+            f"optim.ema_decay must be in (0, 1) or null, got {self.ema_decay}",
         )
 
 

@@ -24,6 +24,7 @@ from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.grounding import box_cells, iou_and_giou
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.ema import load_live_weights
 from openfly_agent.training.evaluate import eval_indices
 from openfly_agent.training.stages import stage_data
 from openfly_agent.utils.config import config_from_dict, replace
@@ -169,6 +170,7 @@ def collect_target_boxes(
     max_samples: int | None = 1024,
     batch_size: int = 32,
     centre_window: int | None | str = "checkpoint",
+    live_weights: bool = False,
 ) -> TargetBoxes:
     """Run a training run's agent over evenly spaced samples of a split and keep its target boxes.
 
@@ -181,6 +183,8 @@ def collect_target_boxes(
         batch_size: samples per forward.
         centre_window: the head's `grounding.centre_window` at inference (an int, or None for every cell);
             "checkpoint" keeps the checkpoint's.
+        live_weights: score the live weights of the checkpoint's training state instead of its model folder's (which
+            hold the weight average in a run with `optim.ema_decay`).
 
     Raises:
         FileNotFoundError: no `train_config.json` in `run_dir`, or no checkpoint.
@@ -196,6 +200,8 @@ def collect_target_boxes(
     if folder is None:
         raise FileNotFoundError(f"no checkpoint at {checkpoint or run_dir}")
     agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
+    if live_weights:
+        load_live_weights(agent, folder)
     if agent.grounding_head is None:
         raise ValueError(f"{folder}: the agent has no grounding head (model.grounding.enabled=false)")
     if centre_window != "checkpoint":

@@ -12,10 +12,12 @@ from pathlib import Path
 
 from accelerate import Accelerator
 from accelerate.utils import DistributedType
+from timm.utils import ModelEmaV3
 from torch import nn
 
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.ema import load_ema, save_ema
 from openfly_agent.training.export import export_model_folder
 from openfly_agent.training.state import (
     ACCELERATE_STATE_DIR,
@@ -45,17 +47,24 @@ def save_checkpoint(
     state: TrainerState,
     checkpoints: CheckpointManager,
     cfg: TrainConfig,
+    ema: ModelEmaV3 | None = None,
 ) -> Path:
-    """Write the checkpoint of `state.step` atomically (call on every process); return its folder."""
+    """Write the checkpoint of `state.step` atomically (call on every process); return its folder.
+
+    With a weight average (`ema`), the model folder holds the average, and the training state holds it too
+    (`ema.safetensors`, for resuming) next to the live weights.
+    """
     step = state.step
     if accelerator.is_main_process:
         checkpoints.begin(step)
     accelerator.wait_for_everyone()
     staging = checkpoints.staging_dir(step)
     accelerator.save_state(str(staging / ACCELERATE_STATE_DIR))
-    export_model_folder(accelerator, model, staging, cfg)
+    export_model_folder(accelerator, model if ema is None else ema.module, staging, cfg)
     if accelerator.is_main_process:
         state.save(staging)
+        if ema is not None:
+            save_ema(ema, staging / ACCELERATE_STATE_DIR)
     accelerator.wait_for_everyone()
     if accelerator.is_main_process:
         checkpoints.commit(step)
@@ -63,8 +72,11 @@ def save_checkpoint(
     return checkpoints.final_dir(step)
 
 
-def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerState:
-    """Load optimizer, scheduler, RNG and trainable weights from `folder` (every process); return counters.
+def restore_checkpoint(
+    accelerator: Accelerator, folder: str | Path, ema: ModelEmaV3 | None = None
+) -> TrainerState:
+    """Load optimizer, scheduler, RNG, trainable weights (and the weight average, with `ema`) from `folder`
+    (every process); return counters.
 
     Call after `accelerator.prepare` and before the first step.
     """
@@ -77,6 +89,8 @@ def restore_checkpoint(accelerator: Accelerator, folder: str | Path) -> TrainerS
             "(the per-process RNG and optimizer shards must match)"
         )
     accelerator.load_state(str(folder / ACCELERATE_STATE_DIR))
+    if ema is not None:
+        load_ema(ema, folder / ACCELERATE_STATE_DIR)
     logger.info(
         "resumed from %s at step %d (epoch %d, step %d of it)",
         folder,

@@ -21,6 +21,7 @@ from openfly_agent.training.accelerator import closing_trackers, flat_config, ma
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import STAGE_NAVIGATION, TrainConfig
+from openfly_agent.training.ema import make_ema, update_ema
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
 from openfly_agent.training.export import export_merged_lora
 from openfly_agent.training.loaders import epoch_batches, make_train_loader
@@ -91,6 +92,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     )
     model, optimizer, train_loader, scheduler = accelerator.prepare(agent, optimizer, train_loader, scheduler)
     register_state_hooks(accelerator)  # checkpoints keep trainable tensors only
+    ema = make_ema(accelerator, model, optim.ema_decay)  # None: no weight average
+    evaluated = model if ema is None else ema.module  # what validation, the test split and exports see
     eval_batch = cfg.validation.per_device_batch_size or cfg.batch.per_device_batch_size
     val_loader = test_loader = None
     test_indices: list[int] = []
@@ -104,7 +107,7 @@ def train(cfg: TrainConfig) -> TrainResult:
         )
     state = TrainerState(world_size=accelerator.num_processes)
     if resume_from is not None:
-        state = restore_checkpoint(accelerator, resume_from)  # optimizer, schedule, RNG, trainable weights
+        state = restore_checkpoint(accelerator, resume_from, ema)  # optimizer, schedule, RNG, weights
     accelerator.init_trackers(cfg.logging.project, config=flat_config(cfg))
     logger.info(
         "run: %d steps (%d per epoch), starting at step %d", total_steps, sampler.steps_per_epoch, state.step
@@ -139,6 +142,8 @@ def train(cfg: TrainConfig) -> TrainResult:
                     continue
                 scheduler.step()
                 state.advance(cfg.batch.global_batch_size, sampler.steps_per_epoch, accelerator.num_processes)
+                if ema is not None:
+                    update_ema(ema, accelerator, model, state.step)
                 progress.update(1)
                 if state.step % cfg.logging.log_interval == 0 or state.step == total_steps:
                     train_logs = {**means.pop(accelerator), **meter.report(accelerator)}
@@ -150,15 +155,15 @@ def train(cfg: TrainConfig) -> TrainResult:
                         acc=f"{train_logs.get('action_accuracy', float('nan')):.3f}",
                     )
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
-                    log_metrics(accelerator, "val", evaluate(model, val_loader, accelerator), state.step)
+                    log_metrics(accelerator, "val", evaluate(evaluated, val_loader, accelerator), state.step)
                 if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
                     state.train_seconds = int(stops.elapsed_s())
-                    last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+                    last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg, ema)
                     saved_step = state.step
                 if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
                     logger.warning("stop_after_steps=%d reached: exiting without the final save", state.step)
                     progress.close()
-                    return _result(state, last_checkpoint, {}, True, accelerator, model)
+                    return _result(state, last_checkpoint, {}, True, accelerator, evaluated)
                 if state.step >= total_steps:
                     break
                 reason = stops.reason()  # the time limit or SIGTERM / SIGUSR1 on any process
@@ -172,21 +177,21 @@ def train(cfg: TrainConfig) -> TrainResult:
         # 5. The end: a checkpoint of the last step, the LoRA merge, the offline evaluation of the test split.
         if saved_step != state.step:
             state.train_seconds = int(stops.elapsed_s())
-            last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+            last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg, ema)
         if reason == "signal":
             logger.warning(
                 "stopped by a signal at step %d; `--resume` continues from %s", state.step, last_checkpoint
             )
-            return _result(state, last_checkpoint, {}, True, accelerator, model)
+            return _result(state, last_checkpoint, {}, True, accelerator, evaluated)
         if cfg.use_lora and cfg.lora.merge_at_end:
-            export_merged_lora(accelerator, model, cfg.output_dir)  # full weights in <output_dir>/merged
+            export_merged_lora(accelerator, evaluated, cfg.output_dir)  # full weights in <output_dir>/merged
         final: dict[str, float] = {}
         if test_loader is not None:
-            final = evaluate(model, test_loader, accelerator)
+            final = evaluate(evaluated, test_loader, accelerator)
             if cfg.stage == STAGE_NAVIGATION:
                 final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
             log_metrics(accelerator, "test", final, state.step)
-        return _result(state, last_checkpoint, final, reason is not None, accelerator, model)
+        return _result(state, last_checkpoint, final, reason is not None, accelerator, evaluated)
 
 
 def log_metrics(accelerator, prefix: str, metrics: dict[str, float], step: int) -> None:
