@@ -20,6 +20,7 @@ from safetensors.torch import load_file, load_model, save_model
 from timm.utils import ModelEmaV3
 from torch import nn
 
+from openfly_agent.constants import WEIGHTS_NAME
 from openfly_agent.training.state import ACCELERATE_STATE_DIR
 
 logger = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ def load_live_weights(agent: nn.Module, checkpoint: str | Path) -> int:
         FileNotFoundError: the checkpoint has no training state.
         ValueError: the training state names tensors the agent does not have.
     """
-    path = Path(checkpoint) / ACCELERATE_STATE_DIR / "model.safetensors"
+    path = Path(checkpoint) / ACCELERATE_STATE_DIR / WEIGHTS_NAME  # accelerate's name for the (first) model
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: {checkpoint} has no training state")
     live = load_file(str(path))
