@@ -50,9 +50,8 @@ def test_the_average_copies_at_step_one_then_follows_the_warmed_up_decay(acceler
     assert float(ema.module.weight) == pytest.approx(2.0, abs=1e-7)
     with torch.no_grad():
         model.weight.fill_(0.0)
-    update_ema(
-        ema, accelerator, model, step=20
-    )  # decay 1 - 20 ** -0.75 = 0.894260 (by hand: 20^0.75 = 9.4574)
+    # decay at step 20: 1 - 20 ** -0.75 = 0.894260 (by hand: 20^0.75 = 9.4574)
+    update_ema(ema, accelerator, model, step=20)
     assert float(ema.module.weight) == pytest.approx(2.0 * 0.894260, abs=1e-5)
     with torch.no_grad():
         model.weight.fill_(1.0)
