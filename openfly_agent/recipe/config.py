@@ -92,6 +92,9 @@ class RecipeConfig:
     # toolchain YAMLs of more navigation data, each generated into its own output_dir; their train splits join
     # the navigation stage and the DAgger rounds (the test splits stay dataset_root's)
     extra_toolchain_configs: list[str] = field(default_factory=list)
+    # true: those train splits also join the grounding stage, as more navigation targets (the stage's
+    # data.instruction_fraction of its samples are navigation steps seen as instruction -> target box)
+    grounding_extra_routes: bool = False
     train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
     processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
     torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts

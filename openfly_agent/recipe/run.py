@@ -120,6 +120,8 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
             )
         )
         grounding_args = ["--stage=grounding", f"--data.grounding_root={cfg.grounding_root}"]
+        if cfg.grounding_extra_routes and extra_roots:
+            grounding_args.append(_extra_roots_flag(extra_roots))
         steps.append(_train_step(cfg, "grounding", out / "grounding", cfg.grounding, grounding_args))
         init = [f"--init.checkpoint={out / 'grounding'}", "--init.matching=true"]
     navigation_args = init + ([_extra_roots_flag(extra_roots)] if extra_roots else [])

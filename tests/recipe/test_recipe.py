@@ -79,6 +79,18 @@ def test_extra_datasets_are_generated_and_join_navigation_and_dagger_training(tm
     assert _flag(by_name["dagger-r1-rollouts"].command, "source_root") == cfg.dataset_root
 
 
+def test_the_extra_routes_join_the_grounding_stage_when_asked(tmp_path):
+    extra = "configs/toolchain/embedded-small-extra.yaml"
+    cfg = RecipeConfig(output_dir=str(tmp_path), extra_toolchain_configs=[extra], grounding_extra_routes=True)
+    by_name = {s.name: s for s in recipe_steps(cfg)}
+    root = "outputs/datasets/embedded-small-extra"
+    assert _flag(by_name["grounding"].command, "data.extra_train_roots") == f"[{root}]"
+    assert _flag(by_name["navigation"].command, "data.extra_train_roots") == f"[{root}]"
+    without_extra = RecipeConfig(output_dir=str(tmp_path), grounding_extra_routes=True)
+    grounding = next(s for s in recipe_steps(without_extra) if s.name == "grounding")
+    assert _flag(grounding.command, "data.extra_train_roots") is None
+
+
 def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluated(tmp_path):
     cfg = RecipeConfig(
         output_dir=str(tmp_path), grounding=StageBudget(steps=0), dagger=DaggerSettings(rounds=0)
