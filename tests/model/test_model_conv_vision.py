@@ -204,7 +204,9 @@ def test_patch4_stem_is_one_4x4_stride_4_conv_into_the_same_first_stage():
             [0.229, 0.224, 0.225]
         )[:, None, None]
         # the stem by hand: conv, BN, ReLU, no pool -> (N, 64, 16, 16), a quarter of the 64 px side
-        stem = patch.featurizer.act1(patch.featurizer.bn1(torch.nn.functional.conv2d(x, conv.weight, stride=4)))
+        stem = patch.featurizer.act1(
+            patch.featurizer.bn1(torch.nn.functional.conv2d(x, conv.weight, stride=4))
+        )
         assert stem.shape == (2, 64, 16, 16)
         net = patch.featurizer
         features = net.layer4(net.layer3(net.layer2(net.layer1(stem))))  # (N, 32, 4, 4)
