@@ -95,6 +95,10 @@ class RecipeConfig:
     # true: those train splits also join the grounding stage, as more navigation targets (the stage's
     # data.instruction_fraction of its samples are navigation steps seen as instruction -> target box)
     grounding_extra_routes: bool = False
+    # a grounding stage trained before (a training run folder, e.g. another recipe run's grounding/): the
+    # navigation stage starts from its last checkpoint and this recipe trains none, so ablation arms that change
+    # only the navigation stage share one grounding stage (None: train the stage configured in `grounding`)
+    grounding_from: str | None = None
     train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
     processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
     torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts
@@ -112,4 +116,9 @@ class RecipeConfig:
         _check(self.lr_horizon in HORIZONS, f"lr_horizon={self.lr_horizon!r}: choose one of {HORIZONS}")
         _check(
             self.navigation.steps > 0, "navigation.steps must be > 0: the recipe trains a navigating agent"
+        )
+        _check(
+            not (self.grounding_from and self.grounding.steps == 0),
+            f"grounding_from={self.grounding_from!r} but grounding.steps=0: this recipe trains without a grounding "
+            "stage, so there is none to share; drop one of the two",
         )

@@ -109,7 +109,9 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         steps.append(step)
         more_cities.append((name, root))
     init: list[str] = []
-    if cfg.grounding.steps:
+    if cfg.grounding_from:  # a shared grounding stage: no grounding data or training here
+        init = [f"--init.checkpoint={cfg.grounding_from}", "--init.matching=true"]
+    elif cfg.grounding.steps:
         steps.append(
             RecipeStep(
                 "grounding-data",
@@ -196,12 +198,26 @@ def _with_resume(step: RecipeStep, retrained: bool) -> list[str]:
     return step.command
 
 
+def _check_grounding_from(cfg: RecipeConfig) -> None:
+    """A shared grounding stage must be a finished training run (its `checkpoints/last`), before anything runs."""
+    if not cfg.grounding_from:
+        return
+    last = Path(cfg.grounding_from) / "checkpoints" / "last"
+    if not last.is_file():
+        raise RuntimeError(
+            f"grounding_from={cfg.grounding_from}: no training run there ({last} is missing); "
+            "give the folder of a finished grounding stage, e.g. outputs/recipe/grounding"
+        )
+
+
 def run_recipe(cfg: RecipeConfig) -> dict:
     """Run every incomplete step of `cfg` in order; returns recipe_state.json's content.
 
     Raises:
-        RuntimeError: a step exited non-zero (its name and exit code; its output went to the console).
+        RuntimeError: a step exited non-zero (its name and exit code; its output went to the console), or
+            `grounding_from` names no finished training run.
     """
+    _check_grounding_from(cfg)
     out = Path(cfg.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     state_path = out / STATE_FILE

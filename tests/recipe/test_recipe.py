@@ -101,6 +101,41 @@ def test_without_grounding_pretraining_or_dagger_the_navigation_stage_is_evaluat
     assert _flag(steps[2].command, "checkpoint") == str(tmp_path / "navigation")
 
 
+def test_a_shared_grounding_stage_replaces_this_recipes_own(tmp_path, monkeypatch):
+    shared = tmp_path / "recipe" / "grounding"
+    cfg = RecipeConfig(output_dir=str(tmp_path / "arm"), grounding_from=str(shared))
+    steps = recipe_steps(cfg)
+    assert [s.name for s in steps] == [
+        "dataset",
+        "navigation",
+        "dagger-r1-rollouts",
+        "dagger-r1-train",
+        "eval",
+    ]
+    assert _flag(steps[1].command, "init.checkpoint") == str(shared)
+    assert _flag(steps[1].command, "init.matching") == "true"
+    ran = []
+
+    class _Finished:
+        def wait(self) -> int:
+            return 0
+
+    def record(command, env):
+        ran.append(command)
+        return _Finished()
+
+    monkeypatch.setattr(recipe_run, "start_group", record)
+    with pytest.raises(RuntimeError, match="no training run there"):  # before any step runs
+        run_recipe(cfg)
+    assert ran == [] and not (tmp_path / "arm").exists()
+    (shared / "checkpoints").mkdir(parents=True)
+    (shared / "checkpoints" / "last").write_text("step-000010\n")
+    run_recipe(cfg)
+    assert len(ran) == len(steps) and _flag(ran[1], "init.checkpoint") == str(shared)
+    with pytest.raises(ValueError, match="grounding.steps=0"):
+        RecipeConfig(grounding_from=str(shared), grounding=StageBudget(steps=0))
+
+
 def test_more_cities_are_generated_with_the_datasets_and_their_unseen_split_evaluated(tmp_path):
     more = "configs/toolchain/embedded-small-unseen-more.yaml"
     cfg = RecipeConfig(

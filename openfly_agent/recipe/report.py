@@ -1,0 +1,148 @@
+"""The figures of finished recipe runs side by side: one row per run (an ablation arm), as markdown or a dict.
+
+Read from what the recipe wrote, nothing is recomputed: the navigation stage's `logs/metrics.jsonl` (its last
+step and its last test-split evaluation), `eval/summary.json` (the agent on the main test splits) and each
+`eval-<cities>/summary.json` (the agent on the test_unseen split of more unseen cities). An evaluation with
+failed episodes is refused, not tabulated: a failure is never a result.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from openfly_agent import constants as C
+
+AGENT = "agent"
+PROFILE_STANDARD, PROFILE_OPENFLY = "standard", "openfly"
+
+
+@dataclass
+class RunFigures:
+    """One recipe run's headline figures (percentages as in eval's summary.json)."""
+
+    name: str
+    navigation_steps: int  # optimizer steps the navigation stage ran
+    offline_accuracy: float | None  # the navigation stage's last test-split action accuracy
+    offline_box_iou: float | None  # ... and target-box IoU (None: a run without a grounding head)
+    sr: dict[str, float]  # split -> SR (%), standard profile
+    sr_openfly: dict[str, float]  # split -> SR (%), openfly profile
+    collisions_unseen: float | None  # test_unseen, standard profile
+    stopped_unseen: float | None
+    # the test_unseen split of each eval.more_cities dataset: name -> (SR %, episodes)
+    more_cities: dict[str, tuple[float, int]] = field(default_factory=dict)
+    all_unseen_sr: float | None = None  # SR over every test_unseen episode (main split + more cities)
+    all_unseen_episodes: int = 0
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing (has the recipe run finished this step?)")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from err
+
+
+def _navigation_figures(metrics: Path) -> tuple[int, float | None, float | None]:
+    """(last step, last test action accuracy, last test box IoU) of a training run's metrics.jsonl."""
+    if not metrics.is_file():
+        raise FileNotFoundError(f"{metrics}: missing (has the recipe run's navigation stage run?)")
+    step, accuracy, iou = 0, None, None
+    for number, line in enumerate(metrics.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{metrics}, line {number}: not valid JSON ({err})") from err
+        step = max(step, int(record.get("step", 0)))
+        if "test/action_accuracy" in record:
+            accuracy, iou = record["test/action_accuracy"], record.get("test/box_iou")
+    return step, accuracy, iou
+
+
+def _agent_split(summary: dict, path: Path, split: str, profile: str) -> dict:
+    """The agent's figures on one split and profile of an eval summary.json; refuses failed episodes."""
+    try:
+        figures = summary[AGENT][split][profile]
+    except KeyError as err:
+        raise ValueError(f"{path}: no {AGENT} / {split} / {profile} figures ({err} missing)") from err
+    if figures.get("errors", 0):
+        raise ValueError(
+            f"{path}: {figures['errors']} of the agent's {split} episodes failed; "
+            "re-run that evaluation before tabulating it"
+        )
+    return figures
+
+
+def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
+    """The figures of the finished recipe run in `run_dir` (its navigation/, eval/ and eval-*/ folders)."""
+    run = Path(run_dir)
+    steps, accuracy, iou = _navigation_figures(run / "navigation" / "logs" / "metrics.jsonl")
+    main_path = run / "eval" / "summary.json"
+    main = _read_json(main_path)
+    splits = [s for s in (C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN) if s in main.get(AGENT, {})]
+    if not splits:
+        raise ValueError(f"{main_path}: no test split evaluated for the {AGENT}")
+    standard = {s: _agent_split(main, main_path, s, PROFILE_STANDARD) for s in splits}
+    openfly = {s: _agent_split(main, main_path, s, PROFILE_OPENFLY) for s in splits}
+    unseen = standard.get(C.SPLIT_TEST_UNSEEN)
+    figures = RunFigures(
+        name=name or run.name,
+        navigation_steps=steps,
+        offline_accuracy=accuracy,
+        offline_box_iou=iou,
+        sr={s: f["sr_pct"] for s, f in standard.items()},
+        sr_openfly={s: f["sr_pct"] for s, f in openfly.items()},
+        collisions_unseen=unseen["collision_rate_pct"] if unseen else None,
+        stopped_unseen=unseen["stop_rate_pct"] if unseen else None,
+    )
+    successes, episodes = 0.0, 0
+    if unseen:
+        successes, episodes = unseen["sr_pct"] * unseen["episodes"] / 100.0, unseen["episodes"]
+    for path in sorted(run.glob("eval-*/summary.json")):
+        more = _agent_split(_read_json(path), path, C.SPLIT_TEST_UNSEEN, PROFILE_STANDARD)
+        figures.more_cities[path.parent.name.removeprefix("eval-")] = (more["sr_pct"], more["episodes"])
+        successes += more["sr_pct"] * more["episodes"] / 100.0
+        episodes += more["episodes"]
+    if episodes:
+        figures.all_unseen_sr, figures.all_unseen_episodes = 100.0 * successes / episodes, episodes
+    return figures
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+def _fraction(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+def markdown_table(runs: list[RunFigures]) -> str:
+    """One row per run: steps, offline figures, SR per split, more cities, all unseen, openfly SR, behaviour."""
+    more_names = sorted({name for run in runs for name in run.more_cities})
+    header = ["run", "nav. steps", "test_unseen offline: acc. / IoU", "SR seen / unseen (standard)"]
+    header += [f"SR {name}" for name in more_names]
+    header += ["SR all unseen", "`openfly` seen / unseen", "collisions unseen", "stopped unseen"]
+    lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
+    for run in runs:
+        seen, unseen = C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN
+        more = [_pct(run.more_cities[n][0]) if n in run.more_cities else "-" for n in more_names]
+        all_unseen = (
+            f"{_pct(run.all_unseen_sr)} ({run.all_unseen_episodes})" if run.all_unseen_episodes else "-"
+        )
+        cells = [
+            run.name,
+            f"{run.navigation_steps:,}",
+            f"{_fraction(run.offline_accuracy)} / {_fraction(run.offline_box_iou)}",
+            f"{_pct(run.sr.get(seen))} / {_pct(run.sr.get(unseen))}",
+            *more,
+            all_unseen,
+            f"{_pct(run.sr_openfly.get(seen))} / {_pct(run.sr_openfly.get(unseen))}",
+            f"{_pct(run.collisions_unseen)} %",
+            f"{_pct(run.stopped_unseen)} %",
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,105 @@
+"""The recipe runs' table: figures read from hand-built run folders, hand-checked."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from openfly_agent.recipe.report import markdown_table, read_run
+from openfly_agent.utils.config import REPO_ROOT
+
+
+def _profile(
+    sr: float, episodes: int, errors: int = 0, collisions: float = 0.0, stopped: float = 100.0
+) -> dict:
+    return {
+        "episodes": episodes,
+        "sr_pct": sr,
+        "collision_rate_pct": collisions,
+        "stop_rate_pct": stopped,
+        "errors": errors,
+    }
+
+
+def _make_run(root, seen=(50.0, 4), unseen=(50.0, 4), more=(25.0, 4), unseen_errors=0, grounding=True):
+    """A finished recipe run: navigation metrics, eval/ and one eval-<cities>/ summary."""
+    logs = root / "navigation" / "logs"
+    logs.mkdir(parents=True)
+    test = {"step": 300, "test/action_accuracy": 0.625}
+    if grounding:
+        test["test/box_iou"] = 0.5
+    records = [{"step": 100, "train/loss": 2.0}, {"step": 200, "test/action_accuracy": 0.5}, test]
+    records.append({"step": 310, "train/loss": 1.0})
+    (logs / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    summary = {
+        "agent": {
+            "test_seen": {"standard": _profile(*seen), "openfly": _profile(seen[0] + 25.0, seen[1])},
+            "test_unseen": {
+                "standard": _profile(*unseen, errors=unseen_errors, collisions=25.0, stopped=75.0),
+                "openfly": _profile(unseen[0], unseen[1]),
+            },
+        },
+        "random": {"test_seen": {"standard": _profile(0.0, 4)}},
+    }
+    (root / "eval").mkdir()
+    (root / "eval" / "summary.json").write_text(json.dumps(summary))
+    (root / "eval-more").mkdir()
+    more_summary = {"agent": {"test_unseen": {"standard": _profile(*more)}}}
+    (root / "eval-more" / "summary.json").write_text(json.dumps(more_summary))
+    return root
+
+
+def test_a_runs_figures_come_from_its_files(tmp_path):
+    run = read_run(_make_run(tmp_path / "arm"))
+    assert run.name == "arm" and run.navigation_steps == 310
+    assert (run.offline_accuracy, run.offline_box_iou) == (0.625, 0.5)  # the last test evaluation
+    assert run.sr == {"test_seen": 50.0, "test_unseen": 50.0}
+    assert run.sr_openfly == {"test_seen": 75.0, "test_unseen": 50.0}
+    assert (run.collisions_unseen, run.stopped_unseen) == (25.0, 75.0)
+    assert run.more_cities == {"more": (25.0, 4)}
+    # 2 of 4 main test_unseen episodes + 1 of 4 more: 3 of 8
+    assert run.all_unseen_sr == pytest.approx(37.5) and run.all_unseen_episodes == 8
+
+
+def test_the_table_has_one_row_per_run_and_a_dash_where_a_figure_is_missing(tmp_path):
+    runs = [
+        read_run(_make_run(tmp_path / "a"), "with grounding"),
+        read_run(_make_run(tmp_path / "b", grounding=False, unseen=(25.0, 4)), "no grounding"),
+    ]
+    lines = markdown_table(runs).splitlines()
+    assert len(lines) == 4 and lines[0].startswith("| run | nav. steps |") and "SR more" in lines[0]
+    assert lines[2].startswith("| with grounding | 310 | 0.625 / 0.500 | 50.0 / 50.0 | 25.0 | 37.5 (8) |")
+    assert "| 0.625 / - | 50.0 / 25.0 | 25.0 | 25.0 (8) |" in lines[3]  # no box IoU; (1 + 1) of 8
+
+
+def test_failed_episodes_and_missing_steps_are_refused_with_the_file(tmp_path):
+    with pytest.raises(ValueError, match=r"eval/summary.json: 1 of the agent's test_unseen episodes failed"):
+        read_run(_make_run(tmp_path / "failed", unseen_errors=1))
+    unfinished = _make_run(tmp_path / "unfinished")
+    (unfinished / "eval" / "summary.json").unlink()
+    with pytest.raises(FileNotFoundError, match=r"eval/summary.json: missing"):
+        read_run(unfinished)
+    corrupt = _make_run(tmp_path / "corrupt")
+    with (corrupt / "navigation" / "logs" / "metrics.jsonl").open("a") as f:
+        f.write("{not json\n")
+    with pytest.raises(ValueError, match=r"metrics.jsonl, line 5: not valid JSON"):
+        read_run(corrupt)
+
+
+def test_the_script_prints_the_table_and_writes_json(tmp_path):
+    _make_run(tmp_path / "arm")
+    out = tmp_path / "table.json"
+    script = str(REPO_ROOT / "bench" / "ablation_table.py")
+    done = subprocess.run(
+        [sys.executable, script, "--run", f"recipe={tmp_path / 'arm'}", "--json", str(out)],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert "| recipe | 310 |" in done.stdout
+    assert json.loads(out.read_text())[0]["all_unseen_sr"] == pytest.approx(37.5)
+    failed = subprocess.run(
+        [sys.executable, script, "--run", str(tmp_path / "none")], capture_output=True, text=True
+    )
+    assert failed.returncode != 0 and "ablation_table:" in failed.stderr and "missing" in failed.stderr
