@@ -1,7 +1,8 @@
 """The figures of finished recipe runs side by side: one row per run (an ablation arm), as markdown or a dict.
 
 Read from what the recipe wrote, nothing is recomputed: the navigation stage's `logs/metrics.jsonl` (its last
-step and its last test-split evaluation), `eval/summary.json` (the agent on the main test splits) and each
+step), the evaluated agent's (the last DAgger round's training, else the navigation stage's: its last test-split
+evaluation), `eval/summary.json` (the agent on the main test splits) and each
 `eval-<cities>/summary.json` (the agent on the test_unseen split of more unseen cities). An evaluation with
 failed episodes is refused, not tabulated: a failure is never a result.
 """
@@ -24,7 +25,8 @@ class RunFigures:
 
     name: str
     navigation_steps: int  # optimizer steps the navigation stage ran
-    offline_accuracy: float | None  # the navigation stage's last test-split action accuracy
+    final_stage: str  # the training run of the evaluated agent: "navigation" or "dagger/r<k>/train"
+    offline_accuracy: float | None  # its last test-split action accuracy
     offline_box_iou: float | None  # ... and target-box IoU (None: a run without a grounding head)
     sr: dict[str, float]  # split -> SR (%), standard profile
     sr_openfly: dict[str, float]  # split -> SR (%), openfly profile
@@ -45,10 +47,10 @@ def _read_json(path: Path) -> dict:
         raise ValueError(f"{path}: not valid JSON ({err})") from err
 
 
-def _navigation_figures(metrics: Path) -> tuple[int, float | None, float | None]:
+def _training_figures(metrics: Path) -> tuple[int, float | None, float | None]:
     """(last step, last test action accuracy, last test box IoU) of a training run's metrics.jsonl."""
     if not metrics.is_file():
-        raise FileNotFoundError(f"{metrics}: missing (has the recipe run's navigation stage run?)")
+        raise FileNotFoundError(f"{metrics}: missing (has this training stage of the recipe run?)")
     step, accuracy, iou = 0, None, None
     for number, line in enumerate(metrics.read_text().splitlines(), 1):
         if not line.strip():
@@ -80,7 +82,12 @@ def _agent_split(summary: dict, path: Path, split: str, profile: str) -> dict:
 def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     """The figures of the finished recipe run in `run_dir` (its navigation/, eval/ and eval-*/ folders)."""
     run = Path(run_dir)
-    steps, accuracy, iou = _navigation_figures(run / "navigation" / "logs" / "metrics.jsonl")
+    steps, accuracy, iou = _training_figures(run / "navigation" / "logs" / "metrics.jsonl")
+    final_stage = "navigation"
+    rounds = sorted(run.glob("dagger/r*/train"), key=lambda p: int(p.parent.name.removeprefix("r")))
+    if rounds:  # the recipe evaluates the last round's agent
+        final_stage = rounds[-1].relative_to(run).as_posix()
+        _, accuracy, iou = _training_figures(rounds[-1] / "logs" / "metrics.jsonl")
     main_path = run / "eval" / "summary.json"
     main = _read_json(main_path)
     splits = [s for s in (C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN) if s in main.get(AGENT, {})]
@@ -92,6 +99,7 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     figures = RunFigures(
         name=name or run.name,
         navigation_steps=steps,
+        final_stage=final_stage,
         offline_accuracy=accuracy,
         offline_box_iou=iou,
         sr={s: f["sr_pct"] for s, f in standard.items()},
@@ -123,7 +131,7 @@ def _fraction(value: float | None) -> str:
 def markdown_table(runs: list[RunFigures]) -> str:
     """One row per run: steps, offline figures, SR per split, more cities, all unseen, openfly SR, behaviour."""
     more_names = sorted({name for run in runs for name in run.more_cities})
-    header = ["run", "nav. steps", "test_unseen offline: acc. / IoU", "SR seen / unseen (standard)"]
+    header = ["run", "nav. steps", "offline acc. / IoU (evaluated agent)", "SR seen / unseen (standard)"]
     header += [f"SR {name}" for name in more_names]
     header += ["SR all unseen", "`openfly` seen / unseen", "collisions unseen", "stopped unseen"]
     lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]

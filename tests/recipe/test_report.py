@@ -64,6 +64,19 @@ def test_a_runs_figures_come_from_its_files(tmp_path):
     assert run.all_unseen_sr == pytest.approx(37.5) and run.all_unseen_episodes == 8
 
 
+def test_after_dagger_rounds_the_offline_figures_are_the_last_rounds(tmp_path):
+    root = _make_run(tmp_path / "dagger")
+    for k, accuracy in ((2, 0.75), (10, 0.875)):  # r10 is the last round, though "r10" < "r2" as text
+        logs = root / "dagger" / f"r{k}" / "train" / "logs"
+        logs.mkdir(parents=True)
+        record = {"step": 50, "test/action_accuracy": accuracy, "test/box_iou": 0.25}
+        (logs / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+    run = read_run(root)
+    assert run.final_stage == "dagger/r10/train" and run.navigation_steps == 310
+    assert (run.offline_accuracy, run.offline_box_iou) == (0.875, 0.25)
+    assert read_run(_make_run(tmp_path / "plain")).final_stage == "navigation"
+
+
 def test_the_table_has_one_row_per_run_and_a_dash_where_a_figure_is_missing(tmp_path):
     runs = [
         read_run(_make_run(tmp_path / "a"), "with grounding"),
