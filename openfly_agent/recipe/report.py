@@ -14,6 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from openfly_agent import constants as C
+from openfly_agent.eval.outputs import SUMMARY_JSON
+from openfly_agent.training.accelerator import LOGS_DIR
+from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
 
 AGENT = "agent"
 PROFILE_STANDARD, PROFILE_OPENFLY = "standard", "openfly"
@@ -47,18 +50,16 @@ def _read_json(path: Path) -> dict:
         raise ValueError(f"{path}: not valid JSON ({err})") from err
 
 
-def _training_figures(metrics: Path) -> tuple[int, float | None, float | None]:
-    """(last step, last test action accuracy, last test box IoU) of a training run's metrics.jsonl."""
-    if not metrics.is_file():
-        raise FileNotFoundError(f"{metrics}: missing (has this training stage of the recipe run?)")
+def _training_figures(run: Path) -> tuple[int, float | None, float | None]:
+    """(last step, last test action accuracy, last test box IoU) of a training run folder's metrics."""
+    logs = run / LOGS_DIR
+    records = read_metrics(logs)
+    if not records:
+        raise FileNotFoundError(
+            f"{logs / METRICS_FILE_NAME}: missing or empty (has this stage of the recipe run?)"
+        )
     step, accuracy, iou = 0, None, None
-    for number, line in enumerate(metrics.read_text().splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{metrics}, line {number}: not valid JSON ({err})") from err
+    for record in records:
         step = max(step, int(record.get("step", 0)))
         if "test/action_accuracy" in record:
             accuracy, iou = record["test/action_accuracy"], record.get("test/box_iou")
@@ -82,13 +83,13 @@ def _agent_split(summary: dict, path: Path, split: str, profile: str) -> dict:
 def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     """The figures of the finished recipe run in `run_dir` (its navigation/, eval/ and eval-*/ folders)."""
     run = Path(run_dir)
-    steps, accuracy, iou = _training_figures(run / "navigation" / "logs" / "metrics.jsonl")
+    steps, accuracy, iou = _training_figures(run / "navigation")
     final_stage = "navigation"
     rounds = sorted(run.glob("dagger/r*/train"), key=lambda p: int(p.parent.name.removeprefix("r")))
     if rounds:  # the recipe evaluates the last round's agent
         final_stage = rounds[-1].relative_to(run).as_posix()
-        _, accuracy, iou = _training_figures(rounds[-1] / "logs" / "metrics.jsonl")
-    main_path = run / "eval" / "summary.json"
+        _, accuracy, iou = _training_figures(rounds[-1])
+    main_path = run / "eval" / SUMMARY_JSON
     main = _read_json(main_path)
     splits = [s for s in (C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN) if s in main.get(AGENT, {})]
     if not splits:
@@ -110,7 +111,7 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     successes, episodes = 0.0, 0
     if unseen:
         successes, episodes = unseen["sr_pct"] * unseen["episodes"] / 100.0, unseen["episodes"]
-    for path in sorted(run.glob("eval-*/summary.json")):
+    for path in sorted(run.glob(f"eval-*/{SUMMARY_JSON}")):
         more = _agent_split(_read_json(path), path, C.SPLIT_TEST_UNSEEN, PROFILE_STANDARD)
         figures.more_cities[path.parent.name.removeprefix("eval-")] = (more["sr_pct"], more["episodes"])
         successes += more["sr_pct"] * more["episodes"] / 100.0

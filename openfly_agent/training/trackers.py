@@ -69,9 +69,20 @@ def make_trackers(kind: str, run_name: str, logging_dir: str | Path) -> list:
 
 
 def read_metrics(logging_dir: str | Path) -> list[dict]:
-    """The records of `metrics.jsonl` (config events excluded), in the order they were written."""
+    """The records of `metrics.jsonl` (config events excluded), in the order they were written.
+
+    Raises:
+        ValueError: a line is not JSON (the file and the line number).
+    """
     path = Path(logging_dir) / METRICS_FILE_NAME
     if not path.is_file():
         return []
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    records = []
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}, line {number}: not valid JSON ({err})") from err
     return [r for r in records if r.get("event") != "config"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -93,4 +94,12 @@ def test_jsonl_tracker_round_trip(tmp_path):
     assert read_metrics(tmp_path) == [{"step": 3, "train/loss": 1.5, "train/box_iou": "nan"}]
     kinds = make_trackers("tensorboard", "run", tmp_path)
     assert isinstance(kinds[0], JsonlTracker) and kinds[1] == "tensorboard"
+
+
+def test_a_corrupt_metrics_line_is_reported_with_its_file_and_line(tmp_path):
+    JsonlTracker("run", tmp_path).log({"train/loss": 1.0}, step=1)
+    with (tmp_path / "metrics.jsonl").open("a") as f:
+        f.write("{truncated\n")
+    with pytest.raises(ValueError, match=r"metrics.jsonl, line 2: not valid JSON"):
+        read_metrics(tmp_path)
     assert len(make_trackers("none", "run", tmp_path)) == 1
