@@ -3,11 +3,11 @@
 #   1. the recipe itself (configs/recipe/tiny-recipe.yaml: keyframes + token merging, the paper's OpenFly-Agent)
 #      into $ROOT/recipe, about 2 h 25 min on 2 cores;
 #   2. each arm of configs/recipe/ablations/ into $ROOT/<arm>, one change against the recipe. The arms that change
-#      only the navigation stage share the recipe's grounding stage (--grounding_from; about 1 h 25 min each),
+#      only the navigation stage share the recipe's grounding stage (--grounding_from; about 1 h 23 min each),
 #      `with_dagger` also starts from the recipe's navigation stage (copied in, so its rounds are the one change),
 #      and the two arms without a grounding stage train their navigation stage from random weights;
 #   3. the table of every finished run (bench/ablation_table.py) into $ROOT/table.md and $ROOT/table.json.
-# All arms: about 11 hours on 2 idle cores (run nothing else meanwhile: the stages are time budgets). Every recipe
+# All arms: about 10 hours on 2 idle cores (run nothing else meanwhile: the stages are time budgets). Every recipe
 # resumes where it stopped, so re-running the script after an interruption finishes the table.
 # Knobs (environment): ROOT (default outputs/ablations), ARMS (a subset, e.g. "current_frame no_grounding_loss"),
 # VENV (default .venv, set up by scripts/setup.sh).
@@ -26,7 +26,8 @@ done
 recipe --config_path configs/recipe/tiny-recipe.yaml --output_dir "$ROOT/recipe"
 rows=(--run "keyframes_merging=$ROOT/recipe")
 for arm in $ARMS; do
-  args=(--config_path "configs/recipe/ablations/$arm.yaml" --output_dir "$ROOT/$arm")
+  # the agent next to random only: the other baselines do not depend on the arm (the recipe's table has them)
+  args=(--config_path "configs/recipe/ablations/$arm.yaml" --output_dir "$ROOT/$arm" "--eval.baselines=[random]")
   case " $SHARE_GROUNDING " in
     *" $arm "*) args+=(--grounding_from "$ROOT/recipe/grounding") ;;
   esac

@@ -40,12 +40,14 @@ def test_each_arm_runs_its_config_and_shares_the_recipes_grounding_stage_where_o
         calls[0]
         == f"-m openfly_agent.recipe --config_path configs/recipe/tiny-recipe.yaml --output_dir {root}/recipe"
     )
-    shared = f"--grounding_from {root}/recipe/grounding"
-    assert calls[1].endswith(f"ablations/current_frame.yaml --output_dir {root}/current_frame {shared}")
-    assert calls[2].endswith(
-        f"ablations/no_grounding_pretraining.yaml --output_dir {root}/no_grounding_pretraining"
+    shared, random = f"--grounding_from {root}/recipe/grounding", "--eval.baselines=[random]"
+    assert calls[1].endswith(
+        f"ablations/current_frame.yaml --output_dir {root}/current_frame {random} {shared}"
     )
-    assert calls[3].endswith(f"ablations/with_dagger.yaml --output_dir {root}/with_dagger {shared}")
+    assert calls[2].endswith(
+        f"ablations/no_grounding_pretraining.yaml --output_dir {root}/no_grounding_pretraining {random}"
+    )
+    assert calls[3].endswith(f"ablations/with_dagger.yaml --output_dir {root}/with_dagger {random} {shared}")
     assert (root / "with_dagger" / "navigation" / ".recipe_done").is_file()  # DAgger starts from the recipe's
     table = f"bench/ablation_table.py --run keyframes_merging={root}/recipe --run current_frame={root}/current_frame"
     assert calls[4].startswith(table) and calls[4].endswith(f"--json {root}/table.json")
