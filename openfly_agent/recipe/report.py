@@ -56,7 +56,7 @@ def _training_figures(run: Path) -> tuple[int, float | None, float | None]:
     records = read_metrics(logs)
     if not records:
         raise FileNotFoundError(
-            f"{logs / METRICS_FILE_NAME}: missing or empty (has this stage of the recipe run?)"
+            f"{logs / METRICS_FILE_NAME}: missing or empty (has this stage of the recipe finished?)"
         )
     step, accuracy, iou = 0, None, None
     for record in records:
