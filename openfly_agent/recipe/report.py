@@ -3,8 +3,10 @@
 Read from what the recipe wrote, nothing is recomputed: the navigation stage's `logs/metrics.jsonl` (its last
 step), the evaluated agent's (the last DAgger round's training, else the navigation stage's: its last test-split
 evaluation), `eval/summary.json` (the agent on the main test splits) and each
-`eval-<cities>/summary.json` (the agent on the test_unseen split of more unseen cities). An evaluation with
-failed episodes is refused, not tabulated: a failure is never a result.
+`eval-<cities>/summary.json` the recipe finished (the agent on the test_unseen split of more unseen cities; a
+folder without the recipe's completion marker, e.g. an earlier round's agent evaluated by hand into the run
+folder, is not the recipe's evaluation and is left out). An evaluation with failed episodes is refused, not
+tabulated: a failure is never a result.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.eval.outputs import SUMMARY_JSON
+from openfly_agent.recipe.run import DONE_MARKER
 from openfly_agent.training.accelerator import LOGS_DIR
 from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
 
@@ -81,7 +84,7 @@ def _agent_split(summary: dict, path: Path, split: str, profile: str) -> dict:
 
 
 def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
-    """The figures of the finished recipe run in `run_dir` (its navigation/, eval/ and eval-*/ folders)."""
+    """The figures of the finished recipe run in `run_dir` (its navigation/, eval/ and finished eval-*/ folders)."""
     run = Path(run_dir)
     steps, accuracy, iou = _training_figures(run / "navigation")
     final_stage = "navigation"
@@ -111,7 +114,8 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     successes, episodes = 0.0, 0
     if unseen:
         successes, episodes = unseen["sr_pct"] * unseen["episodes"] / 100.0, unseen["episodes"]
-    for path in sorted(run.glob(f"eval-*/{SUMMARY_JSON}")):
+    for marker in sorted(run.glob(f"eval-*/{DONE_MARKER}")):  # the recipe's own finished evaluations
+        path = marker.parent / SUMMARY_JSON
         more = _agent_split(_read_json(path), path, C.SPLIT_TEST_UNSEEN, PROFILE_STANDARD)
         figures.more_cities[path.parent.name.removeprefix("eval-")] = (more["sr_pct"], more["episodes"])
         successes += more["sr_pct"] * more["episodes"] / 100.0

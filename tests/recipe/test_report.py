@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from openfly_agent.recipe.report import markdown_table, read_run
+from openfly_agent.recipe.run import DONE_MARKER
 from openfly_agent.utils.config import REPO_ROOT
 
 
@@ -49,6 +50,7 @@ def _make_run(root, seen=(50.0, 4), unseen=(50.0, 4), more=(25.0, 4), unseen_err
     (root / "eval-more").mkdir()
     more_summary = {"agent": {"test_unseen": {"standard": _profile(*more)}}}
     (root / "eval-more" / "summary.json").write_text(json.dumps(more_summary))
+    (root / "eval-more" / DONE_MARKER).write_text("{}\n")  # the recipe finished this evaluation
     return root
 
 
@@ -61,6 +63,17 @@ def test_a_runs_figures_come_from_its_files(tmp_path):
     assert (run.collisions_unseen, run.stopped_unseen) == (25.0, 75.0)
     assert run.more_cities == {"more": (25.0, 4)}
     # 2 of 4 main test_unseen episodes + 1 of 4 more: 3 of 8
+    assert run.all_unseen_sr == pytest.approx(37.5) and run.all_unseen_episodes == 8
+
+
+def test_an_evaluation_the_recipe_did_not_finish_is_not_counted(tmp_path):
+    root = _make_run(tmp_path / "arm")
+    by_hand = root / "eval-r1-unseen-more"  # e.g. an earlier round's agent, evaluated by hand into the run
+    by_hand.mkdir()
+    by_hand_summary = {"agent": {"test_unseen": {"standard": _profile(100.0, 4)}}}
+    (by_hand / "summary.json").write_text(json.dumps(by_hand_summary))
+    run = read_run(root)
+    assert run.more_cities == {"more": (25.0, 4)}
     assert run.all_unseen_sr == pytest.approx(37.5) and run.all_unseen_episodes == 8
 
 
