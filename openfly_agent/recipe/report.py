@@ -1,12 +1,12 @@
 """The figures of finished recipe runs side by side: one row per run (an ablation arm), as markdown or a dict.
 
-Read from what the recipe wrote, nothing is recomputed: the navigation stage's `logs/metrics.jsonl` (its last
-step), the evaluated agent's (the last DAgger round's training, else the navigation stage's: its last test-split
-evaluation), `eval/summary.json` (the agent on the main test splits) and each
-`eval-<cities>/summary.json` the recipe finished (the agent on the test_unseen split of more unseen cities; a
-folder without the recipe's completion marker, e.g. an earlier round's agent evaluated by hand into the run
-folder, is not the recipe's evaluation and is left out). An evaluation with failed episodes is refused, not
-tabulated: a failure is never a result.
+Read from what the recipe wrote and finished (a folder with the recipe's completion marker), nothing is
+recomputed: the navigation stage's `logs/metrics.jsonl` (its last step), the evaluated agent's (the last DAgger
+round's training the recipe finished, else the navigation stage's: its last test-split evaluation),
+`eval/summary.json` (the agent on the main test splits) and each `eval-<cities>/summary.json` (the agent on the
+test_unseen split of more unseen cities). A folder without the marker, e.g. an earlier round's agent evaluated
+by hand into the run folder or a round trained by hand, is not the recipe's and is left out; a main evaluation
+without it is refused, as is an evaluation with failed episodes: a failure is never a result.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.eval.outputs import SUMMARY_JSON
-from openfly_agent.recipe.run import DONE_MARKER
+from openfly_agent.recipe.run import DONE_MARKER, step_finished
 from openfly_agent.training.accelerator import LOGS_DIR
 from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
 
@@ -88,11 +88,17 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     run = Path(run_dir)
     steps, accuracy, iou = _training_figures(run / "navigation")
     final_stage = "navigation"
-    rounds = sorted(run.glob("dagger/r*/train"), key=lambda p: int(p.parent.name.removeprefix("r")))
+    rounds = [p for p in run.glob("dagger/r*/train") if step_finished(p)]
+    rounds.sort(key=lambda p: int(p.parent.name.removeprefix("r")))
     if rounds:  # the recipe evaluates the last round's agent
         final_stage = rounds[-1].relative_to(run).as_posix()
         _, accuracy, iou = _training_figures(rounds[-1])
     main_path = run / "eval" / SUMMARY_JSON
+    if main_path.is_file() and not step_finished(main_path.parent):
+        raise ValueError(
+            f"{main_path.parent}: the recipe has not finished this evaluation (no {DONE_MARKER}); "
+            "resume the recipe before tabulating the run"
+        )
     main = _read_json(main_path)
     splits = [s for s in (C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN) if s in main.get(AGENT, {})]
     if not splits:
@@ -114,8 +120,8 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     successes, episodes = 0.0, 0
     if unseen:
         successes, episodes = unseen["sr_pct"] * unseen["episodes"] / 100.0, unseen["episodes"]
-    for marker in sorted(run.glob(f"eval-*/{DONE_MARKER}")):  # the recipe's own finished evaluations
-        path = marker.parent / SUMMARY_JSON
+    for folder in sorted(p for p in run.glob("eval-*") if step_finished(p)):  # the recipe's own evaluations
+        path = folder / SUMMARY_JSON
         more = _agent_split(_read_json(path), path, C.SPLIT_TEST_UNSEEN, PROFILE_STANDARD)
         figures.more_cities[path.parent.name.removeprefix("eval-")] = (more["sr_pct"], more["episodes"])
         successes += more["sr_pct"] * more["episodes"] / 100.0

@@ -34,6 +34,11 @@ STATE_FILE = "recipe_state.json"
 KIND_DATA, KIND_TRAIN, KIND_EVAL = "data", "train", "eval"
 
 
+def step_finished(folder: Path) -> bool:
+    """Whether the recipe finished the step that writes `folder` (its completion marker is there)."""
+    return (Path(folder) / DONE_MARKER).is_file()
+
+
 @dataclass
 class RecipeStep:
     """One command of the recipe.
@@ -54,7 +59,7 @@ class RecipeStep:
 
     @property
     def done(self) -> bool:
-        return (self.folder / DONE_MARKER).is_file()
+        return step_finished(self.folder)
 
 
 def _train_launcher(cfg: RecipeConfig) -> tuple[list[str], dict[str, str]]:

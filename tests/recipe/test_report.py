@@ -47,6 +47,7 @@ def _make_run(root, seen=(50.0, 4), unseen=(50.0, 4), more=(25.0, 4), unseen_err
     }
     (root / "eval").mkdir()
     (root / "eval" / "summary.json").write_text(json.dumps(summary))
+    (root / "eval" / DONE_MARKER).write_text("{}\n")
     (root / "eval-more").mkdir()
     more_summary = {"agent": {"test_unseen": {"standard": _profile(*more)}}}
     (root / "eval-more" / "summary.json").write_text(json.dumps(more_summary))
@@ -79,11 +80,14 @@ def test_an_evaluation_the_recipe_did_not_finish_is_not_counted(tmp_path):
 
 def test_after_dagger_rounds_the_offline_figures_are_the_last_rounds(tmp_path):
     root = _make_run(tmp_path / "dagger")
-    for k, accuracy in ((2, 0.75), (10, 0.875)):  # r10 is the last round, though "r10" < "r2" as text
+    # r10 is the last round, though "r10" < "r2" as text; r11 was trained by hand (no marker) and is not the recipe's
+    for k, accuracy in ((2, 0.75), (10, 0.875), (11, 0.125)):
         logs = root / "dagger" / f"r{k}" / "train" / "logs"
         logs.mkdir(parents=True)
         record = {"step": 50, "test/action_accuracy": accuracy, "test/box_iou": 0.25}
         (logs / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+        if k != 11:
+            (logs.parent / DONE_MARKER).write_text("{}\n")
     run = read_run(root)
     assert run.final_stage == "dagger/r10/train" and run.navigation_steps == 310
     assert (run.offline_accuracy, run.offline_box_iou) == (0.875, 0.25)
@@ -105,6 +109,9 @@ def test_failed_episodes_and_missing_steps_are_refused_with_the_file(tmp_path):
     with pytest.raises(ValueError, match=r"eval/summary.json: 1 of the agent's test_unseen episodes failed"):
         read_run(_make_run(tmp_path / "failed", unseen_errors=1))
     unfinished = _make_run(tmp_path / "unfinished")
+    (unfinished / "eval" / DONE_MARKER).unlink()  # killed after writing its summary, before the marker
+    with pytest.raises(ValueError, match=r"eval: the recipe has not finished this evaluation"):
+        read_run(unfinished)
     (unfinished / "eval" / "summary.json").unlink()
     with pytest.raises(FileNotFoundError, match=r"eval/summary.json: missing"):
         read_run(unfinished)
