@@ -19,6 +19,7 @@ from transformers import PreTrainedModel
 from transformers import initialization as init
 
 from openfly_agent.constants import (
+    ACTION_STOP,
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
@@ -304,7 +305,14 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             raise ValueError("batch has no labelled action token: labels are all -100")
         logits = self.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
         target = targets[selected]  # (n,)
-        loss = F.cross_entropy(logits, target)
+        stop_weight = self.model_cfg.action_head.stop_loss_weight
+        if stop_weight == 1.0:
+            loss = F.cross_entropy(logits, target)
+        else:  # a weighted mean: STOP-labelled steps count stop_weight times (discrete head, config-checked)
+            stop_id = self.action_tokenizer.action_to_token_ids(ACTION_STOP)[0]
+            weights = torch.where(target == stop_id, stop_weight, 1.0).to(logits.dtype)  # (n,)
+            per_token = F.cross_entropy(logits, target, reduction="none")  # (n,)
+            loss = (per_token * weights).sum() / weights.sum()
         with torch.no_grad():
             if self.action_tokenizer.head == HEAD_DISCRETE:
                 ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=logits.device)

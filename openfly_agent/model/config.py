@@ -215,6 +215,8 @@ class ActionHeadConfig:
     # the action is read at an embedded-box token after the prompt (None: when discrete with grounding)
     box_token: bool | None = None
     box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
+    # weight of the STOP-labelled steps in the action cross-entropy (discrete head; 1.0: plain cross-entropy)
+    stop_loss_weight: float = 1.0
 
     def __post_init__(self) -> None:
         check_choice("action_head", "type", self.type, ACTION_HEADS)
@@ -225,6 +227,13 @@ class ActionHeadConfig:
             raise ValueError(f"action_head.vocab_end={self.vocab_end} must be >= {NUM_ACTION_SLOTS}")
         if self.box_token_jitter < 0:
             raise ValueError(f"action_head.box_token_jitter={self.box_token_jitter} must be >= 0")
+        if self.stop_loss_weight <= 0:
+            raise ValueError(f"action_head.stop_loss_weight={self.stop_loss_weight} must be > 0")
+        if self.stop_loss_weight != 1.0 and self.type != HEAD_DISCRETE:
+            raise ValueError(
+                "action_head.stop_loss_weight weights the one STOP token of the discrete head: "
+                f"set action_head.type={HEAD_DISCRETE} or leave the weight at 1.0"
+            )
 
 
 @dataclass
