@@ -33,24 +33,20 @@ def main() -> None:
     parser.add_argument("--history", nargs="+", default=["keyframes", "uniform"], choices=HISTORY_MODES)
     args = parser.parse_args()
 
-    from openfly_agent.data.dataset import NavigationStepDataset  # lazy: torch; --help stays fast
-    from openfly_agent.data.memory_occupancy import memory_occupancy
-    from openfly_agent.model.keyframes import KeyframeSelector
-    from openfly_agent.training.builder import load_splits
-    from openfly_agent.training.config import TrainConfig
-    from openfly_agent.utils.config import config_from_dict
+    # lazy: torch and the training stack; --help stays fast
+    from openfly_agent.data.dataset import NavigationStepDataset  # lazy: torch
+    from openfly_agent.data.memory_occupancy import memory_occupancy  # lazy: torch
+    from openfly_agent.model.keyframes import KeyframeSelector  # lazy: the model package
+    from openfly_agent.training.builder import load_splits  # lazy: torch and transformers
+    from openfly_agent.training.config import TrainConfig  # lazy: the training stack
+    from openfly_agent.utils.config import config_from_dict  # lazy: after the sys.path insert above
 
     config_path = Path(args.run) / C.TRAIN_CONFIG_NAME
     if not config_path.is_file():
         raise SystemExit(f"{args.run} is not a training run: no {C.TRAIN_CONFIG_NAME}")
     cfg = config_from_dict(TrainConfig, json.loads(config_path.read_text()))
     model = cfg.model
-    selector = KeyframeSelector(
-        capacity=model.memory.capacity,
-        theta=model.keyframes.theta,
-        radius=model.keyframes.radius,
-        merge_forward=model.keyframes.merge_forward,
-    )
+    selector = KeyframeSelector.from_config(model.keyframes, model.memory.capacity)
     splits = load_splits(cfg)
     for split in args.split or [cfg.data.train_split]:
         if split not in splits.episodes:

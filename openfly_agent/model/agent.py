@@ -90,12 +90,7 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         self.box_token_embed = BoxTokenEmbedding(llm_dim) if cfg.uses_box_token else None
         self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)  # built from the config only
         config.action_tokenizer = self.action_tokenizer.to_dict()
-        self.keyframe_selector = KeyframeSelector(
-            capacity=cfg.memory.capacity,
-            theta=cfg.keyframes.theta,
-            radius=cfg.keyframes.radius,
-            merge_forward=cfg.keyframes.merge_forward,
-        )
+        self.keyframe_selector = KeyframeSelector.from_config(cfg.keyframes, cfg.memory.capacity)
         self.processor: OpenFlyProcessor | None = None
         self.tokenizer = tokenizer  # builds the processor
         self.episodes: dict[str, EpisodeState] = {}  # running episodes of select_action / predict_step

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from openfly_agent.constants import (
     ACTION_TURN_LEFT,
     ACTION_TURN_RIGHT,
 )
+
+if TYPE_CHECKING:
+    from .config import KeyframeConfig
 
 _PHASE_CLASS = {ACTION_TAKEOFF: ACTION_ASCEND, ACTION_LANDING: ACTION_DESCEND}
 _FORWARD_IDS = (ACTION_FORWARD, ACTION_FORWARD_6, ACTION_FORWARD_9)
@@ -122,6 +126,16 @@ class KeyframeSelector:
             )
         if not 0.0 <= self.theta <= 1.0:
             raise ValueError(f"KeyframeSelector: theta={self.theta} must be in [0, 1]")
+
+    @classmethod
+    def from_config(cls, keyframes: KeyframeConfig, capacity: int) -> KeyframeSelector:
+        """The selector of a model's `keyframes` settings and `memory.capacity` (training, inference, benches)."""
+        return cls(
+            capacity=capacity,
+            theta=keyframes.theta,
+            radius=keyframes.radius,
+            merge_forward=keyframes.merge_forward,
+        )
 
     @property
     def set_size(self) -> int:

@@ -117,3 +117,13 @@ def test_pose_classes_match_the_actions_that_made_them():
 def test_numpy_histories_are_accepted():
     actions = np.array([9, 9, 9, 2, 9, 9, 9, 9, 0])
     assert KeyframeSelector().select(actions[:7], None, 7) == [[1, 2, 3, 4, 5], [2, 3, 4, 5, 6]]
+
+
+def test_the_selector_of_a_models_settings():
+    from openfly_agent.model.config import KeyframeConfig
+
+    selector = KeyframeSelector.from_config(
+        KeyframeConfig(theta=0.1, radius=1, merge_forward=False), capacity=3
+    )
+    assert selector == KeyframeSelector(capacity=3, theta=0.1, radius=1, merge_forward=False)
+    assert selector.set_size == KeyframeConfig(radius=1).set_size == 3
