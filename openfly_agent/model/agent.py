@@ -270,7 +270,8 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
             logs.update(g_logs, grounding_loss=float(g_loss.detach()))
         else:
-            logs.update(grounding_loss=0.0, box_iou=0.0, num_visible_boxes=0.0)
+            # no head, no box measured: NaN, which the running means and the evaluation leave out (not a 0 IoU)
+            logs.update(grounding_loss=0.0, box_iou=float("nan"), num_visible_boxes=0.0)
         if not has_actions and self.grounding_head is None:
             raise ValueError("batch has no labelled action token and the agent has no grounding head")
         logs["loss"] = float(loss.detach())

@@ -12,6 +12,7 @@ without it is refused, as is an evaluation with failed episodes: a failure is ne
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,8 +66,27 @@ def _training_figures(run: Path) -> tuple[int, float | None, float | None]:
     for record in records:
         step = max(step, int(record.get("step", 0)))
         if "test/action_accuracy" in record:
-            accuracy, iou = record["test/action_accuracy"], record.get("test/box_iou")
+            accuracy, iou = record["test/action_accuracy"], _measured(record.get("test/box_iou"))
+    if not _has_grounding_head(run):  # runs logged before the agent wrote NaN there had a 0.0: not an IoU
+        iou = None
     return step, accuracy, iou
+
+
+def _measured(value) -> float | None:
+    """A logged figure, or None where nothing was measured (missing, or NaN, which the metrics file writes "nan")."""
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _has_grounding_head(run: Path) -> bool:
+    """Whether the training run's saved config has a grounding head (True where it does not say)."""
+    path = run / C.TRAIN_CONFIG_NAME
+    if not path.is_file():
+        return True
+    grounding = _read_json(path).get("model", {}).get("grounding", {})
+    return bool(grounding.get("enabled", True))
 
 
 def _agent_split(summary: dict, path: Path, split: str, profile: str) -> dict:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -155,6 +157,13 @@ def test_right_padding_does_not_change_samples(make_agent, make_batch):
             row[key] = row[key][:, :length]
         singles.append(agent(row)[0])
     torch.testing.assert_close(loss_all, torch.stack(singles).mean(), rtol=1e-5, atol=1e-6)
+
+
+def test_an_agent_without_grounding_head_logs_no_box_iou(make_agent, make_batch):
+    agent = make_agent(grounding=GroundingConfig(enabled=False))
+    _, logs = agent(make_batch(agent, batch_size=2))
+    # nothing measured, not an IoU of 0
+    assert math.isnan(logs["box_iou"]) and logs["num_visible_boxes"] == 0.0
 
 
 def test_merging_disabled_and_memory_off(make_agent, make_batch):

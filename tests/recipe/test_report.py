@@ -25,13 +25,18 @@ def _profile(
     }
 
 
-def _make_run(root, seen=(50.0, 4), unseen=(50.0, 4), more=(25.0, 4), unseen_errors=0, grounding=True):
-    """A finished recipe run: navigation metrics, eval/ and one eval-<cities>/ summary."""
+def _make_run(root, seen=(50.0, 4), unseen=(50.0, 4), more=(25.0, 4), unseen_errors=0, iou=0.5, head=True):
+    """A finished recipe run: navigation metrics, eval/ and one eval-<cities>/ summary.
+
+    iou: the logged test/box_iou (None: not logged); head: what the run's train_config.json says of the grounding head.
+    """
     logs = root / "navigation" / "logs"
     logs.mkdir(parents=True)
+    config = {"model": {"grounding": {"enabled": head}}}
+    (root / "navigation" / "train_config.json").write_text(json.dumps(config))
     test = {"step": 300, "test/action_accuracy": 0.625}
-    if grounding:
-        test["test/box_iou"] = 0.5
+    if iou is not None:
+        test["test/box_iou"] = iou
     records = [{"step": 100, "train/loss": 2.0}, {"step": 200, "test/action_accuracy": 0.5}, test]
     records.append({"step": 310, "train/loss": 1.0})
     (logs / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
@@ -97,12 +102,20 @@ def test_after_dagger_rounds_the_offline_figures_are_the_last_rounds(tmp_path):
 def test_the_table_has_one_row_per_run_and_a_dash_where_a_figure_is_missing(tmp_path):
     runs = [
         read_run(_make_run(tmp_path / "a"), "with grounding"),
-        read_run(_make_run(tmp_path / "b", grounding=False, unseen=(25.0, 4)), "no grounding"),
+        read_run(_make_run(tmp_path / "b", iou=None, unseen=(25.0, 4)), "no grounding"),
     ]
     lines = markdown_table(runs).splitlines()
     assert len(lines) == 4 and lines[0].startswith("| run | nav. steps |") and "SR more" in lines[0]
     assert lines[2].startswith("| with grounding | 310 | 0.625 / 0.500 | 50.0 / 50.0 | 25.0 | 37.5 (8) |")
     assert "| 0.625 / - | 50.0 / 25.0 | 25.0 | 25.0 (8) |" in lines[3]  # no box IoU; (1 + 1) of 8
+
+
+# NaN as the metrics file writes it; a 0.0 logged by a head-less run before the agent logged NaN
+@pytest.mark.parametrize(("iou", "head"), [("nan", True), (0.0, False)])
+def test_a_run_without_a_measured_box_iou_has_none(tmp_path, iou, head):
+    run = read_run(_make_run(tmp_path / "arm", iou=iou, head=head))
+    assert run.offline_accuracy == 0.625 and run.offline_box_iou is None
+    assert read_run(_make_run(tmp_path / "kept", iou=0.0, head=True)).offline_box_iou == 0.0  # a real 0 stays
 
 
 def test_failed_episodes_and_missing_steps_are_refused_with_the_file(tmp_path):
