@@ -1,4 +1,4 @@
-"""Keys, ids and file names shared by every part of the package (one meaning everywhere, DESIGN.md)."""
+"""Keys, ids and file names shared by every part of the package (one meaning everywhere, docs/CONVENTIONS.md)."""
 
 from __future__ import annotations
 
@@ -118,7 +118,7 @@ TOOLCHAIN_CONFIG_JSON = "meta/toolchain/generate_config.json"
 
 MODEL_TYPE = "openfly_agent"
 
-# --- The official 8-dim action vectors of the released OpenFly-Agent (reference/openfly.md section 2) ----
+# --- The official 8-dim action vectors of the released OpenFly-Agent (docs/OFFICIAL_OPENFLY.md section 2) ----
 # dims: 0 stop, 1 forward metres (3/6/9), 2 turn left, 3 turn right, 4 up, 5 down, 6 move left, 7 move right.
 # The magnitudes (15, 2, 5) are codes inherited from AerialVLN, not the executed motion (30 deg, 3 m, 3 m).
 OPENVLA_ACTION_DIM = 8

@@ -1,4 +1,4 @@
-"""Shared pytest set-up: offline Hub, deterministic seeds, the OpenFly fixtures folder."""
+"""Shared pytest set-up: offline Hub, deterministic seeds, the OpenFly fixtures folder (tests/fixtures/openfly)."""
 
 from __future__ import annotations
 
@@ -13,28 +13,13 @@ for _var in ("HF_HUB_OFFLINE", "HF_DATASETS_OFFLINE", "TRANSFORMERS_OFFLINE"):
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-
-
-def _find_openfly_fixtures() -> Path | None:
-    env = os.environ.get("OPENFLY_FIXTURES")
-    candidates = [Path(env)] if env else []
-    candidates += [
-        REPO_ROOT / "shared" / "fixtures" / "openfly",
-        REPO_ROOT.parent / "shared" / "fixtures" / "openfly",
-    ]
-    for path in candidates:
-        if (path / "eval_test.json").is_file():
-            return path
-    return None
+OPENFLY_FIXTURES = REPO_ROOT / "tests" / "fixtures" / "openfly"  # files of the official repository (MIT)
 
 
 @pytest.fixture(scope="session")
 def openfly_fixtures() -> Path:
-    """The real OpenFly files (annotation JSON, landmark lists, scene configs) beside the checkout."""
-    path = _find_openfly_fixtures()
-    if path is None:
-        pytest.fail("OpenFly fixtures not found: expected ../shared/fixtures/openfly or $OPENFLY_FIXTURES")
-    return path
+    """The real OpenFly files (annotation JSON, landmark lists, scene configs), vendored in tests/fixtures/openfly."""
+    return OPENFLY_FIXTURES
 
 
 @pytest.fixture(autouse=True)

@@ -1,4 +1,4 @@
-"""Imports go downwards only (DESIGN.md layout): L0 constants/utils, L1 model|data|sim, L2 toolchain|training|eval, L3 hub.
+"""Imports go downwards only (docs/CONVENTIONS.md, 'Layers'): L0 constants/utils, L1 model|data|sim, L2 toolchain|training|eval, L3 hub.
 
 Also: the package's own modules are imported at the top of a module (an import inside a function says why with a
 `# lazy: <reason>` comment), and the tests mirror the package (tests/<subpackage>/).
@@ -239,6 +239,7 @@ REPOSITORY_WIDE_TESTS = {
     "test_eval_e2e.py",
     "test_layering.py",
     "test_paths.py",
+    "test_self_contained.py",
 }
 
 

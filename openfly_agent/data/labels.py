@@ -1,6 +1,6 @@
 """Label handling of released OpenFly episodes: action-sequence checks, the -1 / -2 phases, merged forwards.
 
-Reference: reference/openfly.md 1.2 (label/frame quirk) and 7.4 (take-off / landing order). The options
+Reference: docs/OFFICIAL_OPENFLY.md 1.2 (label/frame quirk) and 7.4 (take-off / landing order). The options
 are described for users in data_cards/openfly_released.md.
 """
 

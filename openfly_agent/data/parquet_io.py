@@ -1,6 +1,6 @@
 """Per-trajectory parquet files in the OpenFly release schema (plus our extra columns), read and written.
 
-Release columns (reference/openfly.md 1.3): `image` struct {bytes: PNG, path}, `pos`, `yaw`,
+Release columns (docs/OFFICIAL_OPENFLY.md 1.3): `image` struct {bytes: PNG, path}, `pos`, `yaw`,
 `action_type` (str), `action_value` (m or deg), `env_id`, `traj_id`, `frame_index`, `image_id`.
 Ours add `episode_id`, `scene_id`, `split`, `instruction`, `action` (id), `landmark_ids`, `box`
 (null when not visible), `box_visible`. The Hugging Face `Image` feature is declared in the schema

@@ -1,6 +1,6 @@
 """Annotation records (one JSON object per trajectory) <-> `Episode`, with field-by-field validation.
 
-Release fields (reference/openfly.md 1.2): `image_path`, `gpt_instruction`, `action`, `index_list`,
+Release fields (docs/OFFICIAL_OPENFLY.md 1.2): `image_path`, `gpt_instruction`, `action`, `index_list`,
 `pos` (3 numbers, sometimes a 4th = yaw), `yaw`. Our extra fields: `scene_id`, `split`, `category`,
 `pitch_deg`, `landmark_ids`, `boxes` ((cx, cy, w, h) or null per frame), `box_visible`, `goal`.
 """

@@ -24,7 +24,7 @@ class SchemaError(ValueError):
 class Episode:
     """One trajectory. Arrays are indexed by kept frame t = 0..T-1; `actions[t]` is taken at frame t.
 
-    Attributes mirror the OpenFly annotation record (reference/openfly.md section 1.2) plus our extras.
+    Attributes mirror the OpenFly annotation record (docs/OFFICIAL_OPENFLY.md section 1.2) plus our extras.
     """
 
     episode_id: str  # OpenFly `image_path`, e.g. "env_airsim_16/astar_data/medium_average/<folder>"

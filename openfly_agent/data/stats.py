@@ -2,7 +2,7 @@
 
 The 8-dim vectors are one-hot-like codes (constants.OPENVLA_ACTION_VECTORS). OpenVLA normalises each
 dim with its 1st / 99th percentiles; a code value outside [q01, q99] is clipped and cannot be decoded
-back (a rare action with q01 == q99 == 0 decodes to 0, reference/openfly.md 1.6 and 10). So on every
+back (a rare action with q01 == q99 == 0 decodes to 0, docs/OFFICIAL_OPENFLY.md 1.6 and 10). So on every
 dim where the percentiles would clip a value that occurs, or the 0 code ("not this action"), q01 / q99
 are widened to min(min, 0) / max(max, 0).
 """

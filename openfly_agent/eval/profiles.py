@@ -85,7 +85,7 @@ class MetricProfile:
         return distance <= self.success_radius
 
 
-# Parity with SHAILAB-IPEC/OpenFly-Platform train/eval.py (reference/openfly.md section 6.2).
+# Parity with SHAILAB-IPEC/OpenFly-Platform train/eval.py (docs/OFFICIAL_OPENFLY.md section 6.2).
 OPENFLY = MetricProfile(
     name="openfly",
     success_radius=C.SUCCESS_RADIUS_M,

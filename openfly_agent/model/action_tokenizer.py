@@ -1,6 +1,6 @@
 """Action ids <-> LLM token ids for the `discrete` head and the OpenVLA 8-dim `openvla_bins` head.
 
-OpenVLA behaviour reproduced (reference/openfly.md 3.6, peers.md 2.1): 256 bin edges on [-1, 1] give
+OpenVLA behaviour reproduced (docs/OFFICIAL_OPENFLY.md 3.6 and 11.1): 256 bin edges on [-1, 1] give
 255 centres; encode = `vocab_end - digitize(clip(x))` (ids vocab_end-256 .. vocab_end-1); decode clips
 `vocab_end - id - 1` to [0, 254] (the off-by-one at the edges: bins 1 and 256 decode to the outer centres).
 """

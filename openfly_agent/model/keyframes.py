@@ -67,7 +67,7 @@ def motion_classes_from_poses(
 ) -> list[int]:
     """Motion class of each frame from the pose history (the motion from pose t to pose t + 1).
 
-    For trajectories whose action labels are unreliable (reference/openfly.md 1.2: merged forward labels
+    For trajectories whose action labels are unreliable (docs/OFFICIAL_OPENFLY.md 1.2: merged forward labels
     sit on the block's last frame). A yaw change beats a height change, which beats a horizontal move; the
     last frame (no next pose) is STOP.
 

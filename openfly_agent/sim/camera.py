@@ -1,6 +1,6 @@
 """Pinhole camera of the embedded renderer: axes from (yaw, pitch), projection to pixels, GL matrices.
 
-World frame of DESIGN.md (x east, y north, z up). The camera sits at the drone position and looks along
+World frame of docs/CONVENTIONS.md (x east, y north, z up). The camera sits at the drone position and looks along
 the heading yaw, tilted by pitch (negative = down); no roll. Pixels: u to the right, v down, pixel (i, j)
 covers [i, i + 1) x [j, j + 1), the principal point is the image centre, square pixels.
 """

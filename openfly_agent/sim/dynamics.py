@@ -1,4 +1,4 @@
-"""The single place where OpenFly action ids become motion (DESIGN.md action codebook).
+"""The single place where OpenFly action ids become motion (docs/CONVENTIONS.md, 'Actions').
 
 Every step is a teleport, as in the official evaluation: translation along the heading, a lateral
 move, a vertical move or a yaw change. `step_motion` also returns the straight segment the drone

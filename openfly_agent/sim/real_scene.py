@@ -1,7 +1,7 @@
 """Readers for the official real-scene inputs: landmark lists (`seg_map/*.jsonl`) and `env_*.yaml` configs.
 
 Both are turned into our types (`Landmark`, `SceneBounds`, `RealSceneConfig`) in the world frame of
-DESIGN.md; unit conversions follow reference/openfly.md sections 2 and 7.3.
+docs/CONVENTIONS.md; unit conversions follow docs/OFFICIAL_OPENFLY.md sections 2 and 7.3.
 """
 
 from __future__ import annotations
@@ -160,7 +160,7 @@ class ThreadParams:
 
 @dataclass(frozen=True)
 class RealSceneConfig:
-    """An official `configs/env_*.yaml` (reference/openfly.md section 7.1)."""
+    """An official `configs/env_*.yaml` (docs/OFFICIAL_OPENFLY.md section 7.1)."""
 
     env: str
     data_type: str

@@ -11,7 +11,7 @@ import numpy as np
 class Landmark:
     """A named object an instruction can refer to (a building, tower, ...).
 
-    Positions are in the world frame of DESIGN.md (metres, z up). `extent` is the full size
+    Positions are in the world frame of docs/CONVENTIONS.md (metres, z up). `extent` is the full size
     (dx, dy, dz) of its axis-aligned bounding box, `position` the centre of its footprint at roof height
     for real landmark lists (z = top), or the box centre for embedded buildings (see `center`).
     """

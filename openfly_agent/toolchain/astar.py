@@ -1,6 +1,6 @@
 """A* in the action space: 3 m steps at 12 headings of 30 deg, 3 m climb / descend, a turn penalty.
 
-Follows the official "hybridAStar" (reference/openfly.md 7.4): 14 neighbours per state, edge cost
+Follows the official "hybridAStar" (docs/OFFICIAL_OPENFLY.md 7.4): 14 neighbours per state, edge cost
 3 m + a penalty, Euclidean heuristic, goal reached within 3.1 m, visited states keyed by their position on a
 1 m grid. Headings are counted from the start yaw, so the path converts to turn / forward / climb primitives
 that `sim/dynamics.py` replays exactly. The inner loop is plain Python over a flat byte view of the dilated

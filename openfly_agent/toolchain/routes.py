@@ -1,4 +1,4 @@
-"""Route sampling around landmarks (official `traj_gen`, reference/openfly.md 7.4).
+"""Route sampling around landmarks (official `traj_gen`, docs/OFFICIAL_OPENFLY.md 7.4).
 
 Flight height ~ U(floor + h, floor + H); a landmark whose top reaches that height (minus a slack); a start
 on the ring [r, R] around it, outside every footprint and obstacle; the goal found by walking from the

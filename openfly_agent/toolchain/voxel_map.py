@@ -1,6 +1,6 @@
 """Point cloud -> the planner's maps: a 3-D voxel grid (raw and dilated) and a BEV occupancy / height map.
 
-Follows the official `traj_gen` maps (reference/openfly.md 7.4): bounds with zmin = elevation, voxel width,
+Follows the official `traj_gen` maps (docs/OFFICIAL_OPENFLY.md 7.4): bounds with zmin = elevation, voxel width,
 obstacles inflated by ceil(DilateRadius / VoxelWidth) voxels, outside the bounds = occupied, and a
 single-layer BEV map of the points above elevation + min_height_thresh, dilated likewise.
 """

@@ -1,4 +1,4 @@
-"""Poses and angles in the world frame of DESIGN.md (right-handed, metres, x east, y north, z up)."""
+"""Poses and angles in the world frame of docs/CONVENTIONS.md (right-handed, metres, x east, y north, z up)."""
 
 from __future__ import annotations
 

@@ -42,7 +42,7 @@ def _png(rgb: np.ndarray) -> bytes:
 def write_release_parquet(
     path: Path, frames: list[np.ndarray], corrupt_row: int | None = None, stem_in_image_id: bool = False
 ) -> None:
-    """Columns and types as in the released files (reference/openfly.md 1.3); no extra columns.
+    """Columns and types as in the released files (docs/OFFICIAL_OPENFLY.md 1.3); no extra columns.
 
     `stem_in_image_id`: no image path, and `image_id` already holds the whole `<stamp>_<k>` stem.
     """

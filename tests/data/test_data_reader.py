@@ -20,7 +20,7 @@ from openfly_agent.data.openfly_reader import (
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.data.stats import action_histogram
 
-# reference/openfly.md 1.2, counted on the 240 records of configs/eval_test.json
+# docs/OFFICIAL_OPENFLY.md 1.2, counted on the 240 records of tests/fixtures/openfly/eval_test.json
 EVAL_TEST_HISTOGRAM = {9: 1992, 2: 230, 8: 218, 3: 204, 1: 195, 0: 240, 4: 62, 5: 57, -1: 366, -2: 368}
 FOUR_NUMBER_POS_RECORDS = [
     17,

@@ -13,7 +13,7 @@ from openfly_agent.eval.report import policy_results
 from openfly_agent.eval.rollout import LockstepRunner, teleport_record
 from openfly_agent.eval.slots import SimulatorSlots
 
-# reference/openfly.md 6.2: STOP at step 0 succeeds on 26 of 240 (per-scene SR in percent).
+# docs/OFFICIAL_OPENFLY.md 6.2: STOP at step 0 succeeds on 26 of 240 (per-scene SR in percent).
 STOP_AT_START_SR = {
     "env_airsim_16": 10.0, "env_airsim_18": 13.3, "env_airsim_23": 6.7, "env_airsim_26": 3.3,
     "env_airsim_sh": 0.0, "env_airsim_gz": 10.0, "env_ue_smallcity": 16.7, "env_ue_bigcity": 26.7,

@@ -305,7 +305,7 @@ def test_ground_truth_replay_of_eval_test_is_perfect(openfly_fixtures):
 
 
 def test_stop_at_once_baseline_matches_the_published_per_scene_rates(openfly_fixtures):
-    """STOP at step 0 succeeds on 26/240 eval_test episodes, per scene as reference/openfly.md 6.2."""
+    """STOP at step 0 succeeds on 26/240 eval_test episodes, per scene as docs/OFFICIAL_OPENFLY.md 6.2."""
     trajectories = []
     for gt in _eval_test_trajectories(openfly_fixtures / "eval_test.json"):
         start = gt.positions[0]
