@@ -1,6 +1,8 @@
 """`python -m openfly_agent.recipe --config_path configs/recipe/main_job.yaml [--<field>=VALUE ...]`
 
-Runs the navigation recipe (openfly_agent/recipe/run.py); run the same command again to resume.
+Runs the navigation recipe (openfly_agent/recipe/run.py); run the same command again to resume. At the end it
+prints, and writes to `<output_dir>/summary.md`, each training stage's steps against its budget (a stage its time
+guard cut short says so) above the evaluation tables.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from pathlib import Path
 import draccus
 
 from openfly_agent.recipe.config import RecipeConfig
+from openfly_agent.recipe.progress import recipe_report
 from openfly_agent.recipe.run import run_recipe
 from openfly_agent.utils.cli_help import UnknownOptionError, config_help, wants_help, without_help
 from openfly_agent.utils.config import parse_config
@@ -50,9 +53,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write(f"{PROG}: interrupted; run the same command again to resume\n")
         return 130
-    tables = [f"{cfg.output_dir}/eval/summary.md"]
-    tables += [f"{cfg.output_dir}/eval-{Path(c).stem}/summary.md" for c in cfg.eval.more_cities]
-    logger.info("recipe complete: tables in %s", ", ".join(tables))
+    report = recipe_report(cfg)
+    summary = Path(cfg.output_dir) / "summary.md"
+    summary.write_text(report)
+    print(report)
+    logger.info("recipe complete: %s (per-policy tables in %s/eval*/)", summary, cfg.output_dir)
     return 0
 
 

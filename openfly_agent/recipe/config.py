@@ -16,10 +16,12 @@ def _check(condition: bool, message: str) -> None:
 
 @dataclass
 class StageBudget:
-    """One training stage: it stops at `steps` or after `minutes`, whichever comes first; steps 0 skips it."""
+    """One training stage: it trains `steps` optimizer steps, so a run's result does not depend on the machine's
+    speed; `minutes` is only a guard (a stage it stops is reported as cut short, openfly_agent/recipe/progress.py).
+    steps 0 skips the stage."""
 
     steps: int = 1000  # optimizer steps (0: the stage is skipped)
-    minutes: float = 10.0  # wall-clock cap of the stage's training (train.py --time_limit_minutes)
+    minutes: float = 10.0  # guard: wall-clock cap of the stage's training (train.py --time_limit_minutes)
     args: list[str] = field(default_factory=list)  # more train.py overrides, e.g. ["--optim.lr=5e-4"]
 
     def __post_init__(self) -> None:
@@ -102,9 +104,9 @@ class RecipeConfig:
     train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
     processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
     torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts
-    # train.py --optim.horizon of every stage: `time` decays the lr over the stage's minutes when they end
-    # before its steps (the budgets here are wall time), `steps` over the steps only
-    lr_horizon: str = "time"
+    # train.py --optim.horizon of every stage: `steps` decays the lr over the stage's steps (the same schedule on
+    # any machine); `time` over its minutes when they end first (how runs before issue 39 were budgeted)
+    lr_horizon: str = "steps"
     grounding: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=8.0))
     navigation: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=10.0))
     dagger: DaggerSettings = field(default_factory=DaggerSettings)

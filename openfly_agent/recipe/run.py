@@ -49,6 +49,7 @@ class RecipeStep:
         command: the argument list (resume flags are added when the step runs).
         folder: where it writes; its marker `folder/.recipe_done` says the step is complete.
         env: environment variables it needs (thread counts).
+        steps: a training step's budget of optimizer steps (0 for data and eval steps).
     """
 
     name: str
@@ -56,6 +57,7 @@ class RecipeStep:
     command: list[str]
     folder: Path
     env: dict[str, str] = field(default_factory=dict)
+    steps: int = 0
 
     @property
     def done(self) -> bool:
@@ -86,7 +88,7 @@ def _train_step(
         *args,
         *budget.args,
     ]  # fmt: skip
-    return RecipeStep(name, KIND_TRAIN, command, folder, env)
+    return RecipeStep(name, KIND_TRAIN, command, folder, env, steps=budget.steps)
 
 
 def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:

@@ -59,7 +59,7 @@ def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
     assert "box_servo" in by_name["eval"].command and _flag(by_name["eval"].command, "max_episodes") is None
     assert _flag(by_name["grounding"].command, "steps") == str(cfg.grounding.steps)
     assert _flag(by_name["dagger-r2-train"].command, "time_limit_minutes") == str(cfg.dagger.train.minutes)
-    assert {_flag(s.command, "optim.horizon") for s in steps if s.kind == KIND_TRAIN} == {"time"}
+    assert {_flag(s.command, "optim.horizon") for s in steps if s.kind == KIND_TRAIN} == {"steps"}
 
 
 def test_extra_datasets_are_generated_and_join_navigation_and_dagger_training(tmp_path):
