@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The ablation table at the recipe budget (docs/BENCHMARKS.md, "The ablation table on the adopted recipe"):
+# The ablation table at the recipe budget (docs/experiments/2026-11-26-ablations-on-the-adopted-recipe.md, "The ablation table on the adopted recipe"):
 #   1. the recipe itself (configs/recipe/tiny-recipe.yaml: keyframes + token merging, the paper's OpenFly-Agent)
 #      into $ROOT/recipe, about 2 h 25 min on 2 cores;
 #   2. each arm of configs/recipe/ablations/ into $ROOT/<arm>, one change against the recipe. The arms that change

@@ -2,7 +2,7 @@
 
 A history mode's cost and what it can tell the agent both follow from how often its memory is filled. The
 keyframe selector, for instance, adds a set only at a change of motion, so on short, mostly straight routes
-most samples have none (docs/BENCHMARKS.md, "The ablation table on the adopted recipe").
+most samples have none (docs/experiments/2026-11-26-ablations-on-the-adopted-recipe.md, "The ablation table on the adopted recipe").
 """
 
 from __future__ import annotations

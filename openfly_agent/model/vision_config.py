@@ -66,14 +66,14 @@ class VisionConfig:
     cnn_instruction_film: bool = False
     # tiny-cnn only: add to each token a projection of its cell's colour statistics (mean and spread of the
     # normalised RGB over the cell, the means of its 2 x 2 quarters): the trained ResNet's features keep a
-    # landmark's type but not its colour (docs/BENCHMARKS.md, "Which landmark the head picks")
+    # landmark's type but not its colour (docs/experiments/2026-11-24-grounding-levers.md, "Which landmark the head picks")
     cnn_colour_stats: bool = False
     # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
     # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)
     cnn_init: str = CNN_INIT_NORMAL
     # tiny-cnn only: the ResNet's stem (CNN_STEMS), both stride 4 with 64 channels into the first stage: `resnet`
     # (timm's, whose 64-channel maps at half the input resolution took about 30 % of a CPU training step) or
-    # `patch4` (a 4 x 4 stride-4 convolution, as a ViT's patch embedding; docs/BENCHMARKS.md, "The patch stem")
+    # `patch4` (a 4 x 4 stride-4 convolution, as a ViT's patch embedding; docs/experiments/2026-11-26-speed-levers.md, "The patch stem")
     cnn_stem: str = CNN_STEM_RESNET
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
