@@ -1,4 +1,5 @@
-"""The commands and Python snippets of README.md and docs/*.md, found and sorted for tests/test_docs.py.
+"""The commands and Python snippets of README.md, docs/*.md and docs/experiments/*.md, found and sorted for
+tests/test_docs.py.
 
 Commands come from ```bash fenced blocks (continuation lines joined, comments dropped) and from inline code
 spans that start with an entry point (`python eval.py ...`). Each is resolved to its entry point (train.py,
@@ -17,6 +18,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DOC_FILES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+# The experiment log (dated entries, appended, never rewritten): its commands are historical, so their options
+# are checked against today's parsers but its blocks are not run (tests/test_docs.py, HISTORICAL).
+HISTORICAL = REPO / "docs" / "experiments"
+DOC_FILES += sorted(HISTORICAL.glob("*.md"))
 ENTRY_WORDS = ("python ", "python3 ", "accelerate launch", "torchrun ", "openfly-generate", "openfly-hub")
 ENTRY_WORDS += ("bash scripts/", "train.py ", "eval.py ")
 PLACEHOLDER = re.compile(r"<[^>]*>|\$|\.\.\.|\*")

@@ -23,7 +23,7 @@ class ReaderOptions:
             "keep": leave them (training skips those steps, they still serve as history frames);
             "map": -1 -> 4 (ascend) in place, and the released "0, -2, ..., -2" tail becomes
             "5, ..., 5, 0": each descent label moves to the frame where that descent starts and STOP
-            goes to the landed frame (the order the official toolchain writes, reference 7.4);
+            goes to the landed frame (the order the official toolchain writes, docs/OFFICIAL_OPENFLY.md 7.4);
             "trim": drop the -1 frames and the -2 frames; the episode ends at its STOP frame, which
             also becomes the goal.
         merged_forward_position: where merged 6 / 9 m labels (8 / 9) sit. "end" = as released (on the

@@ -33,7 +33,7 @@ ACTION_TYPE_IDS = {
     "move right": C.ACTION_MOVE_RIGHT,
     "up": C.ACTION_TAKEOFF,
     "down": C.ACTION_LANDING,
-    "donw": C.ACTION_LANDING,  # a typo seen in released files (reference 1.3)
+    "donw": C.ACTION_LANDING,  # a typo seen in released files (docs/OFFICIAL_OPENFLY.md 1.3)
 }
 GO_STRAIGHT = "go straight"
 STRAIGHT_IDS = {3: C.ACTION_FORWARD, 6: C.ACTION_FORWARD_6, 9: C.ACTION_FORWARD_9}

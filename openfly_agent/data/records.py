@@ -36,7 +36,7 @@ def parse_episode_id(episode_id: str, file: str = "", record: int | str = "") ->
 
 
 def pitch_for_category(category: str) -> float:
-    """Camera pitch of a trajectory: -45 deg for `high_*` categories, else 0 (reference 0.12)."""
+    """Camera pitch of a trajectory: -45 deg for `high_*` categories, else 0 (docs/CONVENTIONS.md, "Camera")."""
     return C.HIGH_CATEGORY_PITCH_DEG if category.startswith("high") else 0.0
 
 

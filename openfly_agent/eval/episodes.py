@@ -73,7 +73,7 @@ def oracle_replays_exactly(episode: Episode, tolerance_m: float = REPLAY_TOLERAN
     """Whether `positions[t + 1] == apply_action(pose[t], actions[t])` for every recorded frame.
 
     Checked by executing the recorded actions from the start through `sim/dynamics.py` (positions within
-    `tolerance_m`). True for generated data; false for most released episodes (label quirks, reference 1.2).
+    `tolerance_m`). True for generated data; false for most released episodes (label quirks, docs/OFFICIAL_OPENFLY.md 1.2).
     """
     if len(episode) == 0:
         return False

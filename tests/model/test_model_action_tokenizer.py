@@ -98,7 +98,7 @@ def test_exact_rule_falls_back_to_stop_and_nearest_does_not():
 
 
 def test_vlnv1_style_stats_can_never_ascend():
-    """q01 = q99 = 0 on the up/down dims (reference 4.6): ascend encodes to +1 but decodes to 0 -> STOP."""
+    """q01 = q99 = 0 on the up/down dims (docs/OFFICIAL_OPENFLY.md 1.6): ascend encodes to +1 but decodes to 0 -> STOP."""
     stats = _codebook_stats()
     stats["q99"][4] = stats["q99"][5] = 0.0
     stats.pop("min"), stats.pop("max")
