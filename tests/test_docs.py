@@ -221,7 +221,10 @@ def test_every_document_is_checked_and_the_results_name_their_commands():
     kinds = {c.kind for c in results}
     assert {"recipe", "script", "shell"} <= kinds, kinds  # the recipe, bench/ scripts and scripts/*.sh
     readme = [c for c in COMMANDS if c.file == "README.md"]
-    assert [c.text.split("#")[0].strip() for c in readme[:2]] == ["bash scripts/main_job.sh", "bash scripts/test.sh"]
+    assert [c.text.split("#")[0].strip() for c in readme[:2]] == [
+        "bash scripts/main_job.sh",
+        "bash scripts/test.sh",
+    ]
     assert {"train", "eval", "hub"} <= {c.kind for c in readme}  # the GPU path: fine-tune, evaluate, release
 
 
