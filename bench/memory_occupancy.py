@@ -5,7 +5,7 @@ samples of one split under each history mode and prints one JSON line per mode: 
 sample, the fraction of samples with no memory, and the fraction holding 0..K sets. Only frame indices are
 computed (no image is read, no model is built):
 
-    python bench/memory_occupancy.py --run outputs/exp/recipe_g60_skip/navigation --split train test_unseen
+    python bench/memory_occupancy.py --run outputs/recipe/navigation --split train test_unseen
 
 Run it from the directory the training ran in (the run's config names its datasets by relative path).
 """

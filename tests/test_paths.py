@@ -1,4 +1,4 @@
-"""One rule for relative paths (README "Where files go"): outputs and datasets are relative to the working
+"""One rule for relative paths (docs/USAGE.md, "Where files go"): outputs and datasets are relative to the working
 directory; config files not found there are read from the repository's configs/, so every command works from
 any folder and writes where it is run."""
 
