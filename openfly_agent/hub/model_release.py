@@ -26,6 +26,7 @@ from openfly_agent.hub.model_card import ModelFacts, render_model_card, summariz
 from openfly_agent.hub.results import load_results, resolve_results_path
 from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
+from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)
 
@@ -84,6 +85,7 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
         facts.train_summary = summarize_train_config(read_json(out / TRAIN_CONFIG_NAME))
     (out / MODEL_CARD_NAME).write_text(render_model_card(cfg.card, cfg.repo_id, results, facts))
     check_release_folder(out, adapter_form)
+    follow_umask(out)  # safetensors writes 0600; the weights take the mode of the files beside them
     logger.info("release folder ready: %s (%d files)", out, len(list(out.iterdir())))
     return out
 

@@ -159,6 +159,17 @@ def test_release_folder_contents(releases, source):
     assert "`model.safetensors`" in body
 
 
+def test_released_weights_follow_the_umask(releases):
+    """safetensors writes 0600; the released weights get the mode of a plain file (config.json's, the umask's)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    for folder in (releases.single, releases.sharded):
+        weights = sorted(folder.glob("*.safetensors"))
+        assert weights
+        for path in [*weights, folder / CONFIG_NAME]:
+            assert path.stat().st_mode & 0o777 == 0o666 & ~mask, path
+
+
 def test_sharded_and_unsharded_load_equal_weights(releases, source):
     from openfly_agent.model.agent import OpenFlyAgent
 
