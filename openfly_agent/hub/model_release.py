@@ -24,7 +24,7 @@ from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_
 from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
 from openfly_agent.hub.model_card import ModelFacts, render_model_card, summarize_train_config
 from openfly_agent.hub.results import load_results, resolve_results_path
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
 from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
 from openfly_agent.utils.file_modes import follow_umask
 
@@ -41,7 +41,8 @@ def resolve_checkpoint(path: str | Path) -> Path:
     """The checkpoint folder: `path` itself, or the folder named by a training `last` pointer file.
 
     Accepts a checkpoint folder (holding config.json), the pointer file `.../checkpoints/last`, or a folder
-    holding such a pointer (`<run>/checkpoints` or `<run>`).
+    holding such a pointer (`<run>/checkpoints` or `<run>`). A grounding-stage checkpoint is refused (no
+    trained action head).
     """
     folder = resolve_checkpoint_folder(path)
     if folder is None:
@@ -52,6 +53,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
     model_type = read_json(folder / CONFIG_NAME).get("model_type")
     if model_type != MODEL_TYPE:
         raise ValueError(f"{folder / CONFIG_NAME}: model_type is {model_type!r}, expected {MODEL_TYPE!r}")
+    check_navigation_stage(folder)
     return folder
 
 

@@ -16,6 +16,9 @@ from openfly_agent.constants import (
     CHECKPOINTS_DIR,
     CONFIG_NAME,
     LAST_POINTER_NAME,
+    STAGE_GROUNDING,
+    STAGE_NAVIGATION,
+    TRAIN_CONFIG_NAME,
     WEIGHTS_INDEX_NAME,
     WEIGHTS_NAME,
 )
@@ -69,6 +72,34 @@ def last_pointer_target(pointer: Path) -> Path | None:
 
 def _is_pointer(path: Path) -> bool:
     return path.is_symlink() or path.is_file()
+
+
+def check_navigation_stage(folder: Path) -> None:
+    """Refuse a grounding-stage checkpoint where an agent is wanted (eval.py, a release): its action head was
+    never trained. Read from the folder's train_config.json `stage`; folders without one pass.
+
+    Raises:
+        ValueError: one line naming the folder, its stage and the navigation stage to pass instead.
+    """
+    folder = Path(folder)
+    train_config = folder / TRAIN_CONFIG_NAME
+    try:
+        stage = json.loads(train_config.read_text()).get("stage") if train_config.is_file() else None
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return  # not ours to judge here: the loaders name an unreadable file
+    if stage != STAGE_GROUNDING:
+        return
+    run = folder.parent.parent if folder.parent.name == CHECKPOINTS_DIR else folder
+    sibling = run.parent / STAGE_NAVIGATION
+    instead = (
+        f"the navigation stage trained from it, e.g. {sibling}"
+        if sibling.is_dir()
+        else f"the checkpoint of a {STAGE_NAVIGATION} stage started from it (train.py --init.checkpoint={run})"
+    )
+    raise ValueError(
+        f"{folder} is a {STAGE_GROUNDING}-stage checkpoint ({TRAIN_CONFIG_NAME}: stage={STAGE_GROUNDING}, no "
+        f"trained action head), not an agent: pass {instead}"
+    )
 
 
 def check_not_adapter_only(folder: Path) -> None:
