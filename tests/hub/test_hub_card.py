@@ -40,7 +40,7 @@ FACTS = ModelFacts(
     package_version="0.1.0",
     num_parameters="1.23 M",
     action_head="discrete",
-    memory_capacity=2,
+    architecture="a small ResNet vision encoder (`tiny-cnn`, 128 px, 8 x 8 tokens per frame)",
     weights_summary="`model.safetensors`",
     release_form="full weights",
     files={"config.json": "model config"},
@@ -83,7 +83,7 @@ def test_model_index_matches_eval_json(results_path):
         seen.add((split, profile))
     assert seen == {(s, p) for s in ("test_seen", "test_unseen") for p in ("openfly", "standard")}
     # the body's table states the profile of every number, and the profiles' recorded settings
-    assert "| test_unseen | `standard` | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
+    assert "| test_unseen | `standard` | **agent** | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
     assert "Settings used: stop_required=False." in body
     assert "run settings `sim=embedded`" in body  # eval's run meta that changes the numbers
 

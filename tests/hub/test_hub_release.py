@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from openfly_agent.constants import ACTION_TOKENIZER_NAME, CONFIG_NAME, WEIGHTS_INDEX_NAME, WEIGHTS_NAME
+from openfly_agent.eval.agent_policy import checkpoint_fingerprint
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_card import split_front_matter
@@ -234,6 +235,9 @@ def pushed(source, tmp_path_factory):
     work = tmp_path_factory.mktemp("push")
     results = work / "results.json"
     results.write_text(json.dumps(_results_json()))
+    # what eval.py records beside its results: the fingerprint of the weights it evaluated
+    identity = {"policy": "agent", "weights": checkpoint_fingerprint(str(source.checkpoint))}
+    (work / "run_identity.json").write_text(json.dumps(identity))
     online = {
         "HF_HUB_OFFLINE": "0",
         "TRANSFORMERS_OFFLINE": "0",
