@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+from datetime import datetime, timezone
 from pathlib import Path
 
 from openfly_agent.eval.agent_policy import checkpoint_fingerprint
@@ -49,9 +50,9 @@ def check_results_weights(results_file: Path, checkpoint: Path) -> None:
     current = checkpoint_fingerprint(str(checkpoint))
     if not same_weights(recorded, current):
         raise ResultsError(
-            f"--results {results_file} evaluated other weights ({_describe(recorded)}, per "
-            f"{RUN_IDENTITY_NAME}) than --checkpoint ({_describe(current)}): evaluate this checkpoint with "
-            "eval.py --checkpoint <it> --output_dir <new folder> and pass that folder"
+            f"--results {results_file} evaluated other weights than --checkpoint: its {RUN_IDENTITY_NAME} names "
+            f"{_describe(recorded)}, the checkpoint is {_describe(current)}; evaluate the checkpoint (eval.py "
+            f"--checkpoint {checkpoint} --output_dir <new folder>) and pass those results"
         )
 
 
@@ -109,7 +110,13 @@ def _mismatch(identity: dict | None, agent_identity: dict, name: str) -> str | N
 
 
 def _describe(fingerprint: dict) -> str:
-    files = ", ".join(
-        f"{name} {size} B" for name, (size, _) in sorted(fingerprint.get("weights", {}).items())
-    )
-    return f"{fingerprint.get('folder')}: {files or 'no weight files'}"
+    """`<folder> (model.safetensors 7,779,564 B modified 2026-11-27 09:23:45 UTC)`."""
+    files = [
+        f"{name} {size:,} B modified {_utc(mtime_ns)}"
+        for name, (size, mtime_ns) in sorted(fingerprint.get("weights", {}).items())
+    ]
+    return f"{fingerprint.get('folder')} ({', '.join(files) or 'no weight files'})"
+
+
+def _utc(mtime_ns: int) -> str:
+    return datetime.fromtimestamp(mtime_ns / 1e9, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
