@@ -93,10 +93,13 @@ WEIGHTS_INDEX_NAME = "model.safetensors.index.json"
 ACTION_TOKENIZER_NAME = "action_tokenizer.json"
 NORM_STATS_NAME = "dataset_statistics.json"
 TRAIN_CONFIG_NAME = "train_config.json"
+# Training stages (train_config.json `stage`): the grounding stage trains no action head, so only a navigation
+# stage's checkpoint is an agent.
+STAGE_GROUNDING, STAGE_NAVIGATION = "grounding", "navigation"
 MODEL_CARD_NAME = "README.md"
 ADAPTER_DIR_NAME = "adapter"
 PROCESSOR_CONFIG_NAME = "processor_config.json"  # OpenFlyProcessor's settings (transformers' name)
-# A training run: <output_dir>/checkpoints/step-NNNNNN/ folders and `last`, a one-line file naming the newest.
+# A training run: <output_dir>/checkpoints/step-NNNNNN/ folders and `last`, a relative symlink to the newest.
 CHECKPOINTS_DIR = "checkpoints"
 LAST_POINTER_NAME = "last"
 

@@ -106,7 +106,7 @@ def one_run(dataset: Path, work: Path, timeout: float, stacks: bool) -> dict:
         except GroupTimeout as expired:
             rc, err, timed_out = None, expired.stderr or "", True
     seconds = time.monotonic() - start
-    finished = (out / "checkpoints" / "last").is_file()
+    finished = (out / "checkpoints" / "last").exists()
     result = {
         "ok": rc == 0,
         "rc": rc,

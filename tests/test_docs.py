@@ -319,6 +319,11 @@ def _prepare(command: DocCommand, work: Path, small_agent: Path) -> None:
         path = work / results / "agent" / C.RESULTS_JSON
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"version": 1, "policy": "agent", "splits": splits, "errors": {}}))
+        if checkpoint:  # eval.py records the weights it evaluated beside its results; a release checks them
+            from openfly_agent.eval.agent_policy import checkpoint_fingerprint
+
+            identity = {"policy": "agent", "weights": checkpoint_fingerprint(str(work / checkpoint))}
+            (path.parent / "run_identity.json").write_text(json.dumps(identity))
 
 
 def _argv(command: DocCommand) -> list[str]:

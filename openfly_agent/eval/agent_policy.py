@@ -17,7 +17,7 @@ from openfly_agent import constants as C
 from openfly_agent.eval.box_servo import OBS_TARGET_BOX
 from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
 from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
 from openfly_agent.model.tokenizer import load_tokenizer
 from openfly_agent.utils.config import load_yaml_config
@@ -107,12 +107,17 @@ def resolve_dtype(dtype: str, device: str):
 def checkpoint_folder(checkpoint: str) -> Path:
     """The checkpoint's HF folder: a folder with config.json as is; a training run (`<run>`,
     `<run>/checkpoints` or the `last` pointer file) resolved to its newest checkpoint; otherwise a Hub id
-    resolved through the local Hub cache (or a download when online)."""
+    resolved through the local Hub cache (or a download when online). A grounding-stage checkpoint is refused
+    (EvalInputError naming the navigation stage: it has no trained action head)."""
     try:
         folder = resolve_checkpoint_folder(checkpoint)
     except FileNotFoundError as err:
         raise FileNotFoundError(f"--checkpoint {checkpoint!r}: {err}") from err
     if folder is not None:
+        try:
+            check_navigation_stage(folder)
+        except ValueError as err:
+            raise EvalInputError(f"--checkpoint {checkpoint!r}: {err}") from err
         return folder
     if checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
         raise FileNotFoundError(

@@ -52,7 +52,23 @@ def subsample(episodes: list[Episode], count: int | None) -> list[Episode]:
 
 
 def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
-    """{split: episodes sorted by id} for every split of `cfg` (`max_episodes` evenly spaced ones when set).
+    """{split: episodes sorted by id} for every split of `cfg` (`max_episodes` evenly spaced ones when set)."""
+    return subsample_splits(load_full_splits(cfg), cfg.max_episodes)
+
+
+def subsample_splits(full: dict[str, list[Episode]], count: int | None) -> dict[str, list[Episode]]:
+    """`subsample` of every split (all of each when `count` is None)."""
+    out = {split: subsample(episodes, count) for split, episodes in full.items()}
+    for split, episodes in out.items():
+        if len(episodes) < len(full[split]):
+            logger.info(
+                "%s: evaluating %d of %d episodes (max_episodes)", split, len(episodes), len(full[split])
+            )
+    return out
+
+
+def load_full_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
+    """{split: every episode, sorted by id} for every split of `cfg` (before `max_episodes`).
 
     Raises:
         FileNotFoundError: the dataset root or a split's annotation is missing, with the path and a hint.
@@ -66,7 +82,7 @@ def load_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
                 f"{err}. Generate a dataset first (python -m openfly_agent.toolchain generate "
                 "--config configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
             ) from err
-        episodes = subsample(sorted(episodes, key=lambda e: e.episode_id), cfg.max_episodes)
+        episodes = sorted(episodes, key=lambda e: e.episode_id)
         if not episodes:
             raise EvalInputError(f"{cfg.dataset_root}: split {split!r} has no episodes")
         out[split] = episodes

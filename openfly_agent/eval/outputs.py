@@ -42,8 +42,9 @@ def write_text_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def run_meta(cfg: EvalConfig, policy: str) -> dict:
-    """Settings recorded next to the numbers."""
+def run_meta(cfg: EvalConfig, policy: str, split_sizes: dict[str, int] | None = None) -> dict:
+    """Settings recorded next to the numbers; `split_episodes`: each split's episodes before `max_episodes`
+    (a card says "40 of 520 episodes" from it)."""
     return {
         "checkpoint": cfg.checkpoint if policy in AGENT_POLICIES else None,
         "dataset_root": cfg.dataset_root,
@@ -52,6 +53,8 @@ def run_meta(cfg: EvalConfig, policy: str) -> dict:
         "batch_size": cfg.batch_size,
         "seed": cfg.seed,
         "unnorm_key": cfg.agent.unnorm_key if policy in AGENT_POLICIES else None,
+        "max_episodes": cfg.max_episodes,
+        "split_episodes": dict(split_sizes or {}),
     }
 
 
@@ -107,12 +110,14 @@ def write_policy_outputs(
     folder: Path,
     episodes_by_split: dict[str, list[Episode]],
     city_config=None,
+    split_sizes: dict[str, int] | None = None,
 ) -> dict:
     """results.json + results.md (+ plots) of one policy, all computed from `records`; returns the results.
 
-    `city_config` is the `CityConfig` of the embedded scenes (building footprints on the plots).
+    `city_config` is the `CityConfig` of the embedded scenes (building footprints on the plots); `split_sizes`
+    the episodes of each split before `max_episodes` (recorded in the results' meta).
     """
-    results = policy_results(policy, records, cfg.profiles, run_meta(cfg, policy))
+    results = policy_results(policy, records, cfg.profiles, run_meta(cfg, policy, split_sizes))
     write_text_atomic(folder / C.RESULTS_JSON, json.dumps(results, indent=2) + "\n")
     write_text_atomic(folder / C.RESULTS_MD, results_markdown(results) + "\n")
     if cfg.plots:

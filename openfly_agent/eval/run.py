@@ -23,7 +23,13 @@ from openfly_agent.eval.distributed import (
     read_all_logs,
     shard,
 )
-from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env, make_policy
+from openfly_agent.eval.factory import (
+    embedded_sim_config,
+    load_full_splits,
+    make_env,
+    make_policy,
+    subsample_splits,
+)
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
 from openfly_agent.eval.plots import safe_name, write_gif
 from openfly_agent.eval.policy import Policy
@@ -42,8 +48,8 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
     Every process checks (so all of them fail together, none waits at a barrier alone); rank 0 writes.
     """
     path = folder / RUN_IDENTITY_NAME
-    if path.is_file() and not overwrite:
-        stored = json.loads(path.read_text())
+    stored = read_run_identity(folder)
+    if stored is not None and not overwrite:
         changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
         if changed:
             details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
@@ -59,6 +65,20 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
         if not path.is_file():
             path.write_text(json.dumps(identity, indent=2, sort_keys=True) + "\n")
     info.wait()
+
+
+def read_run_identity(folder: Path) -> dict | None:
+    """The `run_identity.json` of a policy's results folder (settings, and the agent's `weights`); None if absent."""
+    path = folder / RUN_IDENTITY_NAME
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def same_weights(recorded: dict, current: dict) -> bool:
+    """Whether two `checkpoint_fingerprint`s are the same weights: the same weight files with the same sizes and
+    modification times (a run folder moved with its files still matches); without weight files, the same folder."""
+    if recorded.get("weights") or current.get("weights"):
+        return recorded.get("weights") == current.get("weights")
+    return recorded.get("folder") == current.get("folder")
 
 
 def result_identity(cfg: EvalConfig, policy: str) -> dict:
@@ -149,7 +169,9 @@ def run(cfg: EvalConfig) -> dict:
 
         torch.set_num_threads(cfg.torch_threads)
     root = Path(cfg.output_dir)
-    episodes_by_split = load_splits(cfg)
+    full_splits = load_full_splits(cfg)
+    episodes_by_split = subsample_splits(full_splits, cfg.max_episodes)
+    split_sizes = {split: len(episodes) for split, episodes in full_splits.items()}  # before max_episodes
     all_episodes = [e for eps in episodes_by_split.values() for e in eps]
     envs: dict[bool, SlotEnv] = {}  # rendering or blind (baselines never look at frames)
     if cfg.sim.type != "embedded":  # connect now: an engine that cannot be reached fails before any output
@@ -183,7 +205,9 @@ def run(cfg: EvalConfig) -> dict:
             raise RuntimeError(
                 f"{root / name}: {len(wanted) - len(records)} episodes have no record after the run"
             )
-        all_results[name] = write_policy_outputs(cfg, name, records, root / name, episodes_by_split, city)
+        all_results[name] = write_policy_outputs(
+            cfg, name, records, root / name, episodes_by_split, city, split_sizes
+        )
     summary = write_summary(cfg, list(all_results.values()), root)
     errors = {name: results_errors(results) for name, results in all_results.items()}
     return {"summary_markdown": summary, "results": all_results, "output_dir": str(root), "errors": errors}

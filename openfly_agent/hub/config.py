@@ -42,6 +42,8 @@ class CardConfig:
         tags: Extra tags; the fixed OpenFly tags are always added.
         language: Languages of the instructions.
         pipeline_tag: Hub task of the model.
+        code_url: Git URL of the `openfly-agent` source the card's install line clones; None: the card says to
+            install the package from a clone (it is not published on PyPI).
     """
 
     license: str = "mit"
@@ -54,6 +56,7 @@ class CardConfig:
     tags: list[str] = field(default_factory=list)
     language: list[str] = field(default_factory=lambda: ["en"])
     pipeline_tag: str = "robotics"
+    code_url: str | None = None
 
     def __post_init__(self) -> None:
         if not self.license:

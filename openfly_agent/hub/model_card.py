@@ -9,7 +9,15 @@ from typing import Any
 import yaml
 
 from openfly_agent.hub.config import CardConfig
-from openfly_agent.hub.results import EvalResults, ResultRow
+from openfly_agent.hub.results import AGENT_POLICY, EvalResults, ResultRow
+from openfly_agent.model.config import (
+    LLM_LLAMA2_7B,
+    MODE_OPENVLA_COMPAT,
+    VISION_DINOSIGLIP_224,
+    VISION_TINY,
+    VISION_TINY_CNN,
+    ModelConfig,
+)
 
 # Always present; the Hub adds `custom_code` itself for repos with `auto_map`, we state it explicitly.
 FIXED_TAGS = (
@@ -42,21 +50,95 @@ PROFILE_SUMMARIES = {
     ),
 }
 TEMPLATE_NAME = "model_card.md.j2"
+# What each policy of an eval run is, for the reference rows beside the agent's (eval/config.py POLICY_NAMES).
+POLICY_DESCRIPTIONS = {
+    AGENT_POLICY: "this model",
+    "agent_true_box": "this model fed the simulator's true target box instead of its grounding head's (perfect "
+    "grounding)",
+    "box_servo": "a reflex policy that flies toward the simulator's true target box (no learning)",
+    "random": "uniformly random actions",
+    "stop": "STOP at the first step",
+    "forward": "always fly forward",
+    "oracle": "replays the reference actions of each episode",
+}
 
 
 @dataclass
 class ModelFacts:
-    """What the card body says about the released weights (filled by the release builder)."""
+    """What the card body says about the released weights (filled by the release builder).
+
+    Attributes:
+        architecture: the network, from the checkpoint's model config (`describe_architecture`).
+        training_progress: steps trained vs configured, from trainer_state.json and train_config.json
+            (`describe_training_progress`); None when the checkpoint records neither.
+    """
 
     package_version: str
     num_parameters: str
     action_head: str
-    memory_capacity: int
+    architecture: str
     weights_summary: str
     release_form: str
     files: dict[str, str] = field(default_factory=dict)
     train_summary: str | None = None
+    training_progress: str | None = None
     adapter_release: bool = False
+
+
+def describe_architecture(cfg: ModelConfig) -> str:
+    """One sentence of the network's parts as its config builds them (vision backbone, LLM, heads, memory)."""
+    vision = cfg.vision
+    grid = f"{vision.grid_side} x {vision.grid_side} tokens per frame"
+    backbones = {
+        VISION_DINOSIGLIP_224: f"the fused DINOv2 + SigLIP vision encoder (`{vision.preset}`, {vision.image_size} "
+        f"px, {grid})",
+        VISION_TINY: f"two small ViTs of the DINOv2 + SigLIP structure (`{vision.preset}`, {vision.image_size} px, "
+        f"{grid})",
+        VISION_TINY_CNN: f"a small ResNet vision encoder (`{vision.preset}`, {vision.image_size} px, {grid})",
+    }
+    llm = cfg.llm
+    language_model = (
+        "the Llama 2 7B causal LM"
+        if llm.preset == LLM_LLAMA2_7B
+        else f"a {llm.num_layers}-layer Llama-architecture causal LM of width {llm.hidden_size} (`{llm.preset}`)"
+    )
+    parts = [backbones[vision.preset], "an MLP projector", language_model]
+    parts.append("a landmark grounding head" if cfg.grounding.enabled else "no grounding head")
+    capacity = cfg.memory.capacity
+    if capacity:
+        merging = "with visual token merging" if cfg.merging.enabled else "without token merging"
+        parts.append(f"keyframe selection {merging} into a FIFO memory of {capacity} keyframe set(s)")
+    else:
+        parts.append("no history memory (the current frame only)")
+    text = ", ".join(parts[:-1]) + f", and {parts[-1]}"
+    if cfg.mode == MODE_OPENVLA_COMPAT:
+        text += "; it runs the released OpenVLA-format forward (`openvla_compat`)"
+    return text
+
+
+def describe_training_progress(
+    train_config: dict[str, Any] | None, trainer_state: dict[str, Any] | None
+) -> str | None:
+    """`Trained for 1,682 of the 6,000 configured optimizer steps ...` (None when neither file was found)."""
+    if not trainer_state and not train_config:
+        return None
+    config = train_config or {}
+    planned = config.get("steps")
+    if not trainer_state:
+        return (
+            "The checkpoint records no trainer state (trainer_state.json), so the optimizer steps it was trained "
+            "for are unknown" + (f"; {planned:,} were configured." if planned else ".")
+        )
+    done = int(trainer_state.get("step", 0))
+    if planned and done < planned:
+        return (
+            f"Trained for {done:,} of the {planned:,} configured optimizer steps: the run ended early (its time "
+            "limit, a stop signal or a crash; the run's logs say which)."
+        )
+    if planned:
+        return f"Trained for {done:,} optimizer steps, as configured."
+    epochs = config.get("epochs")
+    return f"Trained for {done:,} optimizer steps" + (f" ({epochs} epochs configured)." if epochs else ".")
 
 
 # Dotted keys of train_config.json (training.config.TrainConfig) shown in the card's training table.
@@ -89,7 +171,7 @@ def summarize_train_config(train_config: dict[str, Any]) -> str | None:
             rows.append(f"| `{key}` | `{node}` |")
     if not rows:
         return None
-    return "\n".join(["| setting | value |", "|---|---|", *rows])
+    return "\n".join(["| setting (as configured) | value |", "|---|---|", *rows])
 
 
 def build_model_index(model_name: str, rows: list[ResultRow], card: CardConfig) -> list[dict[str, Any]]:
@@ -165,12 +247,75 @@ def describe_run(meta: dict[str, Any]) -> str:
     return ", ".join(f"`{key}={meta[key]}`" for key in RUN_KEYS if meta.get(key) is not None)
 
 
-def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | None, facts: ModelFacts) -> str:
-    """Render README.md: YAML front matter (yaml.safe_dump, so it always parses) + the Jinja body."""
+def table_rows(results: EvalResults, baselines: list[EvalResults]) -> list[dict[str, Any]]:
+    """The card's results table: per split and profile, the agent's row then each baseline's."""
+    by_key = [{(row.split, row.profile): row for row in other.rows} for other in baselines]
+    rows = []
+    for row in results.rows:
+        for policy, policy_row in [(results.policy, row)] + [
+            (other.policy, rows_of[(row.split, row.profile)])
+            for other, rows_of in zip(baselines, by_key)
+            if (row.split, row.profile) in rows_of
+        ]:
+            rows.append({"policy": policy, "row": policy_row, "episodes": _episodes_cell(policy_row)})
+    return rows
+
+
+def _episodes_cell(row: ResultRow) -> str:
+    if row.num_episodes is None:
+        return "-"
+    if row.split_episodes is not None:
+        return f"{row.num_episodes} of {row.split_episodes}"
+    return str(row.num_episodes)
+
+
+def describe_subsample(results: EvalResults) -> str | None:
+    """`Evaluated on 40 of 520 test_seen episodes and ...` when `--max_episodes` cut the splits (else None)."""
+    if not results.subsampled:
+        return None
+    parts = {
+        row.split: f"{row.num_episodes} of {row.split_episodes} {row.split} episodes"
+        for row in results.rows
+        if row.split_episodes is not None
+    }
+    flag = results.meta.get("max_episodes")
+    how = f"`--max_episodes {flag}`, " if flag else ""
+    return (
+        f"Evaluated on a subsample: {' and '.join(parts.values())} ({how}evenly spaced over the sorted episode "
+        "ids); the full splits may give other numbers."
+    )
+
+
+def install_instructions(version: str, code_url: str | None) -> str:
+    """How to install the package the release needs: from a clone (nothing publishes it on PyPI)."""
+    if code_url:
+        return (
+            f"```bash\ngit clone {code_url} openfly-agent\n"
+            f"pip install -e ./openfly-agent  # this release was built with version {version}\n```"
+        )
+    return (
+        f"Install the `openfly-agent` package from a clone of its source repository (`pip install -e <clone>`; "
+        f"version {version} built this release). It is not published on PyPI."
+    )
+
+
+def render_model_card(
+    card: CardConfig,
+    repo_id: str,
+    results: EvalResults | None,
+    facts: ModelFacts,
+    baselines: list[EvalResults] | None = None,
+) -> str:
+    """Render README.md: YAML front matter (yaml.safe_dump, so it always parses) + the Jinja body.
+
+    `baselines` (the other policies of the same eval run) appear beside the agent in the results table only;
+    the `model-index` holds the agent's numbers.
+    """
     import jinja2
 
     model_name = repo_id.split("/", 1)[1]
     rows = results.rows if results else []
+    baselines = list(baselines or [])
     meta = build_metadata(card, model_name, rows, adapter=facts.adapter_release)
     profiles = {row.profile: describe_profile(row.profile, results.profiles.get(row.profile)) for row in rows}
     template_text = resources.files("openfly_agent.hub").joinpath("templates", TEMPLATE_NAME).read_text()
@@ -181,9 +326,12 @@ def render_model_card(card: CardConfig, repo_id: str, results: EvalResults | Non
         base_model=card.base_model,
         eval_dataset=card.eval_dataset,
         eval_dataset_name=card.eval_dataset_name,
-        results=rows,
+        results=table_rows(results, baselines) if results else [],
+        references={other.policy: POLICY_DESCRIPTIONS.get(other.policy, "") for other in baselines},
+        subsample_note=describe_subsample(results) if results else None,
         profile_definitions=profiles,
         run_settings=describe_run(results.meta if results else {}),
+        install=install_instructions(facts.package_version, card.code_url),
         **vars(facts),
     )
     front = yaml.safe_dump(meta, sort_keys=False, allow_unicode=True, width=1000)

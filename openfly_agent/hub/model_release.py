@@ -22,10 +22,18 @@ from openfly_agent.constants import (
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
 from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
-from openfly_agent.hub.model_card import ModelFacts, render_model_card, summarize_train_config
+from openfly_agent.hub.model_card import (
+    ModelFacts,
+    describe_architecture,
+    describe_training_progress,
+    render_model_card,
+    summarize_train_config,
+)
 from openfly_agent.hub.results import load_results, resolve_results_path
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.hub.results_source import check_results_weights, load_baselines
+from openfly_agent.model.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
 from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
+from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)
 
@@ -40,7 +48,8 @@ def resolve_checkpoint(path: str | Path) -> Path:
     """The checkpoint folder: `path` itself, or the folder named by a training `last` pointer file.
 
     Accepts a checkpoint folder (holding config.json), the pointer file `.../checkpoints/last`, or a folder
-    holding such a pointer (`<run>/checkpoints` or `<run>`).
+    holding such a pointer (`<run>/checkpoints` or `<run>`). A grounding-stage checkpoint is refused (no
+    trained action head).
     """
     folder = resolve_checkpoint_folder(path)
     if folder is None:
@@ -51,6 +60,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
     model_type = read_json(folder / CONFIG_NAME).get("model_type")
     if model_type != MODEL_TYPE:
         raise ValueError(f"{folder / CONFIG_NAME}: model_type is {model_type!r}, expected {MODEL_TYPE!r}")
+    check_navigation_stage(folder)
     return folder
 
 
@@ -65,6 +75,11 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     """
     checkpoint = resolve_checkpoint(cfg.checkpoint)
     results = load_results(cfg.results) if cfg.results else None
+    baselines = []
+    if results is not None:
+        results_file = resolve_results_path(cfg.results)
+        check_results_weights(results_file, checkpoint)
+        baselines = load_baselines(results_file, results)
     base = base_of(checkpoint, cfg.base_checkpoint) if is_lora_checkpoint(checkpoint) else None
     adapter_form = base is not None and cfg.lora == "adapter"
     if adapter_form and not cfg.card.base_model:
@@ -80,10 +95,14 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     if results is not None:
         shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
     facts = model_facts(agent, out, release_form=form, adapter_release=adapter_form)
-    if (out / TRAIN_CONFIG_NAME).is_file():
-        facts.train_summary = summarize_train_config(read_json(out / TRAIN_CONFIG_NAME))
-    (out / MODEL_CARD_NAME).write_text(render_model_card(cfg.card, cfg.repo_id, results, facts))
+    train_config = read_json(out / TRAIN_CONFIG_NAME) if (out / TRAIN_CONFIG_NAME).is_file() else None
+    if train_config is not None:
+        facts.train_summary = summarize_train_config(train_config)
+    facts.training_progress = describe_training_progress(train_config, _trainer_state(checkpoint))
+    card = render_model_card(cfg.card, cfg.repo_id, results, facts, baselines)
+    (out / MODEL_CARD_NAME).write_text(card)
     check_release_folder(out, adapter_form)
+    follow_umask(out)  # safetensors writes 0600; the weights take the mode of the files beside them
     logger.info("release folder ready: %s (%d files)", out, len(list(out.iterdir())))
     return out
 
@@ -118,12 +137,20 @@ def model_facts(agent, folder: Path, release_form: str, adapter_release: bool = 
         package_version=__version__,
         num_parameters=_human_count(num_params),
         action_head=cfg.action_head.type,
-        memory_capacity=cfg.memory.capacity,
+        architecture=describe_architecture(cfg),
         weights_summary=_weights_summary(folder),
         release_form=release_form,
         files=describe_files(folder),
         adapter_release=adapter_release,
     )
+
+
+def _trainer_state(checkpoint: Path) -> dict | None:
+    """The checkpoint's trainer_state.json (steps trained), None when it has none (e.g. a release folder)."""
+    from openfly_agent.training.state import TRAINER_STATE_NAME  # lazy: torch
+
+    path = checkpoint / TRAINER_STATE_NAME
+    return read_json(path) if path.is_file() else None
 
 
 def describe_files(folder: Path) -> dict[str, str]:

@@ -29,6 +29,9 @@ class ResultRow:
     profile: str
     metrics: dict[str, float]
     num_episodes: int | None = None
+    split_episodes: int | None = (
+        None  # the split's episodes when `num_episodes` is a subsample (max_episodes)
+    )
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,12 @@ class EvalResults:
     profiles: dict[str, dict[str, Any]] = field(default_factory=dict)  # profile name -> its settings
     meta: dict[str, Any] = field(default_factory=dict)  # checkpoint, sim, dataset root, max steps, ...
     source: str = ""
+    policy: str = AGENT_POLICY
+
+    @property
+    def subsampled(self) -> bool:
+        """Whether the numbers cover only part of a split (`--max_episodes`)."""
+        return any(row.split_episodes is not None for row in self.rows)
 
 
 def resolve_results_path(path: str | Path) -> Path:
@@ -75,13 +84,12 @@ def load_results(path: str | Path) -> EvalResults:
     return parse_results(data, source=str(path))
 
 
-def parse_results(data: dict[str, Any], source: str = "<results>") -> EvalResults:
-    """`load_results` on an already parsed dict; `source` names it in errors."""
-    policy = data.get("policy", AGENT_POLICY) if isinstance(data, dict) else AGENT_POLICY
-    if policy != AGENT_POLICY:
-        raise ResultsError(
-            f"{source}: holds results of policy {policy!r}, not of the agent ('{AGENT_POLICY}')"
-        )
+def parse_results(data: dict[str, Any], source: str = "<results>", policy: str = AGENT_POLICY) -> EvalResults:
+    """`load_results` on an already parsed dict; `source` names it in errors, `policy` is the one expected."""
+    found = data.get("policy", AGENT_POLICY) if isinstance(data, dict) else AGENT_POLICY
+    if found != policy:
+        wanted = f"the agent ('{AGENT_POLICY}')" if policy == AGENT_POLICY else repr(policy)
+        raise ResultsError(f"{source}: holds results of policy {found!r}, not of {wanted}")
     errored = {split: n for split, n in (data.get("errors") or {}).items() if n}
     if errored:
         raise ResultsError(
@@ -89,6 +97,8 @@ def parse_results(data: dict[str, Any], source: str = "<results>") -> EvalResult
             f"({errored}); run the same eval.py command again to retry them before releasing"
         )
     splits = _child(data, "splits", source, "")
+    meta = dict(data.get("meta") or {})
+    split_sizes = meta.get("split_episodes") or {}
     rows = []
     for split in RELEASE_SPLITS:
         by_profile = _child(splits, split, source, "splits")
@@ -99,8 +109,11 @@ def parse_results(data: dict[str, Any], source: str = "<results>") -> EvalResult
                 name: _number(overall, key, source, f"{where}.overall") for name, key in METRIC_KEYS.items()
             }
             count = overall.get("episodes")
-            rows.append(ResultRow(split, profile, metrics, int(count) if count is not None else None))
-    return EvalResults(rows, dict(data.get("profiles") or {}), dict(data.get("meta") or {}), source)
+            count = int(count) if count is not None else None
+            total = split_sizes.get(split)
+            part = total if count is not None and total is not None and count < total else None
+            rows.append(ResultRow(split, profile, metrics, count, part))
+    return EvalResults(rows, dict(data.get("profiles") or {}), meta, source, policy)
 
 
 def _child(node: Any, key: str, source: str, where: str) -> Any:

@@ -1,12 +1,14 @@
 """The checkpoint folder behind what a user passes: a step folder, a training run or its `last` pointer.
 
 A training run writes `<run>/checkpoints/step-NNNNNN/` (Hugging Face folders) and `<run>/checkpoints/last`, a
-one-line file naming the newest complete one (training/checkpoint.py).
+relative symlink to the newest complete one (training/checkpoint.py), so every loader that opens a folder opens
+`last`. Runs written before kept `last` as a one-line file naming that folder; both are read.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from openfly_agent.constants import (
@@ -14,6 +16,9 @@ from openfly_agent.constants import (
     CHECKPOINTS_DIR,
     CONFIG_NAME,
     LAST_POINTER_NAME,
+    STAGE_GROUNDING,
+    STAGE_NAVIGATION,
+    TRAIN_CONFIG_NAME,
     WEIGHTS_INDEX_NAME,
     WEIGHTS_NAME,
 )
@@ -22,23 +27,24 @@ from openfly_agent.constants import (
 def resolve_checkpoint_folder(path: str | Path) -> Path | None:
     """The folder holding `config.json` for `path`; None when `path` does not exist locally (a Hub repo id).
 
-    Accepts a checkpoint folder (as is), the `last` pointer file, `<run>/checkpoints` or the run folder `<run>`
-    (both followed to the step folder `last` names).
+    Accepts a checkpoint folder (as is), the `last` pointer (a symlink, or an older run's pointer file),
+    `<run>/checkpoints` or the run folder `<run>` (all followed to the step folder `last` names).
 
     Raises:
         FileNotFoundError: `path` exists but is none of these (or its pointer names a missing folder).
     """
     start = path = Path(path)
-    if not path.exists():
+    if not (path.exists() or path.is_symlink()):
         return None
-    for _ in range(3):  # run folder -> checkpoints folder -> pointer file -> step folder
-        if path.is_dir() and (path / CONFIG_NAME).is_file():
+    for _ in range(3):  # run folder -> checkpoints folder -> `last` -> step folder
+        pointed = last_pointer_target(path)
+        if pointed is not None:  # `last` itself: the step folder it names
+            path = pointed
+        elif path.is_dir() and (path / CONFIG_NAME).is_file():
             return path
-        if path.is_file():  # a pointer: one line naming a checkpoint folder beside it
-            path = path.parent / path.read_text().strip()
-        elif (path / LAST_POINTER_NAME).is_file():
+        elif _is_pointer(path / LAST_POINTER_NAME):
             path = path / LAST_POINTER_NAME
-        elif (path / CHECKPOINTS_DIR / LAST_POINTER_NAME).is_file():
+        elif _is_pointer(path / CHECKPOINTS_DIR / LAST_POINTER_NAME):
             path = path / CHECKPOINTS_DIR / LAST_POINTER_NAME
         else:
             break
@@ -48,6 +54,51 @@ def resolve_checkpoint_folder(path: str | Path) -> Path | None:
         f"{start} is not a checkpoint folder (no {CONFIG_NAME}) nor a training run: pass a checkpoint folder "
         f"(<run>/{CHECKPOINTS_DIR}/step-NNNNNN), the pointer <run>/{CHECKPOINTS_DIR}/{LAST_POINTER_NAME} or the "
         "training run folder <run>"
+    )
+
+
+def last_pointer_target(pointer: Path) -> Path | None:
+    """The step folder a `last` pointer names (a symlink, or an older run's one-line file); None when `pointer`
+    is neither (a folder, or nothing). The target need not exist."""
+    pointer = Path(pointer)
+    if pointer.name != LAST_POINTER_NAME:
+        return None
+    if pointer.is_symlink():
+        return pointer.parent / os.readlink(pointer)
+    if pointer.is_file():
+        return pointer.parent / pointer.read_text().strip()
+    return None
+
+
+def _is_pointer(path: Path) -> bool:
+    return path.is_symlink() or path.is_file()
+
+
+def check_navigation_stage(folder: Path) -> None:
+    """Refuse a grounding-stage checkpoint where an agent is wanted (eval.py, a release): its action head was
+    never trained. Read from the folder's train_config.json `stage`; folders without one pass.
+
+    Raises:
+        ValueError: one line naming the folder, its stage and the navigation stage to pass instead.
+    """
+    folder = Path(folder)
+    train_config = folder / TRAIN_CONFIG_NAME
+    try:
+        stage = json.loads(train_config.read_text()).get("stage") if train_config.is_file() else None
+    except (OSError, json.JSONDecodeError, AttributeError):
+        return  # not ours to judge here: the loaders name an unreadable file
+    if stage != STAGE_GROUNDING:
+        return
+    run = folder.parent.parent if folder.parent.name == CHECKPOINTS_DIR else folder
+    sibling = run.parent / STAGE_NAVIGATION
+    instead = (
+        f"the navigation stage trained from it, e.g. {sibling}"
+        if sibling.is_dir()
+        else f"the checkpoint of a {STAGE_NAVIGATION} stage started from it (train.py --init.checkpoint={run})"
+    )
+    raise ValueError(
+        f"{folder} is a {STAGE_GROUNDING}-stage checkpoint ({TRAIN_CONFIG_NAME}: stage={STAGE_GROUNDING}, no "
+        f"trained action head), not an agent: pass {instead}"
     )
 
 

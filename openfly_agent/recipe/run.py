@@ -199,7 +199,7 @@ def _extra_roots_flag(roots: list) -> str:
 def _with_resume(step: RecipeStep, retrained: bool) -> list[str]:
     """The command as run now: training resumes an interrupted run; eval starts over after new training."""
     if step.kind == KIND_TRAIN:
-        return step.command + [f"--resume={(step.folder / 'checkpoints' / 'last').is_file()}".lower()]
+        return step.command + [f"--resume={(step.folder / 'checkpoints' / 'last').exists()}".lower()]
     if step.kind == KIND_EVAL:
         return step.command + [f"--overwrite={str(retrained).lower()}"]
     return step.command
@@ -210,7 +210,7 @@ def _check_grounding_from(cfg: RecipeConfig) -> None:
     if not cfg.grounding_from:
         return
     last = Path(cfg.grounding_from) / "checkpoints" / "last"
-    if not last.is_file():
+    if not last.exists():
         raise RuntimeError(
             f"grounding_from={cfg.grounding_from}: no training run there ({last} is missing); "
             "give the folder of a finished grounding stage, e.g. outputs/recipe/grounding"

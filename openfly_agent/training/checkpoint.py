@@ -1,5 +1,11 @@
 """Atomic checkpoint folders: write `.tmp-step-N/`, rename it to `step-N/`, then move the `last` pointer.
 
+`last` is a relative symlink to the newest `step-N/` (so Hugging Face loaders open it like any model folder),
+moved by creating the new link beside it and renaming it over the old one. Runs written before kept a one-line
+pointer file; it is still read (model/checkpoint_path.py) and replaced by a symlink at the next commit.
+
+Weights are given the mode of the other files (the umask's) before the commit: safetensors writes them 0600.
+
 The file system side only; what goes inside a checkpoint is written by `training/export.py` (the Hugging Face
 folder) and `training/state.py` (the accelerate training state).
 """
@@ -13,6 +19,8 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.constants import CHECKPOINTS_DIR, LAST_POINTER_NAME
+from openfly_agent.model.checkpoint_path import last_pointer_target
+from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +70,7 @@ class CheckpointManager:
     def commit(self, step: int) -> Path:
         """Rename the staging folder of `step` into place, point `last` at it and prune old checkpoints."""
         staging, final = self.staging_dir(step), self.final_dir(step)
+        follow_umask(staging)
         _fsync_tree(staging)
         if final.exists():  # the same step saved again (e.g. the final save right after a periodic one)
             trash = self.root / f"{STAGING_PREFIX}old-{checkpoint_name(step)}"
@@ -87,8 +96,8 @@ class CheckpointManager:
     def latest(self) -> Path | None:
         """The newest complete checkpoint: the one `last` names, else the highest step (None if none)."""
         pointer = self.root / LAST_POINTER_NAME
-        if pointer.is_file():
-            candidate = self.root / pointer.read_text().strip()
+        candidate = last_pointer_target(pointer)
+        if candidate is not None:
             if _STEP_DIR.match(candidate.name) and candidate.is_dir():
                 return candidate
             logger.warning(
@@ -114,17 +123,27 @@ class CheckpointManager:
         stale = [p for p in self.root.iterdir() if p.name.startswith(STAGING_PREFIX)]
         for path in stale:
             logger.warning("removing the incomplete checkpoint %s left by an interrupted save", path)
-            shutil.rmtree(path) if path.is_dir() else path.unlink()
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
         return stale
 
     def _write_pointer(self, name: str) -> None:
+        """Point `last` at the checkpoint folder `name` (a relative symlink, swapped in by one rename)."""
         pointer = self.root / LAST_POINTER_NAME
         tmp = self.root / f"{STAGING_PREFIX}{LAST_POINTER_NAME}"
-        with open(tmp, "w") as f:
-            f.write(name + "\n")
-            f.flush()
-            os.fsync(f.fileno())
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+        os.symlink(name, tmp, target_is_directory=True)
         os.replace(tmp, pointer)
+        _fsync_dir(self.root)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Flush a folder's entries (a rename or a new link in it) to disk."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _fsync_tree(folder: Path) -> None:

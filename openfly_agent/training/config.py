@@ -8,11 +8,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from openfly_agent.constants import STAGE_GROUNDING, STAGE_NAVIGATION
 from openfly_agent.data.config import DataConfig
 from openfly_agent.model.config import LoraSettings, ModelConfig, tiny_config
 
 PRECISIONS = ("no", "bf16", "fp16")
-STAGE_GROUNDING, STAGE_NAVIGATION = "grounding", "navigation"
 STAGES = (STAGE_GROUNDING, STAGE_NAVIGATION)
 SCHEDULES = ("constant", "cosine", "linear")
 HORIZONS = ("steps", "time")  # where the lr decay ends: the step budget, or whichever of steps and time first

@@ -22,6 +22,7 @@ from openfly_agent.model.remote_code import remove_auto_map, write_remote_code
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.lora import lora_scalings, merge_lora_state_dict
 from openfly_agent.utils.config import save_config
+from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)
 
@@ -91,6 +92,7 @@ def export_merged_lora(accelerator: Accelerator, model: nn.Module, output_dir: s
     write_model_metadata(agent, staging)
     save_torch_state_dict(merged, str(staging), max_shard_size=MAX_SHARD_SIZE)
     write_remote_code(staging)
+    follow_umask(staging)  # safetensors writes 0600
     if final.exists():
         shutil.rmtree(final)
     os.replace(staging, final)

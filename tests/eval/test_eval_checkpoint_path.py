@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import importlib.util
+import json
+from pathlib import Path
+
 import pytest
 
+from openfly_agent import constants as C
 from openfly_agent.eval.agent_policy import checkpoint_folder, checkpoint_kind
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_training_run_paths_resolve_to_the_newest_checkpoint(tmp_path):
@@ -35,3 +42,35 @@ def test_fingerprint_follows_the_newest_weights(tmp_path):
     assert before["folder"].endswith("step-000010") and list(before["weights"]) == ["model.safetensors"]
     (checkpoints / "last").write_text("step-000020")  # the run trained on: same --checkpoint, new weights
     assert checkpoint_fingerprint(str(tmp_path / "run")) != before
+
+
+def test_eval_refuses_a_grounding_stage_checkpoint_naming_the_navigation_stage(tmp_path, capsys):
+    """`eval.py --checkpoint <job>/grounding`: exit 2, one line naming <job>/navigation, nothing written."""
+    from data_factories import make_episode, make_frames
+
+    from openfly_agent.data.writer import OpenFlyDatasetWriter
+
+    dataset = tmp_path / "data"
+    writer = OpenFlyDatasetWriter(dataset)
+    episode = make_episode("env_ue_smallcity/astar_data/low_short/ep0", [1, 2, 0], split=C.SPLIT_TEST_SEEN)
+    writer.write_episode(episode, make_frames(len(episode)))
+    writer.finalize()
+    for stage in ("grounding", "navigation"):
+        step = tmp_path / "job" / stage / "checkpoints" / "step-000004"
+        step.mkdir(parents=True)
+        (step / "config.json").write_text('{"model_type": "openfly_agent"}')
+        (step / "train_config.json").write_text(json.dumps({"stage": stage, "steps": 4}))
+        (step.parent / "last").symlink_to("step-000004")
+    spec = importlib.util.spec_from_file_location("eval_entry_point", REPO / "eval.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "out"
+    argv = [
+        "--checkpoint", str(tmp_path / "job" / "grounding"), "--split", C.SPLIT_TEST_SEEN, "--plots=0",
+        "--progress=false", f"--dataset_root={dataset}", f"--output_dir={out}",
+    ]  # fmt: skip
+    assert module.main(argv) == 2
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert "grounding-stage checkpoint" in line and str(tmp_path / "job" / "navigation") in line
+    assert not out.exists()
+    assert checkpoint_folder(str(tmp_path / "job" / "navigation")).name == "step-000004"  # the stage to use

@@ -40,7 +40,7 @@ FACTS = ModelFacts(
     package_version="0.1.0",
     num_parameters="1.23 M",
     action_head="discrete",
-    memory_capacity=2,
+    architecture="a small ResNet vision encoder (`tiny-cnn`, 128 px, 8 x 8 tokens per frame)",
     weights_summary="`model.safetensors`",
     release_form="full weights",
     files={"config.json": "model config"},
@@ -83,7 +83,7 @@ def test_model_index_matches_eval_json(results_path):
         seen.add((split, profile))
     assert seen == {(s, p) for s in ("test_seen", "test_unseen") for p in ("openfly", "standard")}
     # the body's table states the profile of every number, and the profiles' recorded settings
-    assert "| test_unseen | `standard` | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
+    assert "| test_unseen | `standard` | **agent** | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
     assert "Settings used: stop_required=False." in body
     assert "run settings `sim=embedded`" in body  # eval's run meta that changes the numbers
 
@@ -232,3 +232,48 @@ def test_training_table_from_a_real_train_config():
     assert "| `steps` | `120` |" in table and "| `optim.lr` | `0.0003` |" in table
     assert "| `batch.global_batch_size` | `16` |" in table
     assert summarize_train_config({"unrelated": 1}) is None
+
+
+def test_the_network_is_described_from_its_config():
+    from openfly_agent.hub.model_card import describe_architecture
+    from openfly_agent.model.config import make_model_config
+
+    tiny = describe_architecture(make_model_config("tiny"))
+    assert tiny.startswith("a small ResNet vision encoder (`tiny-cnn`, 128 px, 8 x 8 tokens per frame)")
+    assert "DINOv2" not in tiny and "FIFO memory of 2 keyframe set(s)" in tiny
+    big = describe_architecture(make_model_config("openfly-7b"))
+    assert big.startswith(
+        "the fused DINOv2 + SigLIP vision encoder (`dinosiglip-224px`, 224 px, 16 x 16 tokens"
+    )
+    assert "the Llama 2 7B causal LM" in big
+    compat = describe_architecture(make_model_config("openvla-compat-7b"))
+    assert compat.endswith("it runs the released OpenVLA-format forward (`openvla_compat`)")
+
+
+@pytest.mark.parametrize(
+    ("trained", "planned", "expected"),
+    [
+        (1682, 6000, "Trained for 1,682 of the 6,000 configured optimizer steps: the run ended early"),
+        (6000, 6000, "Trained for 6,000 optimizer steps, as configured."),
+        (250, None, "Trained for 250 optimizer steps (1.0 epochs configured)."),
+    ],
+)
+def test_training_progress_comes_from_the_trainer_state(trained, planned, expected):
+    from openfly_agent.hub.model_card import describe_training_progress
+
+    text = describe_training_progress({"steps": planned, "epochs": 1.0}, {"step": trained})
+    assert text.startswith(expected)
+    assert "unknown" in describe_training_progress({"steps": 6000}, None)
+
+
+def test_install_line_is_a_clone_never_an_unpublished_pip_version():
+    card = render_model_card(CardConfig(), "me/tiny", None, FACTS)
+    assert "pip install openfly-agent==" not in card and 'pip install "openfly-agent==' not in card
+    assert "pip install -e <clone>" in card
+    cloned = render_model_card(
+        CardConfig(code_url="https://example.org/openfly-agent.git"), "me/tiny", None, FACTS
+    )
+    assert (
+        "git clone https://example.org/openfly-agent.git openfly-agent\npip install -e ./openfly-agent"
+        in cloned
+    )

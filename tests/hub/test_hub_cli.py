@@ -84,6 +84,28 @@ def test_missing_checkpoint_folder_is_named(tmp_path, capsys):
     assert "is not a checkpoint folder" in capsys.readouterr().err
 
 
+def _stage_run(root: Path, stage: str) -> Path:
+    """A training run of `stage` (config.json + train_config.json, as training writes them) and its `last`."""
+    step = root / stage / "checkpoints" / "step-000004"
+    step.mkdir(parents=True)
+    (step / "config.json").write_text(json.dumps({"model_type": "openfly_agent"}))
+    (step / "train_config.json").write_text(json.dumps({"stage": stage, "steps": 4}))
+    os.symlink("step-000004", step.parent / "last")
+    return root / stage
+
+
+def test_grounding_stage_checkpoint_is_refused_naming_the_navigation_stage(tmp_path, capsys):
+    grounding = _stage_run(tmp_path / "main_job", "grounding")
+    _stage_run(tmp_path / "main_job", "navigation")
+    out = tmp_path / "release"
+    for checkpoint in (grounding, grounding / "checkpoints" / "last"):
+        argv = ["release", "--checkpoint", str(checkpoint), "--repo-id", "me/x", "--output-dir", str(out)]
+        assert main(argv) == 2
+        [line] = capsys.readouterr().err.strip().splitlines()
+        assert "grounding-stage checkpoint" in line and str(tmp_path / "main_job" / "navigation") in line
+    assert not out.exists()  # refused before anything is written
+
+
 def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # how a shell starts a background job
 

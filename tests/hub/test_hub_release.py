@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from openfly_agent.constants import ACTION_TOKENIZER_NAME, CONFIG_NAME, WEIGHTS_INDEX_NAME, WEIGHTS_NAME
+from openfly_agent.eval.agent_policy import checkpoint_fingerprint
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_card import split_front_matter
@@ -159,6 +160,17 @@ def test_release_folder_contents(releases, source):
     assert "`model.safetensors`" in body
 
 
+def test_released_weights_follow_the_umask(releases):
+    """safetensors writes 0600; the released weights get the mode of a plain file (config.json's, the umask's)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    for folder in (releases.single, releases.sharded):
+        weights = sorted(folder.glob("*.safetensors"))
+        assert weights
+        for path in [*weights, folder / CONFIG_NAME]:
+            assert path.stat().st_mode & 0o777 == 0o666 & ~mask, path
+
+
 def test_sharded_and_unsharded_load_equal_weights(releases, source):
     from openfly_agent.model.agent import OpenFlyAgent
 
@@ -223,6 +235,9 @@ def pushed(source, tmp_path_factory):
     work = tmp_path_factory.mktemp("push")
     results = work / "results.json"
     results.write_text(json.dumps(_results_json()))
+    # what eval.py records beside its results: the fingerprint of the weights it evaluated
+    identity = {"policy": "agent", "weights": checkpoint_fingerprint(str(source.checkpoint))}
+    (work / "run_identity.json").write_text(json.dumps(identity))
     online = {
         "HF_HUB_OFFLINE": "0",
         "TRANSFORMERS_OFFLINE": "0",

@@ -1,13 +1,21 @@
-"""Checkpoint folders: atomic commit, the `last` pointer, pruning, crash leftovers, trainer state."""
+"""Checkpoint folders: atomic commit, the `last` pointer, pruning, crash leftovers, trainer state, file modes."""
 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
+from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.training.checkpoint import CheckpointManager, checkpoint_name
 from openfly_agent.training.state import TrainerState
+from openfly_agent.utils.processes import run_group
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def _save(manager: CheckpointManager, step: int, payload: str = "w") -> None:
@@ -22,7 +30,9 @@ def test_commit_renames_and_points_last(tmp_path):
     _save(manager, 5)
     _save(manager, 10)
     assert manager.latest() == tmp_path / "checkpoints" / "step-000010"
-    assert (tmp_path / "checkpoints" / "last").read_text().strip() == "step-000010"
+    last = tmp_path / "checkpoints" / "last"
+    assert last.is_symlink() and os.readlink(last) == "step-000010"  # relative: the run folder can move
+    assert (last / "weights.txt").read_text() == "w10"
     assert not any(p.name.startswith(".tmp-") for p in (tmp_path / "checkpoints").iterdir())
 
 
@@ -57,8 +67,106 @@ def test_latest_falls_back_when_pointer_is_stale(tmp_path):
     manager = CheckpointManager(tmp_path, keep_last=3)
     _save(manager, 1)
     _save(manager, 2)
-    (tmp_path / "checkpoints" / "last").write_text("step-000099\n")
+    last = tmp_path / "checkpoints" / "last"
+    last.unlink()
+    os.symlink("step-000099", last)  # dangling
     assert manager.latest().name == "step-000002"
+    last.unlink()
+    last.write_text("step-000099\n")  # a pointer file of an older run, stale
+    assert manager.latest().name == "step-000002"
+
+
+def test_pointer_file_of_an_older_run_is_read_then_replaced_by_a_symlink(tmp_path):
+    manager = CheckpointManager(tmp_path, keep_last=3)
+    _save(manager, 1)
+    _save(manager, 2)
+    last = tmp_path / "checkpoints" / "last"
+    last.unlink()
+    last.write_text("step-000001\n")  # how runs were written before
+    assert manager.latest().name == "step-000001"
+    _save(manager, 3)  # the resumed run commits: `last` becomes a symlink
+    assert last.is_symlink() and os.readlink(last) == "step-000003"
+
+
+def test_a_crash_between_link_and_rename_leaves_a_link_that_start_up_removes(tmp_path):
+    manager = CheckpointManager(tmp_path, keep_last=2)
+    _save(manager, 1)
+    os.symlink("step-000001", tmp_path / "checkpoints" / ".tmp-last", target_is_directory=True)
+    assert [p.name for p in manager.remove_stale_staging()] == [".tmp-last"]
+    assert (tmp_path / "checkpoints" / "step-000001" / "weights.txt").read_text() == "w1"  # not followed
+
+
+def _plain_file_mode(folder: Path) -> int:
+    """The mode the umask gives a plain file created now (written with open(), as config.json is)."""
+    probe = folder / "plain.txt"
+    probe.write_text("x")
+    mode = probe.stat().st_mode & 0o777
+    probe.unlink()
+    return mode
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o002, 0o077])
+def test_committed_weights_follow_the_umask(tmp_path, umask):
+    import torch
+    from safetensors.torch import save_file
+
+    old = os.umask(umask)
+    try:
+        manager = CheckpointManager(tmp_path, keep_last=1)
+        staging = manager.begin(1)
+        save_file({"w": torch.zeros(2)}, str(staging / "model.safetensors"))
+        (staging / "training_state").mkdir()
+        save_file({"w": torch.zeros(2)}, str(staging / "training_state" / "model.safetensors"))
+        (staging / "config.json").write_text("{}")
+        final = manager.commit(1)
+        want = _plain_file_mode(tmp_path)
+    finally:
+        os.umask(old)
+    assert want == 0o666 & ~umask
+    for name in ("model.safetensors", "training_state/model.safetensors", "config.json"):
+        assert (final / name).stat().st_mode & 0o777 == want, name
+
+
+def test_hugging_face_loaders_open_last_in_a_fresh_process(tmp_path):
+    """AutoConfig / AutoModel / AutoProcessor with trust_remote_code on `<run>/checkpoints/last`."""
+    import torch
+
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import make_model_config
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    text = ["fly to the red tower and stop", "turn left at the blue dome then ascend"]
+    tokenizer = train_bpe_tokenizer(text * 8, vocab_size=300, out_dir=tmp_path / "tokenizer")
+    torch.manual_seed(0)
+    agent = OpenFlyAgent.from_model_config(make_model_config("tiny"), tokenizer=tokenizer).eval()
+    manager = CheckpointManager(tmp_path / "run", keep_last=1)
+    agent.save_pretrained(manager.begin(7))
+    manager.commit(7)
+    last = tmp_path / "run" / "checkpoints" / "last"
+    assert resolve_checkpoint_folder(last) == tmp_path / "run" / "checkpoints" / "step-000007"
+    code = (
+        "import json, sys\n"
+        "from transformers import AutoConfig, AutoModel, AutoProcessor\n"
+        "path = sys.argv[1]\n"
+        "config = AutoConfig.from_pretrained(path, trust_remote_code=True)\n"
+        "model = AutoModel.from_pretrained(path, trust_remote_code=True)\n"
+        "processor = AutoProcessor.from_pretrained(path, trust_remote_code=True)\n"
+        "print(json.dumps([type(config).__name__, type(model).__name__, type(processor).__name__,\n"
+        "                  sum(p.numel() for p in model.parameters())]))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGINGFACE_"))}
+    env.update(HF_HOME=str(tmp_path / "hf_home"), HF_HUB_OFFLINE="1", PYTHONPATH=str(REPO_ROOT))
+    done = run_group(
+        [sys.executable, "-c", code, str(last)], timeout=300, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    names = json.loads(done.stdout.strip().splitlines()[-1])
+    assert names == [
+        "OpenFlyAgentConfig",
+        "OpenFlyAgent",
+        "OpenFlyProcessor",
+        sum(p.numel() for p in agent.parameters()),
+    ]
 
 
 def test_checkpoint_name_and_keep_last_validation(tmp_path):

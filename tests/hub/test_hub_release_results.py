@@ -1,0 +1,149 @@
+"""A release tied to its results: eval.py's run identity against the checkpoint, subsamples and baselines on the
+card, and a card written from the checkpoint's own config, trainer state and results (end to end, the commands
+users type)."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from eval_helpers import generate_tiny_dataset
+
+from openfly_agent import constants as C
+from openfly_agent.hub.cli import main as hub_main
+from openfly_agent.hub.model_card import split_front_matter
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.state import TrainerState
+
+REPO = Path(__file__).resolve().parents[2]
+TEXTS = ["fly to the red tower and stop", "turn left at the blue dome then ascend", "descend near the spire"]
+CONFIGURED_STEPS, TRAINED_STEPS = 6000, 1682
+
+
+def _training_run(root: Path, seed: int) -> Path:
+    """A tiny-preset (tiny-cnn) agent saved as training saves it: step folder, trainer state, `last` link."""
+    import torch
+
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import make_model_config
+    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+
+    tokenizer = train_bpe_tokenizer(TEXTS * 8, vocab_size=300, out_dir=None)
+    torch.manual_seed(seed)
+    agent = OpenFlyAgent.from_model_config(make_model_config("tiny"), tokenizer=tokenizer).eval()
+    manager = CheckpointManager(root, keep_last=1)
+    staging = manager.begin(TRAINED_STEPS)
+    agent.save_pretrained(staging)
+    train_config = {
+        "stage": "navigation",
+        "steps": CONFIGURED_STEPS,
+        "seed": seed,
+        "init": {"checkpoint": None},
+    }
+    (staging / C.TRAIN_CONFIG_NAME).write_text(json.dumps(train_config))
+    TrainerState(step=TRAINED_STEPS, samples_seen=4 * TRAINED_STEPS).save(staging)
+    manager.commit(TRAINED_STEPS)
+    return root
+
+
+def _eval_main():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("eval_entry_point", REPO / "eval.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    """Two training runs; eval.py on the first (2 episodes per split, random + agent_true_box beside it)."""
+    root = tmp_path_factory.mktemp("release-results")
+    dataset = root / "data"
+    generate_tiny_dataset(dataset)
+    run = _training_run(root / "run", seed=0)
+    other = _training_run(root / "other", seed=1)
+    out = root / "eval"
+    argv = [
+        "--checkpoint", str(run / "checkpoints" / "last"), "--baselines", "random", "agent_true_box",
+        "--split", C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN, "--max_episodes", "2", "--max_steps", "4",
+        "--plots=0", "--progress=false", "--torch_threads", "1", f"--dataset_root={dataset}",
+        f"--output_dir={out}",
+    ]  # fmt: skip
+    assert _eval_main()(argv) == 0
+    return SimpleNamespace(root=root, run=run, other=other, eval=out, dataset=dataset)
+
+
+def _release(checkpoint: Path, results: Path, out: Path) -> int:
+    argv = ["release", "--checkpoint", str(checkpoint), "--repo-id", "me/tiny", "--results", str(results)]
+    return hub_main([*argv, "--output-dir", str(out)])
+
+
+def test_results_of_other_weights_are_refused_naming_both(evaluated, tmp_path, capsys):
+    out = tmp_path / "release"
+    assert _release(evaluated.other, evaluated.eval, out) == 2
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert "evaluated other weights" in line
+    assert (
+        str((evaluated.run / "checkpoints" / "step-001682").resolve()) in line
+    )  # what the results evaluated
+    assert str((evaluated.other / "checkpoints" / "step-001682").resolve()) in line  # the checkpoint given
+    assert not out.exists()  # refused before anything is written
+
+
+def test_results_without_a_run_identity_are_refused(evaluated, tmp_path, capsys):
+    results = tmp_path / "results.json"
+    results.write_text(
+        (evaluated.eval / "agent" / C.RESULTS_JSON).read_text()
+    )  # copied away from its identity
+    assert _release(evaluated.run, results, tmp_path / "release") == 2
+    assert "run_identity.json is missing" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def card(evaluated):
+    out = evaluated.root / "release"
+    assert _release(evaluated.run, evaluated.eval, out) == 0
+    return split_front_matter((out / "README.md").read_text())
+
+
+def test_card_says_the_numbers_come_from_a_subsample(card, evaluated):
+    meta, body = card
+    sizes = {split: len(json.loads((evaluated.dataset / "Annotation" / f"{name}.json").read_text()))
+             for split, name in ((C.SPLIT_TEST_SEEN, "seen"), (C.SPLIT_TEST_UNSEEN, "unseen"))}  # fmt: skip
+    assert min(sizes.values()) > 2
+    for split, total in sizes.items():
+        assert re.search(rf"\| {split} \| `openfly` \| \*\*agent\*\* \| 2 of {total} \|", body), split
+        assert f"2 of {total} {split} episodes" in body
+    assert "`--max_episodes 2`" in body
+    assert len(meta["model-index"][0]["results"]) == 4  # the agent's numbers only
+
+
+def test_card_puts_the_baselines_beside_the_agent(card, evaluated):
+    _, body = card
+    results = {
+        name: json.loads((evaluated.eval / name / C.RESULTS_JSON).read_text())
+        for name in ("agent", "random", "agent_true_box")
+    }
+    for name, data in results.items():
+        overall = data["splits"][C.SPLIT_TEST_UNSEEN]["standard"]["overall"]
+        shown = "**agent**" if name == "agent" else f"`{name}`"
+        row = f"| {C.SPLIT_TEST_UNSEEN} | `standard` | {shown} | 2 of "
+        [line] = [line for line in body.splitlines() if line.startswith(row)]
+        assert line.endswith(f"| {overall['ne_m']:.2f} | {overall['sr_pct']:.2f} | {overall['osr_pct']:.2f} | "
+                             f"{overall['spl_pct']:.2f} |")  # fmt: skip
+    assert "- `random`: uniformly random actions" in body
+    assert "- `agent_true_box`: this model fed the simulator's true target box" in body
+
+
+def test_card_is_written_from_the_checkpoint(card):
+    _, body = card
+    assert "a small ResNet vision encoder (`tiny-cnn`, 128 px, 8 x 8 tokens per frame)" in body
+    assert "DINOv2" not in body  # not this checkpoint's backbone
+    assert f"Trained for {TRAINED_STEPS:,} of the {CONFIGURED_STEPS:,} configured optimizer steps" in body
+    assert "pip install openfly-agent==" not in body and 'pip install "openfly-agent==' not in body
+    assert "pip install -e <clone>" in body and "not published on PyPI" in body
+    assert "reads the text tokenizer from local folders only" not in body  # contradicted docs/RELEASE.md
