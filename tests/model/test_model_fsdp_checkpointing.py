@@ -82,3 +82,14 @@ def test_the_training_forward_never_builds_a_kv_cache(make_agent, make_batch, sm
     finally:
         hook.remove()
     assert seen == [None]
+
+
+def test_every_parameter_of_the_tiny_preset_is_contiguous(tiny_tokenizer):
+    """FSDP shards only contiguous parameters; the ResNet's activations run channels-last, its weights do not."""
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.config import tiny_config
+
+    agent = OpenFlyAgent.from_model_config(tiny_config(), tokenizer=tiny_tokenizer)
+    assert agent.model_cfg.vision.preset == "tiny-cnn"
+    strided = [(name, p.stride()) for name, p in agent.named_parameters() if not p.is_contiguous()]
+    assert strided == []
