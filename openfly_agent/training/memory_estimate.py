@@ -32,7 +32,10 @@ from dataclasses import dataclass
 
 import torch
 
+from openfly_agent.model.config import NUM_ACTION_SLOTS
 from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.modes import apply_training_mode
+from openfly_agent.training.preflight import PreflightError
 
 logger = logging.getLogger(__name__)
 
@@ -129,8 +132,6 @@ def model_sizes(cfg: TrainConfig) -> ModelSizes:
     from transformers.models.llama.modeling_llama import LlamaDecoderLayer
 
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: transformers
-    from openfly_agent.model.factory import NUM_ACTION_SLOTS
-    from openfly_agent.training.modes import apply_training_mode
 
     model_cfg = cfg.model
     if model_cfg.llm.vocab_size is None and model_cfg.llm.preset == "tiny":
@@ -284,8 +285,6 @@ def describe_run(cfg: TrainConfig) -> str:
 
 def refuse_if_too_big(estimate: MemoryEstimate, sharding: Sharding, gpu_bytes: list[int], run: str) -> None:
     """`PreflightError` in one line when the estimate exceeds the smallest of `gpu_bytes`."""
-    from openfly_agent.training.preflight import PreflightError
-
     if not gpu_bytes or estimate.peak <= min(gpu_bytes):
         return
     raise PreflightError(
