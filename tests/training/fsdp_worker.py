@@ -53,8 +53,12 @@ from openfly_agent.model.tokenizer import load_tokenizer  # noqa: E402
 STEPS = 3
 LR = 1e-3
 MODELS = {
-    # tiny-cnn (whose parameters FSDP refused while the stem was channels-last), no random box-token jitter
-    "tiny": tiny_config(action_head=ActionHeadConfig(box_token_jitter=0.0)),
+    # tiny-cnn (whose 7 x 7 stem FSDP refused while it was channels-last) at 64 px, no random box-token jitter
+    "tiny": tiny_config(
+        vision=VisionConfig(image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16),
+        memory=MemoryConfig(capacity=2, grid=4),
+        action_head=ActionHeadConfig(box_token_jitter=0.0),
+    ),
     "vit-llama": tiny_config(  # the 7B preset's module classes, the 7B layout (no box token, one decoder call)
         vision=VisionConfig(
             preset="tiny", image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
@@ -125,7 +129,7 @@ def run(model_name: str, tokenizer, out: Path) -> dict:
     rank = dist.get_rank()
     agent = build(model_name, tokenizer)
     reference = copy.deepcopy(agent)  # unsharded, trained on the same batch in this process
-    batch = synthetic_batch(agent, 4, frame_px=agent.model_cfg.vision.image_size, seed=0)
+    batch = synthetic_batch(agent, 2, frame_px=agent.model_cfg.vision.image_size, seed=0)
     model = shard(agent)
     optimizer = torch.optim.AdamW(model.parameters(), lr=LR)
     reference_optimizer = torch.optim.AdamW(reference.parameters(), lr=LR)
