@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import sys
 from dataclasses import dataclass
 
 import torch
@@ -36,6 +37,7 @@ from openfly_agent.model.config import NUM_ACTION_SLOTS
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.modes import apply_training_mode
 from openfly_agent.training.preflight import PreflightError
+from openfly_agent.utils.cli_help import config_path_of
 
 logger = logging.getLogger(__name__)
 
@@ -275,12 +277,14 @@ def visible_gpu_bytes() -> list[int]:
     return [torch.cuda.mem_get_info(i)[1] for i in range(torch.cuda.device_count())]
 
 
-def describe_run(cfg: TrainConfig) -> str:
-    """`llama2-7b, freeze_stage=full, bf16, per-device batch 16`: the settings the estimate depends on."""
-    return (
+def describe_run(cfg: TrainConfig, config_path: str | None = None) -> str:
+    """`configs/train/x.yaml: llama2-7b, freeze_stage=full, precision=bf16, per-device batch 16`: the config
+    file (when known) and the settings the estimate depends on."""
+    settings = (
         f"{cfg.model.llm.preset}, freeze_stage={cfg.freeze_stage}, precision={cfg.precision}, "
         f"per-device batch {cfg.batch.per_device_batch_size}"
     )
+    return f"{config_path}: {settings}" if config_path else settings
 
 
 def refuse_if_too_big(estimate: MemoryEstimate, sharding: Sharding, gpu_bytes: list[int], run: str) -> None:
@@ -307,5 +311,6 @@ def check_memory(cfg: TrainConfig, accelerator) -> MemoryEstimate | None:
     logger.info(
         "memory estimate (%s, %d process(es)): %s", sharding.kind, sharding.world_size, estimate.summary()
     )
-    refuse_if_too_big(estimate, sharding, visible_gpu_bytes(), describe_run(cfg))
+    run = describe_run(cfg, config_path_of(sys.argv[1:]))  # the --config_path train.py was given
+    refuse_if_too_big(estimate, sharding, visible_gpu_bytes(), run)
     return estimate

@@ -16,6 +16,7 @@ from openfly_agent.training.memory_estimate import (
     Sharding,
     activation_bytes,
     check_memory,
+    describe_run,
     estimate_memory,
     model_sizes,
     refuse_if_too_big,
@@ -101,11 +102,16 @@ def test_full_fine_tune_on_one_gpu_is_refused_in_one_line(sizes_7b):
     )  # fsdp.yaml with --num_processes 1, as in issue 38
     estimate = estimate_memory(sizes_7b["full"], cfg, one)
     assert estimate.peak > H200_BYTES  # it ran out of memory in its first AdamW step on one H200
+    run = describe_run(cfg, "configs/train/openfly-7b-full.yaml")
+    assert run == (
+        "configs/train/openfly-7b-full.yaml: llama2-7b, freeze_stage=full, precision=bf16, per-device batch 16"
+    )
     with pytest.raises(PreflightError) as err:
-        refuse_if_too_big(estimate, one, [H200_BYTES], "llama2-7b, freeze_stage=full")
+        refuse_if_too_big(estimate, one, [H200_BYTES], run)
     message = str(err.value)
     assert "\n" not in message
-    assert "llama2-7b, freeze_stage=full" in message and "fsdp_offload.yaml" in message
+    assert f"this run ({run}) needs at least 141 GiB per GPU with 1 process(es) (fsdp)" in message
+    assert "fsdp_offload.yaml" in message
     assert f"{estimate.peak / GIB:.0f} GiB" in message and "--num_processes N" in message
 
 
