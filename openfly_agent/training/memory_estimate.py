@@ -135,10 +135,12 @@ def model_sizes(cfg: TrainConfig) -> ModelSizes:
 
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: transformers
 
-    model_cfg = cfg.model
-    if model_cfg.llm.vocab_size is None and model_cfg.llm.preset == "tiny":
-        llm = dataclasses.replace(model_cfg.llm, vocab_size=cfg.tokenizer.train_vocab_size + NUM_ACTION_SLOTS)
-        model_cfg = dataclasses.replace(model_cfg, llm=llm)
+    llm = dataclasses.replace(
+        cfg.model.llm, tokenizer_path=None
+    )  # nothing is read: the builder checks it later
+    if llm.vocab_size is None and llm.preset == "tiny":
+        llm = dataclasses.replace(llm, vocab_size=cfg.tokenizer.train_vocab_size + NUM_ACTION_SLOTS)
+    model_cfg = dataclasses.replace(cfg.model, llm=llm)
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(model_cfg)
         apply_training_mode(agent, dataclasses.replace(cfg, model=model_cfg, gradient_checkpointing=False))

@@ -87,6 +87,12 @@ def test_the_7b_recipes_counted_on_the_meta_device(sizes_7b):
     assert lora.tokens_per_sample == 258 + 100 and lora.frames_per_sample == 1 + 2 * 5
 
 
+def test_counting_reads_no_tokenizer(sizes_7b, tmp_path):
+    missing = tmp_path / "no-tokenizer-here"  # the builder reports a bad path later, in its own words
+    cfg = train_config("openfly-7b-full.yaml", f"--model.llm.tokenizer_path={missing}")
+    assert model_sizes(cfg) == sizes_7b["full"]
+
+
 def test_lora_on_one_gpu_is_a_lower_bound_of_the_measured_peak(sizes_7b):
     estimate = estimate_memory(sizes_7b["lora"], train_config("openfly-7b-lora.yaml"), Sharding())
     measured = 54.5 * GIB  # bench/train_throughput.py's 7b-lora-bf16 on one H200, batch 8
