@@ -246,8 +246,10 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             embeds, mask, labels, at = insert_before_targets(embeds, mask, labels, token)
             readable = mask.bool() & (labels == IGNORE_INDEX)
             readable[torch.arange(readable.shape[0], device=readable.device), at] = False
+        # no KV cache in training: under activation checkpointing applied from outside (FSDP's checkpoint
+        # wrapper), a recomputed decoder layer would append its keys to the same cache a second time
         hidden = run_in_length_groups(
-            lambda rows, rows_mask: self.run_llm(rows, rows_mask).last_hidden_state,
+            lambda rows, rows_mask: self.run_llm(rows, rows_mask, use_cache=False).last_hidden_state,
             embeds,
             mask,
             self.model_cfg.llm.length_groups,

@@ -25,6 +25,7 @@ from openfly_agent.training.ema import make_ema, update_ema
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
 from openfly_agent.training.export import export_merged_lora
 from openfly_agent.training.loaders import epoch_batches, make_train_loader
+from openfly_agent.training.memory_estimate import check_memory
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
 from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
 from openfly_agent.training.preflight import check_dataset_root, check_output_dir
@@ -68,6 +69,9 @@ def train(cfg: TrainConfig) -> TrainResult:
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
+    check_memory(
+        cfg, accelerator
+    )  # CUDA: the per-GPU estimate; refused here when it cannot fit, before any read
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
     if accelerator.is_main_process:
         checkpoints.remove_stale_staging()

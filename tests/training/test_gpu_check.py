@@ -1,0 +1,144 @@
+"""scripts/gpu_check.sh (bench/gpu_check.py) without a GPU: it exits at once in one line, its plan's commands
+parse against the entry points they call, and a recorded run's table renders."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import pytest
+
+from openfly_agent.utils.processes import run_group
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+GPU_CHECK = REPO_ROOT / "bench" / "gpu_check.py"
+
+
+def run_gpu_check(*args: str, script=("bash", "scripts/gpu_check.sh")):
+    env = {"PYTHON": sys.executable, "PATH": "/usr/bin:/bin", "PYTHONPATH": str(REPO_ROOT)}
+    return run_group([*script, *args], timeout=120, cwd=REPO_ROOT, env=env)
+
+
+@pytest.mark.skipif(importlib.import_module("torch").cuda.is_available(), reason="this machine has CUDA")
+def test_without_cuda_it_exits_at_once_with_one_line():
+    done = run_gpu_check()
+    assert done.returncode == 2
+    assert done.stdout == ""
+    assert done.stderr.splitlines() == [
+        "gpu_check: no CUDA device (torch.cuda.is_available() is False); run it on a machine with one CUDA GPU, "
+        "or pass --plan to list its commands"
+    ]
+
+
+def test_the_plan_parses_against_the_entry_points(tmp_path):
+    from accelerate.commands.launch import launch_command_parser
+
+    from openfly_agent.eval.cli import normalize_argv
+    from openfly_agent.eval.config import EvalConfig
+    from openfly_agent.toolchain.__main__ import _config_args, _parse_generate
+    from openfly_agent.training.cli import parse_args
+    from openfly_agent.utils.config import parse_config
+
+    done = run_gpu_check("--plan", "--workdir", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    commands = [shlex.split(line) for line in done.stdout.splitlines()]
+    assert len(commands) == 8 and all(c[0] == "python" for c in commands)
+    parsed = {"train": [], "eval": [], "generate": [], "bench": []}
+    for tokens in commands:
+        if tokens[1:3] == ["-m", "accelerate.commands.launch"]:
+            launch = launch_command_parser().parse_args(tokens[3:])
+            assert (REPO_ROOT / launch.config_file).is_file() and launch.training_script == "train.py"
+            cfg = parse_args(
+                launch.training_script_args
+            )  # train.py's own parser: config file and every value
+            assert cfg.init.checkpoint == str(tmp_path / "openvla-7b") and cfg.data.root == str(
+                tmp_path / "data"
+            )
+            parsed["train"].append((Path(launch.config_file).name, cfg))
+        elif tokens[1] == "eval.py":
+            cfg = parse_config(EvalConfig, normalize_argv(tokens[2:]))
+            assert cfg.checkpoint == str(tmp_path / "lora" / "merged") and cfg.max_episodes == 4
+            parsed["eval"].append(cfg)
+        elif tokens[1:4] == ["-m", "openfly_agent.toolchain", "generate"]:
+            cfg = _parse_generate(_config_args(tokens[4:]))
+            assert cfg.scenes.train_seeds == [0, 1] and cfg.output_dir == str(tmp_path / "data")
+            parsed["generate"].append(cfg)
+        else:  # a bench script: each option it passes is one the script declares
+            script = REPO_ROOT / tokens[1]
+            assert tokens[1].startswith("bench/"), tokens
+            if script.is_file():
+                source = script.read_text()
+                for option in (t.split("=")[0] for t in tokens[2:] if t.startswith("--")):
+                    assert f'"{option}"' in source, f"{tokens[1]} has no {option}"
+            parsed["bench"].append(tokens[1])
+    launchers = [name for name, _ in parsed["train"]]
+    assert launchers == ["single_gpu.yaml", "fsdp.yaml", "fsdp_offload.yaml"]
+    lora, refused, offload = (cfg for _, cfg in parsed["train"])
+    assert lora.freeze_stage == "lora" and lora.steps == 12 and lora.batch.global_batch_size == 8
+    assert refused.freeze_stage == offload.freeze_stage == "full" and offload.stop_after_steps == 1
+    assert len(parsed["eval"]) == len(parsed["generate"]) == 1
+    assert parsed["bench"] == [
+        "bench/synthetic_openvla.py",
+        "bench/step_latency.py",
+        "bench/train_throughput.py",
+    ]
+
+
+RECORDED = {
+    "device": "NVIDIA H100 80GB HBM3 (79 GiB), torch 2.11.0+cu128",
+    "results": [
+        {"name": "wheels", "passed": True},
+        {"name": "LoRA 12 steps + merge", "passed": True, "seconds": 95.4,
+         "figures": {"train.py samples/s": 7.912, "peak GiB": 54.49, "merged": True}},
+        {"name": "eval 4 episodes", "passed": False, "seconds": 12.0, "note": "exit code 1, expected 0"},
+        {"name": "LoRA synthetic step", "passed": True, "seconds": 40.2,
+         "figures": {"samples/s": 14.9, "MFU": 0.146, "peak GiB": None}},
+        {"name": "FSDP offload, 1st step", "passed": None, "note": "skipped: dataset did not pass"},
+    ],
+}  # fmt: skip
+
+
+def test_the_table_of_a_recorded_run(tmp_path):
+    record = tmp_path / "gpu_check.json"
+    record.write_text(json.dumps(RECORDED))
+    done = run_gpu_check("--table", str(record), script=(sys.executable, str(GPU_CHECK)))
+    assert done.returncode == 1  # a check failed
+    lines = done.stdout.splitlines()
+    assert lines[0] == "GPU check on NVIDIA H100 80GB HBM3 (79 GiB), torch 2.11.0+cu128"
+    assert lines[2:9] == [
+        "| check | result | s | figures |",
+        "|---|---|---:|---|",
+        "| wheels | pass | 0 |  |",
+        "| LoRA 12 steps + merge | pass | 95 | train.py samples/s 7.9, peak GiB 54.5, merged yes |",
+        "| eval 4 episodes | FAIL | 12 | exit code 1, expected 0 |",
+        "| LoRA synthetic step | pass | 40 | samples/s 14.9, MFU 0.146, peak GiB - |",
+        "| FSDP offload, 1st step | skipped | 0 | skipped: dataset did not pass |",
+    ]
+    assert lines[10] == "3 of 5 checks passed in 148 s"
+    wheels = lines[11].removeprefix("wheels beyond a CUDA PyTorch image: ").split(", ")
+    assert "transformers>=5.0,<6" in ", ".join(wheels) and "peft>=0.17" in wheels and "timm>=1.0.20" in wheels
+    assert not any(w.startswith("torch>") for w in wheels)
+
+
+def test_bench_lines_become_figures():
+    sys.path.insert(0, str(REPO_ROOT / "bench"))
+    gpu_check = importlib.import_module("gpu_check")
+    output = "\n".join(
+        [
+            "loading...",
+            json.dumps({"preset": "openfly-7b", "history": "keyframe", "batch": 1, "ms_per_step": 47.5}),
+            json.dumps({"preset": "openfly-7b", "history": "uniform", "batch": 16, "ms_per_step": 407.5}),
+            json.dumps(
+                {"config": "7b-lora-bf16", "samples_per_s": 14.9, "mfu": 0.146, "max_memory_gib": 54.5}
+            ),
+        ]
+    )
+    assert gpu_check.latency_figures(Path("."), output) == {"keyframe b1 ms": 47.5, "uniform b16 ms": 407.5}
+    assert gpu_check.throughput_figures(Path("."), output) == {
+        "samples/s": 14.9,
+        "MFU": 0.146,
+        "peak GiB": 54.5,
+    }
