@@ -1,13 +1,11 @@
 """The `tiny-cnn` vision backbone: a small timm ResNet that yields the same token grid as the ViT presets.
 
 A from-scratch ViT learns slowly at the tiny scale on a CPU; a convolutional network has the locality prior
-built in (docs/experiments/2026-11-23-agent-that-navigates-issue12.md, "Tiny backbones"). The ResNet's four stages downsample by 16 (the last stage is
+built in (docs/BENCHMARKS.md, "Tiny preset"). The ResNet's four stages downsample by 16 (the last stage is
 dilated instead of strided), so a 128 px frame gives an 8 x 8 grid, the patch grid of a ViT with patch 16; a
 learned position embedding is added to every cell (convolution features alone say little about *where* a cell
 is, and the LLM's rotary positions only give relative offsets). The output (N, P, C) goes into the same
-projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs): the activations are
-channels-last, the parameters stay contiguous (FSDP shards only contiguous parameters; oneDNN picks the
-channels-last kernels from the input alone, with the same results and speed, docs/TRAINING.md). With
+projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on CPUs). With
 `vision.cnn_fine_fusion` each token also gets the second stage's stride-8 features of the 2 x 2 cells under it
 (concatenated, projected by `fine_proj` and added): a landmark of a few pixels keeps its own features. With
 `vision.cnn_instruction_film` the third and fourth stages run once per sequence, their inputs scaled and shifted
@@ -96,8 +94,9 @@ class ConvVisionBackbone(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.image_size = cfg.image_size
-        # contiguous parameters (FSDP refuses others); `forward` makes the input channels-last
-        self.featurizer = build_resnet(tuple(cfg.cnn_channels), cfg.cnn_stem_width, cfg.cnn_stem)
+        self.featurizer = build_resnet(tuple(cfg.cnn_channels), cfg.cnn_stem_width, cfg.cnn_stem).to(
+            memory_format=torch.channels_last
+        )
         self.grid_side = cfg.grid_side
         self.pos_embed = nn.Parameter(torch.zeros(cfg.num_patches, cfg.cnn_channels[-1]))
         # the second stage (stride 8) under each token: 2 x 2 cells of cnn_channels[1], to the token width

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 from accelerate import Accelerator
-from accelerate.utils import set_seed
+from accelerate.utils import DistributedType, set_seed
 
 from openfly_agent import constants as C
 from openfly_agent.data.dataset import NavigationStepDataset
@@ -135,7 +135,18 @@ def prepare_agent(
     set_seed(cfg.seed)  # the same initial weights on every process and on resume
     agent = build_agent(cfg, tokenizer, norm_stats, init_format)
     apply_training_mode(agent, cfg)
+    if accelerator.distributed_type == DistributedType.FSDP:
+        make_parameters_contiguous(agent)
     return agent
+
+
+def make_parameters_contiguous(module: torch.nn.Module) -> None:
+    """Give every parameter a contiguous layout, in place, values unchanged: FSDP shards only contiguous
+    parameters, and the tiny preset's ResNet keeps its weights channels-last (oneDNN's fast path on CPUs; the
+    unsharded runs keep that layout, so their numbers stay those of the recorded runs)."""
+    for param in module.parameters():
+        if not param.is_contiguous():
+            param.data = param.data.contiguous()
 
 
 def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accelerator):

@@ -84,12 +84,24 @@ def test_the_training_forward_never_builds_a_kv_cache(make_agent, make_batch, sm
     assert seen == [None]
 
 
-def test_every_parameter_of_the_tiny_preset_is_contiguous(tiny_tokenizer):
-    """FSDP shards only contiguous parameters; the ResNet's activations run channels-last, its weights do not."""
+def test_fsdp_preparation_makes_the_tiny_preset_contiguous_with_equal_outputs(tiny_tokenizer):
+    """FSDP shards only contiguous parameters, and the tiny preset's ResNet keeps channels-last weights (the
+    CPU fast path); train.py makes them contiguous under FSDP only, with the values and outputs unchanged."""
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.config import tiny_config
+    from openfly_agent.training.builder import make_parameters_contiguous
 
     agent = OpenFlyAgent.from_model_config(tiny_config(), tokenizer=tiny_tokenizer)
     assert agent.model_cfg.vision.preset == "tiny-cnn"
-    strided = [(name, p.stride()) for name, p in agent.named_parameters() if not p.is_contiguous()]
-    assert strided == []
+    strided = [name for name, p in agent.named_parameters() if not p.is_contiguous()]
+    assert strided, "the unsharded tiny preset keeps channels-last weights"
+    before = {name: p.detach().clone() for name, p in agent.named_parameters()}
+    side = agent.model_cfg.vision.image_size
+    frames = torch.randint(0, 256, (2, 3, side, side), dtype=torch.uint8)
+    with torch.no_grad():
+        reference = agent.vision_backbone(frames)
+    make_parameters_contiguous(agent)
+    assert [name for name, p in agent.named_parameters() if not p.is_contiguous()] == []
+    assert all(torch.equal(p, before[name]) for name, p in agent.named_parameters())
+    with torch.no_grad():
+        torch.testing.assert_close(agent.vision_backbone(frames), reference)

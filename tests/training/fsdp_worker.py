@@ -49,6 +49,7 @@ from openfly_agent.model.config import (  # noqa: E402
     tiny_config,
 )
 from openfly_agent.model.tokenizer import load_tokenizer  # noqa: E402
+from openfly_agent.training.builder import make_parameters_contiguous  # noqa: E402
 
 STEPS = 3
 LR = 1e-3
@@ -80,8 +81,10 @@ def wrapped_classes() -> tuple[type, ...]:
 
 
 def shard(agent: torch.nn.Module) -> torch.nn.Module:
-    """Checkpoint-wrap and `fully_shard` each transformer block, then the root (accelerate's FSDP2 order)."""
+    """Checkpoint-wrap and `fully_shard` each transformer block, then the root (accelerate's FSDP2 order), after
+    the layout fix train.py applies under FSDP (`make_parameters_contiguous`)."""
     classes = wrapped_classes()
+    make_parameters_contiguous(agent)
     apply_activation_checkpointing(
         agent,
         checkpoint_wrapper_fn=functools.partial(checkpoint_wrapper, preserve_rng_state=False),
