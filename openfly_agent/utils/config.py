@@ -55,6 +55,14 @@ def resolve_config_path(path: str | Path) -> Path:
     return in_repo if in_repo.is_file() else path
 
 
+def with_config_path(args: list[str], default: str | Path) -> list[str]:
+    """`args` with `--config_path <default>` in front when they name no config file (a command's default
+    preset: the plain command runs exactly what that YAML says)."""
+    if any(arg == "--config_path" or arg.startswith("--config_path=") for arg in args):
+        return list(args)
+    return ["--config_path", str(default), *args]
+
+
 def _resolved_config_arg(arg: str, previous: str | None) -> str:
     if arg.startswith("--config_path="):
         return "--config_path=" + str(resolve_config_path(arg.split("=", 1)[1]))
