@@ -28,11 +28,11 @@ from openfly_agent.training.loaders import epoch_batches, make_train_loader
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
 from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
 from openfly_agent.training.preflight import check_dataset_root, check_output_dir
+from openfly_agent.training.resume_settings import record_run_settings, resume_changes
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
 from openfly_agent.training.state import TrainerState
 from openfly_agent.training.stops import StopFlags
-from openfly_agent.utils.config import save_config
 
 logger = logging.getLogger(__name__)
 
@@ -66,6 +66,9 @@ def train(cfg: TrainConfig) -> TrainResult:
     """
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
+    setting_changes = resume_changes(
+        cfg, resume_from
+    )  # a resume refuses other settings than its checkpoint's
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
@@ -78,8 +81,10 @@ def train(cfg: TrainConfig) -> TrainResult:
     agent = prepare_agent(cfg, splits, accelerator, resume_from)
     data = stage_data(cfg, splits, agent)
     train_set, val_set, test_set, collate = data.train, data.val, data.test, data.collate
-    if accelerator.is_main_process:
-        save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
+    if (
+        accelerator.is_main_process
+    ):  # train_config.json keeps the first settings; resumes append their changes
+        record_run_settings(cfg, resume_from, setting_changes)
 
     # 3. Optimizer, schedule and loaders; accelerate wraps them for the launch (DDP / FSDP / DeepSpeed).
     train_loader, sampler = make_train_loader(train_set, collate, cfg)
