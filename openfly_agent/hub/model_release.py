@@ -24,7 +24,7 @@ from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_
 from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
 from openfly_agent.hub.model_card import ModelFacts, render_model_card, summarize_train_config
 from openfly_agent.hub.results import load_results, resolve_results_path
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.checkpoint_path import check_weights_readable, resolve_checkpoint_folder
 from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
 
 logger = logging.getLogger(__name__)
@@ -64,6 +64,7 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     results, README.md. Inputs are checked first.
     """
     checkpoint = resolve_checkpoint(cfg.checkpoint)
+    check_weights_readable(checkpoint)  # a truncated copy: one line, before the release folder is made
     results = load_results(cfg.results) if cfg.results else None
     base = base_of(checkpoint, cfg.base_checkpoint) if is_lora_checkpoint(checkpoint) else None
     adapter_form = base is not None and cfg.lora == "adapter"
