@@ -192,7 +192,16 @@ def train(cfg: TrainConfig) -> TrainResult:
             export_merged_lora(accelerator, evaluated, cfg.output_dir)  # full weights in <output_dir>/merged
         final: dict[str, float] = {}
         if test_loader is not None:
-            final = evaluate(evaluated, test_loader, accelerator)
+            stops.stage = "the final evaluation"
+            logger.info("final evaluation on %s: %d samples", cfg.data.test_split, len(test_indices))
+            final = evaluate(evaluated, test_loader, accelerator, "test", lambda: stops.reason() == "signal")
+            if final is None:  # SIGTERM / SIGUSR1 during it: no figures, as a stop mid-training
+                logger.warning(
+                    "stopped by a signal during the final evaluation; nothing written as its result; `--resume` "
+                    "evaluates %s",
+                    last_checkpoint,
+                )
+                return _result(state, last_checkpoint, {}, True, accelerator, evaluated)
             if cfg.stage == STAGE_NAVIGATION:
                 final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
             log_metrics(accelerator, "test", final, state.step)
