@@ -155,10 +155,7 @@ def train(cfg: TrainConfig) -> TrainResult:
                     train_logs.update(memory_stats(accelerator.device), lr=float(scheduler.get_last_lr()[0]))
                     train_logs["epoch"] = state.epoch + state.step_in_epoch / sampler.steps_per_epoch
                     log_metrics(accelerator, "train", train_logs, state.step)
-                    progress.set_postfix(
-                        loss=f"{train_logs.get('loss', float('nan')):.4f}",
-                        acc=f"{train_logs.get('action_accuracy', float('nan')):.3f}",
-                    )
+                    progress.set_postfix(progress_postfix(train_logs))
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
                     log_metrics(accelerator, "val", evaluate(evaluated, val_loader, accelerator), state.step)
                 if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
@@ -206,6 +203,17 @@ def train(cfg: TrainConfig) -> TrainResult:
                 final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
             log_metrics(accelerator, "test", final, state.step)
         return _result(state, last_checkpoint, final, reason is not None, accelerator, evaluated)
+
+
+def progress_postfix(train_logs: dict[str, float]) -> dict[str, str]:
+    """The progress bar's `loss` and `acc`, each only when the step logged it (the grounding stage has no
+    action accuracy: no `acc=nan`)."""
+    shown = {"loss": ("loss", ".4f"), "acc": ("action_accuracy", ".3f")}
+    return {
+        name: format(train_logs[key], spec)
+        for name, (key, spec) in shown.items()
+        if key in train_logs and not math.isnan(train_logs[key])
+    }
 
 
 def log_metrics(accelerator, prefix: str, metrics: dict[str, float], step: int) -> None:
