@@ -66,9 +66,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     """
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
-    setting_changes = resume_changes(
-        cfg, resume_from
-    )  # a resume refuses other settings than its checkpoint's
+    # a resume refuses settings other than its checkpoint's, except RESUMABLE_KEYS (training/resume_settings.py)
+    setting_changes = resume_changes(cfg, resume_from)
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
@@ -81,9 +80,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     agent = prepare_agent(cfg, splits, accelerator, resume_from)
     data = stage_data(cfg, splits, agent)
     train_set, val_set, test_set, collate = data.train, data.val, data.test, data.collate
-    if (
-        accelerator.is_main_process
-    ):  # train_config.json keeps the first settings; resumes append their changes
+    if accelerator.is_main_process:  # train_config.json keeps the first settings; resumes append changes
         record_run_settings(cfg, resume_from, setting_changes)
 
     # 3. Optimizer, schedule and loaders; accelerate wraps them for the launch (DDP / FSDP / DeepSpeed).
