@@ -18,7 +18,13 @@ from openfly_agent.constants import TRAIN_CONFIG_NAME
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.preflight import PreflightError
 from openfly_agent.training.state import TrainerState
-from openfly_agent.utils.config import changed_settings, config_to_dict, describe_changes, save_config
+from openfly_agent.utils.config import (
+    changed_settings,
+    config_to_dict,
+    describe_changes,
+    flat_settings,
+    save_config,
+)
 
 CONFIG_CHANGES_NAME = "config_changes.jsonl"
 
@@ -60,14 +66,16 @@ def resume_changes(cfg: TrainConfig, checkpoint: Path | None) -> dict[str, tuple
             f"{stored_path} is not readable ({err}): cannot check the resumed settings"
         ) from err
     current = config_to_dict(cfg)
-    refused = changed_settings(stored, current, RESUMABLE_KEYS)
+    # settings the checkpoint does not record (a field added to TrainConfig since) are not compared
+    recorded = set(flat_settings(stored)) & set(flat_settings(current))
+    refused = {k: v for k, v in changed_settings(stored, current, RESUMABLE_KEYS).items() if k in recorded}
     if refused:
         raise PreflightError(
             f"--resume=true with other settings than {stored_path} ({describe_changes(refused, limit=12)}): "
             "resume with the run's settings, or train in a new --output_dir (docs/TRAINING.md lists the "
             "settings a resume may change)"
         )
-    return {k: v for k, v in changed_settings(stored, current).items() if k not in ("resume",)}
+    return {k: v for k, v in changed_settings(stored, current).items() if k in recorded and k != "resume"}
 
 
 def record_run_settings(cfg: TrainConfig, checkpoint: Path | None, changes: dict[str, tuple]) -> None:

@@ -7,7 +7,7 @@ import json
 import shutil
 
 import pytest
-from conftest import REPO_ROOT, STEPS, reset_accelerate, train_args
+from conftest import REPO_ROOT, STEPS, make_config, reset_accelerate, train_args
 
 from openfly_agent import constants as C
 from openfly_agent.training.resume_settings import CONFIG_CHANGES_NAME, RESUMABLE_KEYS
@@ -91,3 +91,19 @@ def test_a_resume_with_more_steps_trains_on_and_appends_the_change(
     }
     assert entries[1]["changes"] == {"steps": {"from": STEPS + 1, "to": STEPS + 2}}
     assert all(e["time"].endswith("Z") for e in entries)
+
+
+def test_a_setting_the_checkpoint_does_not_record_is_not_a_change(reference_run, generated_dataset, tmp_path):
+    """A run recorded before a TrainConfig field existed still resumes after the upgrade."""
+    from openfly_agent.training.resume_settings import resume_changes
+
+    out, _ = reference_run
+    checkpoint = tmp_path / "step-000004"
+    shutil.copytree(
+        out / "checkpoints" / "step-000004", checkpoint, ignore=shutil.ignore_patterns("training_*")
+    )
+    stored = json.loads((checkpoint / C.TRAIN_CONFIG_NAME).read_text())
+    del stored["optim"]["ema_decay"]  # as if written before optim.ema_decay was added
+    (checkpoint / C.TRAIN_CONFIG_NAME).write_text(json.dumps(stored))
+    cfg = make_config(generated_dataset, out, steps=STEPS + 1, resume="true")
+    assert resume_changes(cfg, checkpoint) == {"steps": (STEPS, STEPS + 1)}
