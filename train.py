@@ -16,6 +16,7 @@ help, the did-you-mean and the one-line messages come from `training/cli.py`.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 
 from openfly_agent.data.openfly_reader import annotation_path
@@ -33,10 +34,12 @@ from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
 from openfly_agent.utils.config import load_yaml_config
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import root_cause
+from openfly_agent.utils.files import remove_empty_dirs
 from openfly_agent.utils.logging_utils import setup_logging
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
+RUN_SUBFOLDERS = ("logs", "checkpoints", "tokenizer")  # what a run creates in its output_dir
 
 logger = logging.getLogger("train")
 
@@ -90,7 +93,11 @@ def run(argv: list[str], state: dict) -> int:
         ensure_dataset(cfg)
         result = train(cfg)
     except (ParsingError, PreflightError, UnknownOptionError) as err:
-        print(f"train.py: {root_cause(err)}", file=sys.stderr)
+        # the same on every process of a launch: said once, by rank 0 (the launcher adds its own report)
+        if os.environ.get("RANK", "0") == "0":
+            print(f"train.py: {root_cause(err)}", file=sys.stderr)
+        if "output_dir" in state:  # a failed start leaves no empty run folder (every process: no race)
+            remove_empty_dirs(state["output_dir"], RUN_SUBFOLDERS)
         return EXIT_BAD_INPUT
     except Exception as err:  # data that fails to read, before or during training (also in a loader worker)
         message = data_error_message(err)

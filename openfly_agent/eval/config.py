@@ -135,9 +135,10 @@ class EvalConfig:
     gif_episodes: list[str] = field(default_factory=list)
     seed: int = 0  # the random baseline's seed (per episode: seed + SHA-256 of the episode id)
     device: str = "auto"  # auto | cpu | cuda | cuda:<k>
-    # CPU threads of the model (None = torch's default); 1 avoids thrashing when other processes share few
-    # cores (docs/BENCHMARKS.md)
-    torch_threads: int | None = None
+    # CPU threads of the model (None: torch's default, one per core). 1 by default: the tiny model gains
+    # nothing from intra-op threads, and with other work on the cores torch's default thrashed (20-50x slower
+    # per step, docs/EVAL.md "Throughput")
+    torch_threads: int | None = 1
     overwrite: bool = False  # discard existing logs in output_dir instead of resuming
     progress: bool = True  # draw a progress bar per policy and split
 

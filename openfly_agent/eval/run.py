@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.agent_policy import checkpoint_fingerprint
+from openfly_agent.eval.agent_policy import checkpoint_fingerprint, checkpoint_folder
 from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
@@ -36,6 +36,7 @@ from openfly_agent.eval.policy import Policy
 from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
 from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, groups, teleport_record
 from openfly_agent.eval.slots import SlotEnv
+from openfly_agent.model.checkpoint_path import UnreadableWeightsError, check_weights_readable
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +88,16 @@ def result_identity(cfg: EvalConfig, policy: str) -> dict:
     if policy in AGENT_POLICIES:
         identity["weights"] = checkpoint_fingerprint(cfg.checkpoint)
     return identity
+
+
+def check_agent_weights(cfg: EvalConfig) -> None:
+    """A truncated or corrupt weights file of the agent fails here, in one line, before any output is written."""
+    if not any(name in AGENT_POLICIES for name in cfg.policies):
+        return
+    try:
+        check_weights_readable(checkpoint_folder(cfg.checkpoint))
+    except UnreadableWeightsError as err:
+        raise EvalInputError(str(err)) from None
 
 
 def gif_path(folder: Path, split: str, episode_id: str) -> Path:
@@ -169,6 +180,7 @@ def run(cfg: EvalConfig) -> dict:
 
         torch.set_num_threads(cfg.torch_threads)
     root = Path(cfg.output_dir)
+    check_agent_weights(cfg)
     full_splits = load_full_splits(cfg)
     episodes_by_split = subsample_splits(full_splits, cfg.max_episodes)
     split_sizes = {split: len(episodes) for split, episodes in full_splits.items()}  # before max_episodes

@@ -31,7 +31,11 @@ from openfly_agent.hub.model_card import (
 )
 from openfly_agent.hub.results import load_results, resolve_results_path
 from openfly_agent.hub.results_source import check_results_weights, load_baselines
-from openfly_agent.model.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
+from openfly_agent.model.checkpoint_path import (
+    check_navigation_stage,
+    check_weights_readable,
+    resolve_checkpoint_folder,
+)
 from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
 from openfly_agent.utils.file_modes import follow_umask
 
@@ -74,6 +78,7 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     results, README.md. Inputs are checked first.
     """
     checkpoint = resolve_checkpoint(cfg.checkpoint)
+    check_weights_readable(checkpoint)  # a truncated copy: one line, before the release folder is made
     results = load_results(cfg.results) if cfg.results else None
     baselines = []
     if results is not None:

@@ -16,7 +16,7 @@ from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
 
 from .box_token import given_boxes
 from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT
-from .decoding import decode_one, greedy_decode
+from .decoding import decode_one, greedy_decode, new_cache, run_cached
 from .episode import Box, EpisodeState, StepResult, check_observations
 from .memory import MemoryBank
 from .sequence import left_pad
@@ -80,8 +80,15 @@ class ClosedLoopInference:
             )
             memory_sizes.append(memory.shape[0])
         embeds, mask = left_pad(sequences)  # (B, L_max, D), (B, L_max)
-        use_cache = self.action_tokenizer.head != HEAD_DISCRETE or self.box_token_embed is not None
-        output = self.run_llm(embeds, mask, use_cache=use_cache)
+        needs_cache = self.action_tokenizer.head != HEAD_DISCRETE or self.box_token_embed is not None
+        cache = (
+            new_cache(self) if needs_cache else None
+        )  # filled by the prefill, read by the decoding after it
+        output = (
+            run_cached(self, embeds, mask, cache)
+            if needs_cache
+            else self.run_llm(embeds, mask, use_cache=False)
+        )
         hidden = output.last_hidden_state  # (B, L_max, D)
         padding = mask.shape[1] - mask.sum(dim=1)  # (B,) left padding of each row
         first_image = (
@@ -95,8 +102,8 @@ class ClosedLoopInference:
             boxes, visible = given_boxes(true_boxes, device)
         if self.box_token_embed is not None:  # [.. prompt] [BOX]: one cached step, the action is read there
             token = self.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)
-            hidden, mask = decode_one(self, token, mask, output.past_key_values)
-        actions, details = self._decode_actions(hidden, mask, output.past_key_values)
+            hidden, mask = decode_one(self, token, mask, cache)
+        actions, details = self._decode_actions(hidden, mask, cache)
         boxes = boxes.float().cpu()
 
         results = []

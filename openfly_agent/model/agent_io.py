@@ -10,7 +10,7 @@ from pathlib import Path
 
 from openfly_agent.constants import ACTION_TOKENIZER_NAME, NORM_STATS_NAME
 
-from .checkpoint_path import check_not_adapter_only, resolve_checkpoint_folder
+from .checkpoint_path import check_not_adapter_only, check_weights_readable, resolve_checkpoint_folder
 from .remote_code import write_remote_code
 from .tokenizer import load_tokenizer, tokenizer_folder
 
@@ -54,13 +54,15 @@ class AgentPersistence:
         """transformers' load, plus the tokenizer saved beside the weights (folder or Hub repo id).
 
         Also takes a training run folder, `<run>/checkpoints` or the `checkpoints/last` pointer: they load the
-        newest checkpoint. A LoRA checkpoint (`adapter/`, no weights) raises with what to load instead.
+        newest checkpoint. A LoRA checkpoint (`adapter/`, no weights) raises with what to load instead; a
+        truncated or corrupt weights file raises `UnreadableWeightsError` naming it.
         """
         name = str(pretrained_model_name_or_path)
         folder = resolve_checkpoint_folder(name)
         if folder is not None:
             name = str(folder)
             check_not_adapter_only(folder)
+            check_weights_readable(folder)  # a truncated file: one line naming it
         loaded = super().from_pretrained(name, *args, **kwargs)
         model = loaded[0] if isinstance(loaded, tuple) else loaded
         if tokenizer is None:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from openfly_agent.constants import (
@@ -125,3 +127,45 @@ def checkpoint_files(folder: Path) -> list[Path]:
     if (folder / WEIGHTS_NAME).is_file():
         return [folder / WEIGHTS_NAME]
     raise FileNotFoundError(f"{folder} has neither {WEIGHTS_NAME} nor {WEIGHTS_INDEX_NAME}")
+
+
+class UnreadableWeightsError(ValueError):
+    """A safetensors file that cannot be read (truncated or corrupt); the message names the file."""
+
+
+@contextmanager
+def open_safetensors(path: str | Path) -> Iterator:
+    """`safetensors.safe_open(path)` whose failure (a truncated or corrupt file) is one `UnreadableWeightsError`
+    naming the file, not the library's error from deep inside a loader."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        handle = safe_open(str(path), framework="pt")
+    except (SafetensorError, OSError) as err:
+        raise UnreadableWeightsError(
+            f"{path} is not a readable safetensors file ({err}): it is truncated or corrupt; copy or download "
+            "it again"
+        ) from None
+    with handle:
+        yield handle
+
+
+def check_weights_readable(folder: Path) -> None:
+    """Read the header of every safetensors file of `folder` (nothing when it has none): the header lists every
+    tensor's byte range, so a truncated copy fails here, before a loader starts or an output folder is made.
+
+    Raises:
+        UnreadableWeightsError: a file that is truncated or corrupt, named.
+    """
+    try:
+        files = checkpoint_files(Path(folder))
+    except (
+        FileNotFoundError,
+        json.JSONDecodeError,
+        KeyError,
+    ):  # no weights / a bad index: the loader says so
+        return
+    for path in files:
+        if path.is_file():
+            with open_safetensors(path):
+                pass

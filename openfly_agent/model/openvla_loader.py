@@ -19,6 +19,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from .checkpoint_path import open_safetensors
 from .vision import build_featurizers
 
 logger = logging.getLogger(__name__)
@@ -76,8 +77,6 @@ def _iter_checkpoint(source) -> Iterator[tuple[str, torch.Tensor]]:
     if isinstance(source, dict):
         yield from source.items()
         return
-    from safetensors import safe_open
-
     path = Path(source)
     if path.is_dir():
         index = path / "model.safetensors.index.json"
@@ -91,7 +90,7 @@ def _iter_checkpoint(source) -> Iterator[tuple[str, torch.Tensor]]:
     if not paths or not all(p.is_file() for p in paths):
         raise FileNotFoundError(f"no safetensors weights found at {path}")
     for file in paths:
-        with safe_open(str(file), framework="pt") as handle:
+        with open_safetensors(file) as handle:  # a truncated file: UnreadableWeightsError naming it
             for key in handle.keys():  # noqa: SIM118 (safe_open is not a mapping)
                 yield key, handle.get_tensor(key)
 

@@ -33,7 +33,7 @@ from openfly_agent.utils.cli_help import (
     wants_help,
     without_help,
 )
-from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
 
@@ -73,6 +73,8 @@ EXAMPLES = {
 }
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+# The dataset of a plain `generate` (and of train.py's `data.toolchain_config`): the one source of its settings.
+DEFAULT_GENERATE_CONFIG = REPO_ROOT / "configs" / "toolchain" / "embedded-small.yaml"
 
 
 class InputError(Exception):
@@ -99,13 +101,20 @@ def _config_args(args: list[str]) -> list[str]:
     return out
 
 
+def _generate_args(args: list[str]) -> list[str]:
+    """`args` with `--config` read as `--config_path`, and DEFAULT_GENERATE_CONFIG when none is given: a plain
+    `generate` writes exactly the dataset of configs/toolchain/embedded-small.yaml under its name."""
+    return with_config_path(_config_args(args), DEFAULT_GENERATE_CONFIG)
+
+
 def _parse_generate(args: list[str]):
-    """GenerateConfig from YAML + overrides; a bad value or option is an InputError naming the field."""
-    return _parse_command_config(GenerateConfig, args, "generate")
+    """GenerateConfig from YAML (default: DEFAULT_GENERATE_CONFIG) + overrides; a bad value or option is an
+    InputError naming the field."""
+    return _parse_command_config(GenerateConfig, _generate_args(args), "generate")
 
 
 def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] = ()) -> str:
-    args = _config_args(without_help(args))
+    args = _generate_args(without_help(args))
     config = config_path_of(args)
     try:
         cfg = _parse_generate(args)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import GenerateConfig
-from openfly_agent.utils.config import config_to_dict, save_config
+from openfly_agent.utils.config import changed_settings, config_to_dict, describe_changes, save_config
 
 logger = logging.getLogger(__name__)
 
@@ -31,26 +31,6 @@ DATASET_PARTS = (C.DATASET_ANNOTATION_DIR, C.DATASET_TRAJ_DIR, "meta")  # what g
 
 class GenerateSettingsError(ValueError):
     """The output folder holds a dataset generated with other settings; the message lists them."""
-
-
-def _flatten(node, prefix: str = "") -> dict[str, object]:
-    if isinstance(node, dict):
-        out: dict[str, object] = {}
-        for key, value in node.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: node}
-
-
-def _ignored(key: str, ignore: tuple[str, ...]) -> bool:
-    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in ignore)
-
-
-def settings_changes(stored: dict, cfg: GenerateConfig, ignore: tuple[str, ...] = ()) -> list[str]:
-    """`key: stored -> new` for every data setting of `cfg` that differs from the `stored` config dict."""
-    old, new = _flatten(stored), _flatten(config_to_dict(cfg))
-    keys = sorted(k for k in set(old) | set(new) if not _ignored(k, RUNTIME_KEYS + ignore))
-    return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
 
 
 def discard_dataset(root: Path) -> None:
@@ -87,11 +67,10 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
             raise GenerateSettingsError(
                 f"{path} is not readable ({err}): pass --overwrite=true to generate anew"
             ) from err
-        changes = settings_changes(stored, cfg, ignore)
+        changes = describe_changes(changed_settings(stored, config_to_dict(cfg), RUNTIME_KEYS + ignore))
         if changes:
-            shown = "; ".join(changes[:8]) + (f"; and {len(changes) - 8} more" if len(changes) > 8 else "")
             raise GenerateSettingsError(
-                f"{root} holds a dataset generated with other settings ({shown}); run with the same "
+                f"{root} holds a dataset generated with other settings ({changes}); run with the same "
                 "settings to resume it, pass another --output_dir, or --overwrite=true to discard it"
             )
     if record or not path.is_file():

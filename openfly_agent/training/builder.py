@@ -23,7 +23,11 @@ from openfly_agent.data.grounding import read_grounding_expressions
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.checkpoint_path import (
+    UnreadableWeightsError,
+    check_weights_readable,
+    resolve_checkpoint_folder,
+)
 from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
 from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
@@ -151,9 +155,17 @@ def make_parameters_contiguous(module: torch.nn.Module) -> None:
 
 def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accelerator):
     """The run's tokenizer (order in `TokenizerConfig`); a trained one is written by rank 0 first."""
+    for field_name, path in (
+        ("tokenizer.path", cfg.tokenizer.path),
+        ("model.llm.tokenizer_path", cfg.model.llm.tokenizer_path),
+    ):
+        if path and not Path(path).is_dir():
+            raise PreflightError(
+                f"--{field_name} {path} is not a folder: pass a local tokenizer folder (nothing is downloaded)"
+            )
     candidates = [cfg.tokenizer.path, cfg.model.llm.tokenizer_path]
     if cfg.init.checkpoint and Path(cfg.init.checkpoint).exists():  # a run folder: its `last` checkpoint
-        init_folder = resolve_checkpoint_folder(cfg.init.checkpoint) or Path(cfg.init.checkpoint)
+        init_folder = init_checkpoint_folder(cfg.init.checkpoint)
         if (init_folder / "tokenizer_config.json").is_file():
             candidates.append(str(init_folder))
     own = Path(cfg.output_dir) / TOKENIZER_DIR
@@ -180,6 +192,15 @@ def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accel
         return load_tokenizer(own)
 
 
+def init_checkpoint_folder(path: str) -> Path:
+    """The folder `init.checkpoint` names (a run folder or its `last` pointer: the checkpoint it points at); a
+    folder that is none of these (a dataset, say) is a `PreflightError`."""
+    try:
+        return resolve_checkpoint_folder(path) or Path(path)
+    except FileNotFoundError as err:
+        raise PreflightError(f"init.checkpoint: {err}") from None
+
+
 def detect_init_format(folder: Path, requested: str) -> str:
     """`openfly` when config.json carries our model_type, else `openvla` (or what the config asks)."""
     if requested != "auto":
@@ -200,10 +221,13 @@ def check_init_checkpoint(cfg: TrainConfig, tokenizer, norm_stats: dict | None) 
     folder = Path(cfg.init.checkpoint)
     if not folder.is_dir():
         raise PreflightError(f"init.checkpoint {folder} does not exist")
-    try:  # a training run or its `last` pointer: the checkpoint folder it names
-        folder = resolve_checkpoint_folder(folder) or folder
-    except FileNotFoundError as err:
-        raise PreflightError(f"init.checkpoint: {err}") from err
+    folder = init_checkpoint_folder(
+        cfg.init.checkpoint
+    )  # a training run or its `last` pointer: its checkpoint
+    try:
+        check_weights_readable(folder)
+    except UnreadableWeightsError as err:
+        raise PreflightError(f"init.checkpoint: {err}") from None
     fmt = detect_init_format(folder, cfg.init.format)
     if cfg.init.matching and fmt != FORMAT_OURS:
         raise PreflightError(f"init.matching loads checkpoints of ours; {folder} is an {fmt} checkpoint")

@@ -10,7 +10,7 @@ from openfly_agent.data.schema import SchemaError
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
-from openfly_agent.utils.config import REPO_ROOT, parse_config
+from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import RecordError, one_line, worker_error_name
 
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "train" / "tiny.yaml"
@@ -32,9 +32,7 @@ EXAMPLES = (
 def with_default_config(argv: list[str]) -> list[str]:
     """`argv` with `--resume` alone meaning `--resume=true`, and the tiny preset when no config is given."""
     argv = ["--resume=true" if arg == "--resume" else arg for arg in argv]
-    if not any(arg == "--config_path" or arg.startswith("--config_path=") for arg in argv):
-        argv = ["--config_path", str(DEFAULT_CONFIG), *argv]
-    return argv
+    return with_config_path(argv, DEFAULT_CONFIG)
 
 
 def parse_args(argv: list[str]):

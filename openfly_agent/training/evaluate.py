@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 import torch
 from accelerate import Accelerator
 from accelerate.utils import send_to_device
 from torch.utils.data import DataLoader, Dataset
+from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 
@@ -87,20 +89,56 @@ def make_eval_loader(
 
 
 @torch.no_grad()
-def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerator) -> dict[str, float]:
+def evaluate(
+    model: torch.nn.Module,
+    loader: EvalBatches,
+    accelerator: Accelerator,
+    desc: str | None = None,
+    stop: Callable[[], bool] | None = None,
+) -> dict[str, float] | None:
     """Loss, action accuracy (per sample; batches with action labels) and box IoU (per visible box) over every
     process's shard.
 
     Batch means from `model(batch) -> (loss, logs)` are weighted by the batch size (loss, accuracy) and by the
     number of visible boxes (IoU), times the batch's weight (0 for a padding batch), then summed over
     processes, so the figures equal a single pass over the whole subset.
+
+    Args:
+        desc: show a progress bar of this name (main process), as the training loop does.
+        stop: asked before every batch; True (the same on every process, e.g. `StopFlags.reason() ==
+            "signal"`) abandons the pass and returns None: no partial figures.
     """
     was_training = model.training
     model.eval()
+    bar = tqdm(total=len(loader), desc=desc, disable=desc is None or not accelerator.is_main_process)
+    with bar:
+        sums, has_actions, stopped = _accumulate(model, loader, accelerator, bar, stop)
+    model.train(was_training)
+    if stopped:
+        return None
+    if accelerator.num_processes > 1:
+        sums = accelerator.reduce(sums, reduction="sum")
+    samples, loss, accuracy, iou, visible = sums.tolist()
+    if samples == 0:
+        return {}
+    metrics = {
+        "loss": loss / samples,
+        "box_iou": iou / visible if visible else float("nan"),
+        "samples": samples,
+    }
+    if has_actions:  # grounding batches carry no action targets
+        metrics["action_accuracy"] = accuracy / samples
+    return metrics
+
+
+def _accumulate(model, loader: EvalBatches, accelerator: Accelerator, bar, stop):
+    """The weighted sums of `evaluate` over this process's batches; (sums, has_actions, stopped)."""
     # samples, loss x B, accuracy x B, IoU x visible, visible
     sums = torch.zeros(5, dtype=torch.float64, device=accelerator.device)
     has_actions = False
     for batch, weight in loader:
+        if stop is not None and stop():
+            return sums, has_actions, True
         batch = send_to_device(batch, accelerator.device)
         has_actions = has_actions or C.LABELS in batch
         loss, logs = model(batch)
@@ -118,17 +156,5 @@ def evaluate(model: torch.nn.Module, loader: EvalBatches, accelerator: Accelerat
             dtype=torch.float64,
             device=accelerator.device,
         )
-    if accelerator.num_processes > 1:
-        sums = accelerator.reduce(sums, reduction="sum")
-    model.train(was_training)
-    samples, loss, accuracy, iou, visible = sums.tolist()
-    if samples == 0:
-        return {}
-    metrics = {
-        "loss": loss / samples,
-        "box_iou": iou / visible if visible else float("nan"),
-        "samples": samples,
-    }
-    if has_actions:  # grounding batches carry no action targets
-        metrics["action_accuracy"] = accuracy / samples
-    return metrics
+        bar.update(1)
+    return sums, has_actions, False

@@ -15,7 +15,7 @@ from pathlib import Path
 from openfly_agent.data.config import DataConfig
 from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
 from openfly_agent.data.schema import SchemaError
-from openfly_agent.model.checkpoint_path import checkpoint_files
+from openfly_agent.model.checkpoint_path import UnreadableWeightsError, checkpoint_files, open_safetensors
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import BatchConfig, BatchSizeError
 
@@ -104,17 +104,18 @@ def check_frames_readable(frame_store, episodes: list) -> None:
 
 def checkpoint_tensor_shapes(folder: str | Path) -> dict[str, tuple[int, ...]]:
     """Tensor names and shapes of a checkpoint's safetensors files, read from the headers only."""
-    from safetensors import safe_open
-
     try:
         files = checkpoint_files(Path(folder))
     except FileNotFoundError as err:
         raise PreflightError(str(err)) from None
     shapes: dict[str, tuple[int, ...]] = {}
-    for path in files:
-        with safe_open(str(path), framework="pt") as f:
-            for key in f.keys():  # noqa: SIM118 (safe_open is not a dict)
-                shapes[key] = tuple(f.get_slice(key).get_shape())
+    try:
+        for path in files:
+            with open_safetensors(path) as f:
+                for key in f.keys():  # noqa: SIM118 (safe_open is not a dict)
+                    shapes[key] = tuple(f.get_slice(key).get_shape())
+    except UnreadableWeightsError as err:
+        raise PreflightError(str(err)) from None
     return shapes
 
 

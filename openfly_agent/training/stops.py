@@ -43,6 +43,7 @@ class StopFlags:
         self.started = time.monotonic()
         self.used_fraction = 0.0 if self.limit_s is None else min(elapsed_before_s / self.limit_s, 1.0)
         self.signal_name: str | None = None
+        self.stage = "training"  # what a stop signal ends: "training", or "the final evaluation"
         self._previous: dict[int, Any] = {}
 
     def elapsed_s(self) -> float:
@@ -62,9 +63,12 @@ class StopFlags:
 
     def _on_signal(self, signum: int, frame) -> None:
         self.signal_name = signal.Signals(signum).name
-        logger.warning(
-            "%s received: stopping after this optimizer step and saving a checkpoint", self.signal_name
-        )
+        if self.stage == "training":
+            logger.warning(
+                "%s received: stopping after this optimizer step and saving a checkpoint", self.signal_name
+            )
+        else:
+            logger.warning("%s received: stopping %s (the checkpoint is saved)", self.signal_name, self.stage)
 
     def reason(self) -> str | None:
         """'signal' or 'time' when any process must stop now, else None (one all-reduce per call)."""

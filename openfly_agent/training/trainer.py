@@ -29,11 +29,11 @@ from openfly_agent.training.memory_estimate import check_memory
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
 from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
 from openfly_agent.training.preflight import check_dataset_root, check_output_dir
+from openfly_agent.training.resume_settings import record_run_settings, resume_changes
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
 from openfly_agent.training.state import TrainerState
 from openfly_agent.training.stops import StopFlags
-from openfly_agent.utils.config import save_config
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +67,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     """
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
+    # a resume refuses settings other than its checkpoint's, except RESUMABLE_KEYS (training/resume_settings.py)
+    setting_changes = resume_changes(cfg, resume_from)
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
     check_memory(
@@ -82,8 +84,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     agent = prepare_agent(cfg, splits, accelerator, resume_from)
     data = stage_data(cfg, splits, agent)
     train_set, val_set, test_set, collate = data.train, data.val, data.test, data.collate
-    if accelerator.is_main_process:
-        save_config(cfg, Path(cfg.output_dir) / C.TRAIN_CONFIG_NAME)
+    if accelerator.is_main_process:  # train_config.json keeps the first settings; resumes append changes
+        record_run_settings(cfg, resume_from, setting_changes)
 
     # 3. Optimizer, schedule and loaders; accelerate wraps them for the launch (DDP / FSDP / DeepSpeed).
     train_loader, sampler = make_train_loader(train_set, collate, cfg)
@@ -154,10 +156,7 @@ def train(cfg: TrainConfig) -> TrainResult:
                     train_logs.update(memory_stats(accelerator.device), lr=float(scheduler.get_last_lr()[0]))
                     train_logs["epoch"] = state.epoch + state.step_in_epoch / sampler.steps_per_epoch
                     log_metrics(accelerator, "train", train_logs, state.step)
-                    progress.set_postfix(
-                        loss=f"{train_logs.get('loss', float('nan')):.4f}",
-                        acc=f"{train_logs.get('action_accuracy', float('nan')):.3f}",
-                    )
+                    progress.set_postfix(progress_postfix(train_logs))
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
                     log_metrics(accelerator, "val", evaluate(evaluated, val_loader, accelerator), state.step)
                 if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
@@ -191,11 +190,31 @@ def train(cfg: TrainConfig) -> TrainResult:
             export_merged_lora(accelerator, evaluated, cfg.output_dir)  # full weights in <output_dir>/merged
         final: dict[str, float] = {}
         if test_loader is not None:
-            final = evaluate(evaluated, test_loader, accelerator)
+            stops.stage = "the final evaluation"
+            logger.info("final evaluation on %s: %d samples", cfg.data.test_split, len(test_indices))
+            final = evaluate(evaluated, test_loader, accelerator, "test", lambda: stops.reason() == "signal")
+            if final is None:  # SIGTERM / SIGUSR1 during it: no figures, as a stop mid-training
+                logger.warning(
+                    "stopped by a signal during the final evaluation; nothing written as its result; `--resume` "
+                    "evaluates %s",
+                    last_checkpoint,
+                )
+                return _result(state, last_checkpoint, {}, True, accelerator, evaluated)
             if cfg.stage == STAGE_NAVIGATION:
                 final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
             log_metrics(accelerator, "test", final, state.step)
         return _result(state, last_checkpoint, final, reason is not None, accelerator, evaluated)
+
+
+def progress_postfix(train_logs: dict[str, float]) -> dict[str, str]:
+    """The progress bar's `loss` and `acc`, each only when the step logged it (the grounding stage has no
+    action accuracy: no `acc=nan`)."""
+    shown = {"loss": ("loss", ".4f"), "acc": ("action_accuracy", ".3f")}
+    return {
+        name: format(train_logs[key], spec)
+        for name, (key, spec) in shown.items()
+        if key in train_logs and not math.isnan(train_logs[key])
+    }
 
 
 def log_metrics(accelerator, prefix: str, metrics: dict[str, float], step: int) -> None:

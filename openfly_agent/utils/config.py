@@ -55,6 +55,14 @@ def resolve_config_path(path: str | Path) -> Path:
     return in_repo if in_repo.is_file() else path
 
 
+def with_config_path(args: list[str], default: str | Path) -> list[str]:
+    """`args` with `--config_path <default>` in front when they name no config file (a command's default
+    preset: the plain command runs exactly what that YAML says)."""
+    if any(arg == "--config_path" or arg.startswith("--config_path=") for arg in args):
+        return list(args)
+    return ["--config_path", str(default), *args]
+
+
 def _resolved_config_arg(arg: str, previous: str | None) -> str:
     if arg.startswith("--config_path="):
         return "--config_path=" + str(resolve_config_path(arg.split("=", 1)[1]))
@@ -80,6 +88,44 @@ def config_from_dict(config_class: type[T], data: dict) -> T:
     import draccus
 
     return draccus.decode(config_class, data)
+
+
+def flat_settings(node: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested config dict (as `config_to_dict` writes it) as `{"a.b.c": value}`."""
+    if isinstance(node, dict):
+        out: dict[str, Any] = {}
+        for key, value in node.items():
+            out.update(flat_settings(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: node}
+
+
+def changed_settings(
+    stored: dict, current: dict, allowed: tuple[str, ...] = ()
+) -> dict[str, tuple[Any, Any]]:
+    """`{dotted key: (stored value, current value)}` for every setting that differs between two config dicts.
+
+    How a command that resumes into a folder refuses other settings (`toolchain generate`, `train.py --resume`).
+
+    Args:
+        stored: the config dict recorded in the folder.
+        current: the config dict of this run.
+        allowed: keys that may differ (left out): exact dotted keys, or prefixes ending in "." (a section).
+    """
+    old, new = flat_settings(stored), flat_settings(current)
+
+    def is_allowed(key: str) -> bool:
+        return any(key == k or (k.endswith(".") and key.startswith(k)) for k in allowed)
+
+    keys = sorted(k for k in set(old) | set(new) if not is_allowed(k))
+    return {k: (old.get(k), new.get(k)) for k in keys if old.get(k) != new.get(k)}
+
+
+def describe_changes(changes: dict[str, tuple[Any, Any]], limit: int = 8) -> str:
+    """`a.b: 1 -> 2; c: 'x' -> 'y'` (the first `limit`, then how many more), for a one-line message."""
+    shown = [f"{key}: {old!r} -> {new!r}" for key, (old, new) in list(changes.items())[:limit]]
+    more = len(changes) - limit
+    return "; ".join(shown) + (f"; and {more} more" if more > 0 else "")
 
 
 def save_config(cfg: Any, path: str | Path) -> None:

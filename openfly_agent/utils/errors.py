@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 
 class RecordError(ValueError):
     """A malformed record in an input file; the message names the file, the line and the field.
@@ -21,11 +23,34 @@ class RecordError(ValueError):
 
 def root_cause(err: BaseException) -> str:
     """The message that says what to change: draccus wraps a config's ValueError in its own parsing errors,
-    so those wrappers are unwrapped down to the error they carry. Any other error is kept as it is: its
+    so those wrappers are unwrapped down to the error they carry. A value draccus cannot decode into the field's
+    type names the option: `--steps: expected an int, got 'abc'`. Any other error is kept as it is: its
     message already names the file, record and field (and the cause it wraps would lose them)."""
-    while err.__cause__ is not None and type(err).__module__.split(".")[0] == "draccus":
+    decoding = None
+    while type(err).__module__.split(".")[0] == "draccus":
+        if getattr(
+            err, "key_path", None
+        ):  # draccus.utils.DecodingError: the innermost one is the most precise
+            decoding = err
+        if err.__cause__ is None:
+            break
         err = err.__cause__
+    if decoding is not None:
+        return f"--{'.'.join(decoding.key_path)}: {_decoding_problem(decoding.message)}"
     return str(err)
+
+
+def _decoding_problem(message: str) -> str:
+    """draccus' decoding message as `expected <type>, got <value>` where it has that shape, else its first
+    line."""
+    parsed = re.search(r"Couldn't parse (.+) into an? (\w+)", message)
+    if parsed:
+        kind = parsed.group(2)
+        return f"expected {'an' if kind[0] in 'aeiou' else 'a'} {kind}, got {parsed.group(1)}"
+    typed = re.search(r"value=(.+?) into field .* of type (.+?)\.\s", message)
+    if typed:
+        return f"expected a {typed.group(2)}, got {typed.group(1)}"
+    return message.strip().splitlines()[0]
 
 
 def one_line(err: BaseException) -> str:

@@ -74,3 +74,30 @@ def test_eval_refuses_a_grounding_stage_checkpoint_naming_the_navigation_stage(t
     assert "grounding-stage checkpoint" in line and str(tmp_path / "job" / "navigation") in line
     assert not out.exists()
     assert checkpoint_folder(str(tmp_path / "job" / "navigation")).name == "step-000004"  # the stage to use
+
+
+def test_a_truncated_checkpoint_is_one_line_and_writes_nothing(tmp_path):
+    """eval.py on a model.safetensors cut in half: one line naming the file, exit 2, no output folder."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from eval_helpers import save_small_agent
+
+    folder = tmp_path / "ckpt"
+    save_small_agent(folder, ["fly to the red tower"])
+    weights = folder / "model.safetensors"
+    with open(weights, "r+b") as f:
+        f.truncate(weights.stat().st_size // 2)
+    repo = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": str(repo), "HF_HUB_OFFLINE": "1", "TOKENIZERS_PARALLELISM": "false"}
+    command = [sys.executable, str(repo / "eval.py"), "--checkpoint", str(folder)]
+    command += ["--dataset_root", str(tmp_path / "data"), "--output_dir", str(tmp_path / "out")]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert done.stderr.strip().splitlines() == [
+        f"eval.py: {weights} is not a readable safetensors file (Error while deserializing header: incomplete "
+        "metadata, file not fully covered): it is truncated or corrupt; copy or download it again"
+    ]
+    assert not (tmp_path / "out").exists()

@@ -107,3 +107,11 @@ def test_shipped_configs_parse(name):
     if name.startswith("released"):
         assert cfg.agent.unnorm_key == "vlnv1" and cfg.agent.decode_rule == "exact" and cfg.batch_size == 1
         assert cfg.reader.takeoff_landing == "keep"
+
+
+def test_one_torch_thread_by_default_and_the_flag_still_chooses():
+    """torch's default (a thread per core) thrashed on a shared 2-core machine: 153 s of policy time against
+    7.5 s with one thread for the same 2 episodes (docs/EVAL.md, "Throughput")."""
+    assert parse_config(EvalConfig, ["--policy=random"]).torch_threads == 1
+    assert parse_config(EvalConfig, ["--policy=random", "--torch_threads=4"]).torch_threads == 4
+    assert parse_config(EvalConfig, ["--policy=random", "--torch_threads=null"]).torch_threads is None

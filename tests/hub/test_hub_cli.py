@@ -106,6 +106,23 @@ def test_grounding_stage_checkpoint_is_refused_naming_the_navigation_stage(tmp_p
     assert not out.exists()  # refused before anything is written
 
 
+def test_a_truncated_checkpoint_is_one_line_and_makes_no_folder(tmp_path, capsys):
+    from eval_helpers import save_small_agent
+
+    folder = tmp_path / "ckpt"
+    save_small_agent(folder, ["fly to the red tower"])
+    weights = folder / "model.safetensors"
+    with open(weights, "r+b") as f:
+        f.truncate(weights.stat().st_size // 2)
+    capsys.readouterr()  # the save's progress bar
+    out = tmp_path / "release"
+    argv = ["release", "--checkpoint", str(folder), "--repo-id", "me/tiny", "--output-dir", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {weights} is not a readable safetensors file ("), err
+    assert not out.exists()
+
+
 def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # how a shell starts a background job
 

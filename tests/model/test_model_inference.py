@@ -14,7 +14,7 @@ from openfly_agent.model.config import (
     MemoryConfig,
     PromptConfig,
 )
-from openfly_agent.model.decoding import greedy_decode
+from openfly_agent.model.decoding import greedy_decode, new_cache, run_cached
 from openfly_agent.model.episode import compat_history_indices
 from openfly_agent.model.sequence import left_pad
 from openfly_agent.model.vision_config import VisionConfig
@@ -164,8 +164,9 @@ def test_kv_cache_decoding_equals_full_recompute(make_agent):
     torch.manual_seed(1)
     rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
     embeds, mask = left_pad(rows)
-    out = agent.run_llm(embeds, mask, use_cache=True)
-    cached = greedy_decode(agent, agent.lm_logits(out.last_hidden_state[:, -1]), mask, out.past_key_values, 8)
+    cache = new_cache(agent)
+    out = run_cached(agent, embeds, mask, cache)
+    cached = greedy_decode(agent, agent.lm_logits(out.last_hidden_state[:, -1]), mask, cache, 8)
     seq, seq_mask, tokens = embeds, mask, []
     for _ in range(8):
         token = agent.lm_logits(agent.run_llm(seq, seq_mask).last_hidden_state[:, -1]).argmax(-1)
@@ -173,6 +174,34 @@ def test_kv_cache_decoding_equals_full_recompute(make_agent):
         seq = torch.cat([seq, agent.embed_text(token[:, None])], dim=1)
         seq_mask = torch.cat([seq_mask, seq_mask.new_ones(3, 1)], dim=1)
     assert torch.equal(cached, torch.stack(tokens, dim=1))
+
+
+@pytest.mark.parametrize("head", ["discrete", "openvla_bins"])
+def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_agent, head):
+    """transformers warns (a FutureWarning and a log line, once per process) when `past_key_values` is passed
+    or read; select_action's prefill + box token / bins decoding must not."""
+    import logging
+    import warnings
+
+    from transformers.utils import logging as hf_logging
+
+    agent = make_agent(action_head=ActionHeadConfig(type=head), norm_stats=NORM_STATS)
+    hf_logging.warning_once.cache_clear()  # "once": a warning an earlier test triggered would be silent
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())
+    hf_logger = hf_logging.get_logger("transformers")
+    hf_logger.addHandler(handler)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            frames = _frames(2, 2)
+            for t in range(2):
+                agent.select_action([_obs(e, frames[e, t]) for e in range(2)])
+    finally:
+        hf_logger.removeHandler(handler)
+    messages = [str(w.message) for w in caught] + records
+    assert not [m for m in messages if "past_key_values" in m or "deprecated" in m], messages
 
 
 def test_bins_head_select_action(make_agent):

@@ -45,6 +45,22 @@ def test_the_second_unseen_split_uses_cities_no_other_config_trains_or_tests_on(
         assert (held_out.render, held_out.route, held_out.map) == (cfg.render, cfg.route, cfg.map), name
 
 
+def test_a_plain_generate_is_exactly_the_default_dataset_config(capsys):
+    """No --config: the command resolves to configs/toolchain/embedded-small.yaml, the dataset train.py reads."""
+    from openfly_agent.toolchain.__main__ import _parse_generate
+    from openfly_agent.training.cli import parse_args
+
+    shipped = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small.yaml")
+    assert _parse_generate([]) == shipped
+    assert _parse_generate(["--workers=0"]) == load_yaml_config(
+        GenerateConfig, CONFIGS / "embedded-small.yaml", ["--workers=0"]
+    )
+    data = parse_args([]).data  # train.py's default dataset is that one
+    assert data.root == shipped.output_dir and Path(data.toolchain_config).name == "embedded-small.yaml"
+    assert main(["generate", "--help"]) == 0
+    assert "embedded-small.yaml" in capsys.readouterr().out
+
+
 def test_config_flag_aliases_and_overrides():
     assert _config_args(["--config", "a.yaml", "--config=b.yaml", "--x=1"]) == [
         "--config_path",

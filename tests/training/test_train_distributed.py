@@ -71,6 +71,8 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(
     probes = sorted(re.findall(r"exit-probe: rank=(\d) destroy_calls=(\d+) ddp_alive=(-?\d+) initialized=(True|False)",
                                done.stderr))  # fmt: skip
     assert probes == [("0", "1", "0", "False"), ("1", "1", "0", "False")], done.stderr[-3000:]
+    # rank 0 alone logs INFO lines: each appears once, not once per process
+    assert done.stderr.count(f"run: {STEPS} steps") == 1, done.stderr[-3000:]
     one, two = train_losses(reference_dir), train_losses(tmp_path)
     assert sorted(two) == list(range(1, STEPS + 1))
     assert two == pytest.approx(one, rel=1e-5)

@@ -198,3 +198,13 @@ def test_grounding_step_bench_times_the_stage_and_counts_its_padding(
     assert 0 < record["attended_tokens"] <= record["padded_tokens"]
     assert record["overrides"] == overrides
     assert torch.get_num_threads() == threads  # restored for the in-process runs that follow
+
+
+def test_the_progress_bar_shows_only_the_metrics_a_step_has():
+    from openfly_agent.training.trainer import progress_postfix
+
+    grounding = {"loss": 0.51234, "grounding_loss": 0.5, "box_iou": 0.25}  # no action targets
+    assert progress_postfix(grounding) == {"loss": "0.5123"}
+    navigation = {"loss": 1.0, "action_accuracy": 0.4567}
+    assert progress_postfix(navigation) == {"loss": "1.0000", "acc": "0.457"}
+    assert progress_postfix({"loss": float("nan")}) == {}

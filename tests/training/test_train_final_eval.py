@@ -1,0 +1,47 @@
+"""The final evaluation shows its progress and stops on SIGTERM / SIGUSR1 like the training loop does."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+
+from conftest import make_config, start_script, train_args, train_in_process
+
+from openfly_agent.utils.processes import communicate_group
+
+STARTED = "checkpoint committed: "  # the last one: the final evaluation comes next
+
+
+def test_a_signal_during_the_final_evaluation_stops_it_and_resume_runs_it(generated_dataset, tmp_path):
+    # one step, then every test_unseen sample one at a time: the evaluation outlasts the signal's delivery
+    args = train_args(
+        generated_dataset, tmp_path, steps=1, checkpoint__save_interval=0,
+        validation__final_max_samples="null", validation__per_device_batch_size=1,
+    )  # fmt: skip
+    with start_script(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
+        seen, deadline = [], time.monotonic() + 240
+        for line in process.stderr:  # the log, line by line, until the evaluation is about to start
+            seen.append(line)
+            if STARTED in line:
+                break
+            assert time.monotonic() < deadline, "no final evaluation within 240 s"
+        assert any(STARTED in line for line in seen), "".join(seen)[-3000:]
+        process.send_signal(signal.SIGTERM)
+        out, rest = communicate_group(process, timeout=120)
+    err = "".join(seen) + rest
+    assert process.returncode == 0, err[-3000:]
+    assert "SIGTERM received" in err and "final evaluation on test_unseen: 139 samples" in err
+    assert "stopped by a signal during the final evaluation; nothing written as its result" in err
+    assert "test:" in err  # its progress bar
+    assert " test: " not in err and "offline action accuracy" not in out  # no figures of a partial pass
+    logged = [json.loads(line) for line in (tmp_path / "logs" / "metrics.jsonl").read_text().splitlines()]
+    assert not [key for record in logged for key in record if key.startswith("test/")]
+    assert out.strip() == f"finished at step 1; last checkpoint: {tmp_path / 'checkpoints' / 'step-000001'}"
+
+    # --resume runs the evaluation the signal stopped (on a smaller subset here: validation.* may change)
+    resumed = train_in_process(
+        make_config(generated_dataset, tmp_path, steps=1, resume="true", validation__final_max_samples=8)
+    )
+    assert resumed.state.step == 1 and resumed.final_metrics["samples"] == 8
