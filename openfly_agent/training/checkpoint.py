@@ -133,6 +133,9 @@ class CheckpointManager:
         if tmp.is_symlink() or tmp.exists():
             tmp.unlink()
         os.symlink(name, tmp, target_is_directory=True)
+        if pointer.is_dir() and not pointer.is_symlink():  # a copy that followed the link (shutil.copytree)
+            logger.warning("replacing %s, a copied folder, by a link to %s", pointer, name)
+            shutil.rmtree(pointer)
         os.replace(tmp, pointer)
         _fsync_dir(self.root)
 

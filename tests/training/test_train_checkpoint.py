@@ -184,3 +184,20 @@ def test_trainer_state_round_trip_and_errors(tmp_path):
         TrainerState.load(tmp_path)
     with pytest.raises(FileNotFoundError, match="not a complete training checkpoint"):
         TrainerState.load(tmp_path / "nothing")
+
+
+def test_a_last_folder_left_by_a_copy_that_followed_the_link_is_replaced(tmp_path):
+    """`shutil.copytree` of a run turns `last` into a real folder; the next commit makes it a link again."""
+    import shutil
+
+    root = tmp_path / "run" / "checkpoints"
+    (root / "step-000002").mkdir(parents=True)
+    (root / "step-000002" / "model.safetensors").write_bytes(b"x")
+    os.symlink("step-000002", root / "last")
+    copy = tmp_path / "copy"
+    shutil.copytree(tmp_path / "run", copy)
+    assert (copy / "checkpoints" / "last").is_dir() and not (copy / "checkpoints" / "last").is_symlink()
+    manager = CheckpointManager(copy, keep_last=5)
+    (manager.begin(4) / "model.safetensors").write_bytes(b"y")
+    manager.commit(4)
+    assert os.readlink(copy / "checkpoints" / "last") == "step-000004"
