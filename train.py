@@ -16,6 +16,7 @@ help, the did-you-mean and the one-line messages come from `training/cli.py`.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 
 from openfly_agent.data.openfly_reader import annotation_path
@@ -74,6 +75,13 @@ def report(result, cfg) -> None:
         )
 
 
+def say_error(message: str) -> None:
+    """The one line of an input error on stderr, from the first process only: every process of a launch
+    (`RANK`, set by accelerate and torchrun) meets the same error, and one line says it."""
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(f"train.py: {message}", file=sys.stderr)
+
+
 def run(argv: list[str], state: dict) -> int:
     """Parse, check, train and report; `state["output_dir"]` is set as soon as it is known."""
     from draccus.utils import ParsingError
@@ -90,13 +98,13 @@ def run(argv: list[str], state: dict) -> int:
         ensure_dataset(cfg)
         result = train(cfg)
     except (ParsingError, PreflightError, UnknownOptionError) as err:
-        print(f"train.py: {root_cause(err)}", file=sys.stderr)
+        say_error(root_cause(err))
         return EXIT_BAD_INPUT
     except Exception as err:  # data that fails to read, before or during training (also in a loader worker)
         message = data_error_message(err)
         if message is None:
             raise
-        print(f"train.py: {message}", file=sys.stderr)
+        say_error(message)
         return EXIT_BAD_INPUT
     if result.is_main_process:
         report(result, cfg)
