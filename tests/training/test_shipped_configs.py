@@ -80,9 +80,6 @@ def _run_module(args: list[str], timeout: float = 300) -> subprocess.CompletedPr
 def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
     synthetic_openvla, generated_dataset, tmp_path
 ):
-    from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.grounding import BoxRegressionHead
-
     run = tmp_path / "lora"
     args = seven_b_args("openfly-7b-lora.yaml", synthetic_openvla, generated_dataset, run)
     output = _ok(run_script(args, timeout=600))
@@ -132,6 +129,9 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
         )
     )
     assert "the LoRA run's merged model" in output
+    from openfly_agent.model.agent import OpenFlyAgent
+    from openfly_agent.model.grounding import BoxRegressionHead
+
     agent = OpenFlyAgent.from_pretrained(str(release)).eval()
     merged = OpenFlyAgent.from_pretrained(str(run / "merged"))
     assert isinstance(agent.grounding_head, BoxRegressionHead)
