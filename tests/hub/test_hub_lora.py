@@ -179,3 +179,20 @@ def test_release_of_a_lora_run_takes_its_merged_model_else_adapter_on_base(lora_
 
         got = probe_namespace()["rollout"](OpenFlyAgent.from_pretrained(str(folder)).eval())
         assert [s["action"] for s in got] == [s["action"] for s in lora_run.behaviour]
+
+
+def test_a_merge_older_than_the_newest_checkpoint_or_an_older_step_is_not_taken(lora_run, lora_run_folder):
+    import os
+
+    from openfly_agent.model.lora_checkpoint import checkpoint_weights
+
+    step = lora_run_folder / "checkpoints" / "step-000010"
+    assert checkpoint_weights(step).folder == lora_run_folder / "merged"
+    older = step.parent / "step-000005"  # not the step `last` names: the merge holds another one
+    shutil.copytree(step, older)
+    assert checkpoint_weights(older).base == str(lora_run.root / "base")
+    stale = (step / CONFIG_NAME).stat().st_mtime - 60  # a resumed run stopped before writing its merge
+    os.utime(lora_run_folder / "merged" / CONFIG_NAME, (stale, stale))
+    weights = checkpoint_weights(step)
+    assert (weights.folder, weights.base) == (step, str(lora_run.root / "base"))
+    assert checkpoint_weights(lora_run_folder / "merged").folder == lora_run_folder / "merged"  # full weights
