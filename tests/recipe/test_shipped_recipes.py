@@ -23,9 +23,15 @@ RECIPES = ["main_job.yaml", "tiny-recipe.yaml", "ablations/uniform_history.yaml"
 TINY_DATASET_YAML = REPO_ROOT / "tests" / "training" / "tiny_dataset.yaml"
 
 
-def _small_toolchain_config(folder: Path, name: str) -> Path:
-    """The training tests' small dataset YAML, writing into `folder / name` (a recipe's extra dataset)."""
+def _small_toolchain_config(folder: Path, name: str, cities: int = 0) -> Path:
+    """The training tests' small dataset YAML, writing into `folder / name`, its cities' seeds shifted by `cities`
+    (a recipe's extra datasets hold other cities than its dataset)."""
     settings = yaml.safe_load(TINY_DATASET_YAML.read_text())
+    scenes = settings["scenes"]
+    scenes.update(
+        train_seeds=[seed + cities for seed in scenes["train_seeds"]],
+        unseen_seeds=[seed + cities for seed in scenes["unseen_seeds"]],
+    )
     settings.update(output_dir=str(folder / name), workers=0)
     path = folder / f"{name}.yaml"
     path.write_text(yaml.safe_dump(settings))
@@ -34,8 +40,13 @@ def _small_toolchain_config(folder: Path, name: str) -> Path:
 
 def short_args(cfg: RecipeConfig, folder: Path) -> list[str]:
     """The recipe's overrides that make it short: small datasets, 2 steps per stage, 2 episodes per split."""
-    extras = [_small_toolchain_config(folder, f"extra{k}") for k in range(len(cfg.extra_toolchain_configs))]
-    cities = [_small_toolchain_config(folder, f"cities{k}") for k in range(len(cfg.eval.more_cities))]
+    extras = [
+        _small_toolchain_config(folder, f"extra{k}", 10 * (k + 1))
+        for k in range(len(cfg.extra_toolchain_configs))
+    ]
+    cities = [
+        _small_toolchain_config(folder, f"cities{k}", 100 * (k + 1)) for k in range(len(cfg.eval.more_cities))
+    ]
     return [
         f"--output_dir={folder / 'recipe'}",
         f"--dataset_root={folder / 'dataset'}",
