@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -83,11 +84,14 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
     run = tmp_path / "lora"
     args = seven_b_args("openfly-7b-lora.yaml", synthetic_openvla, generated_dataset, run)
     output = _ok(run_script(args, timeout=600))
-    assert "initialised from the OpenVLA checkpoint" in output and "0 unused" not in output
+    # every tensor by name: the agent's loaded, the new modules initialised, the ViT parts it prunes unused
+    assert re.search(
+        r"initialised from the OpenVLA checkpoint .*: loaded \d+ tensors, \d+ new, [1-9]\d* unused", output
+    )
     assert (run / "checkpoints" / "step-000002" / "adapter").is_dir() and (run / "merged").is_dir()
 
     output = _ok(run_script([*args, "--resume=true", "--steps=3"], timeout=600))
-    assert "starting at step 2" in output
+    assert "starting at step 2" in output  # the merge below is the resumed run's (eval takes it when newer)
     assert (run / "checkpoints" / "last").read_text().strip() == "step-000003"
 
     evaluation = tmp_path / "eval"
