@@ -4,7 +4,8 @@
     accelerate launch train.py --config_path configs/train/tiny.yaml --optim.lr=3e-4 --steps=500
     accelerate launch train.py --resume                      # continue <output_dir> from its last checkpoint
     accelerate launch --config_file configs/accelerate/fsdp.yaml train.py \
-        --config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b
+        --config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b \
+        --model.llm.tokenizer_path=/path/to/openvla-7b --data.root=/path/to/OpenFly
 
 Parses the config, generates the dataset when it is missing and calls `training.train` (all input checks
 come first). Prints the final offline action accuracy next to the majority-class rate. Exit codes: 0 done
@@ -77,6 +78,13 @@ def report(result, cfg) -> None:
         )
 
 
+def say_error(message: str) -> None:
+    """The one line of an input error on stderr, from the first process only: every process of a launch
+    (`RANK`, set by accelerate and torchrun) meets the same error, and one line says it."""
+    if int(os.environ.get("RANK", "0")) == 0:
+        print(f"train.py: {message}", file=sys.stderr)
+
+
 def run(argv: list[str], state: dict) -> int:
     """Parse, check, train and report; `state["output_dir"]` is set as soon as it is known."""
     from draccus.utils import ParsingError
@@ -93,9 +101,7 @@ def run(argv: list[str], state: dict) -> int:
         ensure_dataset(cfg)
         result = train(cfg)
     except (ParsingError, PreflightError, UnknownOptionError) as err:
-        # the same on every process of a launch: said once, by rank 0 (the launcher adds its own report)
-        if os.environ.get("RANK", "0") == "0":
-            print(f"train.py: {root_cause(err)}", file=sys.stderr)
+        say_error(root_cause(err))
         if "output_dir" in state:  # a failed start leaves no empty run folder (every process: no race)
             remove_empty_dirs(state["output_dir"], RUN_SUBFOLDERS)
         return EXIT_BAD_INPUT
@@ -103,7 +109,7 @@ def run(argv: list[str], state: dict) -> int:
         message = data_error_message(err)
         if message is None:
             raise
-        print(f"train.py: {message}", file=sys.stderr)
+        say_error(message)
         return EXIT_BAD_INPUT
     if result.is_main_process:
         report(result, cfg)

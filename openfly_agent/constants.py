@@ -102,6 +102,7 @@ PROCESSOR_CONFIG_NAME = "processor_config.json"  # OpenFlyProcessor's settings (
 # A training run: <output_dir>/checkpoints/step-NNNNNN/ folders and `last`, a relative symlink to the newest.
 CHECKPOINTS_DIR = "checkpoints"
 LAST_POINTER_NAME = "last"
+MERGED_DIR_NAME = "merged"  # <output_dir>/merged: a LoRA run's adapter merged into its base at the end
 
 EPISODES_JSONL = "episodes.jsonl"
 RESULTS_JSON = "results.json"

@@ -2,8 +2,9 @@
 
 `AgentPolicy` wraps any object with the agent's public inference API (`select_action(list[dict]) ->
 list[int]`, `reset(episode_ids)`, optionally `last_step_info`), so the runner never touches model
-internals. `load_agent` builds `OpenFlyAgent` from our checkpoint folder, a released OpenVLA /
-OpenFly-Agent folder (through the model's `openvla_compat` path and `openvla_bins` head) or a Hub id.
+internals. `load_agent` builds `OpenFlyAgent` from our checkpoint folder (a LoRA run's: its merged model when the
+run wrote one, else the adapter on its base), a released OpenVLA / OpenFly-Agent folder (through the model's
+`openvla_compat` path and `openvla_bins` head) or a Hub id.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
 from openfly_agent.model.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
 from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
+from openfly_agent.model.lora_checkpoint import checkpoint_weights, load_lora_agent
 from openfly_agent.model.tokenizer import load_tokenizer
 from openfly_agent.utils.config import load_yaml_config
 
@@ -133,10 +135,12 @@ def checkpoint_fingerprint(checkpoint: str) -> dict:
     """What identifies the weights behind `checkpoint`: the resolved folder and its weight files' sizes and
     modification times (a training run folder keeps its name while its newest checkpoint changes)."""
     folder = checkpoint_folder(checkpoint)
-    files = sorted(folder.glob("*.safetensors"))
+    if checkpoint_kind(folder) == C.MODEL_TYPE:
+        folder = checkpoint_weights(folder).folder  # a LoRA run: its merged model, or the adapter checkpoint
+    files = sorted([*folder.glob("*.safetensors"), *folder.glob(f"{C.ADAPTER_DIR_NAME}/*.safetensors")])
     return {
         "folder": str(folder.resolve()),
-        "weights": {f.name: [f.stat().st_size, f.stat().st_mtime_ns] for f in files},
+        "weights": {str(f.relative_to(folder)): [f.stat().st_size, f.stat().st_mtime_ns] for f in files},
     }
 
 
@@ -174,6 +178,8 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     (`set_action_decoding`: the action tokenizer, `config.action_tokenizer` and the processor all follow);
     OpenVLA-format folders (the released OpenFly-Agent) through `agent_from_openvla_checkpoint` with the
     `openvla_compat` model config (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
+    A LoRA checkpoint (adapter only) loads as `checkpoint_weights` says, logged: the run's merged model when it
+    wrote one, else the adapter on its base (the run's `init.checkpoint`).
     """
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
     from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
@@ -190,7 +196,12 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
         )
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()
-    agent = OpenFlyAgent.from_pretrained(str(folder), dtype=dtype).to(device).eval()
+    weights = checkpoint_weights(folder)
+    if weights.base is None:
+        agent = OpenFlyAgent.from_pretrained(str(weights.folder), dtype=dtype)
+    else:
+        agent = load_lora_agent(weights.folder, weights.base).to(dtype)
+    agent = agent.to(device).eval()
     agent.set_action_decoding(decode_rule=settings.decode_rule, unnorm_key=settings.unnorm_key)
-    logger.info("checkpoint %s on %s (%s)", folder, device, dtype)
+    logger.info("evaluating %s on %s (%s)", weights.description, device, dtype)
     return agent

@@ -21,7 +21,6 @@ from openfly_agent.constants import (
 )
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_dir, read_json
-from openfly_agent.hub.lora_release import base_of, is_lora_checkpoint, load_lora_agent
 from openfly_agent.hub.model_card import (
     ModelFacts,
     describe_architecture,
@@ -35,6 +34,12 @@ from openfly_agent.model.checkpoint_path import (
     check_navigation_stage,
     check_weights_readable,
     resolve_checkpoint_folder,
+)
+from openfly_agent.model.lora_checkpoint import (
+    base_of,
+    checkpoint_weights,
+    is_lora_checkpoint,
+    load_lora_agent,
 )
 from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
 from openfly_agent.utils.file_modes import follow_umask
@@ -72,7 +77,8 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     """Write the release folder for `cfg.checkpoint` and return it.
 
     Full checkpoints are loaded and saved again with `max_shard_size`. LoRA checkpoints (metadata +
-    `adapter/`) are rebuilt on their base weights and released merged, or as the adapter alone (`cfg.lora`).
+    `adapter/`) are released merged (`cfg.lora`): the run's merged model when it wrote one, else the adapter
+    rebuilt on its base weights and merged (`checkpoint_weights`, logged); or as the adapter alone.
     The agent's own save writes the processor files and the `trust_remote_code` modules with `auto_map` (an
     adapter release has neither: no weights to load). Then: training config / norm stats carried over, the eval
     results, README.md. Inputs are checked first.
@@ -85,8 +91,13 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
         results_file = resolve_results_path(cfg.results)
         check_results_weights(results_file, checkpoint)
         baselines = load_baselines(results_file, results)
-    base = base_of(checkpoint, cfg.base_checkpoint) if is_lora_checkpoint(checkpoint) else None
-    adapter_form = base is not None and cfg.lora == "adapter"
+    adapter_form = is_lora_checkpoint(checkpoint) and cfg.lora == "adapter"
+    if adapter_form:
+        base = base_of(checkpoint, cfg.base_checkpoint)
+    else:
+        weights = checkpoint_weights(checkpoint, cfg.base_checkpoint)
+        logger.info("releasing %s", weights.description)
+        checkpoint, base = weights.folder, weights.base
     if adapter_form and not cfg.card.base_model:
         raise ValueError("--lora adapter needs --card.base-model <Hub id of the base weights> for the card")
     out = prepare_output_dir(

@@ -39,7 +39,8 @@ from .conv_vision import ConvVisionBackbone
 from .episode import EpisodeState
 from .factory import make_action_tokenizer, resolve_vocabulary
 from .freeze import freeze
-from .grounding import GroundingHead, GroundingOutput, grounding_labels, grounding_loss
+from .grounding import GroundingOutput, grounding_labels, grounding_loss, make_grounding_head
+from .grounding_layers import QueryReader
 from .keyframes import KeyframeSelector
 from .length_groups import run_in_length_groups
 from .llm import build_language_model, unwrap_causal_lm
@@ -85,7 +86,9 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         self.grounding_head = (
-            GroundingHead(llm_dim, cfg.grounding, cfg.vision.grid_side) if cfg.grounding.enabled else None
+            make_grounding_head(llm_dim, cfg.grounding, cfg.vision.grid_side)
+            if cfg.grounding.enabled
+            else None
         )
         self.box_token_embed = BoxTokenEmbedding(llm_dim) if cfg.uses_box_token else None
         self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)  # built from the config only
@@ -129,11 +132,7 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
                     init.normal_(token, std=1e-6)
         elif isinstance(module, LayerScale):
             init.constant_(module.gamma, module.init_values)
-        elif isinstance(module, GroundingHead):
-            init.normal_(module.box_queries, std=0.02)
-            if module.attribute_match_weight is not None:
-                init.ones_(module.attribute_match_weight)
-        elif isinstance(module, ConvVisionBackbone):
+        elif isinstance(module, (QueryReader, ConvVisionBackbone)):  # either grounding head, tiny-cnn
             module.init_weights()
 
     @property

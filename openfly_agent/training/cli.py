@@ -25,7 +25,8 @@ EXAMPLES = (
     "accelerate launch train.py --config_path configs/train/tiny.yaml --optim.lr=3e-4 --steps=500",
     "accelerate launch train.py --resume                          # continue <output_dir> from its last checkpoint",
     "accelerate launch --config_file configs/accelerate/fsdp.yaml train.py "
-    "--config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b",
+    "--config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b "
+    "--model.llm.tokenizer_path=/path/to/openvla-7b --data.root=/path/to/OpenFly",
 )
 
 

@@ -26,7 +26,6 @@ from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)
 
-MERGED_DIR = "merged"
 MAX_SHARD_SIZE = "5GB"
 
 
@@ -85,8 +84,8 @@ def export_merged_lora(accelerator: Accelerator, model: nn.Module, output_dir: s
         return None
     agent = accelerator.unwrap_model(model)
     merged = merge_lora_state_dict(state_dict, lora_scalings(agent))
-    final = Path(output_dir) / MERGED_DIR
-    staging = Path(output_dir) / f".tmp-{MERGED_DIR}"
+    final = Path(output_dir) / C.MERGED_DIR_NAME
+    staging = Path(output_dir) / f".tmp-{C.MERGED_DIR_NAME}"
     if staging.exists():
         shutil.rmtree(staging)
     write_model_metadata(agent, staging)

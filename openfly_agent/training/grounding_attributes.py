@@ -31,6 +31,7 @@ from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.conv_vision import cell_colour_stats, normalised_pixels
+from openfly_agent.model.grounding_cells import CellGroundingHead
 from openfly_agent.sim.scene import Landmark
 from openfly_agent.toolchain.grounding import source_render_settings
 from openfly_agent.training.attribute_targets import ATTRIBUTE_FIELDS, LandmarkAttributes
@@ -136,7 +137,7 @@ class AttributeProbe:
         if folder is None:
             raise FileNotFoundError(f"no checkpoint at {checkpoint or run_dir}")
         self.agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
-        if self.agent.grounding_head is None or not self.agent.grounding_head.cells:
+        if not isinstance(self.agent.grounding_head, CellGroundingHead):
             raise ValueError(f"{folder}: the probe needs a grounding head with per-cell scores")
         self.data = stage_data(cfg, load_splits(cfg), self.agent)
         if not hasattr(self.data.test, "locate"):

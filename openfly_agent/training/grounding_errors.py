@@ -22,6 +22,7 @@ from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.grounding import box_cells, iou_and_giou
+from openfly_agent.model.grounding_cells import CellGroundingHead
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.ema import load_live_weights
@@ -205,6 +206,10 @@ def collect_target_boxes(
     if agent.grounding_head is None:
         raise ValueError(f"{folder}: the agent has no grounding head (model.grounding.enabled=false)")
     if centre_window != "checkpoint":
+        if not isinstance(agent.grounding_head, CellGroundingHead):
+            raise ValueError(
+                f"{folder}: a centre window needs the cell grounding head (grounding.cells=true)"
+            )
         agent.grounding_head.centre_window = centre_window
     data = stage_data(cfg, load_splits(cfg), agent)
     outputs = []

@@ -21,6 +21,8 @@ from openfly_agent.training.config import BatchConfig, BatchSizeError
 
 logger = logging.getLogger(__name__)
 
+RELEASED_DATA_CARD = "data_cards/openfly_released.md"  # how to download the released OpenFly data
+
 
 class PreflightError(RuntimeError):
     """A run cannot start; the message names the file / field at fault and what to change."""
@@ -68,6 +70,11 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
 def check_dataset_root(data: DataConfig) -> None:
     """The dataset root exists and has an annotation for every configured split (files only, no parsing)."""
     root = Path(data.root)
+    if not root.is_dir() and not data.generate_if_missing:  # the released data: downloaded, never generated
+        raise PreflightError(
+            f"dataset root {root} does not exist: download the released OpenFly data as {RELEASED_DATA_CARD} "
+            "says and pass --data.root=/path/to/OpenFly"
+        )
     if not root.is_dir():
         hint = (
             f"generate it: python -m openfly_agent.toolchain generate --config {data.toolchain_config} "

@@ -14,9 +14,9 @@ from test_hub_release import INSTRUCTIONS, assert_same_behaviour, probe_namespac
 
 from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, WEIGHTS_NAME
 from openfly_agent.hub.config import CardConfig, ModelReleaseConfig
-from openfly_agent.hub.lora_release import load_lora_agent
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import build_model_release
+from openfly_agent.model.lora_checkpoint import load_lora_agent
 
 
 @pytest.fixture(scope="module")
@@ -127,3 +127,72 @@ def test_lora_errors_say_what_to_pass(lora_run, tmp_path):
     )
     with pytest.raises(ValueError, match=r"model sections differ at \['memory.capacity: 1 vs 2'"):
         build_model_release(cfg)
+
+
+@pytest.fixture
+def lora_run_folder(lora_run, tmp_path):
+    """A LoRA run folder as training lays it out: checkpoints/step-000010 (adapter only), checkpoints/last, and
+    merged/, here the base weights themselves, so that what loads tells the merged model from the adapter."""
+    run = tmp_path / "run"
+    shutil.copytree(lora_run.checkpoint, run / "checkpoints" / "step-000010")
+    (run / "checkpoints" / "last").write_text("step-000010\n")
+    shutil.copytree(lora_run.root / "base", run / "merged")
+    (run / "merged" / CONFIG_NAME).touch()  # written at the end of the run, after its last checkpoint
+    return run
+
+
+def _projector(folder: Path) -> torch.Tensor:
+    from safetensors.torch import load_file
+
+    return load_file(str(folder / WEIGHTS_NAME))["projector.fc1.weight"]
+
+
+@pytest.mark.parametrize("merged", [True, False], ids=["merged", "adapter_on_base"])
+def test_eval_loads_a_lora_run_merged_else_adapter_on_base(lora_run, lora_run_folder, merged, caplog):
+    from openfly_agent.eval.agent_policy import load_agent
+    from openfly_agent.eval.config import AgentSettings
+
+    if not merged:
+        shutil.rmtree(lora_run_folder / "merged")
+    with caplog.at_level("INFO", logger="openfly_agent.eval.agent_policy"):
+        agent = load_agent(str(lora_run_folder), AgentSettings(), "cpu")
+    base_projector = _projector(lora_run_folder / "merged" if merged else lora_run.root / "base")
+    # merged/ holds the base here; the adapter's run moved the projector away from it
+    assert torch.equal(agent.projector.fc1.weight, base_projector) == merged
+    step = lora_run_folder / "checkpoints" / "step-000010"
+    said = "the LoRA run's merged model" if merged else f"the LoRA adapter of {step} on its base"
+    assert said in caplog.text
+
+
+@pytest.mark.parametrize("merged", [True, False], ids=["merged", "adapter_on_base"])
+def test_release_of_a_lora_run_takes_its_merged_model_else_adapter_on_base(lora_run, lora_run_folder, merged):
+    if not merged:
+        shutil.rmtree(lora_run_folder / "merged")
+    cfg = ModelReleaseConfig(
+        checkpoint=str(lora_run_folder), repo_id="me/x", output_dir=str(lora_run_folder.parent / "release")
+    )
+    folder = build_model_release(cfg)
+    if merged:
+        assert torch.equal(_projector(folder), _projector(lora_run_folder / "merged"))
+    else:  # the adapter merged into its base: it acts as the adapter did
+        from openfly_agent.model.agent import OpenFlyAgent
+
+        got = probe_namespace()["rollout"](OpenFlyAgent.from_pretrained(str(folder)).eval())
+        assert [s["action"] for s in got] == [s["action"] for s in lora_run.behaviour]
+
+
+def test_a_merge_older_than_the_newest_checkpoint_or_an_older_step_is_not_taken(lora_run, lora_run_folder):
+    import os
+
+    from openfly_agent.model.lora_checkpoint import checkpoint_weights
+
+    step = lora_run_folder / "checkpoints" / "step-000010"
+    assert checkpoint_weights(step).folder == lora_run_folder / "merged"
+    older = step.parent / "step-000005"  # not the step `last` names: the merge holds another one
+    shutil.copytree(step, older)
+    assert checkpoint_weights(older).base == str(lora_run.root / "base")
+    stale = (step / CONFIG_NAME).stat().st_mtime - 60  # a resumed run stopped before writing its merge
+    os.utime(lora_run_folder / "merged" / CONFIG_NAME, (stale, stale))
+    weights = checkpoint_weights(step)
+    assert (weights.folder, weights.base) == (step, str(lora_run.root / "base"))
+    assert checkpoint_weights(lora_run_folder / "merged").folder == lora_run_folder / "merged"  # full weights

@@ -9,14 +9,17 @@ import torch
 
 from openfly_agent.model.config import GroundingConfig, MemoryConfig, MergingConfig, openfly_7b_config
 from openfly_agent.model.grounding import (
-    CellScorer,
-    GroundingHead,
+    BoxRegressionHead,
     GroundingOutput,
     box_cells,
-    cell_centres,
-    coarse_weights,
     grounding_loss,
     iou_and_giou,
+)
+from openfly_agent.model.grounding_cells import (
+    CellGroundingHead,
+    CellScorer,
+    cell_centres,
+    coarse_weights,
     windowed_softmax,
 )
 from openfly_agent.model.vision_config import VisionConfig
@@ -221,7 +224,7 @@ def test_grounding_loss_ignores_invisible_targets():
 
 
 def test_grounding_head_outputs_unit_boxes():
-    head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, num_queries=3, cells=False))
+    head = BoxRegressionHead(24, GroundingConfig(dim=16, num_heads=2, num_queries=3, cells=False))
     hidden = torch.randn(2, 7, 24) * 10
     mask = torch.tensor([[True] * 7, [True] * 3 + [False] * 4])
     out = head(hidden, mask)
@@ -246,9 +249,9 @@ def _fit_head(head, inputs, targets, cfg, steps: int) -> dict[str, float]:
 def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
     torch.manual_seed(0)
     cfg = GroundingConfig(dim=16, num_heads=2, cells=True)
-    head = GroundingHead(24, cfg, grid_side=2)
+    head = CellGroundingHead(24, cfg, grid_side=2)
     with pytest.raises(ValueError, match="grid side"):
-        GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True))
+        CellGroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True), grid_side=0)
     # sequence: 4 image tokens (a 2 x 2 grid) then 2 prompt tokens; the prompt's last token names the cell
     hidden = torch.randn(4, 6, 24)
     hidden[:, :4] += torch.eye(4, 24) * 3  # each cell has its own feature
@@ -293,7 +296,9 @@ def test_a_centre_window_picks_one_of_two_peaks_instead_of_their_middle():
 
 def test_the_centre_window_is_a_decoding_rule_training_reads_every_cell():
     torch.manual_seed(0)
-    head = GroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True, centre_window=1), grid_side=4)
+    head = CellGroundingHead(
+        24, GroundingConfig(dim=16, num_heads=2, cells=True, centre_window=1), grid_side=4
+    )
     hidden = torch.randn(8, 18, 24)  # 16 image tokens (a 4 x 4 grid), then 2 prompt tokens
     inputs = (
         hidden,
@@ -376,7 +381,7 @@ def test_subcell_logits_are_laid_out_on_the_fine_grid_row_major():
 def test_subcell_head_learns_which_quarter_of_a_cell_holds_the_target():
     torch.manual_seed(0)
     cfg = GroundingConfig(dim=32, num_heads=2, cells=True, subcells=2)
-    head = GroundingHead(24, cfg, grid_side=2)
+    head = CellGroundingHead(24, cfg, grid_side=2)
     # 4 image tokens (a 2 x 2 grid), then 2 prompt tokens; the last one names one of the 16 fine cells
     fine_cell = torch.arange(16)
     hidden = torch.randn(16, 6, 24) * 0.1

@@ -8,14 +8,8 @@ import pytest
 import torch
 
 from openfly_agent.model.config import GroundingConfig
-from openfly_agent.model.grounding import (
-    GroundingHead,
-    GroundingOutput,
-    attribute_loss,
-    attribute_match,
-    fine_grid,
-    grounding_loss,
-)
+from openfly_agent.model.grounding import GroundingOutput, attribute_loss, grounding_loss
+from openfly_agent.model.grounding_cells import CellGroundingHead, attribute_match, fine_grid
 
 CFG = GroundingConfig(dim=8, num_heads=2, attribute_weight=2.0, attribute_classes=[2, 2, 2, 2])
 
@@ -115,7 +109,7 @@ def test_the_head_adds_the_weighted_match_to_the_cell_logits():
     cfg = GroundingConfig(
         dim=8, num_heads=2, attribute_weight=1.0, attribute_classes=[2, 3, 2, 2], attribute_match=True
     )
-    head = GroundingHead(16, cfg, grid_side=2).eval()
+    head = CellGroundingHead(16, cfg, grid_side=2).eval()
     hidden, key_mask = torch.randn(2, 7, 16), torch.ones(2, 7, dtype=torch.bool)
     inputs = (hidden, key_mask, torch.tensor([[1, 2, 3, 4]] * 2), torch.tensor([6, 5]))
     with torch.no_grad():

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from openfly_agent.model.config import GroundingConfig
-from openfly_agent.model.grounding import GroundingHead
+from openfly_agent.model.grounding_cells import CellGroundingHead
 
 # a 2 x 2 grid at positions 1-4 of a 7-position sequence; position 5 is a prompt token, 6 padding (not readable)
 IMAGE_POSITIONS = torch.tensor([[1, 2, 3, 4]])
@@ -15,15 +15,17 @@ LAST_PROMPT = torch.tensor([5])
 KEY_MASK = torch.tensor([[True, True, True, True, True, True, False]])
 
 
-def _head(layers: int, visual_skip: bool = False) -> GroundingHead:
+def _head(layers: int, visual_skip: bool = False) -> CellGroundingHead:
     torch.manual_seed(0)
     cfg = GroundingConfig(
         dim=8, num_heads=2, attribute_weight=1.0, cell_fusion_layers=layers, visual_skip=visual_skip
     )
-    return GroundingHead(16, cfg, grid_side=2).eval()
+    return CellGroundingHead(16, cfg, grid_side=2).eval()
 
 
-def _cell_side(head: GroundingHead, hidden: torch.Tensor, visual: torch.Tensor | None = None) -> torch.Tensor:
+def _cell_side(
+    head: CellGroundingHead, hidden: torch.Tensor, visual: torch.Tensor | None = None
+) -> torch.Tensor:
     """(1, 4, A) attribute logits of the cells: what the cell side holds, before the query's FiLM."""
     with torch.no_grad():
         return head(hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT, visual).cell_attributes
