@@ -1,7 +1,7 @@
 """The `tiny-cnn` vision backbone: a small timm ResNet that yields the same token grid as the ViT presets.
 
 A from-scratch ViT learns slowly at the tiny scale on a CPU; a convolutional network has the locality prior
-built in (docs/BENCHMARKS.md, "Tiny preset"). The ResNet's four stages downsample by 16 (the last stage is
+built in (docs/experiments/2026-11-23-agent-that-navigates-issue12.md, "Tiny backbones"). The ResNet's four stages downsample by 16 (the last stage is
 dilated instead of strided), so a 128 px frame gives an 8 x 8 grid, the patch grid of a ViT with patch 16; a
 learned position embedding is added to every cell (convolution features alone say little about *where* a cell
 is, and the LLM's rotary positions only give relative offsets). The output (N, P, C) goes into the same

@@ -3,7 +3,7 @@
 The query starts from the hidden state of the last prompt token (it has read the whole instruction), its code
 scales and shifts each cell's features (FiLM), an MLP gives one logit per cell, and the box centre is the
 softmax-weighted cell centre plus a bounded offset; a cross-entropy over which cell holds the box centre joins the
-loss (`cell_weight`). Dense, per-cell supervision learns much faster than one regressed box (docs/BENCHMARKS.md,
+loss (`cell_weight`). Dense, per-cell supervision learns much faster than one regressed box (docs/experiments/2026-11-23-agent-that-navigates-issue12.md,
 "Grounding"). With `subcells` = s > 1 each cell's MLP gives s x s logits, one per sub-cell: the softmax, the centre
 and the cross-entropy then live on a grid s times finer than the tokens (a small far target covers a fraction of
 one 16 px cell at 128 px). With `centre_window` = w, at inference (eval mode), the softmax that places the centre
