@@ -272,8 +272,11 @@ def test_two_processes_split_and_merge(dataset, reference, tmp_path):
     assert sorted(p.name for p in (tmp_path / "random").glob("episodes*.jsonl")) == [C.EPISODES_JSONL]
     # Each process ran its own shard (not the whole split), and only rank 0 printed the table.
     total = len(load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN))
-    shards = [int(n) for n in re.findall(r"random / test_seen: (\d+) episodes in this shard", double.stderr)]
-    assert sorted(shards) == [total // 2, total - total // 2]
+    # rank 0 alone logs INFO (each line once), naming both shards
+    [(count, first, second)] = re.findall(
+        r"random / test_seen: (\d+) episodes in 2 shards of (\d+), (\d+)", double.stderr
+    )
+    assert int(count) == total and sorted([int(first), int(second)]) == [total // 2, total - total // 2]
     assert double.stdout.count("| random |") == 4  # 2 splits x 2 profiles, once
     _same_results(reference, tmp_path)
 

@@ -129,12 +129,17 @@ def evaluate_policy(
         mine = shard(episodes, info.rank, info.world_size)
         todo = [e for e in mine if (split, e.episode_id) not in done]
         retried = sum((split, e.episode_id) in errored for e in todo)
+        # logged by rank 0 only (utils/logging_utils.py), so it names every process's shard
+        shard_sizes = [len(shard(episodes, rank, info.world_size)) for rank in range(info.world_size)]
         logger.info(
-            "%s / %s: %d episodes in this shard, %d already done%s",
+            "%s / %s: %d episodes%s, %d already done%s",
             policy.name,
             split,
-            len(mine),
-            len(mine) - len(todo),
+            len(episodes),
+            f" in {info.world_size} shards of {', '.join(map(str, shard_sizes))}"
+            if info.world_size > 1
+            else "",
+            sum((split, e.episode_id) in done for e in episodes),
             f", {retried} that ended in an engine error tried again" if retried else "",
         )
         replays = getattr(policy, "replays", None)

@@ -70,7 +70,7 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
 def check_dataset_root(data: DataConfig) -> None:
     """The dataset root exists and has an annotation for every configured split (files only, no parsing)."""
     root = Path(data.root)
-    if not root.is_dir() and not data.generate_if_missing:  # the released data: downloaded, never generated
+    if not root.is_dir() and data.toolchain_config is None:  # the released data: downloaded, never generated
         raise PreflightError(
             f"dataset root {root} does not exist: download the released OpenFly data as {RELEASED_DATA_CARD} "
             "says and pass --data.root=/path/to/OpenFly"
