@@ -7,7 +7,7 @@
 In order, each as the command a user types, each with its own time limit (about 8 minutes in all on an H100):
 the synthetic OpenVLA-layout 7B folder (random weights, real key names and shapes, tokenizer files); a small
 embedded dataset; the LoRA recipe for 12 steps from that folder (train.py's samples/s on real data, its peak
-memory, the merged weights); `eval.py` on the merged model for 4 episodes; the full fine-tune under
+memory, the merged weights); `eval.py --checkpoint <the LoRA run folder>` for 4 episodes (it loads the run's merged model); the full fine-tune under
 `fsdp.yaml` on one GPU, which the preflight must refuse in one line (exit 2) before reading a weight; the full
 fine-tune under `fsdp_offload.yaml` through its first optimizer step; `bench/step_latency.py` (`select_action`,
 keyframe vs uniform, batch 1 and 16) and `bench/train_throughput.py` (LoRA samples/s and MFU on synthetic
@@ -193,7 +193,7 @@ def plan(workdir: Path) -> list[Check]:
                 PY,
                 "eval.py",
                 "--checkpoint",
-                f"{w}/lora/merged",
+                f"{w}/lora",  # the run folder: eval.py takes its merged model
                 "--sim",
                 "embedded",
                 "--split",
