@@ -61,6 +61,15 @@ def help_text(argv: list[str]) -> str:
     return config_help(EvalConfig, cfg, "eval.py", DESCRIPTION, EXAMPLES, note)
 
 
+def set_torch_threads(count: int | None) -> None:
+    """The process's torch CPU threads (None: torch's default). Set here, by the command, not by the evaluation
+    library: torch numerics depend on the count, so an in-process caller keeps its own."""
+    if count is not None:
+        import torch  # lazy: --help stays fast
+
+        torch.set_num_threads(count)
+
+
 def run(argv: list[str]) -> int:
     """Parse the command line, run the evaluation, print the comparison table (rank 0); the exit code."""
     from draccus.utils import ParsingError
@@ -71,6 +80,7 @@ def run(argv: list[str]) -> int:
     setup_logging()
     try:
         cfg = parse_config(EvalConfig, normalize_argv(argv))
+        set_torch_threads(cfg.torch_threads)
         outcome = evaluate(cfg)
     except (
         ParsingError,

@@ -177,13 +177,10 @@ def run(cfg: EvalConfig) -> dict:
     """Evaluate `cfg.policies` on `cfg.split`; returns {"summary_markdown", "results": {policy: results}}.
 
     Every process runs its shard; only rank 0 merges, writes reports and returns the tables (other ranks
-    return an empty dict).
+    return an empty dict). The process's torch thread count (`cfg.torch_threads`) is the entry point's to set
+    (eval.py): an in-process caller (a test, a notebook) keeps its own, and so its numerics.
     """
     info = process_info(cpu=True if cfg.device == "cpu" else None)
-    if cfg.torch_threads is not None:
-        import torch
-
-        torch.set_num_threads(cfg.torch_threads)
     root = Path(cfg.output_dir)
     check_agent_weights(cfg)
     full_splits = load_full_splits(cfg)

@@ -115,3 +115,22 @@ def test_one_torch_thread_by_default_and_the_flag_still_chooses():
     assert parse_config(EvalConfig, ["--policy=random"]).torch_threads == 1
     assert parse_config(EvalConfig, ["--policy=random", "--torch_threads=4"]).torch_threads == 4
     assert parse_config(EvalConfig, ["--policy=random", "--torch_threads=null"]).torch_threads is None
+
+
+def test_an_in_process_evaluation_leaves_the_callers_thread_count(tmp_path):
+    """eval.py sets `torch_threads` for its process; the library's run() leaves the count alone, so a test or a
+    notebook that evaluates in-process keeps its own. Torch numerics depend on it beyond the count itself: after
+    any `torch.set_num_threads` (even back to the same count) an in-process training no longer matched a fresh
+    process bit for bit, so this test asks for another count and never sets one itself."""
+    import torch
+
+    from openfly_agent.eval.run import run
+
+    before = torch.get_num_threads()
+    cfg = parse_config(
+        EvalConfig,
+        ["--policy=random", f"--torch_threads={before + 1}", f"--dataset_root={tmp_path / 'none'}"],
+    )
+    with pytest.raises(FileNotFoundError):  # no dataset there
+        run(cfg)
+    assert torch.get_num_threads() == before

@@ -60,7 +60,7 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
             parsed["train"].append((Path(launch.config_file).name, cfg))
         elif tokens[1] == "eval.py":
             cfg = parse_config(EvalConfig, normalize_argv(tokens[2:]))
-            assert cfg.checkpoint == str(tmp_path / "lora" / "merged") and cfg.max_episodes == 4
+            assert cfg.checkpoint == str(tmp_path / "lora") and cfg.max_episodes == 4
             parsed["eval"].append(cfg)
         elif tokens[1:4] == ["-m", "openfly_agent.toolchain", "generate"]:
             cfg = _parse_generate(_config_args(tokens[4:]))
