@@ -7,6 +7,9 @@ frames sees different frames at different poses). The end-to-end tests use the e
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 
 from openfly_agent import constants as C
@@ -178,3 +181,13 @@ def save_released_format_agent(folder, texts, seed: int = 0):
     tokenizer.save_pretrained(str(folder))
     (folder / "model.yaml").write_text(yaml.safe_dump(config_to_dict(cfg)))
     return agent
+
+
+def eval_main():
+    """`eval.py`'s `main(argv)`, loaded from the repository's entry point (its exit code, in this process)."""
+    spec = importlib.util.spec_from_file_location(
+        "eval_entry_point", Path(__file__).resolve().parents[1] / "eval.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -10,8 +9,6 @@ import pytest
 
 from openfly_agent import constants as C
 from openfly_agent.eval.agent_policy import checkpoint_folder, checkpoint_kind
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def test_training_run_paths_resolve_to_the_newest_checkpoint(tmp_path):
@@ -61,15 +58,14 @@ def test_eval_refuses_a_grounding_stage_checkpoint_naming_the_navigation_stage(t
         (step / "config.json").write_text('{"model_type": "openfly_agent"}')
         (step / "train_config.json").write_text(json.dumps({"stage": stage, "steps": 4}))
         (step.parent / "last").symlink_to("step-000004")
-    spec = importlib.util.spec_from_file_location("eval_entry_point", REPO / "eval.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    from eval_helpers import eval_main
+
     out = tmp_path / "out"
     argv = [
         "--checkpoint", str(tmp_path / "job" / "grounding"), "--split", C.SPLIT_TEST_SEEN, "--plots=0",
         "--progress=false", f"--dataset_root={dataset}", f"--output_dir={out}",
     ]  # fmt: skip
-    assert module.main(argv) == 2
+    assert eval_main()(argv) == 2
     [line] = capsys.readouterr().err.strip().splitlines()
     assert "grounding-stage checkpoint" in line and str(tmp_path / "job" / "navigation") in line
     assert not out.exists()
@@ -81,7 +77,6 @@ def test_a_truncated_checkpoint_is_one_line_and_writes_nothing(tmp_path):
     import os
     import subprocess
     import sys
-    from pathlib import Path
 
     from eval_helpers import save_small_agent
 

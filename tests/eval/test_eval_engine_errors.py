@@ -7,13 +7,13 @@ makes eval.py exit 1, and is tried again by the same command.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 from bridge_fakes import FakeUnrealCV, free_port, make_frame_bgr
 from data_factories import make_episode, make_frames
+from eval_helpers import eval_main
 
 from openfly_agent import constants as C
 from openfly_agent.data.openfly_reader import load_openfly_dataset
@@ -23,15 +23,7 @@ from openfly_agent.eval.episodes import start_pose
 from openfly_agent.eval.report import policy_results
 from openfly_agent.sim.bridges.unrealcv import unrealcv_pose_commands
 
-REPO = Path(__file__).resolve().parents[2]
 EPISODE_IDS = [f"env_ue_smallcity/astar_data/low_short/ep{i}" for i in range(3)]
-
-
-def _eval_main():
-    spec = importlib.util.spec_from_file_location("eval_entry_point", REPO / "eval.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.main
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +49,7 @@ def _args(dataset: Path, out: Path, engine: str, port: int) -> list[str]:
 @pytest.mark.parametrize("engine", ["unrealcv", "airsim", "gs_http"])
 def test_an_unreachable_engine_fails_the_run_before_any_episode(engine, dataset, tmp_path, capsys):
     port = free_port()  # nothing listens there
-    code = _eval_main()(_args(dataset, tmp_path / "out", engine, port))
+    code = eval_main()(_args(dataset, tmp_path / "out", engine, port))
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("eval.py:")]
     assert code == 2
     assert len(err) == 1 and engine in err[0] and f"127.0.0.1:{port}" in err[0], err
@@ -71,7 +63,7 @@ def test_an_engine_error_mid_run_is_counted_not_scored_and_retried(dataset, tmp_
     refused = unrealcv_pose_commands(start_pose(broken), broken.pitch_deg, (0, 1))[0]
     out = tmp_path / "out"
     with FakeUnrealCV(make_frame_bgr(), reject=(refused,)) as server:
-        code = _eval_main()(_args(dataset, out, "unrealcv", server.port))
+        code = eval_main()(_args(dataset, out, "unrealcv", server.port))
     assert code == 1
     assert "ended in an engine error" in capsys.readouterr().err
     records = {r.episode_id: r for r in read_all_logs(out / "oracle")}
@@ -85,7 +77,7 @@ def test_an_engine_error_mid_run_is_counted_not_scored_and_retried(dataset, tmp_
 
     # The same command with a healthy engine retries the failed episode only, and the run is clean.
     with FakeUnrealCV(make_frame_bgr()) as server:
-        code = _eval_main()(_args(dataset, out, "unrealcv", server.port))
+        code = eval_main()(_args(dataset, out, "unrealcv", server.port))
         moved = [c for _, c in server.commands if c.startswith("vset /camera/0/location")]
     assert code == 0
     assert moved[0] == refused and len(moved) == 1 + 3  # start + 3 moves of the retried episode

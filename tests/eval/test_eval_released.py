@@ -44,7 +44,9 @@ def test_stop_at_start_reproduces_the_published_rates(released):
 def test_oracle_teleports_along_released_poses(released):
     oracle = OraclePolicy(released, mode="auto")
     replayable = [e for e in released if oracle.replays(e.episode_id)]
-    assert len(replayable) < len(released)  # the label / pose quirks of the release (docs/OFFICIAL_OPENFLY.md 1.2)
+    assert len(replayable) < len(
+        released
+    )  # the label / pose quirks of the release (docs/OFFICIAL_OPENFLY.md 1.2)
     records = [teleport_record(e, C.SPLIT_TEST_SEEN, "oracle", C.MAX_EPISODE_STEPS) for e in released]
     assert max(len(e) for e in released) <= C.MAX_EPISODE_STEPS  # 62 at most: nothing is cut
     table = policy_results("oracle", records, ["openfly", "standard"])["splits"][C.SPLIT_TEST_SEEN]

@@ -10,7 +10,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from eval_helpers import generate_tiny_dataset
+from eval_helpers import eval_main, generate_tiny_dataset
 
 from openfly_agent import constants as C
 from openfly_agent.hub.cli import main as hub_main
@@ -18,7 +18,6 @@ from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import TrainerState
 
-REPO = Path(__file__).resolve().parents[2]
 TEXTS = ["fly to the red tower and stop", "turn left at the blue dome then ascend", "descend near the spire"]
 CONFIGURED_STEPS, TRAINED_STEPS = 6000, 1682
 
@@ -49,15 +48,6 @@ def _training_run(root: Path, seed: int) -> Path:
     return root
 
 
-def _eval_main():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("eval_entry_point", REPO / "eval.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.main
-
-
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
     """Two training runs; eval.py on the first (2 episodes per split, random + agent_true_box beside it)."""
@@ -73,7 +63,7 @@ def evaluated(tmp_path_factory):
         "--plots=0", "--progress=false", "--torch_threads", "1", f"--dataset_root={dataset}",
         f"--output_dir={out}",
     ]  # fmt: skip
-    assert _eval_main()(argv) == 0
+    assert eval_main()(argv) == 0
     return SimpleNamespace(root=root, run=run, other=other, eval=out, dataset=dataset)
 
 

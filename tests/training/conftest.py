@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -162,3 +163,15 @@ def checkpoint_weights(folder: Path) -> dict:
     from safetensors.torch import load_file
 
     return load_file(str(Path(folder) / "model.safetensors"))
+
+
+def train_main(argv: list[str]) -> int:
+    """`train.py`'s `main(argv)` in this process (its exit code), with accelerate's singletons reset around it."""
+    spec = importlib.util.spec_from_file_location("train_entry_point", REPO_ROOT / "train.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    reset_accelerate()
+    try:
+        return module.main(argv)
+    finally:
+        reset_accelerate()

@@ -6,30 +6,18 @@ frame whose bytes do not decode are met mid-training, after the preflight has re
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
-from conftest import REPO_ROOT, reset_accelerate, train_args
+from conftest import train_args, train_main
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.training.preflight import PreflightError
 from openfly_agent.utils.errors import one_line, root_cause
-
-
-def _train_main(argv: list[str]) -> int:
-    spec = importlib.util.spec_from_file_location("train_entry_point", REPO_ROOT / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    reset_accelerate()
-    try:
-        return module.main(argv)
-    finally:
-        reset_accelerate()
 
 
 @pytest.fixture
@@ -69,7 +57,7 @@ def test_root_cause_keeps_the_file_that_a_wrapper_names():
 def test_truncated_annotation_names_the_file(dataset_copy, tmp_path, capsys):
     annotation = dataset_copy / C.DATASET_ANNOTATION_DIR / "train.json"
     annotation.write_bytes(annotation.read_bytes()[:3000])
-    assert _train_main(train_args(dataset_copy, tmp_path / "run", steps=1)) == 2
+    assert train_main(train_args(dataset_copy, tmp_path / "run", steps=1)) == 2
     errors = _errors(capsys)
     assert len(errors) == 1 and str(annotation) in errors[0] and "not valid JSON" in errors[0], errors
 
@@ -78,7 +66,7 @@ def test_half_written_parquet_mid_training_names_the_file(dataset_copy, tmp_path
     broken = _train_parquets(dataset_copy)[1:]  # the preflight reads the first episode's first frame
     for path in broken:
         path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
-    assert _train_main(train_args(dataset_copy, tmp_path / "run", steps=2)) == 2
+    assert train_main(train_args(dataset_copy, tmp_path / "run", steps=2)) == 2
     errors = _errors(capsys)
     assert len(errors) == 1 and "not a readable parquet file" in errors[0], errors
     assert any(str(path) in errors[0] for path in broken), errors
@@ -92,7 +80,7 @@ def test_frame_that_does_not_decode_mid_training_names_file_record_and_field(dat
         for row in rows:
             row["image"] = {**row["image"], "bytes": b"\x89PNG not really"}
         pq.write_table(pa.Table.from_pylist(rows, schema=table.schema), path)
-    assert _train_main(train_args(dataset_copy, tmp_path / "run", steps=2)) == 2
+    assert train_main(train_args(dataset_copy, tmp_path / "run", steps=2)) == 2
     errors = _errors(capsys)
     assert len(errors) == 1 and "field 'image': cannot decode the image" in errors[0], errors
     assert any(f"{path}: record " in errors[0] for path in broken), errors

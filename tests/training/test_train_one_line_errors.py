@@ -5,23 +5,11 @@ Also under a two-process launch: the line is printed once (by rank 0), not once 
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
 import sys
 
 import pytest
-from conftest import REPO_ROOT, reset_accelerate, run_script, train_args
-
-
-def _train_main(argv: list[str]) -> int:
-    spec = importlib.util.spec_from_file_location("train_entry_point", REPO_ROOT / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    reset_accelerate()
-    try:
-        return module.main(argv)
-    finally:
-        reset_accelerate()
+from conftest import run_script, train_args, train_main
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +54,7 @@ def test_bad_input_is_one_line_and_leaves_no_folder(
     overrides, expected = CASES[case]
     output_dir = tmp_path / "run"
     args = train_args(generated_dataset, output_dir, **overrides(truncated_checkpoint, generated_dataset))
-    assert _train_main(args) == 2
+    assert train_main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith(expected.format(ckpt=truncated_checkpoint, data=generated_dataset)), err[0]

@@ -2,27 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 
 import pytest
-from conftest import REPO_ROOT, STEPS, make_config, reset_accelerate, train_args
+from conftest import STEPS, make_config, train_args, train_main
 
 from openfly_agent import constants as C
 from openfly_agent.training.resume_settings import CONFIG_CHANGES_NAME, RESUMABLE_KEYS
 from openfly_agent.utils.config import changed_settings
-
-
-def _train_main(argv: list[str]) -> int:
-    spec = importlib.util.spec_from_file_location("train_entry_point", REPO_ROOT / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    reset_accelerate()
-    try:
-        return module.main(argv)
-    finally:
-        reset_accelerate()
 
 
 @pytest.fixture
@@ -55,7 +43,7 @@ def test_a_resume_with_another_lr_is_refused_naming_it(run_copy, generated_datas
         optim__lr="3e-4",
         data__history__mode="uniform",
     )
-    assert _train_main(args) == 2
+    assert train_main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     assert err[0].startswith("train.py: --resume=true with other settings than "), err[0]
@@ -77,7 +65,7 @@ def test_a_resume_with_more_steps_trains_on_and_appends_the_change(
         args = train_args(
             generated_dataset, run_copy, steps=steps, resume="true", validation__final_eval="false"
         )
-        assert _train_main(args) == 0, capsys.readouterr().err[-2000:]
+        assert train_main(args) == 0, capsys.readouterr().err[-2000:]
     assert (run_copy / C.TRAIN_CONFIG_NAME).read_bytes() == recorded  # the first steps' settings stay
     entries = [json.loads(line) for line in (run_copy / CONFIG_CHANGES_NAME).read_text().splitlines()]
     assert [(e["step"], e["checkpoint"]) for e in entries] == [
