@@ -37,3 +37,16 @@ def _seed():
     except ImportError:
         pass
     yield
+
+
+@pytest.fixture(autouse=True)
+def _torch_threads():
+    """Each test leaves torch's thread count as it found it. An entry point run in-process (eval.py's `main`
+    sets `--torch_threads`, 1 by default) would otherwise leave its count to the tests after it, whose in-process
+    training then no longer matches a fresh process bit for bit (setting the same count again changes nothing)."""
+    import torch
+
+    count = torch.get_num_threads()
+    yield
+    if torch.get_num_threads() != count:
+        torch.set_num_threads(count)
