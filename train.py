@@ -109,7 +109,7 @@ def run(argv: list[str], state: dict) -> int:
         message = data_error_message(err)
         if message is None:
             raise
-        say_error(message)
+        print(f"train.py: {message}", file=sys.stderr)  # met by this process only (its share of the data)
         return EXIT_BAD_INPUT
     if result.is_main_process:
         report(result, cfg)

@@ -29,9 +29,8 @@ class ResultRow:
     profile: str
     metrics: dict[str, float]
     num_episodes: int | None = None
-    split_episodes: int | None = (
-        None  # the split's episodes when `num_episodes` is a subsample (max_episodes)
-    )
+    # the split's episodes when `num_episodes` is a subsample (max_episodes)
+    split_episodes: int | None = None
 
 
 @dataclass(frozen=True)

@@ -81,14 +81,12 @@ class ClosedLoopInference:
             memory_sizes.append(memory.shape[0])
         embeds, mask = left_pad(sequences)  # (B, L_max, D), (B, L_max)
         needs_cache = self.action_tokenizer.head != HEAD_DISCRETE or self.box_token_embed is not None
-        cache = (
-            new_cache(self) if needs_cache else None
-        )  # filled by the prefill, read by the decoding after it
-        output = (
-            run_cached(self, embeds, mask, cache)
-            if needs_cache
-            else self.run_llm(embeds, mask, use_cache=False)
-        )
+        # the cache is filled by the prefill and read by the decoding after it
+        cache = new_cache(self) if needs_cache else None
+        if cache is None:
+            output = self.run_llm(embeds, mask, use_cache=False)
+        else:
+            output = run_cached(self, embeds, mask, cache)
         hidden = output.last_hidden_state  # (B, L_max, D)
         padding = mask.shape[1] - mask.sum(dim=1)  # (B,) left padding of each row
         first_image = (

@@ -44,9 +44,9 @@ def resolve_checkpoint_folder(path: str | Path) -> Path | None:
             path = pointed
         elif path.is_dir() and (path / CONFIG_NAME).is_file():
             return path
-        elif is_last_pointer(path / LAST_POINTER_NAME):
+        elif _is_last_pointer(path / LAST_POINTER_NAME):
             path = path / LAST_POINTER_NAME
-        elif is_last_pointer(path / CHECKPOINTS_DIR / LAST_POINTER_NAME):
+        elif _is_last_pointer(path / CHECKPOINTS_DIR / LAST_POINTER_NAME):
             path = path / CHECKPOINTS_DIR / LAST_POINTER_NAME
         else:
             break
@@ -72,7 +72,7 @@ def last_pointer_target(pointer: Path) -> Path | None:
     return None
 
 
-def is_last_pointer(path: Path) -> bool:
+def _is_last_pointer(path: Path) -> bool:
     """`<run>/checkpoints/last`: a symlink to the step folder, or (runs written before) a one-line file."""
     return path.is_symlink() or path.is_file()
 
@@ -160,11 +160,7 @@ def check_weights_readable(folder: Path) -> None:
     """
     try:
         files = checkpoint_files(Path(folder))
-    except (
-        FileNotFoundError,
-        json.JSONDecodeError,
-        KeyError,
-    ):  # no weights / a bad index: the loader says so
+    except (FileNotFoundError, json.JSONDecodeError, KeyError):  # no weights, a bad index: the loader says so
         return
     for path in files:
         if path.is_file():

@@ -8,6 +8,7 @@ used and the output's cache attribute is never read.
 
 from __future__ import annotations
 
+import functools
 import inspect
 from typing import Any
 
@@ -26,9 +27,14 @@ def new_cache(agent) -> Any:
 
 def run_cached(agent, embeds: torch.Tensor, mask: torch.Tensor, cache, **kwargs) -> Any:
     """`agent.run_llm` over (B, T, D) `embeds` that reads and extends `cache` (in place)."""
-    core = unwrap_causal_lm(agent.language_model).model
-    keyword = "cache" if "cache" in inspect.signature(core.forward).parameters else "past_key_values"
+    keyword = _cache_keyword(type(unwrap_causal_lm(agent.language_model).model))
     return agent.run_llm(embeds, mask, use_cache=True, **{keyword: cache}, **kwargs)
+
+
+@functools.cache
+def _cache_keyword(decoder_class: type) -> str:
+    """The decoder's keyword for the cache (read once per class: every decoding step passes it)."""
+    return "cache" if "cache" in inspect.signature(decoder_class.forward).parameters else "past_key_values"
 
 
 def decode_one(agent, token: torch.Tensor, mask: torch.Tensor, cache) -> tuple[torch.Tensor, torch.Tensor]:

@@ -25,7 +25,7 @@ from openfly_agent.constants import (
     WEIGHTS_NAME,
 )
 
-from .checkpoint_path import is_last_pointer, resolve_checkpoint_folder
+from .checkpoint_path import last_pointer_target
 from .tokenizer import load_tokenizer
 
 logger = logging.getLogger(__name__)
@@ -60,10 +60,11 @@ def merged_model_of(folder: Path) -> Path | None:
     """`<output_dir>/merged` of the LoRA run whose newest checkpoint is `folder`, when the run wrote it after that
     checkpoint (a resumed run that stopped early leaves an older merge behind); None otherwise."""
     checkpoints = folder.parent
-    if checkpoints.name != CHECKPOINTS_DIR or not is_last_pointer(checkpoints / LAST_POINTER_NAME):
-        return None
-    if resolve_checkpoint_folder(checkpoints / LAST_POINTER_NAME).resolve() != folder.resolve():
-        return None  # an older step: the merge holds the last one
+    newest = (
+        last_pointer_target(checkpoints / LAST_POINTER_NAME) if checkpoints.name == CHECKPOINTS_DIR else None
+    )
+    if newest is None or newest.resolve() != folder.resolve():
+        return None  # not a run's checkpoint, or an older step: the merge holds the last one
     merged = checkpoints.parent / MERGED_DIR_NAME
     if not (merged / CONFIG_NAME).is_file() or not has_full_weights(merged):
         return None

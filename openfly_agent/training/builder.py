@@ -221,9 +221,7 @@ def check_init_checkpoint(cfg: TrainConfig, tokenizer, norm_stats: dict | None) 
     folder = Path(cfg.init.checkpoint)
     if not folder.is_dir():
         raise PreflightError(f"init.checkpoint {folder} does not exist")
-    folder = init_checkpoint_folder(
-        cfg.init.checkpoint
-    )  # a training run or its `last` pointer: its checkpoint
+    folder = init_checkpoint_folder(cfg.init.checkpoint)  # a training run or its `last`: its checkpoint
     try:
         check_weights_readable(folder)
     except UnreadableWeightsError as err:

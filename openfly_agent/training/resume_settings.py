@@ -23,6 +23,7 @@ from openfly_agent.utils.config import (
     config_to_dict,
     describe_changes,
     flat_settings,
+    is_listed,
     save_config,
 )
 
@@ -68,14 +69,15 @@ def resume_changes(cfg: TrainConfig, checkpoint: Path | None) -> dict[str, tuple
     current = config_to_dict(cfg)
     # settings the checkpoint does not record (a field added to TrainConfig since) are not compared
     recorded = set(flat_settings(stored)) & set(flat_settings(current))
-    refused = {k: v for k, v in changed_settings(stored, current, RESUMABLE_KEYS).items() if k in recorded}
+    changes = {k: v for k, v in changed_settings(stored, current).items() if k in recorded}
+    refused = {k: v for k, v in changes.items() if not is_listed(k, RESUMABLE_KEYS)}
     if refused:
         raise PreflightError(
             f"--resume=true with other settings than {stored_path} ({describe_changes(refused, limit=12)}): "
             "resume with the run's settings, or train in a new --output_dir (docs/TRAINING.md lists the "
             "settings a resume may change)"
         )
-    return {k: v for k, v in changed_settings(stored, current).items() if k in recorded and k != "resume"}
+    return {k: v for k, v in changes.items() if k != "resume"}
 
 
 def record_run_settings(cfg: TrainConfig, checkpoint: Path | None, changes: dict[str, tuple]) -> None:

@@ -71,9 +71,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     setting_changes = resume_changes(cfg, resume_from)
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
-    check_memory(
-        cfg, accelerator
-    )  # CUDA: the per-GPU estimate; refused here when it cannot fit, before any read
+    # CUDA: the per-GPU estimate; refused here when it cannot fit, before any read
+    check_memory(cfg, accelerator)
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
     if accelerator.is_main_process:
         checkpoints.remove_stale_staging()

@@ -100,6 +100,11 @@ def flat_settings(node: Any, prefix: str = "") -> dict[str, Any]:
     return {prefix[:-1]: node}
 
 
+def is_listed(key: str, listed: tuple[str, ...]) -> bool:
+    """Whether the dotted `key` is in `listed`: an exact key, or under a section given as a prefix ending in "."."""
+    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in listed)
+
+
 def changed_settings(
     stored: dict, current: dict, allowed: tuple[str, ...] = ()
 ) -> dict[str, tuple[Any, Any]]:
@@ -113,11 +118,7 @@ def changed_settings(
         allowed: keys that may differ (left out): exact dotted keys, or prefixes ending in "." (a section).
     """
     old, new = flat_settings(stored), flat_settings(current)
-
-    def is_allowed(key: str) -> bool:
-        return any(key == k or (k.endswith(".") and key.startswith(k)) for k in allowed)
-
-    keys = sorted(k for k in set(old) | set(new) if not is_allowed(k))
+    keys = sorted(k for k in set(old) | set(new) if not is_listed(k, allowed))
     return {k: (old.get(k), new.get(k)) for k in keys if old.get(k) != new.get(k)}
 
 

@@ -28,9 +28,8 @@ def root_cause(err: BaseException) -> str:
     message already names the file, record and field (and the cause it wraps would lose them)."""
     decoding = None
     while type(err).__module__.split(".")[0] == "draccus":
-        if getattr(
-            err, "key_path", None
-        ):  # draccus.utils.DecodingError: the innermost one is the most precise
+        # draccus.utils.DecodingError: the innermost one is the most precise
+        if getattr(err, "key_path", None):
             decoding = err
         if err.__cause__ is None:
             break
