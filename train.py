@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import time
 
 from openfly_agent.data.openfly_reader import annotation_path
 from openfly_agent.toolchain.config import GenerateConfig
@@ -40,6 +41,7 @@ from openfly_agent.utils.logging_utils import setup_logging
 
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
+RANK_ERROR_GRACE_S = 60.0  # how long a process other than rank 0 leaves rank 0 to say an input error
 RUN_SUBFOLDERS = ("logs", "checkpoints", "tokenizer")  # what a run creates in its output_dir
 
 logger = logging.getLogger("train")
@@ -80,9 +82,16 @@ def report(result, cfg) -> None:
 
 def say_error(message: str) -> None:
     """The one line of an input error on stderr, from the first process only: every process of a launch
-    (`RANK`, set by accelerate and torchrun) meets the same error, and one line says it."""
-    if int(os.environ.get("RANK", "0")) == 0:
-        print(f"train.py: {message}", file=sys.stderr)
+    (`RANK`, set by accelerate and torchrun) meets the same error, and one line says it.
+
+    The other processes wait before they exit: the launcher stops the whole launch as soon as one process
+    exits, and a process that exited first would cut rank 0 off before its line. Rank 0's exit ends the wait
+    (the launcher stops the rest); a process still running after `RANK_ERROR_GRACE_S` met an error rank 0
+    did not, and says it itself.
+    """
+    if int(os.environ.get("RANK", "0")) != 0:
+        time.sleep(RANK_ERROR_GRACE_S)
+    print(f"train.py: {message}", file=sys.stderr)
 
 
 def run(argv: list[str], state: dict) -> int:
@@ -101,9 +110,9 @@ def run(argv: list[str], state: dict) -> int:
         ensure_dataset(cfg)
         result = train(cfg)
     except (ParsingError, PreflightError, UnknownOptionError) as err:
-        say_error(root_cause(err))
         if "output_dir" in state:  # a failed start leaves no empty run folder (every process: no race)
             remove_empty_dirs(state["output_dir"], RUN_SUBFOLDERS)
+        say_error(root_cause(err))
         return EXIT_BAD_INPUT
     except Exception as err:  # data that fails to read, before or during training (also in a loader worker)
         message = data_error_message(err)

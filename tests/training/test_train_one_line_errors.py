@@ -5,11 +5,12 @@ Also under a two-process launch: the line is printed once (by rank 0), not once 
 
 from __future__ import annotations
 
+import importlib.util
 import shutil
 import sys
 
 import pytest
-from conftest import run_script, train_args, train_main
+from conftest import REPO_ROOT, run_script, train_args, train_main
 
 
 @pytest.fixture(scope="module")
@@ -76,3 +77,19 @@ def test_a_preflight_error_under_a_launcher_is_printed_once(tmp_path):
     ], done.stderr[-3000:]
     assert "failed (exitcode: 2)" in done.stderr  # each process exited 2; the launcher reports that
     assert not (tmp_path / "run").exists()
+
+
+def test_a_process_other_than_rank_0_says_the_error_once_its_wait_is_over(monkeypatch, capsys):
+    """Rank 0 is left the time to say an error; a process rank 0 did not stop by then says it itself."""
+    spec = importlib.util.spec_from_file_location("train_entry_point", REPO_ROOT / "train.py")
+    entry = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(entry)
+    waits = []
+    monkeypatch.setattr(entry.time, "sleep", waits.append)
+    monkeypatch.setenv("RANK", "1")
+    entry.say_error("dataset root x does not exist")
+    assert waits == [entry.RANK_ERROR_GRACE_S]
+    assert capsys.readouterr().err == "train.py: dataset root x does not exist\n"
+    monkeypatch.setenv("RANK", "0")
+    entry.say_error("dataset root x does not exist")
+    assert waits == [entry.RANK_ERROR_GRACE_S]  # rank 0 says it at once
