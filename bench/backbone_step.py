@@ -18,7 +18,7 @@ import time
 import torch
 
 from openfly_agent.model.config import CNN_STEMS, VisionConfig
-from openfly_agent.model.conv_vision import ConvVisionBackbone
+from openfly_agent.model.vision.conv import ConvVisionBackbone
 
 
 def main() -> None:

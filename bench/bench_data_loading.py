@@ -24,8 +24,8 @@ from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore, decode_image, encode_image
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.writer import OpenFlyDatasetWriter
-from openfly_agent.model.action_tokenizer import ActionTokenizer
-from openfly_agent.model.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.language.action_tokenizer import ActionTokenizer
+from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
 
 def synthetic_frame(size: int, rng: np.random.Generator) -> np.ndarray:

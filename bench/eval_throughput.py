@@ -35,7 +35,7 @@ from openfly_agent.eval.distributed import ProcessInfo  # noqa: E402
 from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env  # noqa: E402
 from openfly_agent.eval.rollout import LockstepRunner  # noqa: E402
 from openfly_agent.model.config import tiny_config  # noqa: E402
-from openfly_agent.model.tokenizer import train_bpe_tokenizer  # noqa: E402
+from openfly_agent.model.language.tokenizer import train_bpe_tokenizer  # noqa: E402
 from openfly_agent.toolchain.config import GenerateConfig, RenderConfig, SceneConfig  # noqa: E402
 from openfly_agent.toolchain.generate import generate  # noqa: E402
 

@@ -36,7 +36,7 @@ def main() -> None:
     # lazy: torch and the training stack; --help stays fast
     from openfly_agent.data.dataset import NavigationStepDataset  # lazy: torch
     from openfly_agent.data.memory_occupancy import memory_occupancy  # lazy: torch
-    from openfly_agent.model.keyframes import KeyframeSelector  # lazy: the model package
+    from openfly_agent.model.memory.keyframes import KeyframeSelector  # lazy: the model package
     from openfly_agent.training.builder import load_splits  # lazy: torch and transformers
     from openfly_agent.training.config import TrainConfig  # lazy: the training stack
     from openfly_agent.utils.config import config_from_dict  # lazy: after the sys.path insert above

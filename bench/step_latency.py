@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from openfly_agent.model.config import MemoryConfig, MergingConfig, ModelConfig, make_model_config
-from openfly_agent.model.random_init import materialize_random_
-from openfly_agent.model.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.persistence.random_init import materialize_random_
 
 INSTRUCTIONS = [
     "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower.",

@@ -10,7 +10,7 @@ files (a byte-level BPE of at most 1,024 tokens trained here, with a pad token; 
 Llama-2's). Key names and shapes are the real ones of the model config: every tensor the agent loads
 (`to_openvla_state_dict`) plus the ViT parts it prunes (the last blocks, the final norms, SigLIP's pooling
 head), so `--size full` holds the released openvla-7b's 7,541,237,184 parameters. Values are random: matrices
-N(0, 0.02), norm weights 1, LayerScale 1e-5, biases 0 (the rule of model/random_init.py).
+N(0, 0.02), norm weights 1, LayerScale 1e-5, biases 0 (the rule of model/persistence/random_init.py).
 
 `--size full` is configs/model/openfly-7b.yaml as shipped; `--size reduced` is the same model with
 `REDUCED_WIDTH` (below), the width the CPU tests train the 7B configs at: the same module classes (timm
@@ -29,10 +29,14 @@ import torch
 
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import ModelConfig
-from openfly_agent.model.openvla_loader import VISION_PREFIXES, agent_to_openvla_key, to_openvla_state_dict
-from openfly_agent.model.random_init import INIT_STD, LAYER_SCALE_INIT
-from openfly_agent.model.tokenizer import train_bpe_tokenizer
-from openfly_agent.model.vision import build_featurizers
+from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.persistence.openvla_loader import (
+    VISION_PREFIXES,
+    agent_to_openvla_key,
+    to_openvla_state_dict,
+)
+from openfly_agent.model.persistence.random_init import INIT_STD, LAYER_SCALE_INIT
+from openfly_agent.model.vision.backbone import build_featurizers
 from openfly_agent.utils.config import load_yaml_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -34,9 +34,9 @@ from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.model.config import LoraSettings, VisionConfig, make_model_config
 from openfly_agent.model.freeze import freeze
-from openfly_agent.model.lora import attach_lora
-from openfly_agent.model.random_init import materialize_random_
-from openfly_agent.model.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.language.lora import attach_lora
+from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.persistence.random_init import materialize_random_
 from openfly_agent.training.metrics import count_llm_tokens
 from openfly_agent.training.modes import enable_gradient_checkpointing
 from openfly_agent.training.optim import make_optimizer

@@ -127,7 +127,7 @@ def save_small_agent(folder, texts, seed: int = 0) -> None:
     import torch
 
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
     torch.manual_seed(seed)
@@ -160,8 +160,8 @@ def save_released_format_agent(folder, texts, seed: int = 0):
 
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.config import ActionHeadConfig, MemoryConfig, PromptConfig, config_to_dict
-    from openfly_agent.model.openvla_loader import to_openvla_state_dict
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.persistence.openvla_loader import to_openvla_state_dict
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,7 @@ logger = logging.getLogger(__name__)
 
 
 class KeyframeSelector(Protocol):
-    """What the dataset needs from model/keyframes.py."""
+    """What the dataset needs from model/memory/keyframes.py."""
 
     def select(self, actions: np.ndarray, box_areas: list[float | None] | None, t: int) -> list[list[int]]:
         """Keyframe sets for step t: lists of frame indices < t, oldest set first.
@@ -67,7 +67,7 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         history: one of "keyframes", "uniform", "random", "none" (`data.history.mode`).
         capacity: K, memory sets per sample (the model's `memory.capacity`).
         set_size: S, frames per set (the model's keyframe set size, 2 x radius + 1).
-        keyframe_selector: required for history "keyframes" (model/keyframes.py).
+        keyframe_selector: required for history "keyframes" (model/memory/keyframes.py).
         seed: seed of the "random" mode.
     """
 

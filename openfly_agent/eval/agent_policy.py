@@ -18,10 +18,10 @@ from openfly_agent import constants as C
 from openfly_agent.eval.box_servo import OBS_TARGET_BOX
 from openfly_agent.eval.config import AgentSettings, EvalInputError
 from openfly_agent.eval.policy import OBS_EPISODE_ID
-from openfly_agent.model.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
 from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
-from openfly_agent.model.lora_checkpoint import checkpoint_weights, load_lora_agent
-from openfly_agent.model.tokenizer import load_tokenizer
+from openfly_agent.model.language.tokenizer import load_tokenizer
+from openfly_agent.model.persistence.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
+from openfly_agent.model.persistence.lora_checkpoint import checkpoint_weights, load_lora_agent
 from openfly_agent.utils.config import load_yaml_config
 
 logger = logging.getLogger(__name__)
@@ -182,7 +182,7 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     wrote one, else the adapter on its base (the run's `init.checkpoint`).
     """
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
-    from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
+    from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
 
     folder = checkpoint_folder(checkpoint)
     dtype = resolve_dtype(settings.dtype, device)

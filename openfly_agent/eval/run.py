@@ -36,7 +36,7 @@ from openfly_agent.eval.policy import Policy
 from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
 from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, groups, teleport_record
 from openfly_agent.eval.slots import SlotEnv
-from openfly_agent.model.checkpoint_path import UnreadableWeightsError, check_weights_readable
+from openfly_agent.model.persistence.checkpoint_path import UnreadableWeightsError, check_weights_readable
 
 logger = logging.getLogger(__name__)
 

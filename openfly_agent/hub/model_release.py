@@ -30,18 +30,18 @@ from openfly_agent.hub.model_card import (
 )
 from openfly_agent.hub.results import load_results, resolve_results_path
 from openfly_agent.hub.results_source import check_results_weights, load_baselines
-from openfly_agent.model.checkpoint_path import (
+from openfly_agent.model.persistence.checkpoint_path import (
     check_navigation_stage,
     check_weights_readable,
     resolve_checkpoint_folder,
 )
-from openfly_agent.model.lora_checkpoint import (
+from openfly_agent.model.persistence.lora_checkpoint import (
     base_of,
     checkpoint_weights,
     is_lora_checkpoint,
     load_lora_agent,
 )
-from openfly_agent.model.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
+from openfly_agent.model.persistence.remote_code import CONFIGURATION_FILE, MODELING_FILE, PROCESSING_FILE
 from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)
@@ -126,7 +126,7 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
 def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: Path, max_shard_size: str):
     """Save the weights into `out` in the chosen form; returns (agent, description of the form)."""
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
-    from openfly_agent.model.lora import merge_lora, save_lora_adapter  # lazy: torch
+    from openfly_agent.model.language.lora import merge_lora, save_lora_adapter  # lazy: torch
     from openfly_agent.training.export import write_model_metadata  # lazy: torch + accelerate
 
     if base is None:

@@ -1,4 +1,5 @@
-"""Level-1 model: vision, projector, LLM, grounding, keyframes, merging, memory, actions, agent.
+"""Level-1 model: the agent (agent.py) and its components by sub-package: vision/, grounding/, memory/, language/,
+persistence/ (checkpoint folders).
 
 The torch / transformers parts are imported on first use, so `import openfly_agent.model` stays cheap.
 """
@@ -7,27 +8,27 @@ from __future__ import annotations
 
 import importlib
 
-from .config import ModelConfig, make_model_config, openfly_7b_config, tiny_config
+from openfly_agent.model.config import ModelConfig, make_model_config, openfly_7b_config, tiny_config
 
 _LAZY = {
     "OpenFlyAgent": ".agent",
     "register_auto_classes": ".agent",
     "OpenFlyAgentConfig": ".pretrained_config",
     "OpenFlyProcessor": ".processor",
-    "ImageTransform": ".image_transform",
-    "ActionTokenizer": ".action_tokenizer",
-    "KeyframeSelector": ".keyframes",
-    "MemoryBank": ".memory",
-    "grid_pool": ".memory",
-    "merge_into_reference": ".merging",
-    "train_bpe_tokenizer": ".tokenizer",
-    "load_tokenizer": ".tokenizer",
-    "attach_lora": ".lora",
-    "merge_lora": ".lora",
-    "save_lora_adapter": ".lora",
-    "load_lora_adapter": ".lora",
-    "load_openvla_weights": ".openvla_loader",
-    "agent_from_openvla_checkpoint": ".openvla_loader",
+    "ImageTransform": ".vision.image_transform",
+    "ActionTokenizer": ".language.action_tokenizer",
+    "KeyframeSelector": ".memory.keyframes",
+    "MemoryBank": ".memory.bank",
+    "grid_pool": ".memory.bank",
+    "merge_into_reference": ".memory.merging",
+    "train_bpe_tokenizer": ".language.tokenizer",
+    "load_tokenizer": ".language.tokenizer",
+    "attach_lora": ".language.lora",
+    "merge_lora": ".language.lora",
+    "save_lora_adapter": ".language.lora",
+    "load_lora_adapter": ".language.lora",
+    "load_openvla_weights": ".persistence.openvla_loader",
+    "agent_from_openvla_checkpoint": ".persistence.openvla_loader",
 }
 
 __all__ = ["ModelConfig", "make_model_config", "openfly_7b_config", "tiny_config", *_LAZY]

@@ -30,27 +30,36 @@ from openfly_agent.constants import (
     MODEL_TYPE,
     PIXEL_VALUES,
 )
-
-from .agent_inference import ClosedLoopInference
-from .agent_io import AgentPersistence
-from .box_token import BoxTokenEmbedding, insert_before_targets, jitter_boxes, last_true_index
-from .config import HEAD_DISCRETE, ModelConfig, config_to_dict
-from .conv_vision import ConvVisionBackbone
-from .episode import EpisodeState
-from .factory import make_action_tokenizer, resolve_vocabulary
-from .freeze import freeze
-from .grounding import GroundingOutput, grounding_labels, grounding_loss, make_grounding_head
-from .grounding_layers import QueryReader
-from .keyframes import KeyframeSelector
-from .length_groups import run_in_length_groups
-from .llm import build_language_model, unwrap_causal_lm
-from .memory_encoding import MemoryEncoding
-from .pretrained_config import OpenFlyAgentConfig
-from .processor import OpenFlyProcessor
-from .projector import FusedMLPProjector
-from .sequence import position_ids_from_mask, splice_after_bos
-from .tokenizer import load_tokenizer
-from .vision import build_vision_backbone
+from openfly_agent.model.agent_inference import ClosedLoopInference
+from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig, config_to_dict
+from openfly_agent.model.episode import EpisodeState
+from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
+from openfly_agent.model.freeze import freeze
+from openfly_agent.model.grounding.box_token import (
+    BoxTokenEmbedding,
+    insert_before_targets,
+    jitter_boxes,
+    last_true_index,
+)
+from openfly_agent.model.grounding.head import (
+    GroundingOutput,
+    grounding_labels,
+    grounding_loss,
+    make_grounding_head,
+)
+from openfly_agent.model.grounding.layers import QueryReader
+from openfly_agent.model.language.length_groups import run_in_length_groups
+from openfly_agent.model.language.llm import build_language_model, unwrap_causal_lm
+from openfly_agent.model.language.sequence import position_ids_from_mask, splice_after_bos
+from openfly_agent.model.language.tokenizer import load_tokenizer
+from openfly_agent.model.memory.encoding import MemoryEncoding
+from openfly_agent.model.memory.keyframes import KeyframeSelector
+from openfly_agent.model.persistence.agent_io import AgentPersistence
+from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+from openfly_agent.model.processor import OpenFlyProcessor
+from openfly_agent.model.vision.backbone import build_vision_backbone
+from openfly_agent.model.vision.conv import ConvVisionBackbone
+from openfly_agent.model.vision.projector import FusedMLPProjector
 
 logger = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 
 `ClosedLoopInference` is a mixin of `OpenFlyAgent` (model/agent.py): it uses the agent's `processor`,
 `vision_backbone`, `projector`, `run_llm`, `lm_logits`, `ground`, `box_token_embed`, `action_tokenizer`,
-`keyframe_selector`, `model_cfg` and the memory encoding of model/memory_encoding.py.
+`keyframe_selector`, `model_cfg` and the memory encoding of model/memory/encoding.py.
 """
 
 from __future__ import annotations
@@ -13,13 +13,12 @@ from typing import Any
 import torch
 
 from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
-
-from .box_token import given_boxes
-from .config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT
-from .decoding import decode_one, greedy_decode, new_cache, run_cached
-from .episode import Box, EpisodeState, StepResult, check_observations
-from .memory import MemoryBank
-from .sequence import left_pad
+from openfly_agent.model.config import HEAD_DISCRETE, MODE_OPENVLA_COMPAT
+from openfly_agent.model.episode import Box, EpisodeState, StepResult, check_observations
+from openfly_agent.model.grounding.box_token import given_boxes
+from openfly_agent.model.language.decoding import decode_one, greedy_decode, new_cache, run_cached
+from openfly_agent.model.language.sequence import left_pad
+from openfly_agent.model.memory.bank import MemoryBank
 
 
 class ClosedLoopInference:

@@ -8,9 +8,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-from .config_checks import check_choice, check_positive, fill_tiny_fields
-from .grounding_config import GroundingConfig
-from .vision_config import (
+from openfly_agent.model.config_checks import check_choice, check_positive, fill_tiny_fields
+from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.vision.config import (
     CNN_INIT_NORMAL,
     CNN_INIT_TIMM,
     CNN_INITS,
@@ -89,7 +89,7 @@ class LLMConfig:
     max_length: int = 2048
     attn_implementation: str = "sdpa"  # sdpa | eager | flash_attention_2 (passed to transformers)
     # training forward: the decoder stack runs on up to this many groups of rows of similar length, each cut to
-    # its longest row (model/length_groups.py; same loss, fewer padded positions); 1 runs the padded batch in one
+    # its longest row (model/language/length_groups.py; same loss, fewer padded positions); 1 runs the padded batch in one
     # call (the 7B presets)
     length_groups: int = 3
     # Special token ids (taken from the tokenizer when the model is built with one).

@@ -13,8 +13,7 @@ from typing import Any
 import torch
 
 from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
-
-from .memory import MemoryBank
+from openfly_agent.model.memory.bank import MemoryBank
 
 Box = tuple[float, float, float, float]  # (cx, cy, w, h), normalised to [0, 1]
 

@@ -5,8 +5,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-from .action_tokenizer import ActionTokenizer, select_action_stats
-from .config import HEAD_DISCRETE, LLAMA2_PADDED_VOCAB, LLM_LLAMA2_7B, NUM_ACTION_SLOTS, ModelConfig
+from openfly_agent.model.config import (
+    HEAD_DISCRETE,
+    LLAMA2_PADDED_VOCAB,
+    LLM_LLAMA2_7B,
+    NUM_ACTION_SLOTS,
+    ModelConfig,
+)
+from openfly_agent.model.language.action_tokenizer import ActionTokenizer, select_action_stats
 
 logger = logging.getLogger(__name__)
 

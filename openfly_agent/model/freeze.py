@@ -40,7 +40,7 @@ def freeze(agent: nn.Module, stage: str) -> dict[str, int]:
 
     Args:
         agent: an `OpenFlyAgent`.
-        stage: one of `FREEZE_STAGES`; `lora` needs adapters attached (model/lora.py).
+        stage: one of `FREEZE_STAGES`; `lora` needs adapters attached (model/language/lora.py).
 
     Returns:
         Trainable parameter count per top-level part.

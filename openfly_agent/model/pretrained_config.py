@@ -10,8 +10,7 @@ from huggingface_hub.dataclasses import strict
 from transformers import PreTrainedConfig
 
 from openfly_agent.constants import MODEL_TYPE
-
-from .config import (
+from openfly_agent.model.config import (
     LLM_TINY,
     TINY_LLM,
     TINY_VISION,

@@ -20,11 +20,10 @@ from transformers import BatchFeature
 from transformers.processing_utils import ProcessorMixin
 
 from openfly_agent.constants import ATTENTION_MASK, IGNORE_INDEX, INPUT_IDS, LABELS, PIXEL_VALUES
-
-from .action_tokenizer import ActionTokenizer
-from .config import ModelConfig, PromptConfig
-from .factory import action_stats_of, make_action_tokenizer
-from .image_transform import ImageTransform
+from openfly_agent.model.config import ModelConfig, PromptConfig
+from openfly_agent.model.factory import action_stats_of, make_action_tokenizer
+from openfly_agent.model.language.action_tokenizer import ActionTokenizer
+from openfly_agent.model.vision.image_transform import ImageTransform
 
 DEFAULT_TEMPLATE = PromptConfig().template
 DEFAULT_GROUNDING_TEMPLATE = PromptConfig().grounding_template

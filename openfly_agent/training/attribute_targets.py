@@ -1,5 +1,5 @@
 """The target landmark's attributes as class ids, for the grounding head's attribute loss
-(`model.grounding.attribute_weight`; model/grounding.py, `attribute_loss`).
+(`model.grounding.attribute_weight`; model/grounding/head.py, `attribute_loss`).
 
 Embedded cities are generated from their seed, so a (scene id, landmark id) pair names a landmark whose colour,
 type, size and feature the city generator knows; the ids index the city's vocabularies (sim/city_vocab.py), in

@@ -23,14 +23,14 @@ from openfly_agent.data.grounding import read_grounding_expressions
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.checkpoint_path import (
+from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
+from openfly_agent.model.language.tokenizer import load_tokenizer, train_bpe_tokenizer
+from openfly_agent.model.persistence.checkpoint_path import (
     UnreadableWeightsError,
     check_weights_readable,
     resolve_checkpoint_folder,
 )
-from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
-from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint
-from openfly_agent.model.tokenizer import load_tokenizer, train_bpe_tokenizer
+from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.training.attribute_targets import LandmarkAttributes, vocabulary_sizes
 from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
 from openfly_agent.training.init_matching import load_matching_weights

@@ -2,7 +2,7 @@
 
 `last` is a relative symlink to the newest `step-N/` (so Hugging Face loaders open it like any model folder),
 moved by creating the new link beside it and renaming it over the old one. Runs written before kept a one-line
-pointer file; it is still read (model/checkpoint_path.py) and replaced by a symlink at the next commit.
+pointer file; it is still read (model/persistence/checkpoint_path.py) and replaced by a symlink at the next commit.
 
 Weights are given the mode of the other files (the umask's) before the commit: safetensors writes them 0600.
 
@@ -19,7 +19,7 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.constants import CHECKPOINTS_DIR, LAST_POINTER_NAME
-from openfly_agent.model.checkpoint_path import last_pointer_target
+from openfly_agent.model.persistence.checkpoint_path import last_pointer_target
 from openfly_agent.utils.file_modes import follow_umask
 
 logger = logging.getLogger(__name__)

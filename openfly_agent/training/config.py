@@ -134,7 +134,7 @@ class BatchConfig:
 
 @dataclass
 class LoraTrainingConfig(LoraSettings):
-    """peft LoRA on the LLM (model/lora.py), used when `freeze_stage=lora`: adapters, projector and grounding head
+    """peft LoRA on the LLM (model/language/lora.py), used when `freeze_stage=lora`: adapters, projector and grounding head
     train.
 
     Inherits rank, alpha, dropout, target_modules ("all-linear" or comma-separated names) and init from the

@@ -29,9 +29,9 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
-from openfly_agent.model.conv_vision import cell_colour_stats, normalised_pixels
-from openfly_agent.model.grounding_cells import CellGroundingHead
+from openfly_agent.model.grounding.cells import CellGroundingHead
+from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.vision.conv import cell_colour_stats, normalised_pixels
 from openfly_agent.sim.scene import Landmark
 from openfly_agent.toolchain.grounding import source_render_settings
 from openfly_agent.training.attribute_targets import ATTRIBUTE_FIELDS, LandmarkAttributes

@@ -20,9 +20,9 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
-from openfly_agent.model.grounding import box_cells, iou_and_giou
-from openfly_agent.model.grounding_cells import CellGroundingHead
+from openfly_agent.model.grounding.cells import CellGroundingHead
+from openfly_agent.model.grounding.head import box_cells, iou_and_giou
+from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.ema import load_live_weights

@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 from safetensors import safe_open
 
-from openfly_agent.model.checkpoint_path import checkpoint_files, resolve_checkpoint_folder
+from openfly_agent.model.persistence.checkpoint_path import checkpoint_files, resolve_checkpoint_folder
 
 
 @dataclass

@@ -7,7 +7,7 @@ import logging
 from torch import nn
 
 from openfly_agent.model.freeze import freeze
-from openfly_agent.model.lora import attach_lora
+from openfly_agent.model.language.lora import attach_lora
 from openfly_agent.training.config import TrainConfig
 
 logger = logging.getLogger(__name__)

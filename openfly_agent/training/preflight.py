@@ -15,7 +15,11 @@ from pathlib import Path
 from openfly_agent.data.config import DataConfig
 from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
 from openfly_agent.data.schema import SchemaError
-from openfly_agent.model.checkpoint_path import UnreadableWeightsError, checkpoint_files, open_safetensors
+from openfly_agent.model.persistence.checkpoint_path import (
+    UnreadableWeightsError,
+    checkpoint_files,
+    open_safetensors,
+)
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import BatchConfig, BatchSizeError
 

@@ -14,7 +14,7 @@ from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.writer import OpenFlyDatasetWriter
-from openfly_agent.model.action_tokenizer import CODEBOOK, ActionTokenizer
+from openfly_agent.model.language.action_tokenizer import CODEBOOK, ActionTokenizer
 from openfly_agent.model.processor import OpenFlyProcessor
 
 WORDS = ["what", "action", "should", "the", "robot", "take", "to", "fly", "red", "tower", "?", "1", "2", "3"]

@@ -16,7 +16,7 @@ from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, WEIGHTS_NAME
 from openfly_agent.hub.config import CardConfig, ModelReleaseConfig
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import build_model_release
-from openfly_agent.model.lora_checkpoint import load_lora_agent
+from openfly_agent.model.persistence.lora_checkpoint import load_lora_agent
 
 
 @pytest.fixture(scope="module")
@@ -24,8 +24,8 @@ def lora_run(tmp_path_factory):
     """A base checkpoint and a LoRA checkpoint trained on it (adapter, projector moved) as training writes."""
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.config import LoraSettings, make_model_config
-    from openfly_agent.model.lora import attach_lora
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.lora import attach_lora
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
     from openfly_agent.training.export import write_lora_folder
 
     root = tmp_path_factory.mktemp("lora")
@@ -61,7 +61,7 @@ def release(lora_run, form: str, **changes) -> Path:
 
 def test_merged_release_acts_like_the_adapter(lora_run):
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.lora import has_lora
+    from openfly_agent.model.language.lora import has_lora
 
     folder = release(lora_run, "merged")
     assert (folder / WEIGHTS_NAME).is_file() and not (folder / ADAPTER_DIR_NAME).exists()
@@ -184,7 +184,7 @@ def test_release_of_a_lora_run_takes_its_merged_model_else_adapter_on_base(lora_
 def test_a_merge_older_than_the_newest_checkpoint_or_an_older_step_is_not_taken(lora_run, lora_run_folder):
     import os
 
-    from openfly_agent.model.lora_checkpoint import checkpoint_weights
+    from openfly_agent.model.persistence.lora_checkpoint import checkpoint_weights
 
     step = lora_run_folder / "checkpoints" / "step-000010"
     assert checkpoint_weights(step).folder == lora_run_folder / "merged"

@@ -23,7 +23,7 @@ from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import build_model_release, resolve_checkpoint
-from openfly_agent.model.remote_code import AUTO_MAP
+from openfly_agent.model.persistence.remote_code import AUTO_MAP
 from openfly_agent.utils.processes import run_group
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -95,7 +95,7 @@ def source(tmp_path_factory):
     """A tiny-preset agent saved as a training checkpoint, with its behaviour on the probe."""
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.config import make_model_config
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     root = tmp_path_factory.mktemp("release")
     tokenizer = train_bpe_tokenizer(INSTRUCTIONS * 4, vocab_size=320, out_dir=root / "tokenizer")

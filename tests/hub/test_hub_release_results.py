@@ -28,7 +28,7 @@ def _training_run(root: Path, seed: int) -> Path:
 
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.config import make_model_config
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     tokenizer = train_bpe_tokenizer(TEXTS * 8, vocab_size=300, out_dir=None)
     torch.manual_seed(seed)

@@ -17,7 +17,7 @@ INSTRUCTIONS = [
 
 @pytest.fixture(scope="session")
 def tiny_tokenizer(tmp_path_factory):
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     return train_bpe_tokenizer(INSTRUCTIONS * 4, vocab_size=320, out_dir=tmp_path_factory.mktemp("tok"))
 

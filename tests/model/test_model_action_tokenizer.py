@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from openfly_agent.constants import MODEL_ACTION_IDS, OPENVLA_ACTION_VECTORS
-from openfly_agent.model.action_tokenizer import CODEBOOK, ActionTokenizer, select_action_stats
+from openfly_agent.model.language.action_tokenizer import CODEBOOK, ActionTokenizer, select_action_stats
 
 VOCAB_END = 32000
 EOS = 2

@@ -8,21 +8,21 @@ import pytest
 import torch
 
 from openfly_agent.model.config import GroundingConfig, MemoryConfig, MergingConfig, openfly_7b_config
-from openfly_agent.model.grounding import (
-    BoxRegressionHead,
-    GroundingOutput,
-    box_cells,
-    grounding_loss,
-    iou_and_giou,
-)
-from openfly_agent.model.grounding_cells import (
+from openfly_agent.model.grounding.cells import (
     CellGroundingHead,
     CellScorer,
     cell_centres,
     coarse_weights,
     windowed_softmax,
 )
-from openfly_agent.model.vision_config import VisionConfig
+from openfly_agent.model.grounding.head import (
+    BoxRegressionHead,
+    GroundingOutput,
+    box_cells,
+    grounding_loss,
+    iou_and_giou,
+)
+from openfly_agent.model.vision.config import VisionConfig
 
 LOG_KEYS = {"loss", "action_loss", "grounding_loss", "action_accuracy", "box_iou", "num_visible_boxes"}
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from openfly_agent.model.conv_vision import COLOUR_STATS, ConvVisionBackbone, cell_colour_stats
-from openfly_agent.model.vision_config import VisionConfig
+from openfly_agent.model.vision.config import VisionConfig
+from openfly_agent.model.vision.conv import COLOUR_STATS, ConvVisionBackbone, cell_colour_stats
 
 SMALL = {"image_size": 64, "cnn_channels": [16, 16, 16, 32], "cnn_stem_width": 16}  # narrower aborts oneDNN
 

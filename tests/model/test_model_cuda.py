@@ -78,8 +78,8 @@ def test_cuda_closed_loop_actions_equal_the_cpu_ones(make_agent):
 
 def test_cuda_dense_attribute_loss_and_patch_stem_give_the_cpu_values():
     from openfly_agent.model.config import VisionConfig
-    from openfly_agent.model.conv_vision import ConvVisionBackbone
-    from openfly_agent.model.landmark_cells import dense_attribute_loss
+    from openfly_agent.model.grounding.landmark_cells import dense_attribute_loss
+    from openfly_agent.model.vision.conv import ConvVisionBackbone
 
     generator = torch.Generator().manual_seed(0)
     logits = torch.randn(3, 64, 29, generator=generator)  # 8 x 8 cells, the embedded vocabularies

@@ -1,4 +1,4 @@
-"""The grounding head's attribute loss and attribute match (model/grounding.py), checked by hand on tiny logits."""
+"""The grounding head's attribute loss and attribute match (model/grounding/head.py), checked by hand on tiny logits."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from openfly_agent.model.config import GroundingConfig
-from openfly_agent.model.grounding import GroundingOutput, attribute_loss, grounding_loss
-from openfly_agent.model.grounding_cells import CellGroundingHead, attribute_match, fine_grid
+from openfly_agent.model.grounding.cells import CellGroundingHead, attribute_match, fine_grid
+from openfly_agent.model.grounding.head import GroundingOutput, attribute_loss, grounding_loss
 
 CFG = GroundingConfig(dim=8, num_heads=2, attribute_weight=2.0, attribute_classes=[2, 2, 2, 2])
 

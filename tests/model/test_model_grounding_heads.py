@@ -7,9 +7,12 @@ import pytest
 import torch
 
 from openfly_agent.model.config import GroundingConfig
-from openfly_agent.model.grounding import BoxRegressionHead, make_grounding_head
-from openfly_agent.model.grounding_cells import CellGroundingHead
-from openfly_agent.model.openvla_loader import agent_from_openvla_checkpoint, to_openvla_state_dict
+from openfly_agent.model.grounding.cells import CellGroundingHead
+from openfly_agent.model.grounding.head import BoxRegressionHead, make_grounding_head
+from openfly_agent.model.persistence.openvla_loader import (
+    agent_from_openvla_checkpoint,
+    to_openvla_state_dict,
+)
 
 ONE_LAYER = [  # a CrossAttentionLayer's keys
     f"{name}.{kind}"

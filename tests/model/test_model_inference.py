@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 
-from openfly_agent.model.action_tokenizer import CODEBOOK
 from openfly_agent.model.config import (
     ActionHeadConfig,
     GroundingConfig,
@@ -14,10 +13,11 @@ from openfly_agent.model.config import (
     MemoryConfig,
     PromptConfig,
 )
-from openfly_agent.model.decoding import greedy_decode, new_cache, run_cached
 from openfly_agent.model.episode import compat_history_indices
-from openfly_agent.model.sequence import left_pad
-from openfly_agent.model.vision_config import VisionConfig
+from openfly_agent.model.language.action_tokenizer import CODEBOOK
+from openfly_agent.model.language.decoding import greedy_decode, new_cache, run_cached
+from openfly_agent.model.language.sequence import left_pad
+from openfly_agent.model.vision.config import VisionConfig
 
 INSTRUCTIONS = [
     "Fly to the red tower and turn left.",

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from openfly_agent.model.instruction_film import InstructionFiLM, mean_prompt_embedding
-from openfly_agent.model.sequence import left_pad_ids
+from openfly_agent.model.language.sequence import left_pad_ids
+from openfly_agent.model.vision.instruction_film import InstructionFiLM, mean_prompt_embedding
 
 
 def test_mean_prompt_embedding_averages_the_prompt_positions_only():

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from openfly_agent.model.keyframes import (
+from openfly_agent.model.memory.keyframes import (
     KeyframeSelector,
     candidate_set,
     change_points,

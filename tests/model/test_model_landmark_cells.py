@@ -1,4 +1,4 @@
-"""Dense attribute labels (model/landmark_cells.py): each cell named by the smallest landmark it shows, checked by
+"""Dense attribute labels (model/grounding/landmark_cells.py): each cell named by the smallest landmark it shows, checked by
 hand on a 4 x 4 grid, and their loss inside `grounding_loss`."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import torch
 import torch.nn.functional as F
 
 from openfly_agent.model.config import GroundingConfig
-from openfly_agent.model.grounding import GroundingOutput, grounding_loss
-from openfly_agent.model.landmark_cells import dense_attribute_loss, landmark_cell_labels
+from openfly_agent.model.grounding.head import GroundingOutput, grounding_loss
+from openfly_agent.model.grounding.landmark_cells import dense_attribute_loss, landmark_cell_labels
 
 # a 4 x 4 grid: cell centres at 0.125, 0.375, 0.625, 0.875 on each axis
 WIDE = [0.5, 0.5, 1.0, 0.5]  # holds the centres of rows 1 and 2 (y 0.375, 0.625), every column

@@ -1,4 +1,4 @@
-"""model/length_groups.py: the grouping plan (hand-checked, optimal against brute force) and the grouped decoder
+"""model/language/length_groups.py: the grouping plan (hand-checked, optimal against brute force) and the grouped decoder
 stack equal to one call (hidden states, the agent's loss and gradients)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import random
 import pytest
 import torch
 
-from openfly_agent.model.length_groups import MIN_SAVING, plan_length_groups, run_in_length_groups
+from openfly_agent.model.language.length_groups import MIN_SAVING, plan_length_groups, run_in_length_groups
 
 
 def cost(lengths: list[int], groups: list[list[int]]) -> int:
@@ -65,7 +65,7 @@ def tiny_llama():
 
 
 def test_grouped_hidden_states_and_gradients_equal_one_call():
-    from openfly_agent.model.sequence import position_ids_from_mask
+    from openfly_agent.model.language.sequence import position_ids_from_mask
 
     model = tiny_llama()
 

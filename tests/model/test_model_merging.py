@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from openfly_agent.model.memory import MemoryBank, grid_pool
-from openfly_agent.model.merging import choose_reference, merge_into_reference
+from openfly_agent.model.memory.bank import MemoryBank, grid_pool
+from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
 
 
 def _random_frames(n=2, s=3, p=16, d=8):

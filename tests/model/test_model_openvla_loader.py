@@ -10,7 +10,7 @@ from safetensors.torch import save_file
 from timm.models.vision_transformer import VisionTransformer
 from transformers import LlamaConfig, LlamaForCausalLM
 
-from openfly_agent.model.openvla_loader import (
+from openfly_agent.model.persistence.openvla_loader import (
     NEW_MODULE_PREFIXES,
     agent_from_openvla_checkpoint,
     load_openvla_weights,

@@ -10,11 +10,17 @@ import numpy as np
 import pytest
 import torch
 
-from openfly_agent.model.action_tokenizer import CODEBOOK
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import ActionHeadConfig, LoraSettings
 from openfly_agent.model.freeze import FREEZE_STAGES
-from openfly_agent.model.lora import attach_lora, has_lora, load_lora_adapter, merge_lora, save_lora_adapter
+from openfly_agent.model.language.action_tokenizer import CODEBOOK
+from openfly_agent.model.language.lora import (
+    attach_lora,
+    has_lora,
+    load_lora_adapter,
+    merge_lora,
+    save_lora_adapter,
+)
 from openfly_agent.utils.processes import run_group
 
 NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
@@ -22,7 +28,7 @@ NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).
 
 def _logits(agent, batch) -> torch.Tensor:
     """Full-vocabulary logits at every position of the training layout (eval mode, no grad)."""
-    from openfly_agent.model.sequence import splice_after_bos
+    from openfly_agent.model.language.sequence import splice_after_bos
 
     with torch.no_grad():
         visual, visual_mask = agent.encode_visual(batch)

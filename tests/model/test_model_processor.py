@@ -12,8 +12,8 @@ from test_model_inference import memory_agent
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
-from openfly_agent.model.action_tokenizer import CODEBOOK
 from openfly_agent.model.config import ActionHeadConfig
+from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.processor import OpenFlyProcessor
 
 INSTRUCTION = "Fly to the red tower and turn left."

@@ -1,4 +1,4 @@
-"""model/random_init.py: a meta-built agent materialised with random weights is complete and acts."""
+"""model/persistence/random_init.py: a meta-built agent materialised with random weights is complete and acts."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import torch
 
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import make_model_config
-from openfly_agent.model.random_init import INIT_STD, LAYER_SCALE_INIT, materialize_random_
-from openfly_agent.model.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
+from openfly_agent.model.persistence.random_init import INIT_STD, LAYER_SCALE_INIT, materialize_random_
 
 
 def test_meta_agent_materialised_with_the_documented_values():

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from openfly_agent.model.tokenizer import load_tokenizer, tiny_vocab_size, train_bpe_tokenizer
+from openfly_agent.model.language.tokenizer import load_tokenizer, tiny_vocab_size, train_bpe_tokenizer
 
 TEXTS = [
     "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower.",

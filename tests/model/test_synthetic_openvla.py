@@ -5,12 +5,12 @@ from __future__ import annotations
 import importlib
 import json
 
-from openfly_agent.model.openvla_loader import load_openvla_weights
+from openfly_agent.model.persistence.openvla_loader import load_openvla_weights
 
 
 def test_the_full_layout_counts_the_released_openvla_7b_parameters():
     writer = importlib.import_module("bench.synthetic_openvla")
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     shapes = writer.openvla_shapes(writer.model_config("full"), train_bpe_tokenizer(writer.CORPUS, 1024))
     assert sum(shape.numel() for shape in shapes.values()) == 7_541_237_184  # built on the meta device

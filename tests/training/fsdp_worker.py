@@ -48,7 +48,7 @@ from openfly_agent.model.config import (  # noqa: E402
     VisionConfig,
     tiny_config,
 )
-from openfly_agent.model.tokenizer import load_tokenizer  # noqa: E402
+from openfly_agent.model.language.tokenizer import load_tokenizer  # noqa: E402
 from openfly_agent.training.builder import make_parameters_contiguous  # noqa: E402
 
 STEPS = 3

@@ -23,7 +23,7 @@ TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--np
 @pytest.fixture(scope="module")
 def fsdp_results(tmp_path_factory) -> dict[str, dict]:
     from bench.train_throughput import instructions  # the synthetic batches' words
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     out = tmp_path_factory.mktemp("fsdp")
     tokenizer = out / "tokenizer"

@@ -134,7 +134,7 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
     )
     assert "the LoRA run's merged model" in output
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.grounding import BoxRegressionHead
+    from openfly_agent.model.grounding.head import BoxRegressionHead
 
     agent = OpenFlyAgent.from_pretrained(str(release)).eval()
     merged = OpenFlyAgent.from_pretrained(str(run / "merged"))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from openfly_agent.model.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.training.checkpoint import CheckpointManager, checkpoint_name
 from openfly_agent.training.state import TrainerState
 from openfly_agent.utils.processes import run_group
@@ -133,7 +133,7 @@ def test_hugging_face_loaders_open_last_in_a_fresh_process(tmp_path):
 
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.config import make_model_config
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 
     text = ["fly to the red tower and stop", "turn left at the blue dome then ascend"]
     tokenizer = train_bpe_tokenizer(text * 8, vocab_size=300, out_dir=tmp_path / "tokenizer")

@@ -12,7 +12,7 @@ from openfly_agent.training.preflight import PreflightError
 
 def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_path):
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.lora import TRAINABLES_NAME
+    from openfly_agent.model.language.lora import TRAINABLES_NAME
 
     cfg = make_config(
         generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__rank=4,

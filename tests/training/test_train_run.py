@@ -32,7 +32,7 @@ def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path
     from openfly_agent.data.frames import FrameStore
     from openfly_agent.data.openfly_reader import load_openfly_dataset
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.tokenizer import train_bpe_tokenizer
+    from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
     from openfly_agent.training.optim import make_optimizer
 
     cfg = make_config(generated_dataset, tmp_path)

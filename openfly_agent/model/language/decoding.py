@@ -14,8 +14,8 @@ from typing import Any
 
 import torch
 
-from .llm import unwrap_causal_lm
-from .sequence import position_ids_from_mask
+from openfly_agent.model.language.llm import unwrap_causal_lm
+from openfly_agent.model.language.sequence import position_ids_from_mask
 
 
 def new_cache(agent) -> Any:

@@ -1,5 +1,5 @@
 """Frames and keyframe memory -> features and LLM tokens: frames through the vision backbone (under the
-instruction's code when it is conditioned, model/instruction_film.py), each keyframe set merged into its
+instruction's code when it is conditioned, model/vision/instruction_film.py), each keyframe set merged into its
 largest-box frame, grid-pooled and projected (openfly mode), or one token per history frame (openvla_compat).
 
 `MemoryEncoding` is a mixin of `OpenFlyAgent` (model/agent.py): it uses the agent's `vision_backbone`,
@@ -19,12 +19,11 @@ from openfly_agent.constants import (
     MEMORY_PIXEL_VALUES,
     PIXEL_VALUES,
 )
-
-from .config import MODE_OPENVLA_COMPAT
-from .instruction_film import mean_prompt_embedding
-from .memory import grid_pool
-from .merging import choose_reference, merge_into_reference
-from .sequence import left_pad_ids
+from openfly_agent.model.config import MODE_OPENVLA_COMPAT
+from openfly_agent.model.language.sequence import left_pad_ids
+from openfly_agent.model.memory.bank import grid_pool
+from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
+from openfly_agent.model.vision.instruction_film import mean_prompt_embedding
 
 
 class MemoryEncoding:

@@ -111,7 +111,7 @@ def check_not_adapter_only(folder: Path) -> None:
     if not has_weights and (folder / ADAPTER_DIR_NAME).is_dir():
         raise ValueError(
             f"{folder} is a LoRA checkpoint (adapter only, no base weights): load it with "
-            "openfly_agent.model.lora_checkpoint.load_lora_agent(checkpoint, base=<the init checkpoint>), or load "
+            "openfly_agent.model.persistence.lora_checkpoint.load_lora_agent(checkpoint, base=<the init checkpoint>), or load "
             "<output_dir>/merged, the full model a LoRA run writes at the end (lora.merge_at_end)"
         )
 

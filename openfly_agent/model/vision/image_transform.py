@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .config import RESIZE_MODES, VisionConfig
+from openfly_agent.model.config import RESIZE_MODES, VisionConfig
 
 
 @dataclass(frozen=True)

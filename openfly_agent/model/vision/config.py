@@ -7,11 +7,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .config_checks import check_choice, check_positive, fill_tiny_fields
+from openfly_agent.model.config_checks import check_choice, check_positive, fill_tiny_fields
 
 VISION_DINOSIGLIP_224 = "dinosiglip-224px"
 VISION_TINY = "tiny"  # two small ViTs of the dinosiglip structure
-VISION_TINY_CNN = "tiny-cnn"  # a small ResNet with the same token grid (model/conv_vision.py)
+VISION_TINY_CNN = "tiny-cnn"  # a small ResNet with the same token grid (model/vision/conv.py)
 VISION_PRESETS = (VISION_DINOSIGLIP_224, VISION_TINY, VISION_TINY_CNN)
 CNN_STRIDE = 16  # tiny-cnn: pixels per token side (the ResNet's output stride)
 # The real timm architectures of the `dinosiglip-224px` preset (weights come from a checkpoint, never
@@ -41,7 +41,7 @@ class VisionConfig:
     `patch_size`, `width`, `fused_width`, `depth` and `num_heads` (None takes `TINY_VISION`). Both read the
     output of the second-to-last block, without the final norm. `tiny-cnn` (the CPU default) is a small timm
     ResNet of output stride 16 with `cnn_channels` stage widths (None takes `TINY_CNN_VISION`): a 128 px frame
-    gives the same 8 x 8 token grid, into the same projector and LLM (model/conv_vision.py). `image_size` and
+    gives the same 8 x 8 token grid, into the same projector and LLM (model/vision/conv.py). `image_size` and
     `resize` also define the image preprocessing (the processor's image transform).
     """
 

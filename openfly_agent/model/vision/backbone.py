@@ -10,8 +10,13 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .config import DINOSIGLIP_TIMM_IDS, VISION_DINOSIGLIP_224, VISION_TINY_CNN, VisionConfig
-from .conv_vision import IMAGENET_MEAN, IMAGENET_STD, ConvVisionBackbone
+from openfly_agent.model.config import (
+    DINOSIGLIP_TIMM_IDS,
+    VISION_DINOSIGLIP_224,
+    VISION_TINY_CNN,
+    VisionConfig,
+)
+from openfly_agent.model.vision.conv import IMAGENET_MEAN, IMAGENET_STD, ConvVisionBackbone
 
 SIGLIP_MEAN = (0.5, 0.5, 0.5)
 SIGLIP_STD = (0.5, 0.5, 0.5)

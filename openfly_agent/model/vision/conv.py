@@ -9,7 +9,7 @@ projector and LLM as the ViT features. Runs channels-last (oneDNN's fast path on
 `vision.cnn_fine_fusion` each token also gets the second stage's stride-8 features of the 2 x 2 cells under it
 (concatenated, projected by `fine_proj` and added): a landmark of a few pixels keeps its own features. With
 `vision.cnn_instruction_film` the third and fourth stages run once per sequence, their inputs scaled and shifted
-by the instruction (model/instruction_film.py); the stem and the first two stages still run once per frame.
+by the instruction (model/vision/instruction_film.py); the stem and the first two stages still run once per frame.
 With `vision.cnn_colour_stats` each token also gets a projection of its cell's colour statistics
 (`cell_colour_stats`): trained from scratch on these objectives the ResNet's features lose a landmark's colour
 (a linear probe reads it from them at chance, from the cell's raw RGB statistics at 0.72), and colour is half of
@@ -23,8 +23,8 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import initialization as init
 
-from .config import CNN_INIT_TIMM, CNN_STEM_PATCH4, CNN_STRIDE, VisionConfig
-from .instruction_film import InstructionFiLM
+from openfly_agent.model.config import CNN_INIT_TIMM, CNN_STEM_PATCH4, CNN_STRIDE, VisionConfig
+from openfly_agent.model.vision.instruction_film import InstructionFiLM
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
 IMAGENET_STD = (0.229, 0.224, 0.225)

@@ -37,7 +37,7 @@ from openfly_agent.constants import (
 )
 
 if TYPE_CHECKING:
-    from .config import KeyframeConfig
+    from openfly_agent.model.config import KeyframeConfig
 
 _PHASE_CLASS = {ACTION_TAKEOFF: ACTION_ASCEND, ACTION_LANDING: ACTION_DESCEND}
 _FORWARD_IDS = (ACTION_FORWARD, ACTION_FORWARD_6, ACTION_FORWARD_9)

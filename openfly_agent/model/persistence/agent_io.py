@@ -9,10 +9,13 @@ import json
 from pathlib import Path
 
 from openfly_agent.constants import ACTION_TOKENIZER_NAME, NORM_STATS_NAME
-
-from .checkpoint_path import check_not_adapter_only, check_weights_readable, resolve_checkpoint_folder
-from .remote_code import write_remote_code
-from .tokenizer import load_tokenizer, tokenizer_folder
+from openfly_agent.model.language.tokenizer import load_tokenizer, tokenizer_folder
+from openfly_agent.model.persistence.checkpoint_path import (
+    check_not_adapter_only,
+    check_weights_readable,
+    resolve_checkpoint_folder,
+)
+from openfly_agent.model.persistence.remote_code import write_remote_code
 
 
 class AgentPersistence:

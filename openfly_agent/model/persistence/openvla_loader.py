@@ -19,8 +19,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from .checkpoint_path import open_safetensors
-from .vision import build_featurizers
+from openfly_agent.model.persistence.checkpoint_path import open_safetensors
+from openfly_agent.model.vision.backbone import build_featurizers
 
 logger = logging.getLogger(__name__)
 
@@ -160,7 +160,9 @@ def agent_from_openvla_checkpoint(folder: str | Path, cfg, tokenizer=None, devic
     Returns:
         (agent, LoadReport).
     """
-    from .agent import OpenFlyAgent  # lazy: transformers; the state-dict conversions need torch only
+    from openfly_agent.model.agent import (
+        OpenFlyAgent,  # lazy: transformers; the state-dict conversions need torch only
+    )
 
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(

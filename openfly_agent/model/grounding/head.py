@@ -1,10 +1,10 @@
 """Landmark grounding (paper: landmark grounding): the two heads, the factory that picks one, and their loss.
 
 Learned queries cross-attend (3 layers) to the LLM's last hidden states over the image and text positions
-(model/grounding_layers.py) and give the instruction landmark's box `(cx, cy, w, h)` in [0, 1] in the current
+(model/grounding/layers.py) and give the instruction landmark's box `(cx, cy, w, h)` in [0, 1] in the current
 frame, plus a visibility logit (our addition: at inference an invisible landmark has no box, so no keyframe area).
 `grounding.cells` picks the head: false, `BoxRegressionHead`, the paper's box regressed from the pooled queries
-(every 7B preset); true, `CellGroundingHead` (model/grounding_cells.py, the tiny preset), which scores every cell
+(every 7B preset); true, `CellGroundingHead` (model/grounding/cells.py, the tiny preset), which scores every cell
 of the frame's token grid and places the box centre from those scores. The loss is GIoU + L1 with a visibility
 mask (+ the cell head's cell and attribute terms).
 """
@@ -18,11 +18,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from openfly_agent.constants import LANDMARK_ATTRIBUTES, LANDMARK_BOXES, TARGET_ATTRIBUTES
-
-from .grounding_cells import CellGroundingHead
-from .grounding_config import GroundingConfig
-from .grounding_layers import GroundingOutput, QueryReader
-from .landmark_cells import box_cells, dense_attribute_loss
+from openfly_agent.model.grounding.cells import CellGroundingHead
+from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.grounding.landmark_cells import box_cells, dense_attribute_loss
+from openfly_agent.model.grounding.layers import GroundingOutput, QueryReader
 
 
 class BoxRegressionHead(QueryReader):
@@ -114,7 +113,7 @@ def grounding_loss(
         cfg: grounding config (weights).
         attributes: (B, 4) long target attribute ids, -1 where unknown (None: no attribute term).
         landmarks: (boxes (B, M, 4), attribute ids (B, M, 4)) of every landmark of each row's frame
-            (model/landmark_cells.py; None: no dense term).
+            (model/grounding/landmark_cells.py; None: no dense term).
 
     Returns:
         The scalar loss and float logs: `box_iou` (mean IoU over visible boxes, 0 when none),

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from .config_checks import check_positive
+from openfly_agent.model.config_checks import check_positive
 
 
 @dataclass
@@ -16,7 +16,7 @@ class GroundingConfig:
 
     `cells` (the tiny preset) adds per-cell scoring of the current frame: the query starts from the last prompt
     token, FiLM-scores every cell, the box centre is the softmax-weighted cell centre plus an offset, and
-    `cell_weight` x the cross-entropy of the cell holding the box centre joins the loss (model/grounding.py).
+    `cell_weight` x the cross-entropy of the cell holding the box centre joins the loss (model/grounding/head.py).
     """
 
     enabled: bool = True
@@ -50,7 +50,7 @@ class GroundingConfig:
     # with `attribute_weight`: weight of the dense attribute loss, the cross-entropy of every labelled cell's
     # attributes on the grounding stage's expression frames, whose every visible landmark has a box (each cell
     # takes the attributes of the smallest landmark whose box holds its centre or whose centre it holds;
-    # model/landmark_cells.py); 0: only the target's cell is supervised
+    # model/grounding/landmark_cells.py); 0: only the target's cell is supervised
     dense_attribute_weight: float = 0.0
     # with `cells`: layers in which every cell of the current frame cross-attends to the readable sequence (the
     # prompt's tokens, the frame's other cells, the memory) before it is scored, so a cell's features see the

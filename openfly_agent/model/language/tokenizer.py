@@ -1,7 +1,7 @@
 """Text tokenizers: an offline byte-level BPE for the tiny preset; any tokenizer from a local folder.
 
 Vocabulary rule: the tiny LM has `len(tokenizer) + 256` embedding rows, the 256 ids after the tokenizer's
-vocabulary being reserved for actions (model/action_tokenizer.py). Llama-2's own tokenizer is loaded from
+vocabulary being reserved for actions (model/language/action_tokenizer.py). Llama-2's own tokenizer is loaded from
 a local folder only; nothing is downloaded.
 """
 
@@ -11,7 +11,7 @@ import logging
 from collections.abc import Iterable
 from pathlib import Path
 
-from .config import NUM_ACTION_SLOTS
+from openfly_agent.model.config import NUM_ACTION_SLOTS
 
 logger = logging.getLogger(__name__)
 

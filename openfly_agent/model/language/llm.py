@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import nn
 
-from .config import LLAMA2_7B_ARCH, LLM_LLAMA2_7B, LLMConfig
+from openfly_agent.model.config import LLAMA2_7B_ARCH, LLM_LLAMA2_7B, LLMConfig
 
 
 def llama_config(cfg: LLMConfig, vocab_size: int):

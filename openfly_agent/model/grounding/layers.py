@@ -1,4 +1,4 @@
-"""What both grounding heads share (model/grounding.py): the cross-attention layer, the prediction type and the
+"""What both grounding heads share (model/grounding/head.py): the cross-attention layer, the prediction type and the
 query reader, the learned queries that cross-attend to the LLM's hidden states.
 
 `QueryReader` owns the layers both heads have and reads only its own attributes; the two heads
@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import initialization as init
 
-from .grounding_config import GroundingConfig
+from openfly_agent.model.grounding.config import GroundingConfig
 
 
 class CrossAttentionLayer(nn.Module):

@@ -12,9 +12,8 @@ from pathlib import Path
 from torch import nn
 
 from openfly_agent.constants import ADAPTER_DIR_NAME
-
-from .config import LoraSettings
-from .freeze import STAGE_LORA, freeze
+from openfly_agent.model.config import LoraSettings
+from openfly_agent.model.freeze import STAGE_LORA, freeze
 
 logger = logging.getLogger(__name__)
 

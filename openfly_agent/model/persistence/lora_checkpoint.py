@@ -24,9 +24,8 @@ from openfly_agent.constants import (
     WEIGHTS_INDEX_NAME,
     WEIGHTS_NAME,
 )
-
-from .checkpoint_path import last_pointer_target
-from .tokenizer import load_tokenizer
+from openfly_agent.model.language.tokenizer import load_tokenizer
+from openfly_agent.model.persistence.checkpoint_path import last_pointer_target
 
 logger = logging.getLogger(__name__)
 
@@ -74,7 +73,7 @@ def merged_model_of(folder: Path) -> Path | None:
 
 
 def checkpoint_weights(folder: Path, base: str | None = None) -> CheckpointWeights:
-    """What loads the checkpoint `folder` (resolved: model/checkpoint_path.py).
+    """What loads the checkpoint `folder` (resolved: model/persistence/checkpoint_path.py).
 
     A folder with full weights is itself. A LoRA checkpoint (adapter only) is the run's merged model when the run
     wrote one after it (`merged_model_of`), else its adapter on `base`, by default the run's `init.checkpoint`.
@@ -138,10 +137,10 @@ def load_lora_agent(checkpoint: str | Path, base: str | Path):
     Raises:
         ValueError: the base's model sections differ from the checkpoint's (wrong base), with the differences.
     """
-    from .agent import OpenFlyAgent  # lazy: torch + transformers
-    from .lora import load_lora_adapter  # lazy: torch
-    from .openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
-    from .pretrained_config import OpenFlyAgentConfig  # lazy: torch + transformers
+    from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
+    from openfly_agent.model.language.lora import load_lora_adapter  # lazy: torch
+    from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig  # lazy: torch + transformers
 
     checkpoint, base = local_folder(checkpoint), local_folder(base)
     config = OpenFlyAgentConfig.from_pretrained(str(checkpoint))

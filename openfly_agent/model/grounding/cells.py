@@ -10,7 +10,7 @@ one 16 px cell at 128 px). With `centre_window` = w, at inference (eval mode), t
 (and pools the size's context) is renormalised over the (2w + 1) x (2w + 1) cells around the best-scoring cell, so
 a score with two peaks picks one instead of averaging them; training keeps the softmax over every cell (trained
 with the window, the head grounded no better). With `attribute_weight` the head also names the target's
-attributes from its query and from every cell (`attribute_loss` in model/grounding.py); with `attribute_match`
+attributes from its query and from every cell (`attribute_loss` in model/grounding/head.py); with `attribute_match`
 each cell's logit gains the agreement of the two (`attribute_match`), so a cell whose colour the query names
 scores higher without the FiLM scorer having to discover the match. With `cell_fusion_layers` = n > 0 each cell
 first cross-attends (n layers) to the same readable sequence as the queries: in a causal LLM the frame's tokens
@@ -25,8 +25,8 @@ import torch
 from torch import nn
 from transformers import initialization as init
 
-from .grounding_config import GroundingConfig
-from .grounding_layers import CrossAttentionLayer, GroundingOutput, QueryReader
+from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.grounding.layers import CrossAttentionLayer, GroundingOutput, QueryReader
 
 
 class CellScorer(nn.Module):

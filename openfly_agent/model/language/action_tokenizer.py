@@ -19,8 +19,7 @@ from openfly_agent.constants import (
     OPENVLA_ACTION_DIM,
     OPENVLA_ACTION_VECTORS,
 )
-
-from .config import (
+from openfly_agent.model.config import (
     DECODE_EXACT,
     DECODE_NEAREST,
     DECODE_RULES,

@@ -1,0 +1,1 @@
+"""The grounding heads (box regression, cells), their loss and the box token."""

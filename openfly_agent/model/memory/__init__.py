@@ -1,0 +1,1 @@
+"""The keyframe memory: keyframe selection, visual token merging, the memory bank and its encoding."""

@@ -1,0 +1,1 @@
+"""Checkpoint folders: reading, OpenVLA weights, LoRA checkpoints, remote-code files."""
