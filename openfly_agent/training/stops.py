@@ -43,6 +43,7 @@ class StopFlags:
         self.started = time.monotonic()
         self.used_fraction = 0.0 if self.limit_s is None else min(elapsed_before_s / self.limit_s, 1.0)
         self.signal_name: str | None = None
+        self._signal_said = False
         self.stage = "training"  # what a stop signal ends: "training", or "the final evaluation"
         self._previous: dict[int, Any] = {}
 
@@ -62,7 +63,15 @@ class StopFlags:
         self._previous.clear()
 
     def _on_signal(self, signum: int, frame) -> None:
+        """Only records the signal: `reason` says so in the log. A handler that logged could interrupt the
+        logging of a record in flight, whose line would then be lost."""
         self.signal_name = signal.Signals(signum).name
+
+    def _say_signal(self) -> None:
+        """The log line of a received signal, once, from the loop that acts on it."""
+        if self.signal_name is None or self._signal_said:
+            return
+        self._signal_said = True
         if self.stage == "training":
             logger.warning(
                 "%s received: stopping after this optimizer step and saving a checkpoint", self.signal_name
@@ -72,6 +81,7 @@ class StopFlags:
 
     def reason(self) -> str | None:
         """'signal' or 'time' when any process must stop now, else None (one all-reduce per call)."""
+        self._say_signal()
         elapsed = self.elapsed_s()
         if self.accelerator.num_processes == 1:  # nothing to agree on: no tensor, no device sync per step
             signalled = self.signal_name is not None

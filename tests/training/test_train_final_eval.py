@@ -32,7 +32,8 @@ def test_a_signal_during_the_final_evaluation_stops_it_and_resume_runs_it(genera
         out, rest = communicate_group(process, timeout=120)
     err = "".join(seen) + rest
     assert process.returncode == 0, err[-3000:]
-    assert "SIGTERM received" in err and "final evaluation on test_unseen: 139 samples" in err
+    assert "SIGTERM received" in err, err[-3000:]
+    assert "final evaluation on test_unseen: 139 samples" in err, err[-3000:]
     assert "stopped by a signal during the final evaluation; nothing written as its result" in err
     assert "test:" in err  # its progress bar
     assert " test: " not in err and "offline action accuracy" not in out  # no figures of a partial pass
