@@ -84,7 +84,8 @@ class RolloutHook:
         """`running` has just started (its first observation is `running.obs`)."""
 
     def before_act(self, running: RunningEpisode) -> bool:
-        """Called at each state before the policy acts; True ends the episode there."""
+        """Called at each state before the policy acts; True ends the episode there (its record keeps
+        `end_reason` `max_steps`: neither a STOP nor the simulator ended it; the hook knows why)."""
         return False
 
     def asks_policy(self, running: RunningEpisode) -> bool:
