@@ -29,13 +29,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from openfly_agent.eval.agent_policy import AgentPolicy, load_agent  # noqa: E402
-from openfly_agent.eval.config import AgentSettings, EvalConfig  # noqa: E402
+from openfly_agent.eval.config import EvalConfig  # noqa: E402
 from openfly_agent.eval.distributed import ProcessInfo  # noqa: E402
 from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env  # noqa: E402
-from openfly_agent.eval.rollout import LockstepRunner  # noqa: E402
 from openfly_agent.model.config import tiny_config  # noqa: E402
 from openfly_agent.model.language.tokenizer import train_bpe_tokenizer  # noqa: E402
+from openfly_agent.rollout.agent import AgentPolicy  # noqa: E402
+from openfly_agent.rollout.checkpoints import load_agent  # noqa: E402
+from openfly_agent.rollout.runner import LockstepRunner  # noqa: E402
 from openfly_agent.toolchain.config import GenerateConfig, RenderConfig, SceneConfig  # noqa: E402
 from openfly_agent.toolchain.generate import generate  # noqa: E402
 
@@ -59,7 +60,7 @@ def _agent(args, texts, device: str):
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers; --help stays fast
 
     if args.checkpoint:
-        return load_agent(args.checkpoint, AgentSettings(dtype="float32"), device)
+        return load_agent(args.checkpoint, device, dtype="float32")
     torch.manual_seed(0)
     tokenizer = train_bpe_tokenizer(texts, vocab_size=1024, out_dir=None)
     return OpenFlyAgent.from_model_config(tiny_config(), tokenizer=tokenizer).to(device).eval()
@@ -71,9 +72,9 @@ def _measure(agent, episodes, cfg, batch: int, device: str) -> dict:
     cfg.batch_size = batch
     env = make_env(cfg, ProcessInfo(), episodes, render=True)
     runner = LockstepRunner(AgentPolicy(agent), env, cfg.max_steps, show_progress=False)
-    runner.run(episodes[:batch], "warmup", lambda record: None)  # GL context, city upload, first kernels
+    runner.run(episodes[:batch], "warmup")  # GL context, city upload, first kernels
     start = time.perf_counter()
-    stats = runner.run(episodes, "bench", lambda record: None)
+    stats = runner.run(episodes, "bench")
     wall = time.perf_counter() - start
     env.close()
     sim_cfg = embedded_sim_config(cfg, episodes)

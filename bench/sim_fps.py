@@ -78,11 +78,14 @@ def bench_step(sim: EmbeddedSimulator, scene_id: str, rng: np.random.Generator, 
     steps = collisions = 0
     start = time.perf_counter()
     vec.reset([_random_episode(rng, scene_id, half, k) for k in range(envs)])
+    lengths = [0] * envs  # actions of each slot's episode
     while steps < n_steps:
-        for i, record in enumerate(vec.records):
-            if record.done or len(record.actions) >= 40:
+        for i, active in enumerate(vec.active):
+            if not active or lengths[i] >= 40:
                 vec.reset_env(i, _random_episode(rng, scene_id, half, steps + i))
+                lengths[i] = 0
         _, infos = vec.step([int(rng.choice(STEP_ACTIONS)) for _ in range(envs)])
+        lengths = [n + 1 for n in lengths]
         steps += envs
         collisions += sum(info.collided for info in infos)
     elapsed = time.perf_counter() - start

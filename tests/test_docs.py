@@ -320,7 +320,7 @@ def _prepare(command: DocCommand, work: Path, small_agent: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"version": 1, "policy": "agent", "splits": splits, "errors": {}}))
         if checkpoint:  # eval.py records the weights it evaluated beside its results; a release checks them
-            from openfly_agent.eval.agent_policy import checkpoint_fingerprint
+            from openfly_agent.rollout.checkpoints import checkpoint_fingerprint
 
             identity = {"policy": "agent", "weights": checkpoint_fingerprint(str(work / checkpoint))}
             (path.parent / "run_identity.json").write_text(json.dumps(identity))

@@ -23,8 +23,8 @@ from openfly_agent.eval.config import EvalConfig
 from openfly_agent.eval.distributed import ProcessInfo, read_all_logs
 from openfly_agent.eval.factory import make_env
 from openfly_agent.eval.report import policy_results
-from openfly_agent.eval.rollout import LockstepRunner
 from openfly_agent.eval.run import run
+from openfly_agent.rollout.runner import LockstepRunner
 from openfly_agent.utils.processes import communicate_group, run_group, running
 
 REPO = Path(__file__).resolve().parents[1]
@@ -139,21 +139,19 @@ def test_agent_batched_equals_batch_one_and_logs_boxes(dataset, tmp_path):
 
 def test_agent_true_box_flies_on_the_simulators_target_boxes(dataset, tmp_path, monkeypatch):
     """`agent_true_box`: the same checkpoint, its box token and memory fed the true target box at every step."""
-    from openfly_agent.eval import rollout
-    from openfly_agent.eval.box_servo import OBS_TARGET_BOX
-    from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP
+    from openfly_agent.rollout.policy import OBS_EPISODE_ID, OBS_STEP, OBS_TARGET_BOX
 
     episodes = load_openfly_dataset(dataset, C.SPLIT_TRAIN)
     save_small_agent(tmp_path / "ckpt", [e.instruction for e in episodes])
-    true_boxes, real = {}, rollout._policy_obs
+    true_boxes, real = {}, LockstepRunner._observation
 
-    def spy(running, with_target_box=False):
-        obs = real(running, with_target_box)
-        if with_target_box:
+    def spy(runner, running):
+        obs = real(runner, running)
+        if OBS_TARGET_BOX in obs:
             true_boxes[(obs[OBS_EPISODE_ID], obs[OBS_STEP])] = obs[OBS_TARGET_BOX]
         return obs
 
-    monkeypatch.setattr(rollout, "_policy_obs", spy)
+    monkeypatch.setattr(LockstepRunner, "_observation", spy)
     cfg = _cfg(
         dataset, tmp_path / "out", policy="agent", baselines=["agent_true_box"], checkpoint=str(tmp_path / "ckpt"),
         max_steps=6, plots=0, max_episodes=2, batch_size=2,
@@ -284,14 +282,14 @@ def test_two_processes_split_and_merge(dataset, reference, tmp_path):
 def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
     from eval_helpers import NORM_STATS, save_released_format_agent
 
-    from openfly_agent.eval.agent_policy import AgentPolicy, checkpoint_kind, load_agent
-    from openfly_agent.eval.config import AgentSettings
+    from openfly_agent.rollout.agent import AgentPolicy
+    from openfly_agent.rollout.checkpoints import checkpoint_kind, load_agent
 
     episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)[:3]
     source = save_released_format_agent(tmp_path / "released", [e.instruction for e in episodes])
     assert checkpoint_kind(tmp_path / "released") == "openvla"
-    settings = AgentSettings(model_config=str(tmp_path / "released" / "model.yaml"), unnorm_key="vln_norm")
-    loaded = load_agent(str(tmp_path / "released"), settings, "cpu")
+    model_config = str(tmp_path / "released" / "model.yaml")
+    loaded = load_agent(str(tmp_path / "released"), "cpu", unnorm_key="vln_norm", model_config=model_config)
     assert loaded.action_tokenizer.decode_rule == "nearest"
     q99 = loaded.action_tokenizer.action_stats["q99"]
     np.testing.assert_array_equal(q99, NORM_STATS["vln_norm"]["action"]["q99"])

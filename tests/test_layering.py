@@ -17,11 +17,12 @@ LEVEL = {
     "model": 1,
     "data": 1,
     "sim": 1,
-    "toolchain": 2,
-    "training": 2,
-    "eval": 2,
-    "hub": 3,
-    "recipe": 3,
+    "rollout": 2,
+    "toolchain": 3,
+    "training": 3,
+    "eval": 3,
+    "hub": 4,
+    "recipe": 4,
 }
 SIBLINGS_FORBIDDEN = {"model", "data", "sim"}  # L1 parts never import each other
 

@@ -19,7 +19,7 @@ from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.box_servo import BoxServoPolicy, BoxServoSettings
 from openfly_agent.eval.episodes import oracle_actions, oracle_replays_exactly
-from openfly_agent.eval.policy import OBS_EPISODE_ID, OBS_STEP
+from openfly_agent.rollout.policy import OBS_EPISODE_ID, OBS_STEP, PolicyFeatures
 
 BASELINE_NAMES = ("random", "stop", "forward", "oracle", "box_servo")
 ORACLE_MODES = ("auto", "replay", "teleport")
@@ -35,7 +35,7 @@ class RandomPolicy:
     """Uniform over the 10 model actions at every step, seeded per episode."""
 
     name = "random"
-    needs_frames = False
+    features = PolicyFeatures(frames=False)
 
     def __init__(self, seed: int = 0):
         self.seed = int(seed)
@@ -58,7 +58,7 @@ class RandomPolicy:
 class ConstantPolicy:
     """The same action at every step: `stop` (STOP at once) or `forward` (3 m forward until the cap)."""
 
-    needs_frames = False
+    features = PolicyFeatures(frames=False)
 
     def __init__(self, name: str, action: int):
         self.name = name
@@ -81,7 +81,7 @@ class OraclePolicy:
     """
 
     name = "oracle"
-    needs_frames = False
+    features = PolicyFeatures(frames=False)
 
     def __init__(self, episodes: list[Episode], mode: str = "auto"):
         if mode not in ORACLE_MODES:

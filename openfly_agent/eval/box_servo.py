@@ -15,9 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from openfly_agent import constants as C
-from openfly_agent.eval.policy import OBS_EPISODE_ID
-
-OBS_TARGET_BOX = "target_box"  # (cx, cy, w, h) of the target landmark in the frame, or None when not visible
+from openfly_agent.rollout.policy import OBS_EPISODE_ID, OBS_TARGET_BOX, PolicyFeatures
 
 
 @dataclass
@@ -63,8 +61,8 @@ class BoxServoPolicy:
     """The reflex rule as a batched `Policy`; the runner adds `target_box` to each observation."""
 
     name = "box_servo"
-    needs_frames = True  # it needs rendered observations (their instance boxes), though not the pixels
-    needs_target_box = True
+    # rendered observations (their instance boxes, though not the pixels) and the true target box
+    features = PolicyFeatures(frames=True, target_box=True)
 
     def __init__(self, settings: BoxServoSettings | None = None):
         self.settings = settings or BoxServoSettings()

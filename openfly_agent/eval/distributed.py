@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import TypeVar
 
 from openfly_agent import constants as C
-from openfly_agent.eval.records import EpisodeRecord, merge_records, read_jsonl, write_jsonl_atomic
+from openfly_agent.eval.records import merge_records, read_jsonl, write_jsonl_atomic
+from openfly_agent.rollout.record import EpisodeRecord
 
 T = TypeVar("T")
 _RANK_LOG = re.compile(r"^episodes\.rank(\d+)\.jsonl$")

@@ -1,4 +1,4 @@
-"""Builders behind `run(cfg)`: the evaluated episodes, the simulator slots and the policies."""
+"""Builders behind `run(cfg)`: the evaluated episodes, the lockstep environment and the policies."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ from openfly_agent import constants as C
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.agent_policy import AgentPolicy, load_agent, resolve_device
 from openfly_agent.eval.baselines import make_baseline
 from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
 from openfly_agent.eval.config import (
@@ -25,7 +24,8 @@ from openfly_agent.eval.config import (
     SimSettings,
 )
 from openfly_agent.eval.distributed import ProcessInfo
-from openfly_agent.eval.slots import SimulatorSlots, SlotEnv, VectorSlots
+from openfly_agent.rollout.agent import AgentPolicy
+from openfly_agent.rollout.checkpoints import load_agent, resolve_device
 from openfly_agent.sim.bridges.airsim import AirSimBridge
 from openfly_agent.sim.bridges.base import BridgeError
 from openfly_agent.sim.bridges.gs_http import GSHttpBridge
@@ -135,26 +135,26 @@ def scene_occupancy(template: str, scene_id: str, voxel_m: float):
     return OccupancyGrid.from_points(points, bounds, voxel_m)
 
 
-class _BridgeSlots(SimulatorSlots):
+class _BridgeEnv(VectorSimulator):
     """One bridge; its collision occupancy follows the scene of the episode being reset."""
 
     def __init__(self, bridge, settings: SimSettings):
-        super().__init__([bridge])
+        super().__init__(sims=[bridge])
         self.settings = settings
         self._occupancy: dict[str, object] = {}
 
-    def reset_slot(self, slot: int, spec):
+    def reset_env(self, slot: int, spec):
         if self.settings.occupancy_pcd:
             if spec.scene_id not in self._occupancy:
                 self._occupancy[spec.scene_id] = scene_occupancy(
                     self.settings.occupancy_pcd, spec.scene_id, self.settings.occupancy_voxel_m
                 )
             self.sims[slot].occupancy = self._occupancy[spec.scene_id]
-        return super().reset_slot(slot, spec)
+        return super().reset_env(slot, spec)
 
 
-def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
-    """One engine bridge per process (`port + rank` when `port_per_rank`), as lockstep slots of width 1.
+def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> VectorSimulator:
+    """One engine bridge per process (`port + rank` when `port_per_rank`), as a lockstep environment of width 1.
 
     Raises:
         EngineUnreachableError: the engine does not answer (connection and handshake are tried at once, so
@@ -172,7 +172,7 @@ def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> SimulatorSlots:
         bridge.connect()
     except BridgeError as err:
         raise EngineUnreachableError(str(err)) from err
-    return _BridgeSlots(bridge, settings)
+    return _BridgeEnv(bridge, settings)
 
 
 def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
@@ -199,8 +199,10 @@ def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
     )  # fmt: skip
 
 
-def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True) -> SlotEnv:
-    """Lockstep slots of `cfg.sim`: `batch_size` embedded environments (rendering or blind), or a bridge."""
+def make_env(
+    cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True
+) -> VectorSimulator:
+    """The lockstep environment of `cfg.sim`: `batch_size` embedded environments (rendering or blind), or a bridge."""
     if cfg.sim.type != "embedded":
         if cfg.batch_size > 1:
             logger.info("%s: one engine per process, so episodes run one at a time", cfg.sim.type)
@@ -208,11 +210,11 @@ def make_env(cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render
     sim_cfg = embedded_sim_config(cfg, episodes)
     if not render:
         cities = CityCache(sim_cfg)
-        return SimulatorSlots([BlindEmbeddedSimulator(sim_cfg, cities) for _ in range(cfg.batch_size)])
+        return VectorSimulator(sims=[BlindEmbeddedSimulator(sim_cfg, cities) for _ in range(cfg.batch_size)])
     logger.info(
         "embedded simulator: %d x %d px, %d environments", sim_cfg.width, sim_cfg.height, cfg.batch_size
     )
-    return VectorSlots(VectorSimulator.embedded(sim_cfg, num_envs=cfg.batch_size))
+    return VectorSimulator.embedded(sim_cfg, num_envs=cfg.batch_size)
 
 
 def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: ProcessInfo):
@@ -223,5 +225,13 @@ def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: Proce
             name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode, box_servo=cfg.box_servo
         )
     device = resolve_device(cfg.device, getattr(info.state, "device", None))
-    agent = load_agent(cfg.checkpoint, cfg.agent, device)
+    settings = cfg.agent
+    agent = load_agent(
+        cfg.checkpoint,
+        device,
+        settings.dtype,
+        settings.decode_rule,
+        settings.unnorm_key,
+        settings.model_config,
+    )
     return AgentPolicy(agent, name, true_boxes=name == AGENT_TRUE_BOX)

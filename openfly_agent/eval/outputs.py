@@ -16,10 +16,8 @@ import numpy as np
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig
-from openfly_agent.eval.episodes import target_landmark
 from openfly_agent.eval.metrics import episode_metrics
 from openfly_agent.eval.plots import plot_topdown, safe_name
-from openfly_agent.eval.records import EpisodeRecord
 from openfly_agent.eval.report import (
     comparison_markdown,
     outcomes_markdown,
@@ -28,6 +26,8 @@ from openfly_agent.eval.report import (
     trajectory_of,
 )
 from openfly_agent.eval.scene_map import FootprintCache
+from openfly_agent.rollout.episodes import target_landmark
+from openfly_agent.rollout.record import EpisodeRecord
 
 logger = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from openfly_agent import constants as C
-from openfly_agent.eval.records import EpisodeRecord
 from openfly_agent.eval.rollout import FrameLog
+from openfly_agent.rollout.record import EpisodeRecord
 
 PREDICTED_COLOR = (255, 64, 32)  # RGB, the policy's box
 TARGET_COLOR = (40, 220, 60)  # RGB, the ground-truth box of the target landmark

@@ -11,7 +11,7 @@ from dataclasses import asdict
 
 from openfly_agent.eval.metrics import EpisodeTrajectory, aggregate, episode_metrics
 from openfly_agent.eval.profiles import get_profile
-from openfly_agent.eval.records import EpisodeRecord
+from openfly_agent.rollout.record import EpisodeRecord
 
 RESULTS_VERSION = 1
 # (summary key, column title, decimals)

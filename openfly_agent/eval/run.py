@@ -13,7 +13,7 @@ import shutil
 from pathlib import Path
 
 from openfly_agent.data.schema import Episode
-from openfly_agent.eval.agent_policy import checkpoint_fingerprint, checkpoint_folder
+from openfly_agent.eval.baselines import OraclePolicy
 from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
@@ -32,11 +32,14 @@ from openfly_agent.eval.factory import (
 )
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
 from openfly_agent.eval.plots import safe_name, write_gif
-from openfly_agent.eval.policy import Policy
-from openfly_agent.eval.records import EpisodeLog, EpisodeRecord
-from openfly_agent.eval.rollout import FrameLog, LockstepRunner, RolloutStats, groups, teleport_record
-from openfly_agent.eval.slots import SlotEnv
+from openfly_agent.eval.records import EpisodeLog
+from openfly_agent.eval.rollout import FrameLog, FrameRecorder, teleport_record
 from openfly_agent.model.persistence.checkpoint_path import UnreadableWeightsError, check_weights_readable
+from openfly_agent.rollout.checkpoints import CheckpointError, checkpoint_fingerprint, checkpoint_folder
+from openfly_agent.rollout.policy import Policy
+from openfly_agent.rollout.record import EpisodeRecord
+from openfly_agent.rollout.runner import LockstepRunner, RolloutStats, groups
+from openfly_agent.sim.vector import VectorSimulator
 
 logger = logging.getLogger(__name__)
 
@@ -96,7 +99,7 @@ def check_agent_weights(cfg: EvalConfig) -> None:
         return
     try:
         check_weights_readable(checkpoint_folder(cfg.checkpoint))
-    except UnreadableWeightsError as err:
+    except (UnreadableWeightsError, CheckpointError) as err:
         raise EvalInputError(str(err)) from None
 
 
@@ -109,7 +112,7 @@ def evaluate_policy(
     cfg: EvalConfig,
     policy: Policy,
     episodes_by_split: dict[str, list[Episode]],
-    env: SlotEnv,
+    env: VectorSimulator,
     folder: Path,
     info: ProcessInfo,
 ) -> RolloutStats:
@@ -124,7 +127,9 @@ def evaluate_policy(
     def save_gif(record: EpisodeRecord, frames: FrameLog) -> None:
         write_gif(frames, record.actions, gif_path(folder, record.split, record.episode_id))
 
-    runner = LockstepRunner(policy, env, cfg.max_steps, gif_ids, show_progress=cfg.progress)
+    runner = LockstepRunner(
+        policy, env, cfg.max_steps, [FrameRecorder(gif_ids, save_gif)], show_progress=cfg.progress
+    )
     for split, episodes in episodes_by_split.items():
         mine = shard(episodes, info.rank, info.world_size)
         todo = [e for e in mine if (split, e.episode_id) not in done]
@@ -142,11 +147,10 @@ def evaluate_policy(
             sum((split, e.episode_id) in done for e in episodes),
             f", {retried} that ended in an engine error tried again" if retried else "",
         )
-        replays = getattr(policy, "replays", None)
-        if replays is not None:  # the oracle: episodes whose actions do not replay follow the recorded poses
-            for episode in [e for e in todo if not replays(e.episode_id)]:
+        if isinstance(policy, OraclePolicy):  # episodes whose actions do not replay follow the recorded poses
+            for episode in [e for e in todo if not policy.replays(e.episode_id)]:
                 log.append(teleport_record(episode, split, policy.name, cfg.max_steps))
-            mine = [e for e in mine if replays(e.episode_id)]
+            mine = [e for e in mine if policy.replays(e.episode_id)]
 
         def unfinished(record: EpisodeRecord, split: str = split) -> None:
             if (split, record.episode_id) not in done:  # an already logged companion recomputed identically
@@ -154,10 +158,8 @@ def evaluate_policy(
 
         # Resume by whole lockstep groups: a group that lost episodes to a kill runs again with the same
         # companions, so its records are bit-identical to an uninterrupted run's (docs/EVAL.md).
-        pending = [
-            g for g in groups(mine, env.num_slots) if any((split, e.episode_id) not in done for e in g)
-        ]
-        runner.run([e for g in pending for e in g], split, on_finish=unfinished, on_frames=save_gif)
+        pending = [g for g in groups(mine, env.num_envs) if any((split, e.episode_id) not in done for e in g)]
+        runner.run([e for g in pending for e in g], split, on_finish=unfinished)
         missing = {
             e.episode_id
             for e in mine
@@ -165,11 +167,9 @@ def evaluate_policy(
             and (split, e.episode_id) in done
             and not gif_path(folder, split, e.episode_id).is_file()
         }
-        replay = [g for g in groups(mine, env.num_slots) if missing & {e.episode_id for e in g}]
+        replay = [g for g in groups(mine, env.num_envs) if missing & {e.episode_id for e in g}]
         if replay:  # finished in an earlier run: replay their groups (bit-identical) to get the frames
-            runner.run(
-                [e for g in replay for e in g], split, on_finish=lambda record: None, on_frames=save_gif
-            )
+            runner.run([e for g in replay for e in g], split)
     return runner.stats
 
 
@@ -187,7 +187,7 @@ def run(cfg: EvalConfig) -> dict:
     episodes_by_split = subsample_splits(full_splits, cfg.max_episodes)
     split_sizes = {split: len(episodes) for split, episodes in full_splits.items()}  # before max_episodes
     all_episodes = [e for eps in episodes_by_split.values() for e in eps]
-    envs: dict[bool, SlotEnv] = {}  # rendering or blind (baselines never look at frames)
+    envs: dict[bool, VectorSimulator] = {}  # rendering or blind (baselines never look at frames)
     if cfg.sim.type != "embedded":  # connect now: an engine that cannot be reached fails before any output
         envs[True] = envs[False] = make_env(cfg, info, all_episodes)
     try:
@@ -195,7 +195,7 @@ def run(cfg: EvalConfig) -> dict:
             folder = root / name
             prepare_output(folder, result_identity(cfg, name), cfg.overwrite, info)
             policy = make_policy(name, cfg, all_episodes, info)
-            render = bool(policy.needs_frames or cfg.gif_episodes)
+            render = bool(policy.features.frames or cfg.gif_episodes)
             if render not in envs:
                 envs[render] = make_env(cfg, info, all_episodes, render=render)
             stats = evaluate_policy(cfg, policy, episodes_by_split, envs[render], folder, info)

@@ -13,10 +13,10 @@ import logging
 from datetime import datetime, timezone
 from pathlib import Path
 
-from openfly_agent.eval.agent_policy import checkpoint_fingerprint
 from openfly_agent.eval.config import AGENT_POLICIES, POLICY_NAMES
 from openfly_agent.eval.run import RUN_IDENTITY_NAME, read_run_identity, same_weights
 from openfly_agent.hub.results import AGENT_POLICY, EvalResults, ResultsError, parse_results
+from openfly_agent.rollout.checkpoints import checkpoint_fingerprint
 
 logger = logging.getLogger(__name__)
 

@@ -1,46 +1,26 @@
-"""Step many episodes in lockstep: one `Simulator` per environment slot, stepped together.
+"""The one lockstep environment: `num_envs` simulators, stepped together, each slot restartable on its own.
 
-`None` marks an idle slot: pass `None` as its episode or action, and get `None` back. A slot becomes
-idle when its episode is done (STOP, or a collision under an ending policy); `reset_env` refills it.
-Per-slot `EpisodeRecord`s hold what metrics need (poses, actions, collision flags, stop).
+`None` marks an idle slot: pass `None` as its episode or action, and get `None` back. A slot becomes idle when its
+episode is done (STOP, a collision under an ending policy, or an engine error); `reset_env` refills it.
+Simulators of one class that offers `reset_batch` / `step_batch` (the embedded one) render together; others
+(bridges, blind simulators) are stepped one after the other, and an engine failure while stepping ends only the
+episode it hit (as in the official evaluation, which scores it from the current pose).
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 
-import numpy as np
-
-from openfly_agent import constants as C
 from openfly_agent.sim.base import EpisodeSpec, Observation, Simulator, StepInfo
+from openfly_agent.sim.bridges.base import BridgeError
 from openfly_agent.sim.embedded import EmbeddedSimulator
-from openfly_agent.utils.geometry import Pose
 
+logger = logging.getLogger(__name__)
 
-@dataclass
-class EpisodeRecord:
-    """What happened in one episode of one slot."""
-
-    episode_id: str
-    scene_id: str
-    poses: list[Pose] = field(default_factory=list)  # start first; one more than actions
-    actions: list[int] = field(default_factory=list)
-    collided: list[bool] = field(default_factory=list)
-    done: bool = False
-
-    @property
-    def stopped(self) -> bool:
-        return bool(self.actions) and self.actions[-1] == C.ACTION_STOP
-
-    @property
-    def collision_step(self) -> int | None:
-        """Index (0-based) of the first colliding step, or None."""
-        return self.collided.index(True) if any(self.collided) else None
-
-    def positions(self) -> np.ndarray:
-        """(T + 1, 3) visited positions, the start first."""
-        return np.array([p.position for p in self.poses]).reshape(-1, 3)
+ERROR_KEY = "error"  # StepInfo.extra key holding the engine error message
+# What an engine failure looks like: the bridges' error (after their one reconnect) or a socket / file error.
+ENGINE_ERRORS = (BridgeError, OSError)
 
 
 class VectorSimulator:
@@ -60,7 +40,8 @@ class VectorSimulator:
         if not sims:
             raise ValueError("VectorSimulator needs at least one simulator")
         self.sims: list[Simulator] = list(sims)
-        self.records: list[EpisodeRecord | None] = [None] * len(self.sims)
+        self._running = [False] * len(self.sims)
+        self._last: list[Observation | None] = [None] * len(self.sims)
         # Simulators of one class that offers reset_batch / step_batch (the embedded one) render together.
         kind = type(self.sims[0])
         self._batched = all(type(s) is kind for s in self.sims) and hasattr(kind, "step_batch")
@@ -80,12 +61,12 @@ class VectorSimulator:
     @property
     def active(self) -> list[bool]:
         """Per slot: an episode is running and not done."""
-        return [r is not None and not r.done for r in self.records]
+        return list(self._running)
 
     def reset_env(self, index: int, episode: EpisodeSpec) -> Observation:
         """Start `episode` in slot `index` (whatever the slot was doing)."""
         obs = self.sims[index].reset(episode)
-        self.records[index] = EpisodeRecord(episode.episode_id, episode.scene_id, poses=[obs.pose])
+        self._running[index], self._last[index] = True, obs
         return obs
 
     def reset(self, episodes: Sequence[EpisodeSpec | None]) -> list[Observation | None]:
@@ -99,19 +80,17 @@ class VectorSimulator:
             observations = type(self.sims[0]).reset_batch(sims, [episodes[i] for i in started])
         else:
             observations = [self.sims[i].reset(episodes[i]) for i in started]
-        self.records = [None] * self.num_envs
+        self._running = [False] * self.num_envs
         for i, obs in zip(started, observations):
-            self.records[i] = EpisodeRecord(episodes[i].episode_id, episodes[i].scene_id, poses=[obs.pose])
-            out[i] = obs
+            self._running[i], self._last[i], out[i] = True, obs, obs
         return out
 
     def step(self, actions: Sequence[int | None]) -> tuple[list[Observation | None], list[StepInfo | None]]:
         """Step every slot with an action; `None` (required for idle / done slots) skips a slot."""
         if len(actions) != self.num_envs:
             raise ValueError(f"step got {len(actions)} actions for {self.num_envs} environments")
-        active = self.active
         for i, action in enumerate(actions):
-            if action is not None and not active[i]:
+            if action is not None and not self._running[i]:
                 raise ValueError(f"environment {i} has no running episode (it is idle or done); pass None")
         observations: list[Observation | None] = [None] * self.num_envs
         infos: list[StepInfo | None] = [None] * self.num_envs
@@ -120,16 +99,20 @@ class VectorSimulator:
             sims = [self.sims[i] for i in stepping]
             results = type(self.sims[0]).step_batch(sims, [int(actions[i]) for i in stepping])
         else:
-            results = [self.sims[i].step(int(actions[i])) for i in stepping]
+            results = [self._step_one(i, int(actions[i])) for i in stepping]
         for i, (obs, info) in zip(stepping, results):
-            action = actions[i]
-            record = self.records[i]
-            record.poses.append(obs.pose)
-            record.actions.append(int(action))
-            record.collided.append(bool(info.collided))
-            record.done = bool(info.done)
             observations[i], infos[i] = obs, info
+            self._last[i], self._running[i] = obs, not info.done
         return observations, infos
+
+    def _step_one(self, index: int, action: int) -> tuple[Observation, StepInfo]:
+        """Step one simulator; an engine failure ends its episode at the last pose (`extra[ERROR_KEY]`)."""
+        try:
+            return self.sims[index].step(action)
+        except ENGINE_ERRORS as err:
+            logger.warning("slot %d: simulator step failed (%s); ending its episode", index, err)
+            info = StepInfo(action=action, done=True, extra={ERROR_KEY: f"{type(err).__name__}: {err}"})
+            return self._last[index], info
 
     def close(self) -> None:
         """Close every simulator (each at most once)."""

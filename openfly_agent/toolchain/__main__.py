@@ -8,16 +8,14 @@ e.g. a folder that holds a dataset of other settings), 130 interrupted (rerun th
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import sys
 from pathlib import Path
 
 from openfly_agent.data.writer import OpenFlyDatasetWriter
-from openfly_agent.eval.agent_policy import AgentPolicy as BatchAgentPolicy
-from openfly_agent.eval.agent_policy import checkpoint_folder
+from openfly_agent.rollout.agent import AgentPolicy
+from openfly_agent.rollout.checkpoints import CheckpointError, load_agent
 from openfly_agent.toolchain.config import DaggerRoundConfig, GenerateConfig, GroundingDataConfig
-from openfly_agent.toolchain.dagger import AgentPolicy
 from openfly_agent.toolchain.dagger_rounds import run_dagger_round
 from openfly_agent.toolchain.generate import generate
 from openfly_agent.toolchain.grounding import generate_grounding
@@ -174,34 +172,22 @@ def cmd_summarize(args: list[str]) -> None:
     print(json.dumps(write_summary(ns.root, plots=not ns.no_plots), indent=2))
 
 
-def load_agent(checkpoint: str, agent_class: str):
-    """`module:Class` with a `from_pretrained(path)` classmethod (default: the OpenFlyAgent), given the
-    checkpoint folder behind `checkpoint` (a folder, a training run or its pointer, or a Hub id)."""
-    module_name, _, class_name = agent_class.partition(":")
+def _load_agent(checkpoint: str):
+    """The agent behind `checkpoint` (a folder, a training run or its pointer, or a Hub id), on the CPU."""
     try:
-        cls = getattr(importlib.import_module(module_name), class_name)
-    except (ImportError, AttributeError) as err:
-        raise InputError(f"--agent_class {agent_class!r} cannot be imported: {err}") from None
-    try:
-        folder = checkpoint_folder(checkpoint)
-    except FileNotFoundError as err:
+        return load_agent(checkpoint, "cpu")
+    except (FileNotFoundError, CheckpointError) as err:
         raise InputError(str(err)) from None
-    return cls.from_pretrained(str(folder))
 
 
 DAGGER_OPTIONS = [
     ("--checkpoint DIR", "trained agent folder (or Hub id) that flies the DAgger episodes (required)"),
-    (
-        "--agent_class MODULE:CLASS",
-        "class with from_pretrained(path) (default: openfly_agent.model.agent:OpenFlyAgent)",
-    ),
 ]
 
 
 def cmd_dagger(args: list[str]) -> None:
     parser = argparse.ArgumentParser(prog=f"{PROG} dagger", add_help=False)
     parser.add_argument("--checkpoint")
-    parser.add_argument("--agent_class", default="openfly_agent.model.agent:OpenFlyAgent")
     ns, rest = parser.parse_known_args(args)
     if wants_help(args):
         print(_generate_help("dagger", rest, DAGGER_OPTIONS), end="")
@@ -210,7 +196,7 @@ def cmd_dagger(args: list[str]) -> None:
         raise InputError("dagger needs --checkpoint <trained agent folder> (dagger --help lists the options)")
     cfg = _parse_generate(rest)
     setup_logging()
-    policy = AgentPolicy(load_agent(ns.checkpoint, ns.agent_class))
+    policy = AgentPolicy(_load_agent(ns.checkpoint))
     try:
         summary = generate(cfg, policy=policy, kinds=(KIND_DAGGER_POLICY,))
     except GenerateSettingsError as err:
@@ -260,7 +246,6 @@ def cmd_grounding(args: list[str]) -> None:
 def cmd_dagger_round(args: list[str]) -> None:
     parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False)
     parser.add_argument("--checkpoint")
-    parser.add_argument("--agent_class", default="openfly_agent.model.agent:OpenFlyAgent")
     parser.add_argument("--torch_threads", type=int, default=0)
     ns, rest = parser.parse_known_args(args)
     if wants_help(args):
@@ -279,8 +264,7 @@ def cmd_dagger_round(args: list[str]) -> None:
         import torch
 
         torch.set_num_threads(ns.torch_threads)
-    agent = load_agent(ns.checkpoint, ns.agent_class).eval()
-    print(json.dumps(run_dagger_round(BatchAgentPolicy(agent), cfg)))
+    print(json.dumps(run_dagger_round(AgentPolicy(_load_agent(ns.checkpoint)), cfg)))
 
 
 HANDLERS = {

@@ -11,13 +11,13 @@ follows the executed action, not the label `actions[t]` (that is the point of th
 from __future__ import annotations
 
 import time
-from typing import Protocol
 
 import numpy as np
 
 from openfly_agent import constants as C
+from openfly_agent.rollout.policy import OBS_EPISODE_ID, OBS_EXPERT_ACTION, OBS_STEP, Policy, PolicyFeatures
 from openfly_agent.sim import dynamics
-from openfly_agent.sim.base import Observation, Simulator
+from openfly_agent.sim.base import Simulator
 from openfly_agent.toolchain import filters
 from openfly_agent.toolchain.actions import ActionSequence, merge_forward, sequence_category
 from openfly_agent.toolchain.astar import ActionSpaceAStar, PlanningFailed
@@ -44,16 +44,6 @@ NOISE_ACTIONS = (
     C.ACTION_FORWARD_6,
     C.ACTION_FORWARD_9,
 )
-
-
-class Policy(Protocol):
-    """What DAgger rolls out. `needs_frames`: whether `act` reads `observation.rgb` (rendered if so)."""
-
-    needs_frames: bool
-
-    def reset(self, episode_id: str, instruction: str) -> None: ...
-
-    def act(self, observation: Observation, expert_action: int) -> int: ...
 
 
 class AStarExpert:
@@ -100,42 +90,25 @@ class AStarExpert:
 
 
 class NoisyExpertPolicy:
-    """The expert's action, replaced by a random move with probability `noise_prob`."""
+    """The expert's action (given in each observation), replaced by a random move with probability `noise_prob`."""
 
-    needs_frames = False
+    name = "noisy_expert"
+    features = PolicyFeatures(frames=False, expert_action=True)
 
     def __init__(self, noise_prob: float, rng: np.random.Generator):
         self.noise_prob, self.rng = noise_prob, rng
 
-    def reset(self, episode_id: str, instruction: str) -> None:
+    def reset(self, episode_ids: list[str]) -> None:
         pass
 
-    def act(self, observation: Observation, expert_action: int) -> int:
-        if self.rng.random() < self.noise_prob:
-            return int(self.rng.choice(NOISE_ACTIONS))
-        return expert_action
-
-
-class AgentPolicy:
-    """Adapter for a trained agent with `select_action(list[dict]) -> list[int]` and `reset(ids)`."""
-
-    needs_frames = True
-
-    def __init__(self, agent):
-        self.agent, self.episode_id, self.instruction = agent, "", ""
-
-    def reset(self, episode_id: str, instruction: str) -> None:
-        self.episode_id, self.instruction = episode_id, instruction
-        self.agent.reset([episode_id])
-
-    def act(self, observation: Observation, expert_action: int) -> int:
-        obs = {
-            C.EPISODE_ID: self.episode_id,
-            C.OBS_INSTRUCTION: self.instruction,
-            C.OBS_RGB: observation.rgb,
-            C.OBS_POSE: observation.pose.as_array(),
-        }
-        return int(self.agent.select_action([obs])[0])
+    def act(self, observations: list[dict]) -> list[int]:
+        actions = []
+        for obs in observations:
+            if self.rng.random() < self.noise_prob:
+                actions.append(int(self.rng.choice(NOISE_ACTIONS)))
+            else:
+                actions.append(int(obs[OBS_EXPERT_ACTION]))
+        return actions
 
 
 def rollout_with_relabel(
@@ -145,10 +118,16 @@ def rollout_with_relabel(
     observe,
     max_policy_steps: int,
     max_steps: int,
+    episode_id: str = "",
+    instruction: str = "",
 ) -> tuple[list[Pose], list[int]]:
     """Visited poses and the expert's label at each; the last label is STOP.
 
+    One episode flown pose by pose through `sim/dynamics.py` (no simulator state; frames are rendered only for a
+    policy whose features ask for them), so the toolchain's workers need no lockstep environment.
+
     Args:
+        policy: any `Policy` (batched, called with one observation), already reset for `episode_id`.
         observe: pose -> Observation (called only when the policy needs frames).
     Raises:
         Rejected: the expert has no plan from a visited state, or the goal is not reached in `max_steps`.
@@ -165,10 +144,16 @@ def rollout_with_relabel(
             return poses, labels
         executed = label
         if step < max_policy_steps:
-            observation = (
-                observe(pose) if policy.needs_frames else Observation(np.zeros((1, 1, 3), np.uint8), pose)
-            )
-            executed = policy.act(observation, label)
+            obs = {
+                OBS_EPISODE_ID: episode_id,
+                C.OBS_INSTRUCTION: instruction,
+                C.OBS_RGB: observe(pose).rgb if policy.features.frames else np.zeros((1, 1, 3), np.uint8),
+                C.OBS_POSE: pose.as_array(),
+                OBS_STEP: step,
+            }
+            if policy.features.expert_action:
+                obs[OBS_EXPERT_ACTION] = label
+            executed = int(policy.act([obs])[0])
         if executed not in NOISE_ACTIONS:  # STOP, lateral moves or junk: the expert flies this step
             executed = label
         nxt = dynamics.apply_action(pose, executed)
@@ -189,7 +174,8 @@ def generate_dagger_unit(
     try:
         planned = plan_trajectory(prepared, rng, cfg, allow_updown=False)
         policy = policy or NoisyExpertPolicy(cfg.dagger.noise_prob, rng)
-        policy.reset(f"{scene_id}/dagger/{unit.index}", "")
+        episode_id = f"{scene_id}/dagger/{unit.index}"
+        policy.reset([episode_id])
         expert = AStarExpert(prepared.astar, [leg.goal for leg in planned.route.legs])
         poses, labels = rollout_with_relabel(
             expert,
@@ -198,6 +184,7 @@ def generate_dagger_unit(
             lambda p: sim.render(scene_id, p, planned.pitch_deg),
             cfg.dagger.max_policy_steps,
             cfg.dagger.max_steps,
+            episode_id,
         )
         seq = ActionSequence(
             actions=np.asarray(labels, dtype=np.int64),

@@ -1,8 +1,9 @@
 """DAgger rounds with the trained agent in the loop: fly it in the train cities, label every visited state with
 the A* expert, and write the labelled episodes as a dataset that training aggregates with the expert data.
 
-Each rollout starts at the start pose of a train episode, with its instruction, in lockstep batches (one batched
-policy call per step). At every visited state the A* expert (`AStarExpert`, re-planned to the episode's goal
+Each rollout starts at the start pose of a train episode, with its instruction, in lockstep batches (the rollout
+layer's `LockstepRunner`, one batched policy call per step, with the `ExpertLabelling` hook). At every visited
+state the A* expert (`AStarExpert`, re-planned to the episode's goal
 from wherever the agent is) gives the label; the executed action is the agent's, or the expert's with
 probability `expert_mix` (a beta-mixture), and always the expert's when the agent's action would hit an obstacle
 or stop early. After `max_policy_steps` steps the expert flies the rest of the way, so every episode ends with
@@ -15,21 +16,20 @@ action, not the label (that is the point of the relabelling).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.writer import OpenFlyDatasetWriter
+from openfly_agent.rollout.policy import Policy
+from openfly_agent.rollout.runner import LockstepRunner, RolloutHook, RunningEpisode
 from openfly_agent.sim import dynamics
-from openfly_agent.sim.base import EpisodeSpec, Observation
 from openfly_agent.sim.city import parse_scene_id
 from openfly_agent.sim.embedded import EmbeddedSimConfig
 from openfly_agent.sim.vector import VectorSimulator
@@ -43,15 +43,7 @@ from openfly_agent.utils.geometry import Pose
 
 logger = logging.getLogger(__name__)
 
-OBS_STEP = "step"
-
-
-class BatchPolicy(Protocol):
-    """A batched closed-loop policy (the evaluation `Policy` protocol: the agent's adapter implements it)."""
-
-    def reset(self, episode_ids: list[str]) -> None: ...
-
-    def act(self, observations: list[dict]) -> list[int]: ...
+_ROLLOUT, _EXPERT = "dagger_rollout", "dagger_expert"  # ExpertLabelling's keys in RunningEpisode.state
 
 
 @dataclass
@@ -69,14 +61,6 @@ class DaggerRollout:
     @property
     def done(self) -> bool:
         return self.failed is not None or (bool(self.labels) and self.labels[-1] == C.ACTION_STOP)
-
-
-@dataclass
-class _Slot:
-    rollout: DaggerRollout
-    expert: AStarExpert
-    obs: Observation
-    episode_id: str
 
 
 def rollout_episode(rollout: DaggerRollout, index: int, round_name: str) -> Episode:
@@ -107,133 +91,89 @@ def rollout_episode(rollout: DaggerRollout, index: int, round_name: str) -> Epis
     )
 
 
-def collect_rollouts(
-    policy: BatchPolicy,
-    episodes: Sequence[Episode],
-    make_expert: Callable[[Episode], AStarExpert],
-    env,
-    expert_mix: float,
-    max_policy_steps: int,
-    max_steps: int,
-    seed: int = 0,
-    progress: bool = True,
-):
-    """Yield one `DaggerRollout` per episode as it finishes (in completion order).
+class ExpertLabelling(RolloutHook):
+    """The runner hook of a DAgger round: the A* expert labels every visited state and flies when the agent may not.
+
+    Before the agent acts the current state is recorded with the expert's label; the expert's STOP (or a state
+    without a plan, or more than `max_steps` states) ends the rollout. The agent proposes the action for its first
+    `max_policy_steps` states; the expert's label is flown instead with probability `expert_mix`, and whenever
+    the agent's action would stop, move sideways or hit the dilated map. Finished rollouts go to `on_rollout`
+    (in completion order); dropped ones are logged.
 
     Args:
-        policy: the agent (batched `reset` / `act` on observation dicts: episode_id, instruction, rgb, pose, step).
-        episodes: train episodes whose start pose, instruction, goal and target landmark are used.
         make_expert: the A* expert of an episode (re-plans to its goal from any pose).
-        env: lockstep environments with `num_envs`, `reset_env(slot, spec)`, `step(actions)` (a
-            `VectorSimulator` of embedded simulators that do not end episodes on collision).
+        on_rollout: called with each finished `DaggerRollout`.
         expert_mix: probability that the expert's action is executed instead of the agent's.
         max_policy_steps: states the agent may fly at most before the expert takes over.
         max_steps: states at most; a rollout that has not stopped by then is dropped.
         seed: seed of the expert-mix draws.
     """
-    rng = np.random.default_rng(seed)
-    queue = list(episodes)
-    slots: list[_Slot | None] = [None] * env.num_envs
-    bar = tqdm(total=len(queue), desc="dagger rollouts", disable=not progress, leave=False)
-    try:
-        while queue or any(s is not None for s in slots):
-            for i in range(env.num_envs):  # refill idle slots
-                while slots[i] is None and queue:
-                    slots[i] = _start(env, i, queue.pop(0), make_expert, policy)
-            active = [i for i, s in enumerate(slots) if s is not None]
-            for i in active:
-                _label(slots[i])
-            finished = [
-                i for i in active if slots[i].rollout.done or len(slots[i].rollout.labels) > max_steps
-            ]
-            for i in finished:
-                yield from _finish(slots[i], policy, max_steps)
-                slots[i] = None
-                bar.update(1)
-            active = [i for i in active if slots[i] is not None]
-            if not active:
-                continue
-            flying = [i for i in active if slots[i].rollout.agent_steps < max_policy_steps]
-            proposed = (
-                dict(zip(flying, policy.act([_policy_obs(slots[i]) for i in flying]))) if flying else {}
-            )
-            actions: list[int | None] = [None] * env.num_envs
-            for i in active:
-                actions[i] = _executed(slots[i], proposed.get(i), expert_mix, rng)
-            observations, _ = env.step(actions)
-            for i in active:
-                slots[i].obs = observations[i]
-    finally:
-        bar.close()
+
+    def __init__(
+        self,
+        make_expert: Callable[[Episode], AStarExpert],
+        on_rollout: Callable[[DaggerRollout], None],
+        expert_mix: float,
+        max_policy_steps: int,
+        max_steps: int,
+        seed: int = 0,
+    ):
+        self.make_expert, self.on_rollout = make_expert, on_rollout
+        self.expert_mix, self.max_policy_steps, self.max_steps = expert_mix, max_policy_steps, max_steps
+        self.rng = np.random.default_rng(seed)
+
+    def on_episode_start(self, running: RunningEpisode) -> None:
+        running.state[_ROLLOUT] = DaggerRollout(running.episode)
+        running.state[_EXPERT] = self.make_expert(running.episode)
+
+    def before_act(self, running: RunningEpisode) -> bool:
+        """Record the current state with the expert's label; True when the rollout ends here."""
+        rollout, obs = running.state[_ROLLOUT], running.obs
+        try:
+            label = running.state[_EXPERT].action(obs.pose)
+        except PlanningFailed as err:
+            rollout.failed = f"expert_failed: {err}"
+            return True
+        rollout.poses.append(obs.pose)
+        rollout.labels.append(int(label))
+        rollout.frames.append(np.ascontiguousarray(obs.rgb))
+        box = running.target_box()
+        rollout.boxes.append(None if box is None else np.asarray(box, dtype=np.float64))
+        return rollout.done or len(rollout.labels) > self.max_steps
+
+    def asks_policy(self, running: RunningEpisode) -> bool:
+        return running.state[_ROLLOUT].agent_steps < self.max_policy_steps
+
+    def choose_action(self, running: RunningEpisode, proposed: int | None) -> int:
+        """The action flown from the current state: the agent's unless mixed out, blocked or an early STOP."""
+        rollout = running.state[_ROLLOUT]
+        label = rollout.labels[-1]
+        if proposed is None:  # the agent's budget is spent: the expert flies
+            return label
+        rollout.agent_steps += 1
+        if self.rng.random() < self.expert_mix or proposed in (
+            C.ACTION_STOP, C.ACTION_MOVE_LEFT, C.ACTION_MOVE_RIGHT,
+        ):  # fmt: skip
+            return label
+        pose = running.obs.pose
+        blocked = running.state[_EXPERT].astar.segment_blocked(
+            pose.position, dynamics.apply_action(pose, int(proposed)).position
+        )
+        return label if blocked else int(proposed)
+
+    def on_episode_end(self, running: RunningEpisode) -> None:
+        rollout = running.state.get(_ROLLOUT) or DaggerRollout(running.episode, failed=running.record.error)
+        if rollout.failed is None and len(rollout.labels) > self.max_steps:
+            rollout.failed = f"no STOP within {self.max_steps} states"
+        if rollout.failed is None and not rollout.done:
+            rollout.failed = f"ended by the simulator ({running.record.end_reason})"
+        if rollout.failed is not None:
+            logger.info("dagger rollout of %s dropped: %s", rollout.source.episode_id, rollout.failed)
+            return
+        self.on_rollout(rollout)
 
 
-def _start(env, slot: int, episode: Episode, make_expert, policy) -> _Slot:
-    x, y, z = (float(v) for v in episode.positions[0])
-    spec = EpisodeSpec(
-        episode_id=f"dagger/{episode.episode_id}",
-        scene_id=episode.scene_id,
-        start=Pose(x, y, z, float(episode.yaws[0])),
-        goal=np.asarray(episode.goal, dtype=np.float64),
-        pitch_deg=float(episode.pitch_deg),
-        landmark_id=episode.landmark_ids[-1] if episode.landmark_ids else None,
-    )
-    policy.reset([spec.episode_id])
-    obs = env.reset_env(slot, spec)
-    return _Slot(DaggerRollout(episode), make_expert(episode), obs, spec.episode_id)
-
-
-def _label(slot: _Slot) -> None:
-    """Record the current state with the expert's label (or mark the rollout failed)."""
-    rollout, obs = slot.rollout, slot.obs
-    try:
-        label = slot.expert.action(obs.pose)
-    except PlanningFailed as err:
-        rollout.failed = f"expert_failed: {err}"
-        return
-    target = rollout.source.landmark_ids[-1] if rollout.source.landmark_ids else None
-    rollout.poses.append(obs.pose)
-    rollout.labels.append(int(label))
-    rollout.frames.append(np.ascontiguousarray(obs.rgb))
-    box = (obs.boxes or {}).get(target) if target else None
-    rollout.boxes.append(None if box is None else np.asarray(box, dtype=np.float64))
-
-
-def _policy_obs(slot: _Slot) -> dict:
-    return {
-        C.EPISODE_ID: slot.episode_id,
-        C.OBS_INSTRUCTION: slot.rollout.source.instruction,
-        C.OBS_RGB: slot.obs.rgb,
-        C.OBS_POSE: slot.obs.pose.as_array(),
-        OBS_STEP: len(slot.rollout.labels) - 1,
-    }
-
-
-def _executed(slot: _Slot, proposed: int | None, expert_mix: float, rng: np.random.Generator) -> int:
-    """The action flown from the current state: the agent's unless mixed out, blocked or an early STOP."""
-    label = slot.rollout.labels[-1]
-    if proposed is None:  # the agent's budget is spent: the expert flies
-        return label
-    slot.rollout.agent_steps += 1
-    if rng.random() < expert_mix or proposed in (C.ACTION_STOP, C.ACTION_MOVE_LEFT, C.ACTION_MOVE_RIGHT):
-        return label
-    pose = slot.obs.pose
-    if slot.expert.astar.segment_blocked(pose.position, dynamics.apply_action(pose, int(proposed)).position):
-        return label
-    return int(proposed)
-
-
-def _finish(slot: _Slot, policy, max_steps: int):
-    policy.reset([slot.episode_id])
-    rollout = slot.rollout
-    if rollout.failed is None and len(rollout.labels) > max_steps:
-        rollout.failed = f"no STOP within {max_steps} states"
-    if rollout.failed is not None:
-        logger.info("dagger rollout of %s dropped: %s", rollout.source.episode_id, rollout.failed)
-        return
-    yield rollout
-
-
-def run_dagger_round(policy: BatchPolicy, cfg: DaggerRoundConfig, progress: bool = True) -> dict:
+def run_dagger_round(policy: Policy, cfg: DaggerRoundConfig, progress: bool = True) -> dict:
     """One DAgger round: `cfg.episodes` rollouts of `policy` from train episodes of `cfg.source_root`, written as
     a dataset under `cfg.output_dir` (resumable: rollouts already written are skipped). Returns counts."""
     source = Path(cfg.source_root)
@@ -268,14 +208,22 @@ def run_dagger_round(policy: BatchPolicy, cfg: DaggerRoundConfig, progress: bool
             collision="ignore",
             max_cached_scenes=max(4, cfg.num_envs),
         )
+
+        def write(rollout: DaggerRollout) -> None:
+            nonlocal written
+            episode = rollout_episode(rollout, index_of[rollout.source.episode_id], cfg.round_name)
+            writer.write_episode(episode, rollout.frames)
+            written += 1
+
+        labelling = ExpertLabelling(
+            make_expert, write, cfg.expert_mix, cfg.max_policy_steps, cfg.max_steps, seed=cfg.seed
+        )
         with VectorSimulator.embedded(sim_cfg, num_envs=cfg.num_envs) as env:
-            for rollout in collect_rollouts(
-                policy, [e for _, e in todo], make_expert, env, cfg.expert_mix, cfg.max_policy_steps,
-                cfg.max_steps, seed=cfg.seed, progress=progress,
-            ):  # fmt: skip
-                episode = rollout_episode(rollout, index_of[rollout.source.episode_id], cfg.round_name)
-                writer.write_episode(episode, rollout.frames)
-                written += 1
+            # the runner's cap is never met: the labelling ends a rollout once it has max_steps + 1 states
+            runner = LockstepRunner(
+                policy, env, cfg.max_steps + 1, [labelling], whole_groups=False, show_progress=progress
+            )
+            runner.run([e for _, e in todo], C.SPLIT_TRAIN)
         dropped = len(todo) - written
     writer.finalize()
     return {"round": cfg.round_name, "rollouts": len(chosen), "written": written, "dropped": dropped}

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from openfly_agent import constants as C
-from openfly_agent.eval.box_servo import OBS_TARGET_BOX, BoxServoPolicy, BoxServoSettings, servo_action
+from openfly_agent.eval.box_servo import BoxServoPolicy, BoxServoSettings, servo_action
+from openfly_agent.rollout.policy import OBS_TARGET_BOX
 
 S = BoxServoSettings()  # band 0.22, stop 0.45, far 0.15, search 12
 
@@ -64,17 +65,17 @@ def test_box_servo_runs_on_the_true_target_boxes_through_eval(tmp_path):
     from eval_helpers import generate_tiny_dataset
 
     from openfly_agent.data.openfly_reader import load_openfly_dataset
-    from openfly_agent.eval import rollout
     from openfly_agent.eval.config import EvalConfig
     from openfly_agent.eval.run import run
+    from openfly_agent.rollout.runner import LockstepRunner
 
     dataset = tmp_path / "data"
     generate_tiny_dataset(dataset)
     seen: list = []
-    real = rollout._policy_obs
+    real = LockstepRunner._observation
 
-    def spy(running, with_target_box=False):
-        obs = real(running, with_target_box)
+    def spy(runner, running):
+        obs = real(runner, running)
         seen.append(
             (running.obs.boxes or {}, running.episode.landmark_ids[-1], obs.get(OBS_TARGET_BOX, "absent"))
         )
@@ -84,11 +85,11 @@ def test_box_servo_runs_on_the_true_target_boxes_through_eval(tmp_path):
         policy="box_servo", dataset_root=str(dataset), output_dir=str(tmp_path / "out"), progress=False, plots=0,
         batch_size=2, split=[C.SPLIT_TEST_UNSEEN],
     )  # fmt: skip
-    rollout._policy_obs = spy
+    LockstepRunner._observation = spy
     try:
         outcome = run(cfg)
     finally:
-        rollout._policy_obs = real
+        LockstepRunner._observation = real
     episodes = load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)
     standard = outcome["results"]["box_servo"]["splits"][C.SPLIT_TEST_UNSEEN]["standard"]["overall"]
     assert standard["episodes"] == len(episodes)

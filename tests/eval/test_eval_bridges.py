@@ -12,7 +12,7 @@ from openfly_agent.eval.config import EvalConfig, SimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.factory import make_bridge_env, scene_occupancy
 from openfly_agent.eval.report import policy_results
-from openfly_agent.eval.rollout import LockstepRunner
+from openfly_agent.rollout.runner import LockstepRunner
 from openfly_agent.sim.pointcloud import write_pcd
 
 

@@ -1,44 +1,12 @@
-"""`--checkpoint` resolution: a checkpoint folder, a training run, its `checkpoints/` folder or pointer."""
+"""`eval.py --checkpoint`: a checkpoint that cannot act is refused in one line (resolution: tests/rollout)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-import pytest
-
 from openfly_agent import constants as C
-from openfly_agent.eval.agent_policy import checkpoint_folder, checkpoint_kind
-
-
-def test_training_run_paths_resolve_to_the_newest_checkpoint(tmp_path):
-    step = tmp_path / "run" / "checkpoints" / "step-000010"
-    step.mkdir(parents=True)
-    (step / "config.json").write_text('{"model_type": "openfly_agent"}')
-    (tmp_path / "run" / "checkpoints" / "last").write_text("step-000010\n")
-    for path in ("run", "run/checkpoints", "run/checkpoints/last", "run/checkpoints/step-000010"):
-        assert checkpoint_folder(str(tmp_path / path)) == step
-    assert checkpoint_kind(step) == "openfly_agent"
-    with pytest.raises(FileNotFoundError, match="no config.json"):
-        checkpoint_folder(str(tmp_path))
-    (step / "config.json").write_text('{"model_type": "llama"}')
-    with pytest.raises(ValueError, match="model_type 'llama'"):
-        checkpoint_kind(step)
-
-
-def test_fingerprint_follows_the_newest_weights(tmp_path):
-    from openfly_agent.eval.agent_policy import checkpoint_fingerprint
-
-    checkpoints = tmp_path / "run" / "checkpoints"
-    for name in ("step-000010", "step-000020"):
-        (checkpoints / name).mkdir(parents=True)
-        (checkpoints / name / "config.json").write_text('{"model_type": "openfly_agent"}')
-        (checkpoints / name / "model.safetensors").write_bytes(b"x" * len(name))
-    (checkpoints / "last").write_text("step-000010")
-    before = checkpoint_fingerprint(str(tmp_path / "run"))
-    assert before["folder"].endswith("step-000010") and list(before["weights"]) == ["model.safetensors"]
-    (checkpoints / "last").write_text("step-000020")  # the run trained on: same --checkpoint, new weights
-    assert checkpoint_fingerprint(str(tmp_path / "run")) != before
+from openfly_agent.rollout.checkpoints import checkpoint_folder
 
 
 def test_eval_refuses_a_grounding_stage_checkpoint_naming_the_navigation_stage(tmp_path, capsys):

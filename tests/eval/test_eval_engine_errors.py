@@ -19,8 +19,8 @@ from openfly_agent import constants as C
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.eval.distributed import read_all_logs
-from openfly_agent.eval.episodes import start_pose
 from openfly_agent.eval.report import policy_results
+from openfly_agent.rollout.episodes import start_pose
 from openfly_agent.sim.bridges.unrealcv import unrealcv_pose_commands
 
 EPISODE_IDS = [f"env_ue_smallcity/astar_data/low_short/ep{i}" for i in range(3)]

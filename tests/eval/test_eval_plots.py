@@ -7,8 +7,8 @@ from PIL import Image
 
 from openfly_agent.eval.outputs import sample_for_plots
 from openfly_agent.eval.plots import Footprint, annotate_frames, plot_topdown, safe_name, write_gif
-from openfly_agent.eval.records import EpisodeRecord
 from openfly_agent.eval.rollout import FrameLog
+from openfly_agent.rollout.record import EpisodeRecord
 
 
 def _record(episode_id="embedded-3/astar_data/low_short/t1", split="test_seen"):

@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from openfly_agent.eval.distributed import ProcessInfo, log_files, log_name, merge_logs, read_all_logs, shard
-from openfly_agent.eval.records import EpisodeLog, EpisodeRecord, RecordError, read_jsonl
+from openfly_agent.eval.records import EpisodeLog, RecordError, read_jsonl
+from openfly_agent.rollout.record import EpisodeRecord
 
 
 def _record(episode_id="s/astar_data/low_short/t0", split="test_seen", actions=(1, 1, 0), collisions=()):

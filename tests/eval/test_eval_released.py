@@ -10,8 +10,9 @@ from openfly_agent.data.config import ReaderOptions
 from openfly_agent.data.openfly_reader import read_annotation_file
 from openfly_agent.eval.baselines import ConstantPolicy, OraclePolicy
 from openfly_agent.eval.report import policy_results
-from openfly_agent.eval.rollout import LockstepRunner, teleport_record
-from openfly_agent.eval.slots import SimulatorSlots
+from openfly_agent.eval.rollout import teleport_record
+from openfly_agent.rollout.runner import LockstepRunner
+from openfly_agent.sim.vector import VectorSimulator
 
 # docs/OFFICIAL_OPENFLY.md 6.2: STOP at step 0 succeeds on 26 of 240 (per-scene SR in percent).
 STOP_AT_START_SR = {
@@ -28,7 +29,9 @@ def released(openfly_fixtures):
 
 def test_stop_at_start_reproduces_the_published_rates(released):
     records = []
-    runner = LockstepRunner(ConstantPolicy("stop", C.ACTION_STOP), SimulatorSlots([PoseSimulator()] * 8))
+    runner = LockstepRunner(
+        ConstantPolicy("stop", C.ACTION_STOP), VectorSimulator(sims=[PoseSimulator()] * 8)
+    )
     runner.show_progress = False
     runner.run(released, C.SPLIT_TEST_SEEN, records.append)
     assert len(records) == 240

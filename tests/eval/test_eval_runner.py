@@ -15,10 +15,11 @@ from openfly_agent.eval.distributed import ProcessInfo, read_all_logs
 from openfly_agent.eval.outputs import write_policy_outputs
 from openfly_agent.eval.records import EpisodeLog
 from openfly_agent.eval.report import policy_results
-from openfly_agent.eval.rollout import LockstepRunner, teleport_record
+from openfly_agent.eval.rollout import teleport_record
 from openfly_agent.eval.run import evaluate_policy, prepare_output
-from openfly_agent.eval.slots import SimulatorSlots
+from openfly_agent.rollout.runner import LockstepRunner
 from openfly_agent.sim.base import StepInfo
+from openfly_agent.sim.vector import VectorSimulator
 
 SPLIT = C.SPLIT_TEST_SEEN
 
@@ -41,7 +42,7 @@ def _episodes():
 
 def _run(policy, episodes, batch, max_steps=C.MAX_EPISODE_STEPS, grid=None):
     records = []
-    env = SimulatorSlots([PoseSimulator(grid) for _ in range(batch)])
+    env = VectorSimulator(sims=[PoseSimulator(grid) for _ in range(batch)])
     LockstepRunner(policy, env, max_steps, show_progress=False).run(episodes, SPLIT, records.append)
     return sorted(records, key=lambda r: r.episode_id)
 
@@ -130,7 +131,7 @@ def test_engine_error_ends_only_that_episode():
             return super().step(action_id)
 
     episodes = _episodes()
-    env = SimulatorSlots([FlakySimulator(), PoseSimulator()])
+    env = VectorSimulator(sims=[FlakySimulator(), PoseSimulator()])
     records = []
     LockstepRunner(OraclePolicy(episodes), env, show_progress=False).run(episodes, SPLIT, records.append)
     failed = [r for r in records if r.end_reason == "error"]
@@ -165,7 +166,7 @@ def test_killed_run_resumes_to_the_same_tables(tmp_path, monkeypatch):
 
     def evaluate(folder, env_batch=2):
         prepare_output(folder, cfg.result_identity("random"), False, info)
-        env = SimulatorSlots([PoseSimulator(wall_grid(50.0)) for _ in range(env_batch)])
+        env = VectorSimulator(sims=[PoseSimulator(wall_grid(50.0)) for _ in range(env_batch)])
         evaluate_policy(cfg, RandomPolicy(cfg.seed), episodes, env, folder, info)
 
     evaluate(tmp_path / "full")

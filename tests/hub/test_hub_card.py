@@ -175,8 +175,8 @@ def test_eval_output_folder_is_accepted(tmp_path):
 
 def test_model_index_of_evals_own_results(tmp_path):
     """eval/report.py results.json from hand-made episode records: the card carries its numbers."""
-    from openfly_agent.eval.records import EpisodeRecord
     from openfly_agent.eval.report import policy_results
+    from openfly_agent.rollout.record import EpisodeRecord
 
     def record(split: str, episode: str, end_x: float, stopped: bool) -> EpisodeRecord:
         return EpisodeRecord(

@@ -149,13 +149,12 @@ def _projector(folder: Path) -> torch.Tensor:
 
 @pytest.mark.parametrize("merged", [True, False], ids=["merged", "adapter_on_base"])
 def test_eval_loads_a_lora_run_merged_else_adapter_on_base(lora_run, lora_run_folder, merged, caplog):
-    from openfly_agent.eval.agent_policy import load_agent
-    from openfly_agent.eval.config import AgentSettings
+    from openfly_agent.rollout.checkpoints import load_agent
 
     if not merged:
         shutil.rmtree(lora_run_folder / "merged")
-    with caplog.at_level("INFO", logger="openfly_agent.eval.agent_policy"):
-        agent = load_agent(str(lora_run_folder), AgentSettings(), "cpu")
+    with caplog.at_level("INFO", logger="openfly_agent.rollout.checkpoints"):
+        agent = load_agent(str(lora_run_folder), "cpu")
     base_projector = _projector(lora_run_folder / "merged" if merged else lora_run.root / "base")
     # merged/ holds the base here; the adapter's run moved the projector away from it
     assert torch.equal(agent.projector.fc1.weight, base_projector) == merged

@@ -18,12 +18,12 @@ import pytest
 import torch
 
 from openfly_agent.constants import ACTION_TOKENIZER_NAME, CONFIG_NAME, WEIGHTS_INDEX_NAME, WEIGHTS_NAME
-from openfly_agent.eval.agent_policy import checkpoint_fingerprint
 from openfly_agent.hub.config import ModelReleaseConfig
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import build_model_release, resolve_checkpoint
 from openfly_agent.model.persistence.remote_code import AUTO_MAP
+from openfly_agent.rollout.checkpoints import checkpoint_fingerprint
 from openfly_agent.utils.processes import run_group
 
 REPO_ROOT = Path(__file__).resolve().parents[2]

@@ -237,15 +237,12 @@ def test_a_lora_only_checkpoint_says_what_loads_it(make_agent, tmp_path):
 def test_decoding_overrides_go_through_the_config(make_agent, tmp_path):
     """eval's decode_rule / unnorm_key reach the config, `config.action_tokenizer`, the action tokenizer and the
     processor together (none can go stale)."""
-    from openfly_agent.eval.agent_policy import load_agent
-    from openfly_agent.eval.config import AgentSettings
+    from openfly_agent.rollout.checkpoints import load_agent
 
     stats = {"a": NORM_STATS["demo"], "b": {"action": {"q01": [-1.0] * 8, "q99": [20.0] * 8}}}
     head = ActionHeadConfig(type="openvla_bins", unnorm_key="a", decode_rule="exact")
     make_agent(action_head=head, norm_stats=stats).save_pretrained(tmp_path)
-    agent = load_agent(
-        str(tmp_path), AgentSettings(decode_rule="nearest", unnorm_key="b", dtype="float32"), "cpu"
-    )
+    agent = load_agent(str(tmp_path), "cpu", dtype="float32", decode_rule="nearest", unnorm_key="b")
     assert (
         agent.model_cfg.action_head.decode_rule == "nearest" and agent.model_cfg.action_head.unnorm_key == "b"
     )

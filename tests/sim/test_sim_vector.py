@@ -1,6 +1,7 @@
 """64 embedded episodes in lockstep with a scripted policy: poses, frames, boxes and collisions by hand."""
 
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
@@ -56,9 +57,10 @@ def _episodes_and_scripts():
 def run():
     episodes, scripts, expected_hit = _episodes_and_scripts()
     vec = VectorSimulator.embedded(EmbeddedSimConfig(width=SIZE, height=SIZE), N_ENVS, cities=[tower_city()])
-    frames = {}
+    frames, flown = {}, [_Flown() for _ in range(N_ENVS)]
     for i, obs in enumerate(vec.reset(episodes)):
         frames[i, 0] = obs
+        flown[i].poses.append(obs.pose)
     t = 0
     while any(vec.active):
         actions = [scripts[i][t] if vec.active[i] else None for i in range(N_ENVS)]
@@ -68,13 +70,35 @@ def run():
             assert (obs is None) == (actions[i] is None) == (info is None)
             if obs is not None:
                 frames[i, t] = obs
-    yield vec, episodes, scripts, expected_hit, frames
+                flown[i].poses.append(obs.pose)
+                flown[i].actions.append(actions[i])
+                flown[i].collided.append(bool(info.collided))
+                flown[i].done = bool(info.done)
+    yield vec, episodes, scripts, expected_hit, frames, flown
     vec.close()
 
 
+@dataclass
+class _Flown:
+    """What one slot flew: poses (start first), actions, per-step collision flags, and whether it ended."""
+
+    poses: list = field(default_factory=list)
+    actions: list = field(default_factory=list)
+    collided: list = field(default_factory=list)
+    done: bool = False
+
+    @property
+    def stopped(self) -> bool:
+        return bool(self.actions) and self.actions[-1] == C.ACTION_STOP
+
+    @property
+    def collision_step(self):
+        return self.collided.index(True) if any(self.collided) else None
+
+
 def test_poses_follow_the_dynamics_until_a_collision(run):
-    vec, episodes, scripts, expected_hit, _ = run
-    for i, record in enumerate(vec.records):
+    _, episodes, scripts, expected_hit, _, flown = run
+    for i, record in enumerate(flown):
         assert record.collision_step == expected_hit[i], f"env {i}"
         n = len(record.actions)
         reference = rollout_array(episodes[i].start, scripts[i][:n])
@@ -91,7 +115,7 @@ def test_poses_follow_the_dynamics_until_a_collision(run):
 
 
 def test_frames_differ_between_poses_and_match_for_equal_episodes(run):
-    _, _, _, _, frames = run
+    _, _, _, _, frames, _ = run
     assert not np.array_equal(frames[16, 0].rgb, frames[17, 0].rgb)
     assert not np.array_equal(frames[20, 0].rgb, frames[48, 0].rgb)  # same pose, pitch 0 vs -45
     assert frames[20, 0].pose == frames[48, 0].pose
@@ -103,7 +127,7 @@ def test_frames_differ_between_poses_and_match_for_equal_episodes(run):
 
 
 def test_boxes_match_hand_projection_and_the_renderer(run):
-    vec, episodes, _, _, frames = run
+    vec, episodes, _, _, frames, _ = run
     camera = CameraModel(SIZE, SIZE, 90.0)
     tol = 1.0 / SIZE + 1e-9
     start = frames[16, 0]

@@ -8,13 +8,11 @@ from toolchain_scene import BOUNDS, synthetic_scene
 
 from openfly_agent import constants as C
 from openfly_agent.sim import dynamics
-from openfly_agent.sim.base import Observation
 from openfly_agent.toolchain.actions import build_action_sequence
 from openfly_agent.toolchain.astar import ActionSpaceAStar
 from openfly_agent.toolchain.config import MapConfig, PlannerConfig
 from openfly_agent.toolchain.dagger import (
     NOISE_ACTIONS,
-    AgentPolicy,
     AStarExpert,
     NoisyExpertPolicy,
     rollout_with_relabel,
@@ -123,26 +121,3 @@ def test_rollout_gives_up_after_max_steps(scene):
             3,
         )
     assert err.value.reason == "dagger_max_steps"
-
-
-def test_agent_policy_adapter_passes_the_agent_api_dicts():
-    class ScriptedAgent:  # stands in for OpenFlyAgent's select_action / reset API
-        def __init__(self):
-            self.calls, self.resets = [], []
-
-        def reset(self, ids):
-            self.resets.append(ids)
-
-        def select_action(self, observations):
-            self.calls.append(observations)
-            return [C.ACTION_TURN_LEFT]
-
-    agent = ScriptedAgent()
-    policy = AgentPolicy(agent)
-    policy.reset("embedded-0/dagger/3", "fly to the red tower")
-    rgb = np.zeros((8, 8, 3), np.uint8)
-    assert policy.act(Observation(rgb, Pose(1.0, 2.0, 3.0, 0.5)), C.ACTION_FORWARD) == C.ACTION_TURN_LEFT
-    (obs,) = agent.calls[0]
-    assert agent.resets == [["embedded-0/dagger/3"]]
-    assert obs[C.EPISODE_ID] == "embedded-0/dagger/3" and obs[C.OBS_INSTRUCTION] == "fly to the red tower"
-    assert obs[C.OBS_RGB] is rgb and obs[C.OBS_POSE].tolist() == [1.0, 2.0, 3.0, 0.5]

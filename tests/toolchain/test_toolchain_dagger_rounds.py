@@ -11,6 +11,7 @@ from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.openfly_reader import load_openfly_dataset
+from openfly_agent.rollout.policy import PolicyFeatures
 from openfly_agent.sim import dynamics
 from openfly_agent.sim.city import parse_scene_id
 from openfly_agent.toolchain.config import DaggerRoundConfig, GenerateConfig
@@ -29,6 +30,8 @@ class ScriptedPolicy:
     """Left, forward 9, right, STOP (refused by the round), in turn: a policy that strays off the expert's path."""
 
     CYCLE = (C.ACTION_TURN_LEFT, C.ACTION_FORWARD_9, C.ACTION_TURN_RIGHT, C.ACTION_STOP, C.ACTION_FORWARD)
+    name = "scripted"
+    features = PolicyFeatures()
 
     def __init__(self):
         self.calls, self.resets = 0, []

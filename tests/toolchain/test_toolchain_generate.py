@@ -251,7 +251,7 @@ def test_any_simulator_renders_by_stepping_through_the_labels(dataset):
 
 
 def test_policy_dagger_relabels_a_trained_agent_rollout(dataset, tmp_path):
-    from openfly_agent.toolchain.dagger import AgentPolicy
+    from openfly_agent.rollout.agent import AgentPolicy
     from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY
 
     class AlwaysLeftAgent:  # stands in for a trained agent behind the select_action / reset API

@@ -1,11 +1,6 @@
-"""The trained agent as a `Policy`: batched `select_action` with per-episode memory, plus its predictions.
-
-`AgentPolicy` wraps any object with the agent's public inference API (`select_action(list[dict]) ->
-list[int]`, `reset(episode_ids)`, optionally `last_step_info`), so the runner never touches model
-internals. `load_agent` builds `OpenFlyAgent` from our checkpoint folder (a LoRA run's: its merged model when the
-run wrote one, else the adapter on its base), a released OpenVLA / OpenFly-Agent folder (through the model's
-`openvla_compat` path and `openvla_bins` head) or a Hub id.
-"""
+"""Checkpoints as agents: `load_agent` builds `OpenFlyAgent` from our checkpoint folder or training run (a LoRA
+run's: its merged model when the run wrote one, else the adapter on its base), a released OpenVLA / OpenFly-Agent
+folder (through the model's `openvla_compat` path and `openvla_bins` head) or a Hub id."""
 
 from __future__ import annotations
 
@@ -15,9 +10,6 @@ import logging
 from pathlib import Path
 
 from openfly_agent import constants as C
-from openfly_agent.eval.box_servo import OBS_TARGET_BOX
-from openfly_agent.eval.config import AgentSettings, EvalInputError
-from openfly_agent.eval.policy import OBS_EPISODE_ID
 from openfly_agent.model.config import ModelConfig, openvla_compat_7b_config
 from openfly_agent.model.language.tokenizer import load_tokenizer
 from openfly_agent.model.persistence.checkpoint_path import check_navigation_stage, resolve_checkpoint_folder
@@ -27,63 +19,9 @@ from openfly_agent.utils.config import load_yaml_config
 logger = logging.getLogger(__name__)
 
 
-class AgentPolicy:
-    """Adapter from the agent's inference API to the runner's `Policy` protocol.
-
-    Args:
-        agent: an `OpenFlyAgent` (or anything with `select_action`, `reset`).
-        name: the policy name in tables and folders.
-        true_boxes: feed the simulator's true target box to the agent in place of its grounding head's
-            (`agent_true_box`: the agent with perfect grounding; the runner adds `target_box` to observations).
-    """
-
-    needs_frames = True
-
-    def __init__(self, agent, name: str = "agent", true_boxes: bool = False):
-        if true_boxes and not hasattr(agent, "predict_step"):
-            raise ValueError(f"{name}: the agent has no predict_step to take true boxes")
-        self.agent = agent
-        self.name = name
-        self.needs_target_box = true_boxes
-        self._details: dict[str, dict] = {}
-
-    def reset(self, episode_ids: list[str]) -> None:
-        self.agent.reset(list(episode_ids))
-        for episode_id in episode_ids:
-            self._details.pop(episode_id, None)
-
-    def act(self, observations: list[dict]) -> list[int]:
-        import torch
-
-        inputs = [
-            {key: obs[key] for key in (OBS_EPISODE_ID, C.OBS_INSTRUCTION, C.OBS_RGB, C.OBS_POSE)}
-            for obs in observations
-        ]
-        with torch.inference_mode():
-            if not hasattr(self.agent, "predict_step"):
-                return [int(a) for a in self.agent.select_action(inputs)]
-            if self.needs_target_box:
-                results = self.agent.predict_step(inputs, [obs[OBS_TARGET_BOX] for obs in observations])
-            else:
-                results = self.agent.predict_step(inputs)
-        for obs, result in zip(inputs, results):
-            self._details[obs[OBS_EPISODE_ID]] = _details(self.agent, obs[OBS_EPISODE_ID], result)
-        return [int(result.action) for result in results]
-
-    def step_details(self, episode_ids: list[str]) -> list[dict]:
-        """The predicted landmark box (None when predicted invisible) and the keyframe sets in memory."""
-        return [self._details.get(episode_id, {}) for episode_id in episode_ids]
-
-
-def _details(agent, episode_id: str, result) -> dict:
-    """`box`: (cx, cy, w, h) or None; `keyframes`: frame indices of the keyframe sets in the agent memory."""
-    box = [float(v) for v in result.box] if getattr(result, "box_visible", False) else None
-    state = getattr(agent, "episodes", {}).get(episode_id)
-    memory = getattr(state, "memory", None)
-    if memory is None:
-        return {"box": box, "keyframes": None}
-    sets = memory.keys()  # MemoryBank keys: one tuple of frame indices per keyframe set, oldest first
-    return {"box": box, "keyframes": [[int(i) for i in frames] for frames in sets]}
+class CheckpointError(ValueError):
+    """A checkpoint that cannot act (a grounding-stage checkpoint, an unknown model type); the message names
+    the folder and what to pass instead."""
 
 
 def resolve_device(device: str, info_device=None) -> str:
@@ -110,7 +48,7 @@ def checkpoint_folder(checkpoint: str) -> Path:
     """The checkpoint's HF folder: a folder with config.json as is; a training run (`<run>`,
     `<run>/checkpoints` or the `last` pointer file) resolved to its newest checkpoint; otherwise a Hub id
     resolved through the local Hub cache (or a download when online). A grounding-stage checkpoint is refused
-    (EvalInputError naming the navigation stage: it has no trained action head)."""
+    (CheckpointError naming the navigation stage: it has no trained action head)."""
     try:
         folder = resolve_checkpoint_folder(checkpoint)
     except FileNotFoundError as err:
@@ -119,7 +57,7 @@ def checkpoint_folder(checkpoint: str) -> Path:
         try:
             check_navigation_stage(folder)
         except ValueError as err:
-            raise EvalInputError(f"--checkpoint {checkpoint!r}: {err}") from err
+            raise CheckpointError(f"--checkpoint {checkpoint!r}: {err}") from err
         return folder
     if checkpoint.startswith((".", "/")) or checkpoint.count("/") != 1:
         raise FileNotFoundError(
@@ -154,30 +92,38 @@ def checkpoint_kind(folder: Path) -> str:
         return C.MODEL_TYPE
     if model_type == "openvla":
         return "openvla"
-    raise EvalInputError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
+    raise CheckpointError(f"{config}: model_type {model_type!r} is neither {C.MODEL_TYPE!r} nor 'openvla'")
 
 
-def _released_model_config(settings: AgentSettings):
-    cfg = (
-        load_yaml_config(ModelConfig, settings.model_config)
-        if settings.model_config
-        else openvla_compat_7b_config()
-    )
+def _released_model_config(model_config: str | None, decode_rule: str | None, unnorm_key: str | None):
+    cfg = load_yaml_config(ModelConfig, model_config) if model_config else openvla_compat_7b_config()
     head = dataclasses.replace(
         cfg.action_head,
-        unnorm_key=settings.unnorm_key or cfg.action_head.unnorm_key,
-        decode_rule=settings.decode_rule or cfg.action_head.decode_rule,
+        unnorm_key=unnorm_key or cfg.action_head.unnorm_key,
+        decode_rule=decode_rule or cfg.action_head.decode_rule,
     )
     return dataclasses.replace(cfg, action_head=head)
 
 
-def load_agent(checkpoint: str, settings: AgentSettings, device: str):
+def load_agent(
+    checkpoint: str,
+    device: str = "cpu",
+    dtype: str = "auto",
+    decode_rule: str | None = None,
+    unnorm_key: str | None = None,
+    model_config: str | None = None,
+):
     """Load the agent of `checkpoint` on `device`, in eval mode, with the decoding settings applied.
+
+    `checkpoint`: a checkpoint folder, a training run (its newest checkpoint) or a Hub id (`checkpoint_folder`);
+    `dtype`: auto (float32 on CPU, bfloat16 on CUDA) | float32 | bfloat16 | float16; `decode_rule`,
+    `unnorm_key`: the `openvla_bins` decoding (None keeps the checkpoint's); `model_config`: the ModelConfig YAML
+    of a released (OpenVLA-format) folder (None: the 7B compat preset).
 
     Our folders load with `OpenFlyAgent.from_pretrained`, then take the decoding settings through their config
     (`set_action_decoding`: the action tokenizer, `config.action_tokenizer` and the processor all follow);
     OpenVLA-format folders (the released OpenFly-Agent) through `agent_from_openvla_checkpoint` with the
-    `openvla_compat` model config (`settings.model_config`, default the 7B preset) and its `openvla_bins` head.
+    `openvla_compat` model config (`model_config`, default the 7B preset) and its `openvla_bins` head.
     A LoRA checkpoint (adapter only) loads as `checkpoint_weights` says, logged: the run's merged model when it
     wrote one, else the adapter on its base (the run's `init.checkpoint`).
     """
@@ -185,23 +131,23 @@ def load_agent(checkpoint: str, settings: AgentSettings, device: str):
     from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
 
     folder = checkpoint_folder(checkpoint)
-    dtype = resolve_dtype(settings.dtype, device)
+    torch_dtype = resolve_dtype(dtype, device)
     if checkpoint_kind(folder) == "openvla":
         agent, report = agent_from_openvla_checkpoint(
             folder,
-            _released_model_config(settings),
+            _released_model_config(model_config, decode_rule, unnorm_key),
             tokenizer=load_tokenizer(folder),
             device=device,
-            dtype=dtype,
+            dtype=torch_dtype,
         )
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()
     weights = checkpoint_weights(folder)
     if weights.base is None:
-        agent = OpenFlyAgent.from_pretrained(str(weights.folder), dtype=dtype)
+        agent = OpenFlyAgent.from_pretrained(str(weights.folder), dtype=torch_dtype)
     else:
-        agent = load_lora_agent(weights.folder, weights.base).to(dtype)
+        agent = load_lora_agent(weights.folder, weights.base).to(torch_dtype)
     agent = agent.to(device).eval()
-    agent.set_action_decoding(decode_rule=settings.decode_rule, unnorm_key=settings.unnorm_key)
-    logger.info("evaluating %s on %s (%s)", weights.description, device, dtype)
+    agent.set_action_decoding(decode_rule=decode_rule, unnorm_key=unnorm_key)
+    logger.info("loaded %s on %s (%s)", weights.description, device, torch_dtype)
     return agent
