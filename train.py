@@ -7,8 +7,8 @@
         --config_path configs/train/openfly-7b-full.yaml --init.checkpoint=/path/to/openvla-7b \
         --model.llm.tokenizer_path=/path/to/openvla-7b --data.root=/path/to/OpenFly
 
-Parses the config, generates the dataset when it is missing and calls `training.train` (all input checks
-come first). Prints the final offline action accuracy next to the majority-class rate. Exit codes: 0 done
+Parses the config and calls `training.train` (all input checks come first). The dataset is made beforehand
+(`python -m openfly_agent.toolchain generate`; the recipe and the main job generate theirs). Prints the final offline action accuracy next to the majority-class rate. Exit codes: 0 done
 (or stopped by SIGTERM / SIGUSR1 with a checkpoint), 2 bad input or unreadable data (one line on stderr),
 130 interrupted (Ctrl-C). `python train.py --help` lists every option with the value a plain run uses; the
 help, the did-you-mean and the one-line messages come from `training/cli.py`.
@@ -21,9 +21,6 @@ import os
 import sys
 import time
 
-from openfly_agent.data.openfly_reader import annotation_path
-from openfly_agent.toolchain.config import GenerateConfig
-from openfly_agent.toolchain.generate import generate
 from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_default_config: tests/test_docs.py)
     DEFAULT_CONFIG,
     data_error_message,
@@ -33,7 +30,6 @@ from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_defaul
     with_default_config,
 )
 from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
-from openfly_agent.utils.config import load_yaml_config
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.files import remove_empty_dirs
@@ -45,22 +41,6 @@ RANK_ERROR_GRACE_S = 60.0  # how long a process other than rank 0 leaves rank 0 
 RUN_SUBFOLDERS = ("logs", "checkpoints", "tokenizer")  # what a run creates in its output_dir
 
 logger = logging.getLogger("train")
-
-
-def ensure_dataset(cfg) -> None:
-    """Generate the dataset with the toolchain when `data.root` has no train split (rank 0; others wait)."""
-    from accelerate import PartialState
-
-    from openfly_agent.training.accelerator import use_cpu  # lazy: torch + accelerate; --help stays fast
-
-    if annotation_path(cfg.data.root, cfg.data.train_split).is_file() or not cfg.data.generate_if_missing:
-        return
-    state = PartialState(cpu=use_cpu(cfg))
-    with state.main_process_first():
-        if state.is_main_process:
-            logger.info("%s has no dataset: generating it with %s", cfg.data.root, cfg.data.toolchain_config)
-            overrides = [f"--output_dir={cfg.data.root}"]  # write where training reads
-            generate(load_yaml_config(GenerateConfig, cfg.data.toolchain_config, overrides))
 
 
 def report(result, cfg) -> None:
@@ -107,7 +87,6 @@ def run(argv: list[str], state: dict) -> int:
     try:
         cfg = parse_args(argv)
         state["output_dir"] = cfg.output_dir
-        ensure_dataset(cfg)
         result = train(cfg)
     except (ParsingError, PreflightError, UnknownOptionError) as err:
         if "output_dir" in state:  # a failed start leaves no empty run folder (every process: no race)

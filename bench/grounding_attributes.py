@@ -1,5 +1,5 @@
 """Where a navigation run's grounding head lands when it misses, and which target attributes its features hold
-(openfly_agent/training/grounding_attributes.py), as markdown (+ JSON):
+(bench/analysis/grounding_attributes.py), as markdown (+ JSON):
 
     python bench/grounding_attributes.py --run outputs/recipe/navigation
     python bench/grounding_attributes.py --run outputs/recipe/navigation --checkpoint outputs/recipe/grounding
@@ -39,7 +39,7 @@ def main() -> None:
 
     import torch  # lazy: --help stays fast
 
-    from openfly_agent.training.grounding_attributes import (  # lazy: torch, the model and the simulator
+    from bench.analysis.grounding_attributes import (  # lazy: torch, the model and the simulator
         ATTRIBUTE_FIELDS,
         LANDINGS,
         AttributeProbe,

@@ -1,4 +1,4 @@
-"""Where a training run's target boxes go wrong (openfly_agent/training/grounding_errors.py), as markdown + JSON.
+"""Where a training run's target boxes go wrong (bench/analysis/grounding_errors.py), as markdown + JSON.
 
 Runs the run's agent (its last checkpoint unless --checkpoint) over evenly spaced samples of its test split (or
 --split) and prints IoU by target size, centre hits, size error, argmax-cell hits and the IoU an exact centre or
@@ -58,7 +58,7 @@ def main() -> None:
 
     import torch  # lazy: --help stays fast
 
-    from openfly_agent.training.grounding_errors import (  # lazy: torch and the model; --help stays fast
+    from bench.analysis.grounding_errors import (  # lazy: torch and the model; --help stays fast
         collect_target_boxes,
         errors_markdown,
         grounding_errors,

@@ -1,6 +1,6 @@
 """How much of a generated dataset's expert actions perfect grounding or perfect localisation would explain.
 
-Fits small MLP probes (openfly_agent/data/predictability.py) from privileged per-step features (the target
+Fits small MLP probes (bench/analysis/label_predictability.py) from privileged per-step features (the target
 landmark's ground-truth box; the goal's distance and bearing) to the expert action on the train split and
 prints their held-out accuracy on a test split next to the majority-class rate, one JSON line each:
 
@@ -41,7 +41,7 @@ def main() -> None:
 
     import torch
 
-    from openfly_agent.data.predictability import run_probes  # lazy: torch; --help stays fast
+    from bench.analysis.label_predictability import run_probes  # lazy: torch; --help stays fast
 
     torch.set_num_threads(args.threads)
     options = ReaderOptions(takeoff_landing=args.takeoff_landing)

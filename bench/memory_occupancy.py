@@ -1,4 +1,4 @@
-"""How full each history mode keeps the memory of a training run's samples (openfly_agent/data/memory_occupancy.py).
+"""How full each history mode keeps the memory of a training run's samples (bench/analysis/memory_occupancy.py).
 
 Reads the run's `train_config.json` (data roots, extra train roots, memory capacity, keyframe settings), builds the
 samples of one split under each history mode and prints one JSON line per mode: memory sets and frames per
@@ -34,8 +34,8 @@ def main() -> None:
     args = parser.parse_args()
 
     # lazy: torch and the training stack; --help stays fast
+    from bench.analysis.memory_occupancy import memory_occupancy  # lazy: torch
     from openfly_agent.data.dataset import NavigationStepDataset  # lazy: torch
-    from openfly_agent.data.memory_occupancy import memory_occupancy  # lazy: torch
     from openfly_agent.model.memory.keyframes import KeyframeSelector  # lazy: the model package
     from openfly_agent.training.builder import load_splits  # lazy: torch and transformers
     from openfly_agent.training.config import TrainConfig  # lazy: the training stack

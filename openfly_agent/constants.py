@@ -79,6 +79,27 @@ MEMORY = (
 
 IGNORE_INDEX = -100
 
+# --- Landmark attributes (TARGET_ATTRIBUTES / LANDMARK_ATTRIBUTES ids index these tuples) ------------
+# The embedded city draws its landmarks from these closed vocabularies (sim/city_vocab.py gives them their
+# render materials); instructions name only these words. The order is the class id order of each attribute.
+LANDMARK_ATTRIBUTE_FIELDS = ("color", "type", "size", "feature")  # the `Landmark` fields, in id order
+LANDMARK_COLORS = (
+    "red", "orange", "yellow", "green", "blue", "purple", "pink", "white", "gray", "black", "brown", "beige",
+)  # fmt: skip
+LANDMARK_TYPES = ("house", "warehouse", "building", "office building", "tower", "skyscraper")
+LANDMARK_SIZES = ("low-rise", "mid-rise", "high-rise")  # height classes (sim/city_vocab.py: metres)
+LANDMARK_FEATURES = (
+    "none",
+    "rooftop billboard",
+    "spire",
+    "dome",
+    "antenna",
+    "water tank",
+    "rooftop garden",
+    "glass facade",
+)
+LANDMARK_VOCABULARIES = (LANDMARK_COLORS, LANDMARK_TYPES, LANDMARK_SIZES, LANDMARK_FEATURES)  # field order
+
 # --- Observation keys (simulator -> agent) ---------------------------------------------------------
 OBS_RGB = "rgb"  # (H, W, 3) uint8
 OBS_POSE = "pose"  # (4,) float (x, y, z, yaw)

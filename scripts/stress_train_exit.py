@@ -40,7 +40,7 @@ def train_args(dataset: Path, output_dir: Path, steps: int = 4) -> list[str]:
         "batch.per_device_batch_size": 2, "optim.warmup_steps": 1, "logging.tracker": "none",
         "logging.log_interval": 1, "validation.interval": 0, "validation.final_max_samples": 9,
         "validation.per_device_batch_size": 4, "checkpoint.save_interval": 2, "checkpoint.keep_last": 5,
-        "data.generate_if_missing": "false", "freeze_stage": "frozen_vision",
+        "freeze_stage": "frozen_vision",
     }  # fmt: skip
     return ["--config_path", str(REPO / "configs/train/tiny.yaml")] + [
         f"--{k}={v}" for k, v in overrides.items()

@@ -50,7 +50,7 @@ BUDGET = {
     "train": [
         "--steps=2", "--batch.global_batch_size=4", "--batch.per_device_batch_size=2", "--validation.interval=0",
         "--validation.final_max_samples=4", "--logging.tracker=none", "--checkpoint.save_interval=0",
-        "--data.generate_if_missing=false", "--time_limit_minutes=10",
+        "--time_limit_minutes=10",
     ],
     "eval": ["--max_episodes=1", "--max_steps=3", "--plots=0", "--progress=false", "--batch_size=2", "--torch_threads=1"],
     "toolchain:generate": [

@@ -1,4 +1,7 @@
-"""Imports go downwards only (docs/CONVENTIONS.md, 'Layers'): L0 constants/utils, L1 model|data|sim, L2 toolchain|training|eval, L3 hub.
+"""The layering of docs/ARCHITECTURE.md ("Layers"), enforced: imports go downwards only, the parts of one level
+that are siblings never import each other, training and eval never import the toolchain nor the procedural
+city, and the entry points train.py / eval.py follow the level of their package. Each rule is checked on a
+planted violation in a small fake package first.
 
 Also: the package's own modules are imported at the top of a module (an import inside a function says why with a
 `# lazy: <reason>` comment), and the tests mirror the package (tests/<subpackage>/).
@@ -24,40 +27,125 @@ LEVEL = {
     "hub": 4,
     "recipe": 4,
 }
-SIBLINGS_FORBIDDEN = {"model", "data", "sim"}  # L1 parts never import each other
+SIBLINGS = ({"model", "data", "sim"}, {"toolchain", "training", "eval"})  # parts that never import each other
+# part -> modules it never imports (a prefix covers the modules below it and their names): training and eval
+# reach the simulator through sim's public modules (sim/embedded_scenes.py, sim/embedded.py, ...), never the
+# procedural city, and never the data toolchain.
+FORBIDDEN = dict.fromkeys(("training", "eval"), ("openfly_agent.toolchain", "openfly_agent.sim.city"))
+ENTRY_POINTS = {"train.py": "training", "eval.py": "eval"}  # an entry point imports as its package does
 
 
-def _part_of(module: str) -> str | None:
-    parts = module.split(".")
-    if parts[0] != "openfly_agent" or len(parts) < 2:
-        return None
-    return parts[1]
+def _module_of(path: Path, package: Path) -> str:
+    """`openfly_agent.a.b` for `<package>/a/b.py`; an entry point outside the package is a module of no package."""
+    if package not in path.parents:
+        return path.stem
+    parts = list(path.relative_to(package.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _imports(path: Path) -> list[str]:
-    tree = ast.parse(path.read_text(), filename=str(path))
+def imported_names(path: Path, package: Path) -> list[list[str]]:
+    """The dotted names each import statement of `path` brings in, anywhere in the file (functions and
+    TYPE_CHECKING blocks included): `import a.b` gives `a.b`; `from a import b` gives `a`, `a.b`; relative
+    imports are resolved against the file's package."""
+    own = _module_of(path, package)
+    here = own if path.name == "__init__.py" else own.rpartition(".")[0]
     found = []
-    for node in ast.walk(tree):
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
-            found += [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.append(node.module)
+            found += [[alias.name] for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            source = node.module or ""
+            if node.level:
+                base = here.split(".")[: len(here.split(".")) - (node.level - 1)]
+                source = ".".join(base + ([node.module] if node.module else []))
+            found.append([source] + [f"{source}.{alias.name}" for alias in node.names])
     return found
 
 
-def test_imports_go_downwards_only():
+def _part_of(name: str, package_name: str) -> str | None:
+    parts = name.split(".")
+    return parts[1] if parts[0] == package_name and len(parts) > 1 else None
+
+
+def _broken_rule(name: str, own: str, package_name: str) -> str | None:
+    """Why importing `name` from part `own` breaks the layering (None: it does not)."""
+    for prefix in FORBIDDEN.get(own, ()):
+        forbidden = prefix.replace("openfly_agent", package_name, 1)
+        if name.startswith(forbidden):  # `sim.city` covers `sim.city_vocab` too
+            return f"{own} never imports {forbidden}"
+    other = _part_of(name, package_name)
+    if other is None or other == own or other not in LEVEL:
+        return None
+    if LEVEL[other] > LEVEL[own]:
+        return f"{own} L{LEVEL[own]} -> {other} L{LEVEL[other]}: upwards"
+    if any({own, other} <= group for group in SIBLINGS):
+        return f"{own} and {other} are siblings: never each other"
+    return None
+
+
+def layering_violations(package: Path, entry_points: dict[Path, str] | None = None) -> list[str]:
+    """One line per import statement that breaks a rule of the module docstring (the first name it brings in
+    that does), for the package at `package` (its folder name is its import name) and the entry-point scripts
+    `entry_points` (path -> the part it acts as)."""
+    files = {path: path.relative_to(package).parts[0].removesuffix(".py") for path in package.rglob("*.py")}
+    files.update(entry_points or {})
     problems = []
-    for path in PACKAGE.rglob("*.py"):
-        rel = path.relative_to(PACKAGE)
-        own = rel.parts[0].removesuffix(".py") if len(rel.parts) > 0 else None
+    for path, own in sorted(files.items()):
         if own not in LEVEL:
             continue
-        for module in _imports(path):
-            other = _part_of(module)
-            if other is None or other == own or other not in LEVEL:
-                continue
-            if LEVEL[other] > LEVEL[own] or (own in SIBLINGS_FORBIDDEN and other in SIBLINGS_FORBIDDEN):
-                problems.append(f"{rel}: imports {module} ({own} L{LEVEL[own]} -> {other} L{LEVEL[other]})")
+        for names in imported_names(path, package):
+            broken = [(name, why) for name in names if (why := _broken_rule(name, own, package.name))]
+            if broken:
+                name, why = broken[0]
+                problems.append(f"{path.relative_to(package.parent)}: imports {name} ({why})")
+    return sorted(problems)
+
+
+def test_the_layering_check_finds_each_planted_violation(tmp_path):
+    package = tmp_path / "openfly_agent"
+    clean = {
+        "__init__.py": "",
+        "constants.py": "",
+        "utils/__init__.py": "from openfly_agent import constants\n",
+        "model/__init__.py": "",
+        "model/net.py": "from openfly_agent.utils import x\nfrom .. import constants\n",
+        "sim/__init__.py": "",
+        "sim/city.py": "",
+        "sim/embedded_scenes.py": "from openfly_agent.sim.city import City\n",
+        "rollout/__init__.py": "from openfly_agent.model.net import Net\nimport openfly_agent.sim.embedded_scenes\n",
+        "training/__init__.py": "from openfly_agent.sim.embedded_scenes import scenes\n",
+        "training/loop.py": "from openfly_agent.rollout import run\nfrom . import helpers\n",
+        "toolchain/__init__.py": "from openfly_agent.sim import city\n",
+        "eval/__init__.py": "",
+        "hub/__init__.py": "from openfly_agent.eval import report\nfrom openfly_agent.training import loop\n",
+    }
+    _write(package, clean)
+    entry = tmp_path / "train.py"
+    entry.write_text("from openfly_agent.training import loop\n")
+    assert layering_violations(package, {entry: "training"}) == []
+
+    planted = {
+        "model/up.py": "from openfly_agent.rollout import run\n",  # upwards
+        "sim/sibling.py": "def f():\n    from ..model import net  # lazy: planted\n",  # L1 siblings, relative
+        "eval/sibling.py": "from openfly_agent import training\n",  # L3 siblings
+        "eval/city.py": "from openfly_agent.sim.city_vocab import COLORS\n",  # the procedural city
+        "training/tool.py": "import openfly_agent.toolchain.generate\n",  # the toolchain (a sibling too)
+    }
+    _write(package, planted)
+    entry.write_text("from openfly_agent.sim import city\n")
+    assert layering_violations(package, {entry: "training"}) == [
+        "openfly_agent/eval/city.py: imports openfly_agent.sim.city_vocab (eval never imports openfly_agent.sim.city)",
+        "openfly_agent/eval/sibling.py: imports openfly_agent.training (eval and training are siblings: never each other)",
+        "openfly_agent/model/up.py: imports openfly_agent.rollout (model L1 -> rollout L2: upwards)",
+        "openfly_agent/sim/sibling.py: imports openfly_agent.model (sim and model are siblings: never each other)",
+        "openfly_agent/training/tool.py: imports openfly_agent.toolchain.generate (training never imports "
+        "openfly_agent.toolchain)",
+        "train.py: imports openfly_agent.sim.city (training never imports openfly_agent.sim.city)",
+    ]
+
+
+def test_the_package_follows_the_layering():
+    problems = layering_violations(PACKAGE, {REPO / name: part for name, part in ENTRY_POINTS.items()})
     assert not problems, "\n".join(problems)
 
 
@@ -245,8 +333,9 @@ REPOSITORY_WIDE_TESTS = {
 
 
 def test_tests_mirror_the_package_layout():
-    """The tests of a subpackage live in tests/<subpackage>/; only repository-wide tests sit at the root."""
-    subpackages = {init.parent.name for init in PACKAGE.glob("*/__init__.py")}
+    """The tests of a subpackage live in tests/<subpackage>/ (those of bench/ in tests/bench/); only
+    repository-wide tests sit at the root."""
+    subpackages = {init.parent.name for init in PACKAGE.glob("*/__init__.py")} | {"bench"}
     problems = [
         f"tests/{path.name}: the tests of openfly_agent/<subpackage>/ go in tests/<subpackage>/"
         for path in sorted(TESTS.glob("test_*.py"))

@@ -32,19 +32,17 @@ def test_config_paths_fall_back_to_the_repository(tmp_path, monkeypatch):
 
 
 def test_train_from_another_folder_reads_repo_configs_and_writes_here(tmp_path, monkeypatch):
-    """The default run from elsewhere: the toolchain config comes from the repository, the dataset and the
-    run folder go under ./outputs of the working directory."""
-    import openfly_agent.toolchain.generate as generate_module
+    """The default run from elsewhere: a plain `toolchain generate` reads its config from the repository and
+    writes the dataset train.py reads under ./outputs of the working directory, where the run folder goes too."""
+    from openfly_agent.toolchain.__main__ import _parse_generate
 
-    calls = []
-    monkeypatch.setattr(generate_module, "generate", lambda cfg, **kw: calls.append(cfg))
     monkeypatch.chdir(tmp_path)
     train = _train_module()
     cfg = train.parse_args([])
     assert Path(cfg.output_dir).resolve() == tmp_path / "outputs" / "train" / "tiny"
-    train.ensure_dataset(cfg)  # no dataset here: generated with configs/toolchain/embedded-small.yaml
-    [generate_cfg] = calls
-    assert Path(generate_cfg.output_dir).resolve() == tmp_path / "outputs" / "datasets" / "embedded-small"
+    generate_cfg = _parse_generate([])  # `python -m openfly_agent.toolchain generate`
+    assert Path(generate_cfg.output_dir).resolve() == Path(cfg.data.root).resolve()
+    assert Path(cfg.data.root).resolve() == tmp_path / "outputs" / "datasets" / "embedded-small"
     assert generate_cfg.scenes.trajectories_per_scene == 130  # the repository's embedded-small.yaml
     from openfly_agent.eval.config import EvalConfig
 

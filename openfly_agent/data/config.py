@@ -87,11 +87,6 @@ class DataConfig:
         num_workers: DataLoader worker processes per training process.
         cache_episodes: episodes whose encoded frames stay in memory per process (LRU).
         cache_frames: decoded frames kept per process (LRU).
-        generate_if_missing: train.py runs the toolchain when `root` holds no dataset.
-        toolchain_config: the toolchain YAML that generates this dataset (train.py runs it with
-            `generate_if_missing`); a relative path not found in the working directory is read from the
-            repository. None for data no toolchain generates (the released OpenFly data, downloaded): a missing
-            root then points to its data card.
         extra_train_roots: more datasets (same layout) whose train split joins the training data, e.g. the
             DAgger rounds' rollouts (their frames are read from their own roots).
         grounding_root: the grounding dataset (`toolchain grounding`) the grounding stage trains on.
@@ -114,8 +109,6 @@ class DataConfig:
     num_workers: int = 0
     cache_episodes: int = 8
     cache_frames: int = 256
-    generate_if_missing: bool = True
-    toolchain_config: str | None = "configs/toolchain/embedded-small.yaml"
     extra_train_roots: list[str] = field(default_factory=list)
     grounding_root: str | None = None
     instruction_fraction: float = 0.25
@@ -138,7 +131,3 @@ class DataConfig:
             raise ValueError(f"data.num_workers={self.num_workers} must be >= 0")
         if self.cache_episodes < 1 or self.cache_frames < 1:
             raise ValueError("data.cache_episodes and data.cache_frames must be >= 1")
-        if self.generate_if_missing and self.toolchain_config is None:
-            raise ValueError(
-                "data.generate_if_missing=true needs data.toolchain_config (the YAML to generate with)"
-            )

@@ -3,18 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from pathlib import Path
 
 import numpy as np
 
-from openfly_agent import constants as C
 from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.generation_settings import generation_settings
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.baselines import make_baseline
-from openfly_agent.eval.blind import BlindEmbeddedSimulator, CityCache
 from openfly_agent.eval.config import (
     AGENT_POLICIES,
     AGENT_TRUE_BOX,
@@ -26,17 +24,17 @@ from openfly_agent.eval.config import (
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.rollout.agent import AgentPolicy
 from openfly_agent.rollout.checkpoints import load_agent, resolve_device
+from openfly_agent.sim.blind import BlindEmbeddedSimulator, CityCache
 from openfly_agent.sim.bridges.airsim import AirSimBridge
 from openfly_agent.sim.bridges.base import BridgeError
 from openfly_agent.sim.bridges.gs_http import GSHttpBridge
 from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
-from openfly_agent.sim.city import CityConfig
 from openfly_agent.sim.embedded import EmbeddedSimConfig
+from openfly_agent.sim.embedded_scenes import city_config
 from openfly_agent.sim.occupancy import OccupancyGrid
 from openfly_agent.sim.pointcloud import read_points
 from openfly_agent.sim.scene import SceneBounds
 from openfly_agent.sim.vector import VectorSimulator
-from openfly_agent.utils.errors import RecordError
 
 logger = logging.getLogger(__name__)
 
@@ -102,28 +100,6 @@ def dataset_frame_size(root: str, episodes: list[Episode]) -> tuple[int, int] | 
     return int(frame.shape[0]), int(frame.shape[1])
 
 
-def toolchain_settings(root: str) -> dict:
-    """Frame size and city parameters the dataset was generated with, from its toolchain config ({} if none).
-
-    Returns keys `width`, `height`, `city_size_m`, `city_buildings`, `collision_voxel_m` (those present).
-    """
-    path = Path(root) / C.TOOLCHAIN_CONFIG_JSON
-    if not path.is_file():
-        return {}
-    try:
-        data = json.loads(path.read_text())
-        render, scenes = data.get("render", {}), data.get("scenes", {})
-    except (json.JSONDecodeError, AttributeError) as err:
-        raise RecordError(path, None, "<json>", f"not a toolchain config: {err}") from err
-    out = {"width": render.get("width"), "height": render.get("height")}
-    out.update(
-        city_size_m=scenes.get("city_size_m"),
-        city_buildings=scenes.get("city_buildings"),
-        collision_voxel_m=scenes.get("collision_voxel_m"),
-    )
-    return {k: v for k, v in out.items() if v is not None}
-
-
 def scene_occupancy(template: str, scene_id: str, voxel_m: float):
     """Occupancy grid of a real scene from its point cloud (`template` with `{scene_id}`), for collisions."""
     path = Path(template.format(scene_id=scene_id))
@@ -181,7 +157,7 @@ def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
     Frame size: `sim.width/height`, else the toolchain config of the dataset, else its first frame, else
     224. City parameters and the collision voxel come from the toolchain config (defaults otherwise).
     """
-    generated = toolchain_settings(cfg.dataset_root)
+    generated = generation_settings(cfg.dataset_root) or {}
     size = None
     if "width" in generated and "height" in generated:
         size = (generated["height"], generated["width"])
@@ -189,9 +165,7 @@ def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
         size = dataset_frame_size(cfg.dataset_root, episodes)
     height = cfg.sim.height or (size[0] if size else DEFAULT_FRAME_SIZE)
     width = cfg.sim.width or (size[1] if size else DEFAULT_FRAME_SIZE)
-    city = CityConfig(size_m=generated.get("city_size_m", CityConfig.size_m))
-    if "city_buildings" in generated:
-        city = dataclasses.replace(city, n_buildings=int(generated["city_buildings"]))
+    city = city_config(generated)
     voxel = float(generated.get("collision_voxel_m", 2.0))
     return EmbeddedSimConfig(
         width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel,

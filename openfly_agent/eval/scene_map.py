@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import numpy as np
-
 from openfly_agent.eval.plots import Footprint
-from openfly_agent.sim.city import SCENE_PREFIX, generate_city, parse_scene_id
+from openfly_agent.sim.embedded_scenes import scene_obstacles
 
 
 def scene_footprints(scene_id: str, city_config=None) -> list[Footprint]:
@@ -16,24 +14,12 @@ def scene_footprints(scene_id: str, city_config=None) -> list[Footprint]:
         city_config: the `CityConfig` the dataset was generated with (None = the default); a different one
             gives a different city.
     """
-    if not scene_id.startswith(SCENE_PREFIX):
-        return []
-    city = generate_city(parse_scene_id(scene_id), city_config)
-    buildings = [
+    return [
         Footprint(
-            float(b.lo[0]), float(b.lo[1]), float(b.hi[0]), float(b.hi[1]),
-            height_m=float(b.hi[2]), landmark_id=b.landmark_id,
+            o.lo[0], o.lo[1], o.hi[0], o.hi[1], height_m=o.hi[2], landmark_id=o.landmark_id, kind=o.kind
         )
-        for b in city.buildings
-    ]  # fmt: skip
-    trees = []
-    for tree in city.trees:  # obstacles too: the union of trunk and canopy boxes
-        lo = np.min([part.lo for part in tree.parts], axis=0)
-        hi = np.max([part.hi for part in tree.parts], axis=0)
-        trees.append(
-            Footprint(float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]), float(hi[2]), kind="tree")
-        )
-    return buildings + trees
+        for o in scene_obstacles(scene_id, city_config)
+    ]
 
 
 class FootprintCache:

@@ -1,13 +1,18 @@
 """Closed vocabularies of the embedded city (colours, types, sizes, shapes, features) and render materials.
 
 Instructions may only name attributes from these tuples; every attribute is visible in the render
-(colour of the facade, height class, footprint shape, rooftop feature). `city.py` re-exports them.
+(colour of the facade, height class, footprint shape, rooftop feature). The landmark attribute words and their
+order are constants.py's (`LANDMARK_*`: the grounding batches' attribute ids index them); this module gives
+them their looks. `city.py` re-exports them.
 """
 
 from __future__ import annotations
 
-# Named facade colours -> RGB in [0, 1], chosen to stay distinct at 64-224 px under the sun shading.
-COLORS: dict[str, tuple[float, float, float]] = {
+from openfly_agent import constants as C
+
+# Facade colour of each named colour (the names and their order: constants.LANDMARK_COLORS) -> RGB in [0, 1],
+# chosen to stay distinct at 64-224 px under the sun shading.
+_FACADE_RGB: dict[str, tuple[float, float, float]] = {
     "red": (0.78, 0.16, 0.13),
     "orange": (0.93, 0.50, 0.12),
     "yellow": (0.93, 0.82, 0.22),
@@ -21,6 +26,7 @@ COLORS: dict[str, tuple[float, float, float]] = {
     "brown": (0.50, 0.31, 0.18),
     "beige": (0.86, 0.77, 0.58),
 }
+COLORS: dict[str, tuple[float, float, float]] = {name: _FACADE_RGB[name] for name in C.LANDMARK_COLORS}
 # Relative frequency of each colour (real cities are mostly gray / beige / white).
 COLOR_WEIGHTS: dict[str, float] = {
     "red": 1.0, "orange": 0.6, "yellow": 0.6, "green": 0.5, "blue": 0.9, "purple": 0.4,
@@ -28,20 +34,11 @@ COLOR_WEIGHTS: dict[str, float] = {
 }  # fmt: skip
 
 # Types follow from geometry (see `building_type`), so a name always matches what is rendered.
-TYPES: tuple[str, ...] = ("house", "warehouse", "building", "office building", "tower", "skyscraper")
+TYPES: tuple[str, ...] = C.LANDMARK_TYPES
 # Height classes (metres): low-rise < 20 <= mid-rise < 60 <= high-rise.
-SIZES: tuple[str, ...] = ("low-rise", "mid-rise", "high-rise")
+SIZES: tuple[str, ...] = C.LANDMARK_SIZES
 SHAPES: tuple[str, ...] = ("rectangular", "square", "L-shaped", "stepped", "cylindrical")
-FEATURES: tuple[str, ...] = (
-    "none",
-    "rooftop billboard",
-    "spire",
-    "dome",
-    "antenna",
-    "water tank",
-    "rooftop garden",
-    "glass facade",
-)
+FEATURES: tuple[str, ...] = C.LANDMARK_FEATURES
 
 LOW_RISE_MAX_M = 20.0
 MID_RISE_MAX_M = 60.0

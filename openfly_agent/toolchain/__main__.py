@@ -71,7 +71,7 @@ EXAMPLES = {
 }
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
-# The dataset of a plain `generate` (and of train.py's `data.toolchain_config`): the one source of its settings.
+# The dataset of a plain `generate` (train.py's default `data.root`): the one source of its settings.
 DEFAULT_GENERATE_CONFIG = REPO_ROOT / "configs" / "toolchain" / "embedded-small.yaml"
 
 

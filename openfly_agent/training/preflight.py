@@ -74,17 +74,12 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
 def check_dataset_root(data: DataConfig) -> None:
     """The dataset root exists and has an annotation for every configured split (files only, no parsing)."""
     root = Path(data.root)
-    if not root.is_dir() and data.toolchain_config is None:  # the released data: downloaded, never generated
-        raise PreflightError(
-            f"dataset root {root} does not exist: download the released OpenFly data as {RELEASED_DATA_CARD} "
-            "says and pass --data.root=/path/to/OpenFly"
-        )
     if not root.is_dir():
-        hint = (
-            f"generate it: python -m openfly_agent.toolchain generate --config {data.toolchain_config} "
-            "(or set data.generate_if_missing=true)"
+        raise PreflightError(
+            f"dataset root {root} does not exist: generate it (python -m openfly_agent.toolchain generate "
+            f"--output_dir={root}), or download the released OpenFly data as {RELEASED_DATA_CARD} says and "
+            "pass its folder as --data.root"
         )
-        raise PreflightError(f"dataset root {root} does not exist; {hint}, or point --data.root at a dataset")
     for split in dict.fromkeys((data.train_split, data.val_split, data.test_split)):
         if not annotation_path(root, split).is_file() and not part_files(root, split):
             raise PreflightError(

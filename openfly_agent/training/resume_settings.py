@@ -34,8 +34,7 @@ CONFIG_CHANGES_NAME = "config_changes.jsonl"
 RESUMABLE_KEYS = (
     "steps", "epochs", "time_limit_minutes", "stop_after_steps", "resume", "output_dir", "cpu",
     "gradient_checkpointing", "batch.per_device_batch_size", "logging.", "validation.", "checkpoint.",
-    "data.num_workers", "data.cache_episodes", "data.cache_frames", "data.generate_if_missing",
-    "data.toolchain_config", "lora.merge_at_end",
+    "data.num_workers", "data.cache_episodes", "data.cache_frames", "lora.merge_at_end",
 )  # fmt: skip
 
 

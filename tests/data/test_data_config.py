@@ -46,13 +46,3 @@ def test_make_step_dataset(tmp_path):
         and dataset[0]["action"] == 9
         and dataset.episodes[0].frame_ids == episode.frame_ids[1:4]
     )
-
-
-def test_generating_needs_a_toolchain_config_and_the_released_data_has_none():
-    """`toolchain_config: null` marks data no toolchain generates (the released OpenFly data)."""
-    with pytest.raises(ValueError, match="generate_if_missing=true needs data.toolchain_config"):
-        DataConfig(generate_if_missing=True, toolchain_config=None)
-    released = load_yaml_config(
-        DataConfig, Path(__file__).resolve().parents[2] / "configs/data/openfly_released.yaml"
-    )
-    assert released.toolchain_config is None and not released.generate_if_missing

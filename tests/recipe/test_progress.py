@@ -20,7 +20,6 @@ from openfly_agent.utils.config import REPO_ROOT, load_yaml_config
 SMALL_DATA = [
     "--batch.global_batch_size=4", "--batch.per_device_batch_size=2", "--validation.interval=0",
     "--validation.final_max_samples=4", "--logging.tracker=none", "--checkpoint.save_interval=0",
-    "--data.generate_if_missing=false",
 ]  # fmt: skip
 
 

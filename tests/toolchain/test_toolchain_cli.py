@@ -56,7 +56,7 @@ def test_a_plain_generate_is_exactly_the_default_dataset_config(capsys):
         GenerateConfig, CONFIGS / "embedded-small.yaml", ["--workers=0"]
     )
     data = parse_args([]).data  # train.py's default dataset is that one
-    assert data.root == shipped.output_dir and Path(data.toolchain_config).name == "embedded-small.yaml"
+    assert data.root == shipped.output_dir
     assert main(["generate", "--help"]) == 0
     assert "embedded-small.yaml" in capsys.readouterr().out
 

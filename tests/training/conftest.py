@@ -59,7 +59,6 @@ def train_args(dataset: Path, output_dir: Path, **overrides) -> list[str]:
         "validation.per_device_batch_size": 4,
         "checkpoint.save_interval": 2,
         "checkpoint.keep_last": 5,
-        "data.generate_if_missing": "false",
         "freeze_stage": "frozen_vision",
         # bit-exact comparisons (resume, kill, two processes vs one) hold on the CPU; on an H200 four of them
         # failed with CUDA (tests/model/test_model_cuda.py is where the GPU path is tested)

@@ -12,6 +12,7 @@ from conftest import make_config, train_in_process
 from openfly_agent import constants as C
 from openfly_agent.model.config import GroundingConfig
 from openfly_agent.sim.city import COLORS, FEATURES, SIZES, TYPES, CityConfig, generate_city
+from openfly_agent.sim.embedded_scenes import EmbeddedScenes
 from openfly_agent.toolchain.config import GroundingDataConfig
 from openfly_agent.toolchain.grounding import generate_grounding
 from openfly_agent.training.attribute_targets import LandmarkAttributes, vocabulary_sizes
@@ -21,7 +22,7 @@ from openfly_agent.training.preflight import PreflightError
 
 def test_lookup_gives_the_vocabulary_ids_of_each_landmark():
     config = CityConfig(size_m=300.0, n_buildings=20)
-    lookup = LandmarkAttributes(config)
+    lookup = LandmarkAttributes(EmbeddedScenes(config))
     buildings = generate_city(5, config).buildings
     for building in buildings[:5]:
         landmark = building.landmark
@@ -73,3 +74,8 @@ def test_attribute_classes_must_match_the_city_vocabularies(generated_dataset, t
     )
     with pytest.raises(PreflightError, match="vocabularies"):
         load_splits(cfg)
+
+
+def test_a_dataset_the_toolchain_did_not_make_has_no_attributes(tmp_path):
+    with pytest.raises(FileNotFoundError, match="made by the toolchain"):
+        LandmarkAttributes.for_dataset(tmp_path)

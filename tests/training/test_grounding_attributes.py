@@ -1,4 +1,4 @@
-"""training/grounding_attributes.py: where a missed centre lands (hand-built boxes), instruction names, the linear
+"""bench/analysis/grounding_attributes.py: where a missed centre lands (hand-built boxes), instruction names, the linear
 probe on data with and without signal, and the probe of a real (tiny) run."""
 
 from __future__ import annotations
@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 from conftest import run_script
 
-from openfly_agent.sim.scene import Landmark
-from openfly_agent.training.grounding_attributes import (
+from bench.analysis.grounding_attributes import (
     LANDINGS,
     READINGS,
     AttributeProbe,
@@ -20,6 +19,7 @@ from openfly_agent.training.grounding_attributes import (
     probe_accuracy,
     probe_table,
 )
+from openfly_agent.sim.scene import Landmark
 
 BOXES = {
     "target": np.array([0.5, 0.5, 0.2, 0.2]),

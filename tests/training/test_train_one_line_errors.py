@@ -64,16 +64,16 @@ def test_bad_input_is_one_line_and_leaves_no_folder(
 
 def test_a_preflight_error_under_a_launcher_is_printed_once(tmp_path):
     args = [
-        "--data.root", str(tmp_path / "no-dataset"), "--data.generate_if_missing=false",
+        "--data.root", str(tmp_path / "no-dataset"),
         f"--output_dir={tmp_path / 'run'}", "--logging.tracker=none",
     ]  # fmt: skip
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
     done = run_script(args, launcher=torchrun, timeout=120)
     lines = [line for line in done.stderr.splitlines() if line.startswith("train.py:")]
     assert lines == [
-        f"train.py: dataset root {tmp_path / 'no-dataset'} does not exist; generate it: python -m "
-        "openfly_agent.toolchain generate --config configs/toolchain/embedded-small.yaml (or set "
-        "data.generate_if_missing=true), or point --data.root at a dataset"
+        f"train.py: dataset root {tmp_path / 'no-dataset'} does not exist: generate it (python -m "
+        f"openfly_agent.toolchain generate --output_dir={tmp_path / 'no-dataset'}), or download the released "
+        "OpenFly data as data_cards/openfly_released.md says and pass its folder as --data.root"
     ], done.stderr[-3000:]
     assert "failed (exitcode: 2)" in done.stderr  # each process exited 2; the launcher reports that
     assert not (tmp_path / "run").exists()

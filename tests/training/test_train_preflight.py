@@ -57,12 +57,12 @@ def test_batch_sizes_must_divide():
         BatchConfig(global_batch_size=10, per_device_batch_size=4)
 
 
-def test_missing_dataset_root_says_how_to_generate(tmp_path):
+def test_missing_dataset_root_says_how_to_generate_it_or_get_the_released_data(tmp_path):
     data = DataConfig(root=str(tmp_path / "nowhere"))
-    with pytest.raises(
-        PreflightError, match="does not exist; generate it: python -m openfly_agent.toolchain"
-    ):
+    with pytest.raises(PreflightError) as err:
         check_dataset_root(data)
+    assert f"python -m openfly_agent.toolchain generate --output_dir={tmp_path / 'nowhere'}" in str(err.value)
+    assert "data_cards/openfly_released.md" in str(err.value)
 
 
 def test_missing_split_is_named(tmp_path, openfly_fixtures):

@@ -123,7 +123,7 @@ def test_grounding_errors_of_a_run_match_its_own_test_iou(grounding_run, tmp_pat
 
 
 def test_grounding_errors_decode_with_the_centre_window_asked_for(grounding_run):
-    from openfly_agent.training.grounding_errors import collect_target_boxes
+    from bench.analysis.grounding_errors import collect_target_boxes
 
     out, _ = grounding_run
     every = collect_target_boxes(out, max_samples=8, batch_size=4, centre_window=None)
@@ -134,7 +134,7 @@ def test_grounding_errors_decode_with_the_centre_window_asked_for(grounding_run)
 
 
 def test_grounding_errors_refuse_a_folder_that_is_not_a_run(tmp_path):
-    from openfly_agent.training.grounding_errors import collect_target_boxes
+    from bench.analysis.grounding_errors import collect_target_boxes
 
     with pytest.raises(FileNotFoundError, match="not a training run"):
         collect_target_boxes(tmp_path)
@@ -190,7 +190,7 @@ def test_grounding_step_bench_times_the_stage_and_counts_its_padding(
     threads = torch.get_num_threads()
     overrides = [
         f"--data.root={generated_dataset}", f"--data.grounding_root={grounding_root}", f"--output_dir={tmp_path}",
-        "--batch.global_batch_size=4", "--batch.per_device_batch_size=4", "--data.generate_if_missing=false",
+        "--batch.global_batch_size=4", "--batch.per_device_batch_size=4",
         "--model.llm.length_groups=2",
     ]  # fmt: skip
     record = bench.main(["--steps", "2", "--warmup", "1", "--threads", "1", "--", *overrides])

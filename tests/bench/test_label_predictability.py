@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from openfly_agent.data.predictability import FEATURE_NAMES, majority_rate, run_probes, step_features
+from bench.analysis.label_predictability import FEATURE_NAMES, majority_rate, run_probes, step_features
 from openfly_agent.data.schema import Episode
 
 

@@ -1,4 +1,4 @@
-"""training/grounding_errors.py: the breakdown of the target boxes' errors, checked on hand-built boxes."""
+"""bench/analysis/grounding_errors.py: the breakdown of the target boxes' errors, checked on hand-built boxes."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from openfly_agent.training.grounding_errors import centre_inside, errors_markdown, grounding_errors
+from bench.analysis.grounding_errors import centre_inside, errors_markdown, grounding_errors
 
 TARGET = torch.tensor([[0.5, 0.5, 0.2, 0.2], [0.2, 0.2, 0.1, 0.1]])  # areas 0.04 and 0.01
 PRED = torch.tensor([[0.5, 0.5, 0.4, 0.2], [0.8, 0.8, 0.1, 0.1]])  # twice as wide on target; elsewhere

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .schema import Episode
+from openfly_agent.data.schema import Episode
 
 logger = logging.getLogger(__name__)
 

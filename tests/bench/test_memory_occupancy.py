@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from data_factories import make_episode, make_frames
 
+from bench.analysis.memory_occupancy import memory_occupancy
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore
-from openfly_agent.data.memory_occupancy import memory_occupancy
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 
 

@@ -32,9 +32,10 @@ from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.grounding.cells import CellGroundingHead
 from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.vision.conv import cell_colour_stats, normalised_pixels
+from openfly_agent.sim.embedded_scenes import EmbeddedScenes
 from openfly_agent.sim.scene import Landmark
 from openfly_agent.toolchain.grounding import source_render_settings
-from openfly_agent.training.attribute_targets import ATTRIBUTE_FIELDS, LandmarkAttributes
+from openfly_agent.training.attribute_targets import ATTRIBUTE_FIELDS
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.evaluate import eval_indices
@@ -146,7 +147,7 @@ class AttributeProbe:
             )
         self.batch_size, self.grid = batch_size, self.agent.grounding_head.grid_side
         self.width, self.height, self.city_config = source_render_settings(cfg.data.root)
-        self.cities = LandmarkAttributes(self.city_config)
+        self.cities = EmbeddedScenes(self.city_config)
         self._head_cells: list[torch.Tensor] = []
         self._queries: list[torch.Tensor] = []
         self._outputs: list = []
