@@ -194,10 +194,8 @@ def plan(workdir: Path) -> list[Check]:
                 "eval.py",
                 "--checkpoint",
                 f"{w}/lora",  # the run folder: eval.py takes its merged model
-                "--sim",
-                "embedded",
-                "--split",
-                "test_unseen",
+                "--sim.type=embedded",
+                "--split=[test_unseen]",
                 "--max_episodes=4",
                 f"--dataset_root={data}",
                 f"--output_dir={w}/eval",

@@ -117,14 +117,12 @@ def check_command(command: DocCommand) -> None:
         if complete:
             train.parse_args(command.args)
     elif command.kind == "eval":
-        from openfly_agent.eval.cli import normalize_argv
         from openfly_agent.eval.config import EvalConfig
         from openfly_agent.utils.config import parse_config
 
-        argv = normalize_argv(command.args)
-        check_options(EvalConfig, argv)
+        check_options(EvalConfig, command.args)
         if complete:
-            parse_config(EvalConfig, argv)
+            parse_config(EvalConfig, command.args)
     elif command.kind == "toolchain":
         from openfly_agent.toolchain import __main__ as toolchain
         from openfly_agent.toolchain.config import GenerateConfig

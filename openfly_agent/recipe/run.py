@@ -184,10 +184,10 @@ def _eval_step(
     """eval.py on the embedded simulator: the agent at `checkpoint` and every baseline on `splits`."""
     e = cfg.eval
     command = [
-        sys.executable, str(REPO_ROOT / "eval.py"), "--checkpoint", str(checkpoint), "--sim", "embedded",
-        "--split", *splits, "--baselines", *e.baselines, "--dataset_root", dataset_root,
-        "--output_dir", str(folder), "--batch_size", str(e.batch_size), "--torch_threads", str(e.torch_threads),
-        *(["--max_episodes", str(e.max_episodes)] if e.max_episodes else []),
+        sys.executable, str(REPO_ROOT / "eval.py"), f"--checkpoint={checkpoint}", "--sim.type=embedded",
+        f"--split=[{','.join(splits)}]", f"--baselines=[{','.join(e.baselines)}]", f"--dataset_root={dataset_root}",
+        f"--output_dir={folder}", f"--batch_size={e.batch_size}", f"--torch_threads={e.torch_threads}",
+        *([f"--max_episodes={e.max_episodes}"] if e.max_episodes else []),
     ]  # fmt: skip
     return RecipeStep(name, KIND_EVAL, command, folder, {"OMP_NUM_THREADS": str(e.torch_threads)})
 

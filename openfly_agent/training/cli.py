@@ -9,7 +9,7 @@ from __future__ import annotations
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
-from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
+from openfly_agent.utils.cli_help import command_help
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import RecordError, one_line, worker_error_name
 
@@ -44,15 +44,8 @@ def parse_args(argv: list[str]):
 
 def help_text(argv: list[str]) -> str:
     """`--help`: every option with the value the same command line without `--help` would use."""
-    argv = with_default_config(without_help(argv))
-    config = config_path_of(argv)
-    try:
-        cfg = parse_args(argv)
-    except Exception:  # a bad override: show the preset's own values
-        cfg = parse_args(["--config_path", config])
-    note = f"Defaults below are the values of {config} (and of the overrides given)."
     extra = [("--resume", "same as --resume=true: continue <output_dir> from checkpoints/last")]
-    return config_help(TrainConfig, cfg, "train.py", DESCRIPTION, EXAMPLES, note, extra)
+    return command_help(TrainConfig, with_default_config(argv), "train.py", DESCRIPTION, EXAMPLES, extra)
 
 
 def data_error_message(err: BaseException) -> str | None:

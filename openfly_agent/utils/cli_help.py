@@ -1,6 +1,6 @@
 """Command-line help and option checks for the config dataclasses that draccus parses.
 
-    text = config_help(TrainConfig, cfg, prog="train.py", description=..., examples=[...])
+    text = command_help(TrainConfig, argv, prog="train.py", description=..., examples=[...])
     check_options(TrainConfig, ["--optim.lrr=1"])   # UnknownOptionError: ... did you mean --optim.lr?
 
 draccus builds its `--help` from source comments and gets them wrong when a comment spans lines or sits
@@ -176,7 +176,8 @@ def option_names(args: Sequence[str]) -> list[str]:
 
 
 def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG_FLAG,)) -> None:
-    """Raise `UnknownOptionError` for the first option that names no field, with the closest one.
+    """Raise `UnknownOptionError` for the first option that names no field (with the closest one), or for a
+    second value after an option (each option takes one value: a list is written `--split=[a,b]`).
 
     Args:
         cls: the config dataclass the command line is parsed into.
@@ -186,8 +187,22 @@ def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG
     options = known_options(cls)
     known = set(options) | set(extra)
     open_prefixes = [name + "." for name, any_key in options.items() if any_key]
-    for name in option_names(args):
+    for index, arg in enumerate(args):
+        if arg.startswith("--") or (
+            index and args[index - 1].startswith("--") and "=" not in args[index - 1]
+        ):
+            continue
+        owner = next((a for a in reversed(args[:index]) if a.startswith("--")), None)
+        if owner is None:
+            raise UnknownOptionError(f"unexpected value {arg!r}: every value follows its --option")
+        name = owner[2:].split("=", 1)[0]
+        raise UnknownOptionError(
+            f"--{name} takes one value, {arg!r} is a second one: write a list as --{name}=[a,b] "
+            "(--help lists every option)"
+        )
+    for index, name in enumerate(option_names(args)):
         if name in known or any(name.startswith(p) for p in open_prefixes):
+            _check_section_value(cls, name, [a for a in args if a.startswith("--")][index], args)
             continue
         close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
         if not close:  # a typo in the last part of a dotted name: compare with the siblings only
@@ -196,6 +211,24 @@ def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG
             close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.5)
         hint = f"; did you mean --{close[0]}?" if close else ""
         raise UnknownOptionError(f"unknown option --{name}{hint} (--help lists every option)")
+
+
+def _check_section_value(cls: type, name: str, option: str, args: Sequence[str]) -> None:
+    """A section (`--sim`) takes a YAML file only: `--sim embedded` names the field to set instead."""
+    section: Any = cls
+    for part in name.split("."):
+        section = _nested_class(_hints(section).get(part)) if section is not None else None
+    if section is None:
+        return
+    value = option.split("=", 1)[1] if "=" in option else None
+    if value is None and option in args and args.index(option) + 1 < len(args):
+        value = args[args.index(option) + 1]
+    if value is not None and not value.startswith("--") and not value.endswith((".yaml", ".yml", ".json")):
+        first = dataclasses.fields(section)[0].name
+        raise UnknownOptionError(
+            f"--{name} is a section: set its fields (--{name}.{first}={value}) or give it a YAML file "
+            "(--help lists every option)"
+        )
 
 
 # -- rendering -------------------------------------------------------------------------------------------
@@ -243,7 +276,7 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
     return out
 
 
-def unchecked_defaults(cls: type) -> Any:
+def _unchecked_defaults(cls: type) -> Any:
     """An instance of `cls` holding its field defaults, built without `__post_init__` (whose checks may
     refuse the bare defaults, e.g. a policy that needs a checkpoint)."""
     config = object.__new__(cls)
@@ -280,7 +313,7 @@ def config_help(
         extra_options: (flag, text) of options the command takes besides the fields.
     """
     if config is None:
-        config = unchecked_defaults(cls)
+        config = _unchecked_defaults(cls)
     lines = [f"usage: {prog} [--config_path YAML] [--<field>=VALUE ...]", ""]
     lines += textwrap.wrap(" ".join(description.split()), WIDTH)
     if config_note:
@@ -293,6 +326,44 @@ def config_help(
     lines += ["", *_section_lines(cls, config, prefix="")]
     lines += ["", "examples:", *(f"  {example}" for example in examples)]
     return "\n".join(lines) + "\n"
+
+
+def command_help(
+    cls: type,
+    args: Sequence[str],
+    prog: str,
+    description: str,
+    examples: Sequence[str],
+    extra_options: Sequence[tuple[str, str]] = (),
+    placeholders: dict[str, str] | None = None,
+) -> str:
+    """The `--help` of a command line `args` (help flags included) that parses `cls`: every option with the
+    value the same command line without `--help` would run with.
+
+    A command line that does not parse (yet) shows the values of its `--config_path` YAML, else the dataclass
+    defaults. `placeholders` are values of required fields ({"checkpoint": "x"}) used only to get past their
+    check: those fields are shown unset.
+    """
+    from openfly_agent.utils.config import parse_config  # lazy: utils.config imports this module
+
+    args = without_help(args)
+    config_path = config_path_of(args)
+    filled = [f"--{name}={value}" for name, value in (placeholders or {}).items()]
+    attempts = [args, [*args, *filled]] + ([["--config_path", config_path, *filled]] if config_path else [])
+    config = None
+    for attempt in attempts:
+        try:
+            config = parse_config(cls, attempt)
+        except Exception:  # a bad option, or a required field missing: the next attempt
+            continue
+        if attempt is not args:
+            for name in placeholders or {}:
+                object.__setattr__(config, name, None)
+        break
+    note = (
+        f"Defaults below are the values of {config_path} (and of the options given)." if config_path else None
+    )
+    return config_help(cls, config, prog, description, examples, note, extra_options)
 
 
 def wants_help(args: Sequence[str]) -> bool:
