@@ -26,8 +26,8 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 DESCRIPTION = (
     "Fly a policy (a checkpoint, or a baseline) through the test episodes of a dataset in a simulator and "
-    "score every episode under the `openfly` and `standard` metric profiles (docs/EVAL.md). A list is written "
-    "in brackets (--split=[test_seen,test_unseen]). Relative paths are relative to the working directory."
+    "score every episode under the `openfly` and `standard` metric profiles (docs/EVAL.md). Relative paths are "
+    "relative to the working directory."
 )
 EXAMPLES = (
     "python eval.py --checkpoint=outputs/train/tiny/checkpoints/last --split=[test_seen,test_unseen] "

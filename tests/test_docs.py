@@ -144,10 +144,11 @@ def check_command(command: DocCommand) -> None:
             )
             _known(parser, command.args, where)
     elif command.kind == "hub":
-        from openfly_agent.hub.cli import build_parser
+        from openfly_agent.hub.cli import COMMANDS as HUB_COMMANDS
 
         if command.sub is not None:
-            _known(build_parser(), [command.sub, *command.args], where)
+            assert command.sub in HUB_COMMANDS, f"{where}: no hub command {command.sub!r}"
+            check_options(HUB_COMMANDS[command.sub][0], command.args)
     elif command.kind == "recipe":
         check_options(RecipeConfig, command.args)
     elif command.kind == "sim":

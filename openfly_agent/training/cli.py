@@ -31,21 +31,18 @@ EXAMPLES = (
 
 
 def with_default_config(argv: list[str]) -> list[str]:
-    """`argv` with `--resume` alone meaning `--resume=true`, and the tiny preset when no config is given."""
-    argv = ["--resume=true" if arg == "--resume" else arg for arg in argv]
+    """`argv` with the tiny preset when no config is given."""
     return with_config_path(argv, DEFAULT_CONFIG)
 
 
 def parse_args(argv: list[str]):
-    """`TrainConfig` from `--config_path` (default: the tiny preset) and dotted overrides; `--resume` alone
-    means `--resume=true`."""
+    """`TrainConfig` from `--config_path` (default: the tiny preset) and dotted overrides."""
     return parse_config(TrainConfig, with_default_config(argv))
 
 
 def help_text(argv: list[str]) -> str:
     """`--help`: every option with the value the same command line without `--help` would use."""
-    extra = [("--resume", "same as --resume=true: continue <output_dir> from checkpoints/last")]
-    return command_help(TrainConfig, with_default_config(argv), "train.py", DESCRIPTION, EXAMPLES, extra)
+    return command_help(TrainConfig, with_default_config(argv), "train.py", DESCRIPTION, EXAMPLES)
 
 
 def data_error_message(err: BaseException) -> str | None:

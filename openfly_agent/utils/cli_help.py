@@ -30,6 +30,11 @@ CONFIG_FLAG = "config_path"
 WIDTH = 110
 FLAG_COLUMN = 36
 _NBSP = "\x00"
+DIALECT = (  # the one command-line form of every entry point (draccus')
+    "Each option takes one value: --<field>=VALUE or --<field> VALUE; a list is written in brackets "
+    "(--<field>=[a,b]), a section's field by its dotted name (--<section>.<field>=VALUE), and a yes/no option "
+    "alone means true (--<flag> is --<flag>=true)."
+)
 
 
 class UnknownOptionError(ValueError):
@@ -170,6 +175,34 @@ def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
     return options
 
 
+def _option_hint(cls: type, name: str) -> Any:
+    """The type of the field a dotted option names (None for a name that is no field)."""
+    owner: Any = cls
+    *sections, last = name.split(".")
+    for part in sections:
+        owner = _nested_class(_hints(owner).get(part)) if owner is not None else None
+    return _hints(owner).get(last) if owner is not None else None
+
+
+def _is_flag(cls: type, name: str) -> bool:
+    hint = _option_hint(cls, name)
+    return hint is bool or (typing.get_args(hint) and set(typing.get_args(hint)) <= {bool, type(None)})
+
+
+def _without_value(args: Sequence[str], index: int) -> bool:
+    """Whether the option at `index` is written without a value (`--push`, then nothing or another option)."""
+    return "=" not in args[index] and (index + 1 == len(args) or args[index + 1].startswith("--"))
+
+
+def bare_flags_as_true(cls: type, args: Sequence[str]) -> list[str]:
+    """`args` with a yes/no option given alone (`--push`, `--resume`) written as draccus reads it
+    (`--push=true`)."""
+    return [
+        f"{arg}=true" if arg.startswith("--") and _without_value(args, i) and _is_flag(cls, arg[2:]) else arg
+        for i, arg in enumerate(args)
+    ]
+
+
 def option_names(args: Sequence[str]) -> list[str]:
     """The option names of a command line (`--a.b=1`, `--a.b 1` -> "a.b"); values are skipped."""
     return [arg[2:].split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
@@ -211,6 +244,10 @@ def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG
             close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.5)
         hint = f"; did you mean --{close[0]}?" if close else ""
         raise UnknownOptionError(f"unknown option --{name}{hint} (--help lists every option)")
+    for index, arg in enumerate(args):
+        name = arg[2:]
+        if arg.startswith("--") and _without_value(args, index) and not _is_flag(cls, name) and name in known:
+            raise UnknownOptionError(f"--{name} needs a value: --{name}=VALUE (--help lists every option)")
 
 
 def _check_section_value(cls: type, name: str, option: str, args: Sequence[str]) -> None:
@@ -316,6 +353,7 @@ def config_help(
         config = _unchecked_defaults(cls)
     lines = [f"usage: {prog} [--config_path YAML] [--<field>=VALUE ...]", ""]
     lines += textwrap.wrap(" ".join(description.split()), WIDTH)
+    lines += ["", *textwrap.wrap(DIALECT, WIDTH)]
     if config_note:
         lines += ["", *textwrap.wrap(config_note, WIDTH)]
     lines += ["", "options:"]

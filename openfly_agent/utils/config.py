@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any, TypeVar
 
-from openfly_agent.utils.cli_help import check_options
+from openfly_agent.utils.cli_help import bare_flags_as_true, check_options
 from openfly_agent.utils.errors import root_cause
 
 T = TypeVar("T")
@@ -21,7 +21,8 @@ T = TypeVar("T")
 def parse_config(
     config_class: type[T], args: list[str] | None = None, config_path: str | Path | None = None
 ) -> T:
-    """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus).
+    """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus); a yes/no option
+    given alone (`--push`) means `--push=true`.
 
     Raises:
         UnknownOptionError: an option that names no field, with the closest field ("did you mean").
@@ -33,6 +34,7 @@ def parse_config(
 
     args = list(sys.argv[1:] if args is None else args)
     check_options(config_class, args)
+    args = bare_flags_as_true(config_class, args)
     args = [_resolved_config_arg(arg, args[i - 1] if i else None) for i, arg in enumerate(args)]
     if config_path is not None:
         config_path = resolve_config_path(config_path)

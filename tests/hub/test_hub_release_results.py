@@ -68,8 +68,8 @@ def evaluated(tmp_path_factory):
 
 
 def _release(checkpoint: Path, results: Path, out: Path) -> int:
-    argv = ["release", "--checkpoint", str(checkpoint), "--repo-id", "me/tiny", "--results", str(results)]
-    return hub_main([*argv, "--output-dir", str(out)])
+    argv = ["release", "--checkpoint", str(checkpoint), "--repo_id", "me/tiny", "--results", str(results)]
+    return hub_main([*argv, "--output_dir", str(out)])
 
 
 def test_results_of_other_weights_are_refused_naming_both(evaluated, tmp_path, capsys):

@@ -124,9 +124,9 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
                 "release",
                 "--checkpoint",
                 str(run),
-                "--repo-id",
+                "--repo_id",
                 "me/openfly-7b-lora-reduced",
-                "--output-dir",
+                "--output_dir",
                 str(release),
             ]
         )
