@@ -82,7 +82,7 @@ def test_wrong_token_fails_cleanly(tmp_path):
         result = run_cli(args, hub_env(hub, tmp_path / "hf_home", token=wrong))
         assert hub.repos == {}
     assert result.returncode == 2
-    assert "error:" in result.stderr and "401" in result.stderr
+    assert "python -m openfly_agent.hub release-dataset: " in result.stderr and "401" in result.stderr
     assert wrong not in result.stdout + result.stderr
 
 
@@ -128,7 +128,7 @@ def test_push_without_a_hub_fails_before_writing_anything(command, hub_state, tm
     result = run_cli(args, env)
     assert result.returncode == 2
     errors = result.stderr.strip().splitlines()
-    assert len(errors) == 1 and errors[0].startswith("error: "), result.stderr[-2000:]
+    assert len(errors) == 1 and errors[0].startswith(f"python -m openfly_agent.hub {command}: "), result.stderr[-2000:]
     expected = "unset HF_HUB_OFFLINE" if hub_state == "offline" else f"{env['HF_ENDPOINT']} cannot be reached"
     assert expected in errors[0] and TOKEN not in result.stderr
     assert not out.exists()  # nothing written: the same command works once the Hub is back
