@@ -55,7 +55,7 @@ def ensure_dataset(cfg) -> None:
 
     if annotation_path(cfg.data.root, cfg.data.train_split).is_file() or not cfg.data.generate_if_missing:
         return
-    state = PartialState(cpu=use_cpu(cfg))
+    state = PartialState(cpu=use_cpu(cfg.cpu))
     with state.main_process_first():
         if state.is_main_process:
             logger.info("%s has no dataset: generating it with %s", cfg.data.root, cfg.data.toolchain_config)
