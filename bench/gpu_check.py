@@ -153,7 +153,7 @@ def plan(workdir: Path) -> list[Check]:
                 "-m",
                 "openfly_agent.toolchain",
                 "generate",
-                "--config",
+                "--config_path",
                 "configs/toolchain/embedded-small.yaml",
                 f"--output_dir={data}",
                 "--workers=8",

@@ -133,7 +133,7 @@ def test_toolchain_subcommand_helps(capsys):
     assert "generate anew" in flag_text(text, "--overwrite")
     assert ends_with_example(text, "openfly_agent.toolchain generate")
     preset = _help(
-        capsys, _toolchain, ["generate", "--config", "configs/toolchain/embedded-small.yaml", "--help"]
+        capsys, _toolchain, ["generate", "--config_path", "configs/toolchain/embedded-small.yaml", "--help"]
     )
     assert "(default: 130)" in flag_text(preset, "--scenes.trajectories_per_scene")
     dagger = _help(capsys, _toolchain, ["dagger", "--help"])  # demanded --checkpoint instead

@@ -129,20 +129,18 @@ def check_command(command: DocCommand) -> None:
 
         assert command.sub in toolchain.COMMANDS, f"{where}: no toolchain command {command.sub!r}"
         if command.sub in ("generate", "dagger"):
-            argv = toolchain._config_args(_strip(command.args, ("--checkpoint", "--agent_class")))
+            argv = _strip(command.args, ("--checkpoint", "--agent_class"))
             check_options(GenerateConfig, argv)
             if complete:
                 toolchain._parse_generate(argv)
         elif command.sub == "grounding":
-            check_options(GroundingDataConfig, toolchain._config_args(command.args))
+            check_options(GroundingDataConfig, command.args)
         elif command.sub == "dagger-round":
             argv = _strip(command.args, ("--checkpoint", "--agent_class", "--torch_threads"))
-            check_options(DaggerRoundConfig, toolchain._config_args(argv))
+            check_options(DaggerRoundConfig, argv)
         else:
-            parser = (
-                toolchain.summarize_parser() if command.sub == "summarize" else toolchain.segment_parser()
-            )
-            _known(parser, command.args, where)
+            config = toolchain.SummarizeConfig if command.sub == "summarize" else toolchain.SegmentConfig
+            check_options(config, command.args)
     elif command.kind == "hub":
         from openfly_agent.hub.cli import COMMANDS as HUB_COMMANDS
 

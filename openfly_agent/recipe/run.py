@@ -99,7 +99,7 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         RecipeStep(
             "dataset",
             KIND_DATA,
-            toolchain + ["generate", "--config", str(resolve_config_path(cfg.toolchain_config)),
+            toolchain + ["generate", "--config_path", str(resolve_config_path(cfg.toolchain_config)),
                          f"--output_dir={cfg.dataset_root}"],
             out / "dataset",
         ),
@@ -174,7 +174,7 @@ def _generate_step(config: str, name: str, out: Path) -> tuple[RecipeStep, str]:
     """`toolchain generate` of a toolchain YAML into its own output_dir; returns the step and that root."""
     path = resolve_config_path(config)
     root = load_yaml_config(GenerateConfig, path, []).output_dir
-    command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config", str(path)]
+    command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config_path", str(path)]
     return RecipeStep(name, KIND_DATA, command + [f"--output_dir={root}"], out / name), root
 
 

@@ -81,7 +81,7 @@ def check_dataset_root(data: DataConfig) -> None:
         )
     if not root.is_dir():
         hint = (
-            f"generate it: python -m openfly_agent.toolchain generate --config {data.toolchain_config} "
+            f"generate it: python -m openfly_agent.toolchain generate --config_path {data.toolchain_config} "
             "(or set data.generate_if_missing=true)"
         )
         raise PreflightError(f"dataset root {root} does not exist; {hint}, or point --data.root at a dataset")

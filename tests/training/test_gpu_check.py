@@ -37,7 +37,7 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
     from accelerate.commands.launch import launch_command_parser
 
     from openfly_agent.eval.config import EvalConfig
-    from openfly_agent.toolchain.__main__ import _config_args, _parse_generate
+    from openfly_agent.toolchain.__main__ import _parse_generate
     from openfly_agent.training.cli import parse_args
     from openfly_agent.utils.config import parse_config
 
@@ -62,7 +62,7 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
             assert cfg.checkpoint == str(tmp_path / "lora") and cfg.max_episodes == 4
             parsed["eval"].append(cfg)
         elif tokens[1:4] == ["-m", "openfly_agent.toolchain", "generate"]:
-            cfg = _parse_generate(_config_args(tokens[4:]))
+            cfg = _parse_generate(tokens[4:])
             assert cfg.scenes.train_seeds == [0, 1] and cfg.output_dir == str(tmp_path / "data")
             parsed["generate"].append(cfg)
         else:  # a bench script: each option it passes is one the script declares

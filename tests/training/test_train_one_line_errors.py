@@ -72,7 +72,7 @@ def test_a_preflight_error_under_a_launcher_is_printed_once(tmp_path):
     lines = [line for line in done.stderr.splitlines() if line.startswith("train.py:")]
     assert lines == [
         f"train.py: dataset root {tmp_path / 'no-dataset'} does not exist; generate it: python -m "
-        "openfly_agent.toolchain generate --config configs/toolchain/embedded-small.yaml (or set "
+        "openfly_agent.toolchain generate --config_path configs/toolchain/embedded-small.yaml (or set "
         "data.generate_if_missing=true), or point --data.root at a dataset"
     ], done.stderr[-3000:]
     assert "failed (exitcode: 2)" in done.stderr  # each process exited 2; the launcher reports that
