@@ -14,7 +14,8 @@ import sys
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.run import run as evaluate
-from openfly_agent.utils.cli_help import UnknownOptionError, command_help, wants_help
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import RecordError, root_cause

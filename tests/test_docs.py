@@ -30,7 +30,7 @@ from eval_helpers import generate_tiny_dataset
 from openfly_agent import constants as C
 from openfly_agent.recipe.config import RecipeConfig
 from openfly_agent.toolchain.config import DaggerRoundConfig, GroundingDataConfig
-from openfly_agent.utils.cli_help import check_options
+from openfly_agent.utils.cli_options import check_options
 from openfly_agent.utils.processes import run_group
 
 COMMANDS = doc_commands()
@@ -175,7 +175,7 @@ def test_documented_commands_use_real_options(command):
 def test_the_stale_eval_command_of_issue_14_is_caught():
     from docs_commands import parse_command
 
-    from openfly_agent.utils.cli_help import UnknownOptionError
+    from openfly_agent.utils.cli_options import UnknownOptionError
 
     stale = parse_command("docs/TRAINING.md", 0, "python eval.py --agent_path=runs/tiny")
     with pytest.raises(UnknownOptionError, match="--agent_path"):
@@ -186,7 +186,7 @@ def test_the_stale_eval_command_of_issue_14_is_caught():
 def test_a_bench_forwards_what_follows_a_bare_dash_dash_to_train_options():
     from docs_commands import parse_command
 
-    from openfly_agent.utils.cli_help import UnknownOptionError
+    from openfly_agent.utils.cli_options import UnknownOptionError
 
     good = parse_command(
         "docs/x.md", 0, "python bench/grounding_step.py --steps 2 -- --model.llm.length_groups=3"

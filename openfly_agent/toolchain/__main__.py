@@ -27,7 +27,8 @@ from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY, prepare_scene
 from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
 from openfly_agent.toolchain.settings import GenerateSettingsError
 from openfly_agent.toolchain.summary import write_summary
-from openfly_agent.utils.cli_help import UnknownOptionError, command_help, wants_help
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging

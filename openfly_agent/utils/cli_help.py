@@ -1,32 +1,33 @@
-"""Command-line help and option checks for the config dataclasses that draccus parses.
+"""Command-line help of the config dataclasses that draccus parses (every entry point's `--help`).
 
     text = command_help(TrainConfig, argv, prog="train.py", description=..., examples=[...])
-    check_options(TrainConfig, ["--optim.lrr=1"])   # UnknownOptionError: ... did you mean --optim.lr?
 
 draccus builds its `--help` from source comments and gets them wrong when a comment spans lines or sits
 inside a wrapped default, and it shows the dataclass defaults rather than the values a YAML preset gives.
 Here every flag's text comes from the class source (`ast` + `tokenize`): the comments on the lines of the
 field's statement, the comment block right above it, or the `Attributes:` entry of the class docstring; the
-default shown is the value in the config the command would run with.
+default shown is the value in the config the command would run with. What a command line may hold is
+checked in utils/cli_options.py.
 """
 
 from __future__ import annotations
 
 import ast
 import dataclasses
-import difflib
 import inspect
 import io
 import re
 import textwrap
 import tokenize
 import typing
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from functools import lru_cache
 from typing import Any
 
+from openfly_agent.utils.cli_options import CONFIG_FLAG, config_path_of, nested_class, type_hints
+from openfly_agent.utils.config import parse_config
+
 HELP_FLAGS = ("-h", "--help")
-CONFIG_FLAG = "config_path"
 WIDTH = 110
 FLAG_COLUMN = 36
 _NBSP = "\x00"
@@ -35,10 +36,6 @@ DIALECT = (  # the one command-line form of every entry point (draccus')
     "(--<field>=[a,b]), a section's field by its dotted name (--<section>.<field>=VALUE), and a yes/no option "
     "alone means true (--<flag> is --<flag>=true)."
 )
-
-
-class UnknownOptionError(ValueError):
-    """A command-line option that names no config field; the message suggests the closest one."""
 
 
 # -- field descriptions from the source ------------------------------------------------------------------
@@ -127,23 +124,6 @@ def class_summary(cls: type) -> str:
 
 
 # -- the flag tree ---------------------------------------------------------------------------------------
-def _hints(cls: type) -> dict[str, Any]:
-    try:
-        return typing.get_type_hints(cls)
-    except Exception:  # an annotation that cannot be resolved: fall back to the raw strings
-        return {f.name: f.type for f in dataclasses.fields(cls)}
-
-
-def _nested_class(hint: Any) -> type | None:
-    """The dataclass of a field typed `SomeConfig` or `SomeConfig | None`, else None."""
-    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
-        return hint
-    args = [a for a in typing.get_args(hint) if a is not type(None)]
-    if len(args) == 1 and isinstance(args[0], type) and dataclasses.is_dataclass(args[0]):
-        return args[0]
-    return None
-
-
 def _type_name(hint: Any) -> str:
     if isinstance(hint, str):
         return hint.upper()
@@ -155,117 +135,6 @@ def _type_name(hint: Any) -> str:
         names = [_type_name(a) for a in args if a is not type(None)]
         return "|".join(names) + ("?" if type(None) in args else "")
     return getattr(hint, "__name__", str(hint)).upper()
-
-
-def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
-    """{dotted option: takes any sub-key} for every field of `cls` and its nested sections.
-
-    A section (`optim`) is an option too: draccus reads `--optim=<yaml file>`. Fields typed `dict` accept any
-    sub-key.
-    """
-    options: dict[str, bool] = {}
-    hints = _hints(cls)
-    for f in dataclasses.fields(cls):
-        name = prefix + f.name
-        nested = _nested_class(hints.get(f.name))
-        origin = typing.get_origin(hints.get(f.name))
-        options[name] = origin is dict or hints.get(f.name) is dict
-        if nested is not None:
-            options.update(known_options(nested, prefix=name + "."))
-    return options
-
-
-def _option_hint(cls: type, name: str) -> Any:
-    """The type of the field a dotted option names (None for a name that is no field)."""
-    owner: Any = cls
-    *sections, last = name.split(".")
-    for part in sections:
-        owner = _nested_class(_hints(owner).get(part)) if owner is not None else None
-    return _hints(owner).get(last) if owner is not None else None
-
-
-def _is_flag(cls: type, name: str) -> bool:
-    hint = _option_hint(cls, name)
-    return hint is bool or (typing.get_args(hint) and set(typing.get_args(hint)) <= {bool, type(None)})
-
-
-def _without_value(args: Sequence[str], index: int) -> bool:
-    """Whether the option at `index` is written without a value (`--push`, then nothing or another option)."""
-    return "=" not in args[index] and (index + 1 == len(args) or args[index + 1].startswith("--"))
-
-
-def bare_flags_as_true(cls: type, args: Sequence[str]) -> list[str]:
-    """`args` with a yes/no option given alone (`--push`, `--resume`) written as draccus reads it
-    (`--push=true`)."""
-    return [
-        f"{arg}=true" if arg.startswith("--") and _without_value(args, i) and _is_flag(cls, arg[2:]) else arg
-        for i, arg in enumerate(args)
-    ]
-
-
-def option_names(args: Sequence[str]) -> list[str]:
-    """The option names of a command line (`--a.b=1`, `--a.b 1` -> "a.b"); values are skipped."""
-    return [arg[2:].split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
-
-
-def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG_FLAG,)) -> None:
-    """Raise `UnknownOptionError` for the first option that names no field (with the closest one), or for a
-    second value after an option (each option takes one value: a list is written `--split=[a,b]`).
-
-    Args:
-        cls: the config dataclass the command line is parsed into.
-        args: the command line (draccus form: `--a.b=c` or `--a.b c`).
-        extra: option names the command accepts besides the fields.
-    """
-    options = known_options(cls)
-    known = set(options) | set(extra)
-    open_prefixes = [name + "." for name, any_key in options.items() if any_key]
-    for index, arg in enumerate(args):
-        if arg.startswith("--") or (
-            index and args[index - 1].startswith("--") and "=" not in args[index - 1]
-        ):
-            continue
-        owner = next((a for a in reversed(args[:index]) if a.startswith("--")), None)
-        if owner is None:
-            raise UnknownOptionError(f"unexpected value {arg!r}: every value follows its --option")
-        name = owner[2:].split("=", 1)[0]
-        raise UnknownOptionError(
-            f"--{name} takes one value, {arg!r} is a second one: write a list as --{name}=[a,b] "
-            "(--help lists every option)"
-        )
-    for index, name in enumerate(option_names(args)):
-        if name in known or any(name.startswith(p) for p in open_prefixes):
-            _check_section_value(cls, name, [a for a in args if a.startswith("--")][index], args)
-            continue
-        close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
-        if not close:  # a typo in the last part of a dotted name: compare with the siblings only
-            parent = name.rsplit(".", 1)[0] + "." if "." in name else ""
-            siblings = [k for k in known if k.startswith(parent) and "." not in k[len(parent) :]]
-            close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.5)
-        hint = f"; did you mean --{close[0]}?" if close else ""
-        raise UnknownOptionError(f"unknown option --{name}{hint} (--help lists every option)")
-    for index, arg in enumerate(args):
-        name = arg[2:]
-        if arg.startswith("--") and _without_value(args, index) and not _is_flag(cls, name) and name in known:
-            raise UnknownOptionError(f"--{name} needs a value: --{name}=VALUE (--help lists every option)")
-
-
-def _check_section_value(cls: type, name: str, option: str, args: Sequence[str]) -> None:
-    """A section (`--sim`) takes a YAML file only: `--sim embedded` names the field to set instead."""
-    section: Any = cls
-    for part in name.split("."):
-        section = _nested_class(_hints(section).get(part)) if section is not None else None
-    if section is None:
-        return
-    value = option.split("=", 1)[1] if "=" in option else None
-    if value is None and option in args and args.index(option) + 1 < len(args):
-        value = args[args.index(option) + 1]
-    if value is not None and not value.startswith("--") and not value.endswith((".yaml", ".yml", ".json")):
-        first = dataclasses.fields(section)[0].name
-        raise UnknownOptionError(
-            f"--{name} is a section: set its fields (--{name}.{first}={value}) or give it a YAML file "
-            "(--help lists every option)"
-        )
 
 
 # -- rendering -------------------------------------------------------------------------------------------
@@ -292,11 +161,11 @@ def _flag_lines(flag: str, text: str) -> list[str]:
 
 def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
     """The flags of one config class (its scalar fields), then its nested sections."""
-    hints, docs = _hints(cls), field_docs(cls)
+    hints, docs = type_hints(cls), field_docs(cls)
     scalar, nested = [], []
     for f in dataclasses.fields(cls):
         value = getattr(config, f.name, None) if config is not None else None
-        sub = _nested_class(hints.get(f.name))
+        sub = nested_class(hints.get(f.name))
         if sub is not None:
             nested.append((f, sub, value))
             continue
@@ -382,8 +251,6 @@ def command_help(
     defaults. `placeholders` are values of required fields ({"checkpoint": "x"}) used only to get past their
     check: those fields are shown unset.
     """
-    from openfly_agent.utils.config import parse_config  # lazy: utils.config imports this module
-
     args = without_help(args)
     config_path = config_path_of(args)
     filled = [f"--{name}={value}" for name, value in (placeholders or {}).items()]
@@ -412,13 +279,3 @@ def wants_help(args: Sequence[str]) -> bool:
 def without_help(args: Sequence[str]) -> list[str]:
     """The command line minus `-h` / `--help`."""
     return [arg for arg in args if arg not in HELP_FLAGS]
-
-
-def config_path_of(args: Sequence[str]) -> str | None:
-    """The value of `--config_path X` / `--config_path=X` in a command line, or None."""
-    for index, arg in enumerate(args):
-        if arg == f"--{CONFIG_FLAG}" and index + 1 < len(args):
-            return args[index + 1]
-        if arg.startswith(f"--{CONFIG_FLAG}="):
-            return arg.split("=", 1)[1]
-    return None

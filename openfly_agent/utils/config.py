@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any, TypeVar
 
-from openfly_agent.utils.cli_help import bare_flags_as_true, check_options
+from openfly_agent.utils.cli_options import bare_flags_as_true, check_options
 from openfly_agent.utils.errors import root_cause
 
 T = TypeVar("T")

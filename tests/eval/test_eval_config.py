@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from openfly_agent.eval.config import EvalConfig, SimSettings
-from openfly_agent.utils.cli_help import UnknownOptionError
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
 
 
