@@ -12,16 +12,10 @@ from __future__ import annotations
 import sys
 
 from openfly_agent.data.schema import SchemaError
-from openfly_agent.eval.cli import normalize_argv
 from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.run import run as evaluate
-from openfly_agent.utils.cli_help import (
-    UnknownOptionError,
-    config_help,
-    config_path_of,
-    wants_help,
-    without_help,
-)
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import RecordError, root_cause
@@ -33,32 +27,22 @@ EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 
 DESCRIPTION = (
     "Fly a policy (a checkpoint, or a baseline) through the test episodes of a dataset in a simulator and "
-    "score every episode under the `openfly` and `standard` metric profiles (docs/EVAL.md). List options take "
-    "space-separated values (--split test_seen test_unseen); --sim X means --sim.type=X. Relative paths are "
+    "score every episode under the `openfly` and `standard` metric profiles (docs/EVAL.md). Relative paths are "
     "relative to the working directory."
 )
 EXAMPLES = (
-    "python eval.py --checkpoint outputs/train/tiny/checkpoints/last --split test_seen test_unseen --sim embedded",
-    "python eval.py --policy oracle --baselines random stop forward --dataset_root outputs/datasets/embedded-small",
-    "python eval.py --config_path configs/eval/embedded.yaml --checkpoint <folder or Hub id>",
+    "python eval.py --checkpoint=outputs/train/tiny/checkpoints/last --split=[test_seen,test_unseen] "
+    "--sim.type=embedded",
+    "python eval.py --policy=oracle --baselines=[random,stop,forward] --dataset_root=outputs/datasets/embedded-small",
+    "python eval.py --config_path=configs/eval/embedded.yaml --checkpoint=<folder or Hub id>",
     "accelerate launch eval.py ...        # episodes split over processes / GPUs, results merged by rank 0",
 )
 
 
 def help_text(argv: list[str]) -> str:
     """`--help`: every option with the value the same command line without `--help` would use."""
-    argv = normalize_argv(without_help(argv))
-    config = config_path_of(argv)
-    cfg = None
-    for attempt in (argv, [*argv, "--checkpoint=<checkpoint>"]):  # the agent refuses a config without one
-        try:
-            cfg = parse_config(EvalConfig, attempt)
-        except Exception:  # a bad option: the dataclass defaults
-            continue
-        cfg.checkpoint = None if attempt is not argv else cfg.checkpoint
-        break
-    note = f"Defaults below are the values of {config} (and of the options given)." if config else None
-    return config_help(EvalConfig, cfg, "eval.py", DESCRIPTION, EXAMPLES, note)
+    placeholders = {"checkpoint": "<checkpoint>"}  # the agent refuses a config without one
+    return command_help(EvalConfig, argv, "eval.py", DESCRIPTION, EXAMPLES, placeholders=placeholders)
 
 
 def set_torch_threads(count: int | None) -> None:
@@ -79,7 +63,7 @@ def run(argv: list[str]) -> int:
         return 0
     setup_logging()
     try:
-        cfg = parse_config(EvalConfig, normalize_argv(argv))
+        cfg = parse_config(EvalConfig, argv)
         set_torch_threads(cfg.torch_threads)
         outcome = evaluate(cfg)
     except (

@@ -29,7 +29,8 @@ from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_defaul
     parse_args,
     with_default_config,
 )
-from openfly_agent.utils.cli_help import UnknownOptionError, wants_help
+from openfly_agent.utils.cli_help import wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.files import remove_empty_dirs

@@ -49,7 +49,7 @@ def build(overrides: list[str]):
     """(agent, train dataset, collate, cfg) of a grounding-stage run of `STAGE_ARGS + overrides`."""
 
     cfg = parse_args(STAGE_ARGS + overrides)
-    splits = load_splits(cfg)
+    splits = load_splits(cfg.data, cfg.model.grounding)
     agent = prepare_agent(cfg, splits, make_accelerator(cfg), None)
     data = stage_data(cfg, splits, agent)
     return agent, data.train, data.collate, cfg

@@ -47,7 +47,7 @@ def main() -> None:
     cfg = config_from_dict(TrainConfig, json.loads(config_path.read_text()))
     model = cfg.model
     selector = KeyframeSelector.from_config(model.keyframes, model.memory.capacity)
-    splits = load_splits(cfg)
+    splits = load_splits(cfg.data, cfg.model.grounding)
     for split in args.split or [cfg.data.train_split]:
         if split not in splits.episodes:
             raise SystemExit(f"split {split!r} is not one of the run's splits {sorted(splits.episodes)}")

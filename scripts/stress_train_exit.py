@@ -57,7 +57,7 @@ def environment() -> dict[str, str]:
 def ensure_dataset(root: Path) -> Path:
     """A dataset under `root`, generated from tests/training/tiny_dataset.yaml when it has none."""
     if not (root / "Annotation" / "train.json").is_file():
-        command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config", str(TINY_DATASET_YAML),
+        command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config_path", str(TINY_DATASET_YAML),
                    f"--output_dir={root}", "--plots=false"]  # fmt: skip
         done = run_group(command, timeout=900, env=environment(), cwd=REPO)
         if done.returncode != 0:

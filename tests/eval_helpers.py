@@ -159,9 +159,10 @@ def save_released_format_agent(folder, texts, seed: int = 0):
     from safetensors.torch import save_file
 
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.config import ActionHeadConfig, MemoryConfig, PromptConfig, config_to_dict
+    from openfly_agent.model.config import ActionHeadConfig, MemoryConfig, PromptConfig
     from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
     from openfly_agent.model.persistence.openvla_loader import to_openvla_state_dict
+    from openfly_agent.utils.config import config_to_dict
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

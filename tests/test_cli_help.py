@@ -133,7 +133,7 @@ def test_toolchain_subcommand_helps(capsys):
     assert "generate anew" in flag_text(text, "--overwrite")
     assert ends_with_example(text, "openfly_agent.toolchain generate")
     preset = _help(
-        capsys, _toolchain, ["generate", "--config", "configs/toolchain/embedded-small.yaml", "--help"]
+        capsys, _toolchain, ["generate", "--config_path", "configs/toolchain/embedded-small.yaml", "--help"]
     )
     assert "(default: 130)" in flag_text(preset, "--scenes.trajectories_per_scene")
     dagger = _help(capsys, _toolchain, ["dagger", "--help"])  # demanded --checkpoint instead
@@ -149,7 +149,7 @@ def test_toolchain_subcommand_helps(capsys):
 def test_hub_helps(capsys):
     text = _help(capsys, _hub, ["release", "--help"])
     assert "(default: merged)" in flag_text(text, "--lora") and "adapter" in flag_text(text, "--lora")
-    assert "(default: 5GB)" in flag_text(text, "--max-shard-size")
+    assert "(default: 5GB)" in flag_text(text, "--max_shard_size")
     assert ends_with_example(text, "openfly_agent.hub release")
     dataset = _help(capsys, _hub, ["release-dataset", "--help"])
     assert "(default: data_cards/embedded.md)" in flag_text(dataset, "--card")

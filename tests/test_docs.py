@@ -30,7 +30,7 @@ from eval_helpers import generate_tiny_dataset
 from openfly_agent import constants as C
 from openfly_agent.recipe.config import RecipeConfig
 from openfly_agent.toolchain.config import DaggerRoundConfig, GroundingDataConfig
-from openfly_agent.utils.cli_help import check_options
+from openfly_agent.utils.cli_options import check_options
 from openfly_agent.utils.processes import run_group
 
 COMMANDS = doc_commands()
@@ -117,39 +117,36 @@ def check_command(command: DocCommand) -> None:
         if complete:
             train.parse_args(command.args)
     elif command.kind == "eval":
-        from openfly_agent.eval.cli import normalize_argv
         from openfly_agent.eval.config import EvalConfig
         from openfly_agent.utils.config import parse_config
 
-        argv = normalize_argv(command.args)
-        check_options(EvalConfig, argv)
+        check_options(EvalConfig, command.args)
         if complete:
-            parse_config(EvalConfig, argv)
+            parse_config(EvalConfig, command.args)
     elif command.kind == "toolchain":
         from openfly_agent.toolchain import __main__ as toolchain
         from openfly_agent.toolchain.config import GenerateConfig
 
         assert command.sub in toolchain.COMMANDS, f"{where}: no toolchain command {command.sub!r}"
         if command.sub in ("generate", "dagger"):
-            argv = toolchain._config_args(_strip(command.args, ("--checkpoint", "--agent_class")))
+            argv = _strip(command.args, ("--checkpoint", "--agent_class"))
             check_options(GenerateConfig, argv)
             if complete:
                 toolchain._parse_generate(argv)
         elif command.sub == "grounding":
-            check_options(GroundingDataConfig, toolchain._config_args(command.args))
+            check_options(GroundingDataConfig, command.args)
         elif command.sub == "dagger-round":
             argv = _strip(command.args, ("--checkpoint", "--agent_class", "--torch_threads"))
-            check_options(DaggerRoundConfig, toolchain._config_args(argv))
+            check_options(DaggerRoundConfig, argv)
         else:
-            parser = (
-                toolchain.summarize_parser() if command.sub == "summarize" else toolchain.segment_parser()
-            )
-            _known(parser, command.args, where)
+            config = toolchain.SummarizeConfig if command.sub == "summarize" else toolchain.SegmentConfig
+            check_options(config, command.args)
     elif command.kind == "hub":
-        from openfly_agent.hub.cli import build_parser
+        from openfly_agent.hub.cli import COMMANDS as HUB_COMMANDS
 
         if command.sub is not None:
-            _known(build_parser(), [command.sub, *command.args], where)
+            assert command.sub in HUB_COMMANDS, f"{where}: no hub command {command.sub!r}"
+            check_options(HUB_COMMANDS[command.sub][0], command.args)
     elif command.kind == "recipe":
         check_options(RecipeConfig, command.args)
     elif command.kind == "sim":
@@ -178,7 +175,7 @@ def test_documented_commands_use_real_options(command):
 def test_the_stale_eval_command_of_issue_14_is_caught():
     from docs_commands import parse_command
 
-    from openfly_agent.utils.cli_help import UnknownOptionError
+    from openfly_agent.utils.cli_options import UnknownOptionError
 
     stale = parse_command("docs/TRAINING.md", 0, "python eval.py --agent_path=runs/tiny")
     with pytest.raises(UnknownOptionError, match="--agent_path"):
@@ -189,7 +186,7 @@ def test_the_stale_eval_command_of_issue_14_is_caught():
 def test_a_bench_forwards_what_follows_a_bare_dash_dash_to_train_options():
     from docs_commands import parse_command
 
-    from openfly_agent.utils.cli_help import UnknownOptionError
+    from openfly_agent.utils.cli_options import UnknownOptionError
 
     good = parse_command(
         "docs/x.md", 0, "python bench/grounding_step.py --steps 2 -- --model.llm.length_groups=3"

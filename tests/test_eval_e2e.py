@@ -192,7 +192,7 @@ def test_agent_resumed_after_a_kill_equals_an_uninterrupted_run_bit_for_bit(data
 
 def _eval_cmd(dataset, out, *extra):
     return [
-        sys.executable, str(REPO / "eval.py"), "--policy", "random", "--baselines", "forward",
+        sys.executable, str(REPO / "eval.py"), "--policy", "random", "--baselines=[forward]",
         "--dataset_root", str(dataset), "--output_dir", str(out), "--batch_size=2", "--plots=0",
         "--progress=false", *extra,
     ]  # fmt: skip
@@ -221,7 +221,7 @@ def test_sigkilled_run_resumes_to_the_same_table(dataset, reference, tmp_path):
     log = tmp_path / "random" / C.EPISODES_JSONL
     # Frames are rendered for the GIF episode, which slows the run enough to kill it half way.
     gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id
-    with running(_eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env) as proc:
+    with running(_eval_cmd(dataset, tmp_path, f"--gif_episodes=[{gif}]"), env=env) as proc:
         deadline = time.monotonic() + 240
         while time.monotonic() < deadline and proc.poll() is None:
             if log.is_file() and len(log.read_bytes().splitlines()) >= 2:
@@ -245,7 +245,7 @@ def test_ctrl_c_ends_with_one_line_and_130_then_the_same_command_resumes(dataset
     # SIGINT back to its default in the child: a shell starts background jobs (`pytest ... &`) with it ignored
     default_sigint = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
     with running(
-        _eval_cmd(dataset, tmp_path, "--gif_episodes", gif), env=env, preexec_fn=default_sigint, **pipes
+        _eval_cmd(dataset, tmp_path, f"--gif_episodes=[{gif}]"), env=env, preexec_fn=default_sigint, **pipes
     ) as proc:
         deadline = time.monotonic() + 240
         while (

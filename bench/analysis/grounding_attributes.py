@@ -140,7 +140,7 @@ class AttributeProbe:
         self.agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
         if not isinstance(self.agent.grounding_head, CellGroundingHead):
             raise ValueError(f"{folder}: the probe needs a grounding head with per-cell scores")
-        self.data = stage_data(cfg, load_splits(cfg), self.agent)
+        self.data = stage_data(cfg, load_splits(cfg.data, cfg.model.grounding), self.agent)
         if not hasattr(self.data.test, "locate"):
             raise ValueError(
                 f"{run_dir} is not a navigation-stage run: pass it with --checkpoint for other stages"

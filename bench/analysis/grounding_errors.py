@@ -211,7 +211,7 @@ def collect_target_boxes(
                 f"{folder}: a centre window needs the cell grounding head (grounding.cells=true)"
             )
         agent.grounding_head.centre_window = centre_window
-    data = stage_data(cfg, load_splits(cfg), agent)
+    data = stage_data(cfg, load_splits(cfg.data, cfg.model.grounding), agent)
     outputs = []
     hook = agent.grounding_head.register_forward_hook(lambda _module, _inputs, output: outputs.append(output))
     preds, targets, cells, hits = [], [], [], 0  # visible targets only

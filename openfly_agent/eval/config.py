@@ -110,11 +110,11 @@ class EvalConfig:
     # policy agent: our checkpoint folder (or its run folder / `last` pointer), an OpenVLA / OpenFly-Agent
     # folder, or a Hub id
     checkpoint: str | None = None
-    # more policies run through the same runner after `policy`, e.g. --baselines random stop
+    # more policies run through the same runner after `policy`, e.g. --baselines=[random,stop]
     baselines: list[str] = field(default_factory=list)
     # the dataset (relative to the working directory): Annotation/*.json and traj/ parquet files
     dataset_root: str = "outputs/datasets/embedded-small"
-    # splits to evaluate, e.g. --split test_seen test_unseen
+    # splits to evaluate, e.g. --split=[test_seen,test_unseen]
     split: list[str] = field(default_factory=lambda: [C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN])
     # Label handling, as in training (take-off / landing trimmed: start at flight height, goal = the STOP
     # pose). Released-data parity: takeoff_landing=keep (start on the ground, goal = the landed point).
@@ -163,7 +163,7 @@ class EvalConfig:
             if split not in C.SPLITS:
                 raise ValueError(f"split {split!r}: choose from {C.SPLITS}")
         if not self.split:
-            raise ValueError("split is empty: pass e.g. --split test_seen test_unseen")
+            raise ValueError("split is empty: pass e.g. --split=[test_seen,test_unseen]")
         for profile in self.profiles:
             if profile not in PROFILE_NAMES:
                 raise ValueError(f"profile {profile!r}: choose from {PROFILE_NAMES}")

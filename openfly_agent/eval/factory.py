@@ -78,7 +78,7 @@ def load_full_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
         except FileNotFoundError as err:
             raise FileNotFoundError(
                 f"{err}. Generate a dataset first (python -m openfly_agent.toolchain generate "
-                "--config configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
+                "--config_path configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
             ) from err
         episodes = sorted(episodes, key=lambda e: e.episode_id)
         if not episodes:

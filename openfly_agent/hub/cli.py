@@ -1,89 +1,105 @@
-"""`python -m openfly_agent.hub {release, release-dataset, fake-hub}`: build release folders and push them."""
+"""`python -m openfly_agent.hub {release, release-dataset, fake-hub}`: build release folders and push them.
+
+Each command parses its config dataclass (hub/config.py) with draccus' dotted options, as train.py and eval.py
+do (`--repo_id=me/x --push=true --card.tags=[a,b]`); `<command> --help` lists them. Exit codes: 0 done, 2 bad
+input (one line on stderr naming the option, the file or the folder).
+"""
 
 from __future__ import annotations
 
-import argparse
 import signal
 import sys
 import time
 
-from openfly_agent.hub.cli_args import add_dataclass_arguments, build_dataclass
-from openfly_agent.hub.config import DatasetReleaseConfig, ModelReleaseConfig
+from openfly_agent.hub.config import DatasetReleaseConfig, FakeHubConfig, ModelReleaseConfig
 from openfly_agent.hub.dataset_release import build_dataset_release
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_release import build_model_release
 from openfly_agent.hub.push import check_push_ready, push_folder
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
 
 PROG = "python -m openfly_agent.hub"
-EXAMPLES = {
+EXIT_BAD_INPUT = 2
+COMMANDS = {  # name: (config class, what it does)
     "release": (
-        f"{PROG} release --checkpoint outputs/train/tiny --repo-id my-user/openfly-agent-tiny "
-        "--results outputs/eval                    # writes outputs/releases/openfly-agent-tiny",
-        f"HF_HUB_OFFLINE=0 {PROG} release --checkpoint outputs/train/tiny --repo-id my-user/openfly-agent-tiny "
-        "--results outputs/eval --overwrite --push",
+        ModelReleaseConfig,
+        "Build the release folder of a checkpoint (weights, card, remote code); --push=true uploads it.",
     ),
     "release-dataset": (
-        f"{PROG} release-dataset --dataset-root outputs/datasets/embedded-small --repo-id my-user/openfly-embedded "
-        "--card data_cards/embedded.md",
+        DatasetReleaseConfig,
+        "Build the release folder of a generated dataset (parquet, annotations, card); --push=true uploads it.",
     ),
-    "fake-hub": (f'{PROG} fake-hub --token "$HF_TOKEN"      # then HF_ENDPOINT=<printed url> ... --push',),
+    "fake-hub": (
+        FakeHubConfig,
+        "Serve the Hub upload and download endpoints on 127.0.0.1 until Ctrl-C (docs/RELEASE.md).",
+    ),
+}
+EXAMPLES = {
+    "release": (
+        f"{PROG} release --checkpoint=outputs/train/tiny --repo_id=my-user/openfly-agent-tiny "
+        "--results=outputs/eval                    # writes outputs/releases/openfly-agent-tiny",
+        f"HF_HUB_OFFLINE=0 {PROG} release --checkpoint=outputs/train/tiny --repo_id=my-user/openfly-agent-tiny "
+        "--results=outputs/eval --overwrite=true --push=true",
+    ),
+    "release-dataset": (
+        f"{PROG} release-dataset --dataset_root=outputs/datasets/embedded-small "
+        "--repo_id=my-user/openfly-embedded --card=data_cards/embedded.md",
+    ),
+    "fake-hub": (
+        f'{PROG} fake-hub --token="$HF_TOKEN"      # then HF_ENDPOINT=<printed url> ... --push=true',
+    ),
 }
 
 
-def _epilog(*commands: str) -> str:
-    return "examples:\n" + "\n".join(f"  {line}" for name in commands for line in EXAMPLES[name])
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The command-line parser with one sub-command per release kind."""
-    raw = argparse.RawDescriptionHelpFormatter
-    parser = argparse.ArgumentParser(
-        prog=PROG, description=__doc__, epilog=_epilog(*EXAMPLES), formatter_class=raw
-    )
-    commands = parser.add_subparsers(dest="command", required=True)
-    model = commands.add_parser(
-        "release",
-        help="release a model checkpoint (folder, card, optional push)",
-        description="Build the release folder of a checkpoint (weights, card, remote code); --push uploads it.",
-        epilog=_epilog("release"),
-        formatter_class=raw,
-    )
-    add_dataclass_arguments(model, ModelReleaseConfig)
-    dataset = commands.add_parser(
-        "release-dataset",
-        help="release a generated dataset as a Hub dataset repo",
-        description="Build the release folder of a generated dataset (parquet, annotations, card); --push uploads it.",
-        epilog=_epilog("release-dataset"),
-        formatter_class=raw,
-    )
-    add_dataclass_arguments(dataset, DatasetReleaseConfig)
-    fake = commands.add_parser(
-        "fake-hub",
-        help="serve a loopback stand-in for the Hub upload API (rehearsal)",
-        description="Serve the Hub upload and download endpoints on 127.0.0.1 until Ctrl-C (docs/RELEASE.md).",
-        epilog=_epilog("fake-hub"),
-        formatter_class=raw,
-    )
-    fake.add_argument(
-        "--token", required=True, help="the token clients must send (use the value of HF_TOKEN)"
-    )
-    return parser
+def usage() -> str:
+    """The help of `python -m openfly_agent.hub --help` (each command's own: `<command> --help`)."""
+    lines = [
+        f"usage: {PROG} {{{','.join(COMMANDS)}}} [--<field>=VALUE ...]   (<command> --help for its options)"
+    ]
+    lines += [
+        "",
+        "Release checkpoints and datasets to the Hugging Face Hub (docs/RELEASE.md).",
+        "",
+        "commands:",
+    ]
+    lines += [f"  {name:<16} {text}" for name, (_, text) in COMMANDS.items()]
+    lines += ["", "examples:", *(f"  {example}" for examples in EXAMPLES.values() for example in examples)]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    args = build_parser().parse_args(argv)
-    setup_logging()
-    try:
-        if args.command == "release":
-            return _release_model(build_dataclass(ModelReleaseConfig, args))
-        if args.command == "release-dataset":
-            return _release_dataset(build_dataclass(DatasetReleaseConfig, args))
-        return _serve_fake_hub(args.token)
-    except (ValueError, OSError, RuntimeError) as err:  # OSError covers missing files and Hub HTTP errors
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("-h", "--help"):
+        print(usage(), end="")
+        return 0
+    if not argv or argv[0] not in COMMANDS:
+        what = f"unknown command {argv[0]!r}" if argv else "no command given"
+        print(f"{PROG}: {what}; choose one of {', '.join(COMMANDS)} (--help lists them)", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    command, args = argv[0], argv[1:]
+    config_class, description = COMMANDS[command]
+    if wants_help(args):
+        print(command_help(config_class, args, f"{PROG} {command}", description, EXAMPLES[command]), end="")
+        return 0
+    try:  # a bad option or value, a missing file, a Hub HTTP error (OSError), a folder that is not a checkpoint
+        cfg = parse_config(config_class, args)
+        setup_logging()
+        if command == "release":
+            return _release_model(cfg)
+        if command == "release-dataset":
+            return _release_dataset(cfg)
+        return _serve_fake_hub(cfg.token)
+    except Exception as err:
+        from draccus.utils import DraccusException
+
+        if not isinstance(err, (ValueError, OSError, RuntimeError, DraccusException)):
+            raise
+        print(f"{PROG} {command}: {root_cause(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 def _release_model(cfg: ModelReleaseConfig) -> int:

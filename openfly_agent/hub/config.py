@@ -12,7 +12,7 @@ DEFAULT_MAX_SHARD_SIZE = "5GB"
 _SIZE = re.compile(r"^\d+(\.\d+)?\s*(B|KB|MB|GB|TB|KIB|MIB|GIB|TIB)$", re.IGNORECASE)
 
 
-def check_repo_id(repo_id: str, flag: str = "--repo-id") -> None:
+def check_repo_id(repo_id: str, flag: str = "--repo_id") -> None:
     """Raise a ValueError naming `flag` unless `repo_id` looks like `namespace/name`."""
     if not _REPO_ID.match(repo_id) or "--" in repo_id or ".." in repo_id or repo_id.endswith((".", "-")):
         raise ValueError(
@@ -29,33 +29,28 @@ def check_revision(revision: str | None) -> None:
 
 @dataclass
 class CardConfig:
-    """Metadata of the model card (YAML front matter). Defaults describe the tiny embedded release.
+    """Metadata of the model card (YAML front matter). Defaults describe the tiny embedded release."""
 
-    Attributes:
-        license: Hub licence id (e.g. `mit`); `other` needs `license_name` and `license_link` (Llama 2).
-        license_name: Name of a custom licence (only with `license: other`).
-        license_link: URL or in-repo path of the custom licence text (only with `license: other`).
-        base_model: Hub id the weights were fine-tuned from (`openvla/openvla-7b`); None for a scratch model.
-        datasets: Hub dataset ids the model was trained / evaluated on.
-        eval_dataset: Hub dataset id (or name) the card's `model-index` results refer to.
-        eval_dataset_name: Human name of that dataset, shown next to each result.
-        tags: Extra tags; the fixed OpenFly tags are always added.
-        language: Languages of the instructions.
-        pipeline_tag: Hub task of the model.
-        code_url: Git URL of the `openfly-agent` source the card's install line clones; None: the card says to
-            install the package from a clone (it is not published on PyPI).
-    """
-
-    license: str = "mit"
-    license_name: str | None = None
-    license_link: str | None = None
-    base_model: str | None = None
-    datasets: list[str] = field(default_factory=list)
-    eval_dataset: str = "openfly-embedded"
-    eval_dataset_name: str = "OpenFly embedded city"
-    tags: list[str] = field(default_factory=list)
-    language: list[str] = field(default_factory=lambda: ["en"])
-    pipeline_tag: str = "robotics"
+    license: str = (
+        "mit"  # Hub licence id (e.g. `mit`); `other` needs `license_name` and `license_link` (Llama 2)
+    )
+    license_name: str | None = None  # name of a custom licence (only with `license: other`)
+    license_link: str | None = (
+        None  # URL or in-repo path of the custom licence text (only with `license: other`)
+    )
+    base_model: str | None = (
+        None  # Hub id the weights were fine-tuned from (`openvla/openvla-7b`); None: scratch
+    )
+    datasets: list[str] = field(default_factory=list)  # Hub dataset ids the model was trained / evaluated on
+    eval_dataset: str = (
+        "openfly-embedded"  # Hub dataset id (or name) the card's `model-index` results refer to
+    )
+    eval_dataset_name: str = "OpenFly embedded city"  # human name of that dataset, shown next to each result
+    tags: list[str] = field(default_factory=list)  # extra tags; the fixed OpenFly tags are always added
+    language: list[str] = field(default_factory=lambda: ["en"])  # languages of the instructions
+    pipeline_tag: str = "robotics"  # Hub task of the model
+    # Git URL of the `openfly-agent` source the card's install line clones; None: the card says to install the
+    # package from a clone (it is not published on PyPI)
     code_url: str | None = None
 
     def __post_init__(self) -> None:
@@ -73,38 +68,28 @@ class CardConfig:
 
 @dataclass
 class ModelReleaseConfig:
-    """`python -m openfly_agent.hub release`: checkpoint folder -> release folder (-> Hub model repo).
+    """`python -m openfly_agent.hub release`: checkpoint folder -> release folder (-> Hub model repo)."""
 
-    Attributes:
-        checkpoint: Run checkpoint folder (config.json + safetensors + tokenizer + action tokenizer ...).
-        repo_id: Target Hub repo, `namespace/name`; also used in the card's usage code.
-        output_dir: Release folder to write; default `outputs/releases/<name>`.
-        results: Eval results JSON (eval.py's `results.json`) for the card's `model-index`; optional.
-        lora: For LoRA checkpoints: `merged` (full weights) or `adapter` (adapter weights + base reference).
-        base_checkpoint: Base weights of a LoRA checkpoint (folder or Hub id, ours or OpenVLA); default the
-            `init.checkpoint` recorded in its train_config.json.
-        max_shard_size: Weights above this size are split into shards + index (transformers notation, "5GB").
-        push: Upload the folder after writing it.
-        private: Create the repo private (only when it does not exist yet).
-        revision: Branch to push to (created from main when missing); default main.
-        commit_message: Commit message of the upload.
-        overwrite: Replace an existing, non-empty output folder.
-        card: Card metadata.
-    """
-
-    checkpoint: str = ""
-    repo_id: str = ""
-    output_dir: str | None = None
-    results: str | None = None
-    lora: str = "merged"
+    checkpoint: str = (
+        ""  # run checkpoint folder (config.json + safetensors + tokenizer + action tokenizer ...)
+    )
+    repo_id: str = ""  # target Hub repo, `namespace/name`; also used in the card's usage code
+    output_dir: str | None = None  # release folder to write; default `outputs/releases/<name>`
+    results: str | None = None  # eval results JSON (eval.py's `results.json`) for the card's `model-index`
+    lora: str = (
+        "merged"  # LoRA checkpoints: `merged` (full weights) or `adapter` (adapter weights + base reference)
+    )
+    # base weights of a LoRA checkpoint (folder or Hub id, ours or OpenVLA); default the `init.checkpoint`
+    # recorded in its train_config.json
     base_checkpoint: str | None = None
+    # weights above this size are split into shards + index (transformers notation, "5GB")
     max_shard_size: str = DEFAULT_MAX_SHARD_SIZE
-    push: bool = False
-    private: bool = False
-    revision: str | None = None
-    commit_message: str = "Release OpenFly-Agent checkpoint"
-    overwrite: bool = False
-    card: CardConfig = field(default_factory=CardConfig)
+    push: bool = False  # upload the folder after writing it
+    private: bool = False  # create the repo private (only when it does not exist yet)
+    revision: str | None = None  # branch to push to (created from main when missing); default main
+    commit_message: str = "Release OpenFly-Agent checkpoint"  # commit message of the upload
+    overwrite: bool = False  # replace an existing, non-empty output folder
+    card: CardConfig = field(default_factory=CardConfig)  # card metadata
 
     def __post_init__(self) -> None:
         if not self.checkpoint:
@@ -115,40 +100,39 @@ class ModelReleaseConfig:
             raise ValueError(f"--lora {self.lora!r}: choose one of {LORA_MODES}")
         if not _SIZE.match(self.max_shard_size.strip()):
             raise ValueError(
-                f"--max-shard-size {self.max_shard_size!r}: write a size such as '5GB' or '200MB'"
+                f"--max_shard_size {self.max_shard_size!r}: write a size such as '5GB' or '200MB'"
             )
 
 
 @dataclass
 class DatasetReleaseConfig:
-    """`python -m openfly_agent.hub release-dataset`: dataset root -> release folder (-> Hub dataset repo).
+    """`python -m openfly_agent.hub release-dataset`: dataset root -> release folder (-> Hub dataset repo)."""
 
-    Attributes:
-        dataset_root: Generated dataset root (traj/**.parquet, Annotation/*.json, meta/info.json).
-        repo_id: Target Hub dataset repo, `namespace/name`.
-        card: Card template (Markdown with YAML front matter), normally `data_cards/embedded.md`.
-        output_dir: Release folder to write; default `outputs/releases/<name>`.
-        push: Upload the folder after writing it.
-        private: Create the repo private (only when it does not exist yet).
-        revision: Branch to push to; default main.
-        commit_message: Commit message of the upload.
-        overwrite: Replace an existing, non-empty output folder.
-    """
-
-    dataset_root: str = ""
-    repo_id: str = ""
-    card: str = "data_cards/embedded.md"
-    output_dir: str | None = None
-    push: bool = False
-    private: bool = False
-    revision: str | None = None
-    commit_message: str = "Release OpenFly dataset"
-    overwrite: bool = False
+    dataset_root: str = ""  # generated dataset root (traj/**.parquet, Annotation/*.json, meta/info.json)
+    repo_id: str = ""  # target Hub dataset repo, `namespace/name`
+    card: str = "data_cards/embedded.md"  # card template (Markdown with YAML front matter)
+    output_dir: str | None = None  # release folder to write; default `outputs/releases/<name>`
+    push: bool = False  # upload the folder after writing it
+    private: bool = False  # create the repo private (only when it does not exist yet)
+    revision: str | None = None  # branch to push to; default main
+    commit_message: str = "Release OpenFly dataset"  # commit message of the upload
+    overwrite: bool = False  # replace an existing, non-empty output folder
 
     def __post_init__(self) -> None:
         if not self.dataset_root:
-            raise ValueError("--dataset-root is required: the generated dataset folder to release")
+            raise ValueError("--dataset_root is required: the generated dataset folder to release")
         check_repo_id(self.repo_id)
         check_revision(self.revision)
         if not self.card:
             raise ValueError("--card is required: the dataset card template, e.g. data_cards/embedded.md")
+
+
+@dataclass
+class FakeHubConfig:
+    """`python -m openfly_agent.hub fake-hub`: a loopback stand-in for the Hub upload API (rehearsal)."""
+
+    token: str = ""  # the token clients must send (use the value of HF_TOKEN)
+
+    def __post_init__(self) -> None:
+        if not self.token:
+            raise ValueError("--token is required: the token clients must send (use the value of HF_TOKEN)")

@@ -17,7 +17,7 @@ def prepare_output_dir(path: str | Path, overwrite: bool) -> Path:
     if path.exists() and any(path.iterdir()):
         if not overwrite:
             raise FileExistsError(
-                f"release folder {path} is not empty: pass --overwrite or choose --output-dir"
+                f"release folder {path} is not empty: pass --overwrite=true or choose --output_dir"
             )
         shutil.rmtree(path)
     path.mkdir(parents=True, exist_ok=True)

@@ -99,7 +99,7 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
         logger.info("releasing %s", weights.description)
         checkpoint, base = weights.folder, weights.base
     if adapter_form and not cfg.card.base_model:
-        raise ValueError("--lora adapter needs --card.base-model <Hub id of the base weights> for the card")
+        raise ValueError("--lora adapter needs --card.base_model=<Hub id of the base weights> for the card")
     out = prepare_output_dir(
         cfg.output_dir or DEFAULT_RELEASE_ROOT / cfg.repo_id.split("/", 1)[1], cfg.overwrite
     )

@@ -79,7 +79,7 @@ def push_folder(
 
     folder = Path(folder)
     if not folder.is_dir():
-        raise PushError(f"release folder {folder} does not exist: build it first (without --push)")
+        raise PushError(f"release folder {folder} does not exist: build it first (without --push=true)")
     if constants.is_offline_mode():
         raise PushError("HF_HUB_OFFLINE is set: unset HF_HUB_OFFLINE (and TRANSFORMERS_OFFLINE) to push")
     if get_token() is None:

@@ -31,7 +31,7 @@ from openfly_agent.constants import (
     PIXEL_VALUES,
 )
 from openfly_agent.model.agent_inference import ClosedLoopInference
-from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig, config_to_dict
+from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
 from openfly_agent.model.freeze import freeze
@@ -60,6 +60,7 @@ from openfly_agent.model.processor import OpenFlyProcessor
 from openfly_agent.model.vision.backbone import build_vision_backbone
 from openfly_agent.model.vision.conv import ConvVisionBackbone
 from openfly_agent.model.vision.projector import FusedMLPProjector
+from openfly_agent.utils.config import config_to_dict
 
 logger = logging.getLogger(__name__)
 

@@ -369,44 +369,6 @@ def make_model_config(preset: str, **overrides) -> ModelConfig:
     return MODEL_PRESETS[preset](**overrides)
 
 
-def config_to_dict(cfg: ModelConfig) -> dict:
-    """Plain JSON-friendly dict of a ModelConfig (nested sections as dicts)."""
-    return dataclasses.asdict(cfg)
-
-
-def config_from_dict(data: dict) -> ModelConfig:
-    """Inverse of `config_to_dict`; unknown keys raise with the section and key named."""
-    sections = {f.name: f for f in dataclasses.fields(ModelConfig)}
-    kwargs = {}
-    for key, value in data.items():
-        if key not in sections:
-            raise ValueError(f"model config: unknown key {key!r}; known: {sorted(sections)}")
-        section_type = _SECTION_TYPES.get(key)
-        if section_type is None:
-            kwargs[key] = value
-            continue
-        known = {f.name for f in dataclasses.fields(section_type)}
-        unknown = set(value) - known
-        if unknown:
-            raise ValueError(
-                f"model config: unknown key(s) {sorted(unknown)} in section {key!r}; known: {sorted(known)}"
-            )
-        kwargs[key] = section_type(**value)
-    return ModelConfig(**kwargs)
-
-
-_SECTION_TYPES = {
-    "vision": VisionConfig,
-    "projector": ProjectorConfig,
-    "llm": LLMConfig,
-    "prompt": PromptConfig,
-    "grounding": GroundingConfig,
-    "keyframes": KeyframeConfig,
-    "merging": MergingConfig,
-    "memory": MemoryConfig,
-    "action_head": ActionHeadConfig,
-}
-
 __all__ = [  # the vision section's names are re-exported: model.config is the one place to import config from
     "CNN_INITS",
     "CNN_INIT_NORMAL",
@@ -433,8 +395,6 @@ __all__ = [  # the vision section's names are re-exported: model.config is the o
     "ProjectorConfig",
     "PromptConfig",
     "VisionConfig",
-    "config_from_dict",
-    "config_to_dict",
     "make_model_config",
 ]
 

@@ -16,9 +16,8 @@ from openfly_agent.model.config import (
     TINY_VISION,
     VISION_TINY,
     ModelConfig,
-    config_from_dict,
-    config_to_dict,
 )
+from openfly_agent.utils.config import config_from_dict, config_to_dict
 
 # Before the tiny-only size fields defaulted to None, every config.json held the tiny sizes, also under the
 # 7B presets (which ignored them). Those exact values are dropped when such a file is read.
@@ -43,14 +42,16 @@ class OpenFlyAgentConfig(PreTrainedConfig):
 
     def __post_init__(self, **kwargs):
         # Round trip through the dataclass: validates every section and fills defaults of older files.
-        self.agent = config_to_dict(config_from_dict(_without_legacy_tiny_sizes(self.agent or {})))
+        self.agent = config_to_dict(
+            config_from_dict(ModelConfig, _without_legacy_tiny_sizes(self.agent or {}))
+        )
         self.norm_stats = dict(self.norm_stats or {})
         super().__post_init__(**kwargs)
 
     @property
     def model_config(self) -> ModelConfig:
         """The typed model sections."""
-        return config_from_dict(self.agent)
+        return config_from_dict(ModelConfig, self.agent)
 
     @classmethod
     def from_model_config(

@@ -16,7 +16,8 @@ import draccus
 from openfly_agent.recipe.config import RecipeConfig
 from openfly_agent.recipe.progress import recipe_report
 from openfly_agent.recipe.run import run_recipe
-from openfly_agent.utils.cli_help import UnknownOptionError, config_help, wants_help, without_help
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
@@ -36,8 +37,7 @@ logger = logging.getLogger("openfly_agent.recipe")
 def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     if wants_help(args):
-        cfg = parse_config(RecipeConfig, without_help(args))
-        sys.stdout.write(config_help(RecipeConfig, cfg, PROG, DESCRIPTION, EXAMPLES))
+        sys.stdout.write(command_help(RecipeConfig, args, PROG, DESCRIPTION, EXAMPLES))
         return 0
     try:
         cfg = parse_config(RecipeConfig, args)

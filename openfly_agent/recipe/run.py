@@ -99,7 +99,7 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         RecipeStep(
             "dataset",
             KIND_DATA,
-            toolchain + ["generate", "--config", str(resolve_config_path(cfg.toolchain_config)),
+            toolchain + ["generate", "--config_path", str(resolve_config_path(cfg.toolchain_config)),
                          f"--output_dir={cfg.dataset_root}"],
             out / "dataset",
         ),
@@ -174,7 +174,7 @@ def _generate_step(config: str, name: str, out: Path) -> tuple[RecipeStep, str]:
     """`toolchain generate` of a toolchain YAML into its own output_dir; returns the step and that root."""
     path = resolve_config_path(config)
     root = load_yaml_config(GenerateConfig, path, []).output_dir
-    command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config", str(path)]
+    command = [sys.executable, "-m", "openfly_agent.toolchain", "generate", "--config_path", str(path)]
     return RecipeStep(name, KIND_DATA, command + [f"--output_dir={root}"], out / name), root
 
 
@@ -184,10 +184,10 @@ def _eval_step(
     """eval.py on the embedded simulator: the agent at `checkpoint` and every baseline on `splits`."""
     e = cfg.eval
     command = [
-        sys.executable, str(REPO_ROOT / "eval.py"), "--checkpoint", str(checkpoint), "--sim", "embedded",
-        "--split", *splits, "--baselines", *e.baselines, "--dataset_root", dataset_root,
-        "--output_dir", str(folder), "--batch_size", str(e.batch_size), "--torch_threads", str(e.torch_threads),
-        *(["--max_episodes", str(e.max_episodes)] if e.max_episodes else []),
+        sys.executable, str(REPO_ROOT / "eval.py"), f"--checkpoint={checkpoint}", "--sim.type=embedded",
+        f"--split=[{','.join(splits)}]", f"--baselines=[{','.join(e.baselines)}]", f"--dataset_root={dataset_root}",
+        f"--output_dir={folder}", f"--batch_size={e.batch_size}", f"--torch_threads={e.torch_threads}",
+        *([f"--max_episodes={e.max_episodes}"] if e.max_episodes else []),
     ]  # fmt: skip
     return RecipeStep(name, KIND_EVAL, command, folder, {"OMP_NUM_THREADS": str(e.torch_threads)})
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 from openfly_agent.data.writer import OpenFlyDatasetWriter
@@ -24,13 +25,8 @@ from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY, prepare_scene
 from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
 from openfly_agent.toolchain.settings import GenerateSettingsError
 from openfly_agent.toolchain.summary import write_summary
-from openfly_agent.utils.cli_help import (
-    UnknownOptionError,
-    config_help,
-    config_path_of,
-    wants_help,
-    without_help,
-)
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
@@ -47,16 +43,16 @@ COMMANDS = {
 }
 EXAMPLES = {
     "generate": (
-        f"{PROG} generate --config configs/toolchain/embedded-small.yaml        # ~4 min on 2 cores",
-        f"{PROG} generate --config configs/toolchain/embedded-100k.yaml --shard 3/16",
-        f"{PROG} generate --config configs/toolchain/embedded-small.yaml --render.width=96 "
+        f"{PROG} generate --config_path configs/toolchain/embedded-small.yaml        # ~4 min on 2 cores",
+        f"{PROG} generate --config_path configs/toolchain/embedded-100k.yaml --shard 3/16",
+        f"{PROG} generate --config_path configs/toolchain/embedded-small.yaml --render.width=96 "
         "--render.height=96 --output_dir=outputs/datasets/small-96",
     ),
     "summarize": (
         f"{PROG} summarize --root outputs/datasets/embedded-100k    # after copying the shards together",
     ),
     "dagger": (
-        f"{PROG} dagger --config configs/toolchain/embedded-small.yaml --checkpoint outputs/train/tiny "
+        f"{PROG} dagger --config_path configs/toolchain/embedded-small.yaml --checkpoint outputs/train/tiny "
         "--dagger.episodes_per_scene=4",
     ),
     "segment": (f"{PROG} segment --env_yaml env_x.yaml --point_cloud x.pcd --out seg_map_x.jsonl",),
@@ -87,22 +83,10 @@ def _usage() -> str:
     return "\n".join(lines) + "\n"
 
 
-def _config_args(args: list[str]) -> list[str]:
-    """Accept `--config X` / `--config=X` as draccus' `--config_path`."""
-    out = []
-    for arg in args:
-        if arg == "--config":
-            arg = "--config_path"
-        elif arg.startswith("--config="):
-            arg = "--config_path=" + arg.split("=", 1)[1]
-        out.append(arg)
-    return out
-
-
 def _generate_args(args: list[str]) -> list[str]:
-    """`args` with `--config` read as `--config_path`, and DEFAULT_GENERATE_CONFIG when none is given: a plain
-    `generate` writes exactly the dataset of configs/toolchain/embedded-small.yaml under its name."""
-    return with_config_path(_config_args(args), DEFAULT_GENERATE_CONFIG)
+    """`args` with DEFAULT_GENERATE_CONFIG when they name no --config_path: a plain `generate` writes exactly the
+    dataset of configs/toolchain/embedded-small.yaml under its name."""
+    return with_config_path(args, DEFAULT_GENERATE_CONFIG)
 
 
 def _parse_generate(args: list[str]):
@@ -112,18 +96,13 @@ def _parse_generate(args: list[str]):
 
 
 def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] = ()) -> str:
-    args = _generate_args(without_help(args))
-    config = config_path_of(args)
-    try:
-        cfg = _parse_generate(args)
-    except InputError:
-        cfg = None
-    note = f"Defaults below are the values of {config} (and of the overrides given)." if config else None
     description = COMMANDS[command] + (
-        ". --config is an alias of --config_path. Relative paths are relative to the working directory; "
-        "a --config under configs/ not found there is read from the repository."
+        ". Relative paths are relative to the working directory; a --config_path under configs/ not found there "
+        "is read from the repository."
     )
-    return config_help(GenerateConfig, cfg, f"{PROG} {command}", description, EXAMPLES[command], note, extra)
+    return command_help(
+        GenerateConfig, _generate_args(args), f"{PROG} {command}", description, EXAMPLES[command], extra
+    )
 
 
 def cmd_generate(args: list[str]) -> None:
@@ -139,37 +118,45 @@ def cmd_generate(args: list[str]) -> None:
     print(json.dumps({k: summary[k] for k in ("trajectories", "per_split", "rejected", "vocabulary_size")}))
 
 
-def _parser(command: str, description: str) -> argparse.ArgumentParser:
-    return argparse.ArgumentParser(
-        prog=f"{PROG} {command}",
-        description=description,
-        epilog="examples:\n" + "\n".join(f"  {example}" for example in EXAMPLES[command]),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+@dataclass
+class SummarizeConfig:
+    """`summarize`: merge copied shards into one dataset and write its summary."""
+
+    root: str = ""  # dataset root holding one or more copied shards
+    plots: bool = True  # draw summary.png
+
+    def __post_init__(self) -> None:
+        if not self.root:
+            raise ValueError("--root is required: the dataset root holding the copied shards")
 
 
-def summarize_parser() -> argparse.ArgumentParser:
-    """Options of `summarize`."""
-    parser = _parser("summarize", COMMANDS["summarize"])
-    parser.add_argument("--root", required=True, help="dataset root holding one or more copied shards")
-    parser.add_argument("--no-plots", action="store_true", help="skip summary.png")
-    return parser
+@dataclass
+class SegmentConfig:
+    """`segment`: BEV landmark segmentation of a real scene's point cloud into an official landmark list."""
 
+    env_yaml: str = ""  # the scene's official env_*.yaml
+    point_cloud: str = ""  # .pcd (ASCII or binary) or .ply
+    out: str = ""  # landmark list to write (official seg_map JSONL)
 
-def segment_parser() -> argparse.ArgumentParser:
-    """Options of `segment`."""
-    parser = _parser("segment", COMMANDS["segment"])
-    parser.add_argument("--env_yaml", required=True, help="the scene's official env_*.yaml")
-    parser.add_argument("--point_cloud", required=True, help=".pcd (ASCII or binary) or .ply")
-    parser.add_argument("--out", required=True, help="landmark list to write (official seg_map JSONL)")
-    return parser
+    def __post_init__(self) -> None:
+        for name in ("env_yaml", "point_cloud", "out"):
+            if not getattr(self, name):
+                raise ValueError(f"--{name} is required (segment --help lists the options)")
 
 
 def cmd_summarize(args: list[str]) -> None:
-    ns = summarize_parser().parse_args(args)
+    if wants_help(args):
+        print(
+            command_help(
+                SummarizeConfig, args, f"{PROG} summarize", COMMANDS["summarize"], EXAMPLES["summarize"]
+            ),
+            end="",
+        )
+        return
+    cfg = _parse_command_config(SummarizeConfig, args, "summarize")
     setup_logging()
-    OpenFlyDatasetWriter(ns.root).finalize()
-    print(json.dumps(write_summary(ns.root, plots=not ns.no_plots), indent=2))
+    OpenFlyDatasetWriter(cfg.root).finalize()
+    print(json.dumps(write_summary(cfg.root, plots=cfg.plots), indent=2))
 
 
 def _load_agent(checkpoint: str):
@@ -205,20 +192,26 @@ def cmd_dagger(args: list[str]) -> None:
 
 
 def cmd_segment(args: list[str]) -> None:
-    ns = segment_parser().parse_args(args)
+    if wants_help(args):
+        print(
+            command_help(SegmentConfig, args, f"{PROG} segment", COMMANDS["segment"], EXAMPLES["segment"]),
+            end="",
+        )
+        return
+    cfg = _parse_command_config(SegmentConfig, args, "segment")
     setup_logging()
-    cfg = generate_config_for_real_scene(ns.env_yaml, segment=True)
-    prepared = prepare_scene(real_scene(ns.env_yaml, ns.point_cloud), cfg)
-    write_landmark_list(Path(ns.out), list(prepared.landmarks.values()), cfg.map.pcd_scale_ratio)
-    print(json.dumps({"landmarks": len(prepared.landmarks), "out": ns.out}))
+    scene_cfg = generate_config_for_real_scene(cfg.env_yaml, segment=True)
+    prepared = prepare_scene(real_scene(cfg.env_yaml, cfg.point_cloud), scene_cfg)
+    write_landmark_list(Path(cfg.out), list(prepared.landmarks.values()), scene_cfg.map.pcd_scale_ratio)
+    print(json.dumps({"landmarks": len(prepared.landmarks), "out": cfg.out}))
 
 
 def _parse_command_config(config_class, args: list[str], command: str):
-    """A command's config dataclass from `args` (`--config` accepted); bad input is a one-line InputError."""
+    """A command's config dataclass from `args`; bad input is a one-line InputError."""
     import draccus
 
     try:
-        return parse_config(config_class, _config_args(args))
+        return parse_config(config_class, args)
     except UnknownOptionError as err:
         raise InputError(str(err)) from None
     except draccus.utils.ParsingError as err:
@@ -228,9 +221,8 @@ def _parse_command_config(config_class, args: list[str], command: str):
 def cmd_grounding(args: list[str]) -> None:
     if wants_help(args):
         description = COMMANDS["grounding"] + " (data_cards/grounding.md); resumable scene by scene"
-        cfg = parse_config(GroundingDataConfig, _config_args(without_help(args)))
         print(
-            config_help(GroundingDataConfig, cfg, f"{PROG} grounding", description, EXAMPLES["grounding"]),
+            command_help(GroundingDataConfig, args, f"{PROG} grounding", description, EXAMPLES["grounding"]),
             end="",
         )
         return
@@ -249,9 +241,8 @@ def cmd_dagger_round(args: list[str]) -> None:
     parser.add_argument("--torch_threads", type=int, default=0)
     ns, rest = parser.parse_known_args(args)
     if wants_help(args):
-        cfg = parse_config(DaggerRoundConfig, _config_args(without_help(rest)))
-        text = config_help(
-            DaggerRoundConfig, cfg, f"{PROG} dagger-round --checkpoint DIR", COMMANDS["dagger-round"],
+        text = command_help(
+            DaggerRoundConfig, rest, f"{PROG} dagger-round --checkpoint DIR", COMMANDS["dagger-round"],
             EXAMPLES["dagger-round"],
         )  # fmt: skip
         print(text, end="")

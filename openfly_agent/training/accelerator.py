@@ -21,18 +21,18 @@ logger = logging.getLogger(__name__)
 LOGS_DIR = "logs"
 
 
-def use_cpu(cfg: TrainConfig) -> bool:
-    """CPU when asked for, or when no CUDA device exists.
+def use_cpu(cpu: bool) -> bool:
+    """CPU when asked for (`TrainConfig.cpu`), or when no CUDA device exists.
 
     accelerate only forms a multi-process CPU group (gloo) when the Accelerator is built with `cpu=True`;
     `accelerate launch --multi_gpu --num_processes N` or torchrun on a CPU machine then trains N processes.
     """
-    return cfg.cpu or not torch.cuda.is_available()
+    return cpu or not torch.cuda.is_available()
 
 
-def world_size(cfg: TrainConfig) -> int:
+def world_size(cpu: bool) -> int:
     """Processes of this launch (initialises the process group once; no model is built)."""
-    return PartialState(cpu=use_cpu(cfg)).num_processes
+    return PartialState(cpu=use_cpu(cpu)).num_processes
 
 
 def make_accelerator(cfg: TrainConfig) -> Accelerator:
@@ -41,11 +41,11 @@ def make_accelerator(cfg: TrainConfig) -> Accelerator:
     Raises:
         PreflightError: the global batch does not divide over the processes and per-device batch.
     """
-    accumulation = check_batch(cfg.batch, world_size(cfg))
+    accumulation = check_batch(cfg.batch, world_size(cfg.cpu))
     output_dir = Path(cfg.output_dir)
     run_name = cfg.logging.run_name or output_dir.name
     accelerator = Accelerator(
-        cpu=use_cpu(cfg),
+        cpu=use_cpu(cfg.cpu),
         mixed_precision=cfg.precision,
         gradient_accumulation_steps=accumulation,
         log_with=make_trackers(cfg.logging.tracker, run_name, output_dir / LOGS_DIR),

@@ -17,13 +17,14 @@ from accelerate import Accelerator
 from accelerate.utils import DistributedType, set_seed
 
 from openfly_agent import constants as C
+from openfly_agent.data.config import DataConfig
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore, FrameStores
 from openfly_agent.data.grounding import read_grounding_expressions
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
+from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, GroundingConfig, ModelConfig
 from openfly_agent.model.language.tokenizer import load_tokenizer, train_bpe_tokenizer
 from openfly_agent.model.persistence.checkpoint_path import (
     UnreadableWeightsError,
@@ -32,7 +33,7 @@ from openfly_agent.model.persistence.checkpoint_path import (
 )
 from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint
 from openfly_agent.training.attribute_targets import LandmarkAttributes, vocabulary_sizes
-from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
+from openfly_agent.training.config import STAGE_GROUNDING, InitConfig, TrainConfig
 from openfly_agent.training.init_matching import load_matching_weights
 from openfly_agent.training.modes import apply_training_mode
 from openfly_agent.training.preflight import (
@@ -80,15 +81,15 @@ class Splits:
         )
 
 
-def load_splits(cfg: TrainConfig) -> Splits:
-    """Read the train, validation and test splits (and the train splits of `data.extra_train_roots`); a bad
-    record or unreadable frames is a `PreflightError`."""
-    data = cfg.data
+def load_splits(data: DataConfig, grounding: GroundingConfig) -> Splits:
+    """Read the train, validation and test splits (and the train splits of `data.extra_train_roots`), with the
+    target attributes when the `grounding` head learns them; a bad record or unreadable frames is a
+    `PreflightError`."""
     names = dict.fromkeys((data.train_split, data.val_split, data.test_split))
     episodes = {split: load_split(data, split) for split in names}
     frames = FrameStore(data.root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
     check_frames_readable(frames, episodes[data.train_split])
-    attributes = attribute_lookup(cfg)
+    attributes = attribute_lookup(grounding, data.root)
     if not data.extra_train_roots:
         return Splits(episodes, frames, attributes)
     stores = [(frames, [e for split in names for e in episodes[split]])]
@@ -105,9 +106,9 @@ def load_splits(cfg: TrainConfig) -> Splits:
         raise PreflightError(f"data.extra_train_roots: {err}") from err
 
 
-def attribute_lookup(cfg: TrainConfig) -> LandmarkAttributes | None:
-    """The target attributes' lookup when the grounding head learns them (`model.grounding.attribute_weight`)."""
-    grounding = cfg.model.grounding
+def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttributes | None:
+    """The target attributes' lookup of the dataset at `data_root` when the grounding head learns them
+    (`model.grounding.attribute_weight`)."""
     if not (grounding.enabled and grounding.attribute_weight):
         return None
     if list(grounding.attribute_classes) != vocabulary_sizes():
@@ -116,7 +117,7 @@ def attribute_lookup(cfg: TrainConfig) -> LandmarkAttributes | None:
             f"{vocabulary_sizes()} (colour, type, size, feature)"
         )
     try:
-        return LandmarkAttributes.for_dataset(cfg.data.root)
+        return LandmarkAttributes.for_dataset(data_root)
     except FileNotFoundError as err:
         raise PreflightError(
             f"model.grounding.attribute_weight needs an embedded-city dataset: {err}"
@@ -133,7 +134,7 @@ def prepare_agent(
     norm_stats = None
     if cfg.model.action_head.type == HEAD_OPENVLA_BINS:
         norm_stats = {Path(cfg.data.root).name: compute_action_statistics(train_episodes)}
-    init_format = check_init_checkpoint(cfg, tokenizer, norm_stats)
+    init_format = check_init_checkpoint(cfg.init, cfg.model, tokenizer, norm_stats)
     if resume_from is not None:
         check_architecture(cfg.model, tokenizer, norm_stats, resume_from, "the checkpoint to resume")
     set_seed(cfg.seed)  # the same initial weights on every process and on resume
@@ -214,23 +215,25 @@ def detect_init_format(folder: Path, requested: str) -> str:
     return FORMAT_OURS if model_type == C.MODEL_TYPE else FORMAT_OPENVLA
 
 
-def check_init_checkpoint(cfg: TrainConfig, tokenizer, norm_stats: dict | None) -> str | None:
+def check_init_checkpoint(
+    init: InitConfig, model_cfg: ModelConfig, tokenizer, norm_stats: dict | None
+) -> str | None:
     """Validate `init.checkpoint` against the model config before any weight is read; return its format."""
-    if cfg.init.checkpoint is None:
+    if init.checkpoint is None:
         return None
-    folder = Path(cfg.init.checkpoint)
+    folder = Path(init.checkpoint)
     if not folder.is_dir():
         raise PreflightError(f"init.checkpoint {folder} does not exist")
-    folder = init_checkpoint_folder(cfg.init.checkpoint)  # a training run or its `last`: its checkpoint
+    folder = init_checkpoint_folder(init.checkpoint)  # a training run or its `last`: its checkpoint
     try:
         check_weights_readable(folder)
     except UnreadableWeightsError as err:
         raise PreflightError(f"init.checkpoint: {err}") from None
-    fmt = detect_init_format(folder, cfg.init.format)
-    if cfg.init.matching and fmt != FORMAT_OURS:
+    fmt = detect_init_format(folder, init.format)
+    if init.matching and fmt != FORMAT_OURS:
         raise PreflightError(f"init.matching loads checkpoints of ours; {folder} is an {fmt} checkpoint")
-    if fmt == FORMAT_OURS and not cfg.init.matching:
-        check_architecture(cfg.model, tokenizer, norm_stats, folder, "init.checkpoint")
+    if fmt == FORMAT_OURS and not init.matching:
+        check_architecture(model_cfg, tokenizer, norm_stats, folder, "init.checkpoint")
     return fmt  # OpenVLA folders are checked key by key by the model's loader, which names every mismatch
 
 

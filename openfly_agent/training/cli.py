@@ -9,7 +9,7 @@ from __future__ import annotations
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
-from openfly_agent.utils.cli_help import config_help, config_path_of, without_help
+from openfly_agent.utils.cli_help import command_help
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import RecordError, one_line, worker_error_name
 
@@ -31,28 +31,18 @@ EXAMPLES = (
 
 
 def with_default_config(argv: list[str]) -> list[str]:
-    """`argv` with `--resume` alone meaning `--resume=true`, and the tiny preset when no config is given."""
-    argv = ["--resume=true" if arg == "--resume" else arg for arg in argv]
+    """`argv` with the tiny preset when no config is given."""
     return with_config_path(argv, DEFAULT_CONFIG)
 
 
 def parse_args(argv: list[str]):
-    """`TrainConfig` from `--config_path` (default: the tiny preset) and dotted overrides; `--resume` alone
-    means `--resume=true`."""
+    """`TrainConfig` from `--config_path` (default: the tiny preset) and dotted overrides."""
     return parse_config(TrainConfig, with_default_config(argv))
 
 
 def help_text(argv: list[str]) -> str:
     """`--help`: every option with the value the same command line without `--help` would use."""
-    argv = with_default_config(without_help(argv))
-    config = config_path_of(argv)
-    try:
-        cfg = parse_args(argv)
-    except Exception:  # a bad override: show the preset's own values
-        cfg = parse_args(["--config_path", config])
-    note = f"Defaults below are the values of {config} (and of the overrides given)."
-    extra = [("--resume", "same as --resume=true: continue <output_dir> from checkpoints/last")]
-    return config_help(TrainConfig, cfg, "train.py", DESCRIPTION, EXAMPLES, note, extra)
+    return command_help(TrainConfig, with_default_config(argv), "train.py", DESCRIPTION, EXAMPLES)
 
 
 def data_error_message(err: BaseException) -> str | None:

@@ -37,7 +37,7 @@ from openfly_agent.model.config import NUM_ACTION_SLOTS
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.modes import apply_training_mode
 from openfly_agent.training.preflight import PreflightError
-from openfly_agent.utils.cli_help import config_path_of
+from openfly_agent.utils.cli_options import config_path_of
 
 logger = logging.getLogger(__name__)
 

@@ -76,7 +76,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
     if accelerator.is_main_process:
         checkpoints.remove_stale_staging()
-    splits = load_splits(cfg)
+    splits = load_splits(cfg.data, cfg.model.grounding)
 
     # 2. The agent, whose processor prepares every input, and the stage's samples of each split
     #    (navigation: per-step samples with history; grounding: expressions and instruction targets).

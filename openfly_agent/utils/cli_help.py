@@ -1,39 +1,41 @@
-"""Command-line help and option checks for the config dataclasses that draccus parses.
+"""Command-line help of the config dataclasses that draccus parses (every entry point's `--help`).
 
-    text = config_help(TrainConfig, cfg, prog="train.py", description=..., examples=[...])
-    check_options(TrainConfig, ["--optim.lrr=1"])   # UnknownOptionError: ... did you mean --optim.lr?
+    text = command_help(TrainConfig, argv, prog="train.py", description=..., examples=[...])
 
 draccus builds its `--help` from source comments and gets them wrong when a comment spans lines or sits
 inside a wrapped default, and it shows the dataclass defaults rather than the values a YAML preset gives.
 Here every flag's text comes from the class source (`ast` + `tokenize`): the comments on the lines of the
 field's statement, the comment block right above it, or the `Attributes:` entry of the class docstring; the
-default shown is the value in the config the command would run with.
+default shown is the value in the config the command would run with. What a command line may hold is
+checked in utils/cli_options.py.
 """
 
 from __future__ import annotations
 
 import ast
 import dataclasses
-import difflib
 import inspect
 import io
 import re
 import textwrap
 import tokenize
 import typing
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from functools import lru_cache
 from typing import Any
 
+from openfly_agent.utils.cli_options import CONFIG_FLAG, config_path_of, nested_class, type_hints
+from openfly_agent.utils.config import parse_config
+
 HELP_FLAGS = ("-h", "--help")
-CONFIG_FLAG = "config_path"
 WIDTH = 110
 FLAG_COLUMN = 36
 _NBSP = "\x00"
-
-
-class UnknownOptionError(ValueError):
-    """A command-line option that names no config field; the message suggests the closest one."""
+DIALECT = (  # the one command-line form of every entry point (draccus')
+    "Each option takes one value: --<field>=VALUE or --<field> VALUE; a list is written in brackets "
+    "(--<field>=[a,b]), a section's field by its dotted name (--<section>.<field>=VALUE), and a yes/no option "
+    "alone means true (--<flag> is --<flag>=true)."
+)
 
 
 # -- field descriptions from the source ------------------------------------------------------------------
@@ -122,23 +124,6 @@ def class_summary(cls: type) -> str:
 
 
 # -- the flag tree ---------------------------------------------------------------------------------------
-def _hints(cls: type) -> dict[str, Any]:
-    try:
-        return typing.get_type_hints(cls)
-    except Exception:  # an annotation that cannot be resolved: fall back to the raw strings
-        return {f.name: f.type for f in dataclasses.fields(cls)}
-
-
-def _nested_class(hint: Any) -> type | None:
-    """The dataclass of a field typed `SomeConfig` or `SomeConfig | None`, else None."""
-    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
-        return hint
-    args = [a for a in typing.get_args(hint) if a is not type(None)]
-    if len(args) == 1 and isinstance(args[0], type) and dataclasses.is_dataclass(args[0]):
-        return args[0]
-    return None
-
-
 def _type_name(hint: Any) -> str:
     if isinstance(hint, str):
         return hint.upper()
@@ -150,52 +135,6 @@ def _type_name(hint: Any) -> str:
         names = [_type_name(a) for a in args if a is not type(None)]
         return "|".join(names) + ("?" if type(None) in args else "")
     return getattr(hint, "__name__", str(hint)).upper()
-
-
-def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
-    """{dotted option: takes any sub-key} for every field of `cls` and its nested sections.
-
-    A section (`optim`) is an option too: draccus reads `--optim=<yaml file>`. Fields typed `dict` accept any
-    sub-key.
-    """
-    options: dict[str, bool] = {}
-    hints = _hints(cls)
-    for f in dataclasses.fields(cls):
-        name = prefix + f.name
-        nested = _nested_class(hints.get(f.name))
-        origin = typing.get_origin(hints.get(f.name))
-        options[name] = origin is dict or hints.get(f.name) is dict
-        if nested is not None:
-            options.update(known_options(nested, prefix=name + "."))
-    return options
-
-
-def option_names(args: Sequence[str]) -> list[str]:
-    """The option names of a command line (`--a.b=1`, `--a.b 1` -> "a.b"); values are skipped."""
-    return [arg[2:].split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
-
-
-def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG_FLAG,)) -> None:
-    """Raise `UnknownOptionError` for the first option that names no field, with the closest one.
-
-    Args:
-        cls: the config dataclass the command line is parsed into.
-        args: the command line (draccus form: `--a.b=c` or `--a.b c`).
-        extra: option names the command accepts besides the fields.
-    """
-    options = known_options(cls)
-    known = set(options) | set(extra)
-    open_prefixes = [name + "." for name, any_key in options.items() if any_key]
-    for name in option_names(args):
-        if name in known or any(name.startswith(p) for p in open_prefixes):
-            continue
-        close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
-        if not close:  # a typo in the last part of a dotted name: compare with the siblings only
-            parent = name.rsplit(".", 1)[0] + "." if "." in name else ""
-            siblings = [k for k in known if k.startswith(parent) and "." not in k[len(parent) :]]
-            close = difflib.get_close_matches(name, siblings, n=1, cutoff=0.5)
-        hint = f"; did you mean --{close[0]}?" if close else ""
-        raise UnknownOptionError(f"unknown option --{name}{hint} (--help lists every option)")
 
 
 # -- rendering -------------------------------------------------------------------------------------------
@@ -222,11 +161,11 @@ def _flag_lines(flag: str, text: str) -> list[str]:
 
 def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
     """The flags of one config class (its scalar fields), then its nested sections."""
-    hints, docs = _hints(cls), field_docs(cls)
+    hints, docs = type_hints(cls), field_docs(cls)
     scalar, nested = [], []
     for f in dataclasses.fields(cls):
         value = getattr(config, f.name, None) if config is not None else None
-        sub = _nested_class(hints.get(f.name))
+        sub = nested_class(hints.get(f.name))
         if sub is not None:
             nested.append((f, sub, value))
             continue
@@ -243,7 +182,7 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
     return out
 
 
-def unchecked_defaults(cls: type) -> Any:
+def _unchecked_defaults(cls: type) -> Any:
     """An instance of `cls` holding its field defaults, built without `__post_init__` (whose checks may
     refuse the bare defaults, e.g. a policy that needs a checkpoint)."""
     config = object.__new__(cls)
@@ -280,9 +219,10 @@ def config_help(
         extra_options: (flag, text) of options the command takes besides the fields.
     """
     if config is None:
-        config = unchecked_defaults(cls)
+        config = _unchecked_defaults(cls)
     lines = [f"usage: {prog} [--config_path YAML] [--<field>=VALUE ...]", ""]
     lines += textwrap.wrap(" ".join(description.split()), WIDTH)
+    lines += ["", *textwrap.wrap(DIALECT, WIDTH)]
     if config_note:
         lines += ["", *textwrap.wrap(config_note, WIDTH)]
     lines += ["", "options:"]
@@ -295,6 +235,42 @@ def config_help(
     return "\n".join(lines) + "\n"
 
 
+def command_help(
+    cls: type,
+    args: Sequence[str],
+    prog: str,
+    description: str,
+    examples: Sequence[str],
+    extra_options: Sequence[tuple[str, str]] = (),
+    placeholders: dict[str, str] | None = None,
+) -> str:
+    """The `--help` of a command line `args` (help flags included) that parses `cls`: every option with the
+    value the same command line without `--help` would run with.
+
+    A command line that does not parse (yet) shows the values of its `--config_path` YAML, else the dataclass
+    defaults. `placeholders` are values of required fields ({"checkpoint": "x"}) used only to get past their
+    check: those fields are shown unset.
+    """
+    args = without_help(args)
+    config_path = config_path_of(args)
+    filled = [f"--{name}={value}" for name, value in (placeholders or {}).items()]
+    attempts = [args, [*args, *filled]] + ([["--config_path", config_path, *filled]] if config_path else [])
+    config = None
+    for attempt in attempts:
+        try:
+            config = parse_config(cls, attempt)
+        except Exception:  # a bad option, or a required field missing: the next attempt
+            continue
+        if attempt is not args:
+            for name in placeholders or {}:
+                object.__setattr__(config, name, None)
+        break
+    note = (
+        f"Defaults below are the values of {config_path} (and of the options given)." if config_path else None
+    )
+    return config_help(cls, config, prog, description, examples, note, extra_options)
+
+
 def wants_help(args: Sequence[str]) -> bool:
     """Whether the command line asks for help."""
     return any(arg in HELP_FLAGS for arg in args)
@@ -303,13 +279,3 @@ def wants_help(args: Sequence[str]) -> bool:
 def without_help(args: Sequence[str]) -> list[str]:
     """The command line minus `-h` / `--help`."""
     return [arg for arg in args if arg not in HELP_FLAGS]
-
-
-def config_path_of(args: Sequence[str]) -> str | None:
-    """The value of `--config_path X` / `--config_path=X` in a command line, or None."""
-    for index, arg in enumerate(args):
-        if arg == f"--{CONFIG_FLAG}" and index + 1 < len(args):
-            return args[index + 1]
-        if arg.startswith(f"--{CONFIG_FLAG}="):
-            return arg.split("=", 1)[1]
-    return None

@@ -12,7 +12,8 @@ import json
 from pathlib import Path
 from typing import Any, TypeVar
 
-from openfly_agent.utils.cli_help import check_options
+from openfly_agent.utils.cli_options import bare_flags_as_true, check_options
+from openfly_agent.utils.errors import root_cause
 
 T = TypeVar("T")
 
@@ -20,7 +21,8 @@ T = TypeVar("T")
 def parse_config(
     config_class: type[T], args: list[str] | None = None, config_path: str | Path | None = None
 ) -> T:
-    """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus).
+    """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus); a yes/no option
+    given alone (`--push`) means `--push=true`.
 
     Raises:
         UnknownOptionError: an option that names no field, with the closest field ("did you mean").
@@ -32,6 +34,7 @@ def parse_config(
 
     args = list(sys.argv[1:] if args is None else args)
     check_options(config_class, args)
+    args = bare_flags_as_true(config_class, args)
     args = [_resolved_config_arg(arg, args[i - 1] if i else None) for i, arg in enumerate(args)]
     if config_path is not None:
         config_path = resolve_config_path(config_path)
@@ -77,17 +80,27 @@ def load_yaml_config(config_class: type[T], path: str | Path, overrides: list[st
 
 
 def config_to_dict(cfg: Any) -> dict:
-    """A JSON-friendly dict of a (nested) config dataclass, via draccus' encoder."""
+    """A JSON-friendly dict of a (nested) config dataclass, via draccus' encoder: the one serialiser of every
+    config (train_config.json, the model sections of a checkpoint's config.json, a dataset's settings)."""
     import draccus
 
     return json.loads(json.dumps(draccus.encode(cfg)))
 
 
 def config_from_dict(config_class: type[T], data: dict) -> T:
-    """Inverse of `config_to_dict`."""
-    import draccus
+    """Inverse of `config_to_dict`: missing keys take their defaults.
 
-    return draccus.decode(config_class, data)
+    Raises:
+        ValueError: one line naming the class and the field (an unknown key, a value of the wrong type, or a
+            value the config refuses).
+    """
+    import draccus
+    from draccus.utils import DraccusException
+
+    try:
+        return draccus.decode(config_class, data)
+    except DraccusException as err:
+        raise ValueError(f"{config_class.__name__}: {root_cause(err).removeprefix('--')}") from err
 
 
 def flat_settings(node: Any, prefix: str = "") -> dict[str, Any]:

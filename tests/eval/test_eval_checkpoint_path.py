@@ -30,7 +30,7 @@ def test_eval_refuses_a_grounding_stage_checkpoint_naming_the_navigation_stage(t
 
     out = tmp_path / "out"
     argv = [
-        "--checkpoint", str(tmp_path / "job" / "grounding"), "--split", C.SPLIT_TEST_SEEN, "--plots=0",
+        "--checkpoint", str(tmp_path / "job" / "grounding"), f"--split=[{C.SPLIT_TEST_SEEN}]", "--plots=0",
         "--progress=false", f"--dataset_root={dataset}", f"--output_dir={out}",
     ]  # fmt: skip
     assert eval_main()(argv) == 2

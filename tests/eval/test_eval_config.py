@@ -1,61 +1,57 @@
-"""EvalConfig parsing (the issue's command line through draccus) and its errors."""
+"""EvalConfig parsing (draccus' dotted options, as every entry point) and its errors."""
 
 from __future__ import annotations
 
 import pytest
 
-from openfly_agent.eval.cli import list_fields, normalize_argv
 from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
 
 
-def test_issue_command_line_parses():
+def test_the_documented_command_line_parses():
     argv = [
-        "--checkpoint",
-        "runs/tiny/checkpoints/last",
-        "--split",
-        "test_seen",
-        "test_unseen",
-        "--sim",
-        "embedded",
-    ]
-    assert normalize_argv(argv) == [
-        "--checkpoint",
-        "runs/tiny/checkpoints/last",
+        "--checkpoint=runs/tiny/checkpoints/last",
         "--split=[test_seen,test_unseen]",
         "--sim.type=embedded",
     ]
-    cfg = parse_config(EvalConfig, normalize_argv(argv))
+    cfg = parse_config(EvalConfig, argv)
     assert cfg.split == ["test_seen", "test_unseen"] and cfg.sim.type == "embedded"
     assert cfg.checkpoint == "runs/tiny/checkpoints/last" and cfg.policy == "agent"
-
-
-def test_shorthands_leave_draccus_forms_alone():
     argv = [
-        "--split=[test_unseen]",
-        "--sim.type=unrealcv",
-        "--sim.unrealcv.port=9001",
-        "--baselines",
-        "random",
-        "stop",
-        "--plots=2",
-    ]
-    out = normalize_argv(argv)
-    assert out == [
-        "--split=[test_unseen]",
-        "--sim.type=unrealcv",
+        "--split",
+        "[test_unseen]",
+        "--sim.type",
+        "unrealcv",
         "--sim.unrealcv.port=9001",
         "--baselines=[random,stop]",
-        "--plots=2",
     ]
-    cfg = parse_config(EvalConfig, out + ["--checkpoint=x"])
-    assert cfg.baselines == ["random", "stop"] and cfg.split == ["test_unseen"]
-    assert cfg.sim.unrealcv.port == 9001
-    assert normalize_argv(["--sim=airsim", "--gif_episodes", "a/b/c"]) == [
-        "--sim.type=airsim",
-        "--gif_episodes=[a/b/c]",
-    ]
-    assert {"split", "baselines", "profiles", "gif_episodes"} <= list_fields()
+    cfg = parse_config(EvalConfig, [*argv, "--gif_episodes=[a/b/c]", "--checkpoint=x"])
+    assert (
+        cfg.baselines == ["random", "stop"] and cfg.split == ["test_unseen"] and cfg.gif_episodes == ["a/b/c"]
+    )
+    assert cfg.sim.type == "unrealcv" and cfg.sim.unrealcv.port == 9001
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (
+            ["--split", "test_seen", "test_unseen"],
+            "--split takes one value, 'test_unseen' is a second one: write a list as --split=[a,b]",
+        ),
+        (
+            ["--sim", "embedded"],
+            "--sim is a section: set its fields (--sim.type=embedded) or give it a YAML file",
+        ),
+        (["--sim=airsim"], "--sim is a section: set its fields (--sim.type=airsim)"),
+        (["stop"], "unexpected value 'stop': every value follows its --option"),
+    ],
+)
+def test_a_second_value_or_a_value_of_a_section_is_one_line_naming_the_option(argv, message):
+    with pytest.raises(UnknownOptionError) as err:
+        parse_config(EvalConfig, ["--policy=oracle", *argv] if argv[0].startswith("--") else argv)
+    assert message in str(err.value) and "\n" not in str(err.value)
 
 
 @pytest.mark.parametrize(

@@ -40,7 +40,7 @@ def dataset(tmp_path_factory) -> Path:
 
 def _args(dataset: Path, out: Path, engine: str, port: int) -> list[str]:
     return [
-        "--policy", "oracle", "--split", C.SPLIT_TEST_SEEN, "--sim", engine, f"--sim.{engine}.port={port}",
+        "--policy", "oracle", f"--split=[{C.SPLIT_TEST_SEEN}]", f"--sim.type={engine}", f"--sim.{engine}.port={port}",
         f"--sim.{engine}.connect_timeout_s=2", f"--sim.{engine}.read_timeout_s=5", "--plots=0",
         "--progress=false", f"--dataset_root={dataset}", f"--output_dir={out}",
     ]  # fmt: skip

@@ -1,4 +1,5 @@
-"""The release command line: options generated from the config dataclasses, defaults kept, errors named."""
+"""The release command line: draccus' dotted options of the config dataclasses (as train.py and eval.py),
+defaults kept, errors one line naming the option."""
 
 from __future__ import annotations
 
@@ -12,20 +13,21 @@ from pathlib import Path
 
 import pytest
 
-from openfly_agent.hub.cli import build_parser, main
-from openfly_agent.hub.cli_args import build_dataclass, field_docs
+from openfly_agent.hub.cli import main
 from openfly_agent.hub.config import CardConfig, DatasetReleaseConfig, ModelReleaseConfig
+from openfly_agent.utils.cli_help import field_docs
+from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.processes import communicate_group, running
 
 
 def parse_model(argv: list[str]) -> ModelReleaseConfig:
-    return build_dataclass(ModelReleaseConfig, build_parser().parse_args(["release", *argv]))
+    return parse_config(ModelReleaseConfig, argv)
 
 
-def test_issue_flags_parse_into_the_config():
+def test_documented_options_parse_into_the_config():
     cfg = parse_model(
-        ["--checkpoint", "runs/x", "--repo-id", "me/tiny", "--results", "r.json", "--push", "--private"]
-        + ["--revision", "v1", "--lora", "adapter", "--card.base-model", "me/base", "--card.tags", "a", "b"]
+        ["--checkpoint=runs/x", "--repo_id", "me/tiny", "--results=r.json", "--push", "--private=true"]
+        + ["--revision=v1", "--lora=adapter", "--card.base_model=me/base", "--card.tags=[a,b]"]
     )
     assert (cfg.checkpoint, cfg.repo_id, cfg.results, cfg.revision, cfg.lora) == (
         "runs/x",
@@ -39,17 +41,14 @@ def test_issue_flags_parse_into_the_config():
 
 
 def test_options_not_given_keep_the_dataclass_defaults():
-    cfg = parse_model(["--checkpoint", "c", "--repo-id", "me/tiny"])
+    cfg = parse_model(["--checkpoint=c", "--repo_id=me/tiny"])
     defaults = ModelReleaseConfig(checkpoint="c", repo_id="me/tiny")
     assert cfg == defaults and cfg.push is False and cfg.card == CardConfig()
-    assert parse_model(["--checkpoint", "c", "--repo-id", "me/t", "--push", "--no-push"]).push is False
+    assert parse_model(["--checkpoint=c", "--repo_id=me/t", "--push", "--push=false"]).push is False
 
 
 def test_dataset_command():
-    args = build_parser().parse_args(
-        ["release-dataset", "--dataset-root", "d", "--repo-id", "me/ds", "--push"]
-    )
-    cfg = build_dataclass(DatasetReleaseConfig, args)
+    cfg = parse_config(DatasetReleaseConfig, ["--dataset_root=d", "--repo_id=me/ds", "--push"])
     assert (cfg.dataset_root, cfg.repo_id, cfg.push, cfg.card) == (
         "d",
         "me/ds",
@@ -58,29 +57,33 @@ def test_dataset_command():
     )
 
 
-def test_help_comes_from_the_docstrings():
+def test_help_comes_from_the_field_comments():
     docs = field_docs(ModelReleaseConfig)
-    assert docs["max_shard_size"].startswith("Weights above this size are split")
-    assert "train_config.json" in docs["base_checkpoint"]  # continuation lines are joined
+    assert docs["max_shard_size"].startswith("weights above this size are split")
+    assert "train_config.json" in docs["base_checkpoint"]  # comment lines above the field are joined
     assert set(docs) == set(ModelReleaseConfig.__dataclass_fields__)
 
 
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--repo-id", "me/tiny"], "--checkpoint is required"),
-        (["--checkpoint", "c", "--repo-id", "tiny"], "namespace/name"),
-        (["--checkpoint", "c", "--repo-id", "me/tiny", "--max-shard-size", "big"], "--max-shard-size"),
-        (["--checkpoint", "c", "--repo-id", "me/tiny", "--revision", "has space"], "--revision"),
+        (["--repo_id=me/tiny"], "--checkpoint is required"),
+        (["--checkpoint=c", "--repo_id=tiny"], "namespace/name"),
+        (["--checkpoint=c", "--repo_id=me/tiny", "--max_shard_size=big"], "--max_shard_size 'big'"),
+        (["--checkpoint=c", "--repo_id=me/tiny", "--revision=has space"], "--revision"),
+        (["--checkpoint=c", "--repo-id=me/tiny"], "unknown option --repo-id; did you mean --repo_id?"),
+        (["--checkpoint", "--repo_id=me/tiny"], "--checkpoint needs a value: --checkpoint=VALUE"),
+        (["--checkpoint=c", "--repo_id=me/tiny", "--card.tags", "a", "b"], "--card.tags takes one value"),
     ],
 )
-def test_bad_values_exit_with_a_named_error(argv, message, capsys):
+def test_bad_values_exit_with_one_line_naming_the_option(argv, message, capsys):
     assert main(["release", *argv]) == 2
-    assert message in capsys.readouterr().err
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line.startswith("python -m openfly_agent.hub release: ") and message in line
 
 
 def test_missing_checkpoint_folder_is_named(tmp_path, capsys):
-    assert main(["release", "--checkpoint", str(tmp_path / "nope"), "--repo-id", "me/tiny"]) == 2
+    assert main(["release", f"--checkpoint={tmp_path / 'nope'}", "--repo_id=me/tiny"]) == 2
     assert "is not a checkpoint folder" in capsys.readouterr().err
 
 
@@ -99,7 +102,7 @@ def test_grounding_stage_checkpoint_is_refused_naming_the_navigation_stage(tmp_p
     _stage_run(tmp_path / "main_job", "navigation")
     out = tmp_path / "release"
     for checkpoint in (grounding, grounding / "checkpoints" / "last"):
-        argv = ["release", "--checkpoint", str(checkpoint), "--repo-id", "me/x", "--output-dir", str(out)]
+        argv = ["release", f"--checkpoint={checkpoint}", "--repo_id=me/x", f"--output_dir={out}"]
         assert main(argv) == 2
         [line] = capsys.readouterr().err.strip().splitlines()
         assert "grounding-stage checkpoint" in line and str(tmp_path / "main_job" / "navigation") in line
@@ -116,10 +119,12 @@ def test_a_truncated_checkpoint_is_one_line_and_makes_no_folder(tmp_path, capsys
         f.truncate(weights.stat().st_size // 2)
     capsys.readouterr()  # the save's progress bar
     out = tmp_path / "release"
-    argv = ["release", "--checkpoint", str(folder), "--repo-id", "me/tiny", "--output-dir", str(out)]
+    argv = ["release", f"--checkpoint={folder}", "--repo_id=me/tiny", f"--output_dir={out}"]
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith(f"error: {weights} is not a readable safetensors file ("), err
+    assert len(err) == 1 and err[0].startswith(
+        f"python -m openfly_agent.hub release: {weights} is not a readable safetensors file ("
+    ), err
     assert not out.exists()
 
 
@@ -131,7 +136,7 @@ def _ignore_sigint() -> None:
 def test_fake_hub_command_serves_until_interrupted(tmp_path, stop_signal):
     """It stops and prints its summary on Ctrl-C / SIGTERM, even when started with SIGINT ignored."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
-    command = [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token", "tok"]
+    command = [sys.executable, "-m", "openfly_agent.hub", "fake-hub", "--token=tok"]
     pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     with running(command, env=env, preexec_fn=_ignore_sigint, **pipes) as proc:
         try:

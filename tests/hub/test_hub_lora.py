@@ -105,12 +105,12 @@ def test_adapter_release_loads_on_its_base(lora_run):
 
 
 def test_lora_errors_say_what_to_pass(lora_run, tmp_path):
-    with pytest.raises(ValueError, match="--card.base-model"):
+    with pytest.raises(ValueError, match="--card.base_model="):
         release(lora_run, "adapter")
     orphan = tmp_path / "orphan"
     shutil.copytree(lora_run.checkpoint, orphan)
     (orphan / "train_config.json").write_text(json.dumps({"init": {"checkpoint": None}}))
-    with pytest.raises(ValueError, match="--base-checkpoint"):
+    with pytest.raises(ValueError, match="--base_checkpoint"):
         build_model_release(
             ModelReleaseConfig(checkpoint=str(orphan), repo_id="me/x", output_dir=str(tmp_path / "o"))
         )

@@ -45,8 +45,8 @@ def files_containing(folder: Path, needle: str) -> list[Path]:
 def test_dataset_push_uploads_every_file(tmp_path):
     root, _ = make_dataset_root(tmp_path / "data")
     out = tmp_path / "release"
-    args = ["release-dataset", "--dataset-root", str(root), "--card", str(CARD), "--output-dir", str(out)]
-    args += ["--repo-id", "me/openfly-embedded", "--push", "--private", "--revision", "v0.1"]
+    args = ["release-dataset", "--dataset_root", str(root), "--card", str(CARD), "--output_dir", str(out)]
+    args += ["--repo_id", "me/openfly-embedded", "--push", "--private", "--revision", "v0.1"]
     with FakeHub(token=TOKEN) as hub:
         result = run_cli(args, hub_env(hub, tmp_path / "hf_home"))
         assert result.returncode == 0, result.stderr
@@ -67,14 +67,14 @@ def test_wrong_token_fails_cleanly(tmp_path):
     card = CARD
     args = [
         "release-dataset",
-        "--dataset-root",
+        "--dataset_root",
         str(root),
         "--card",
         str(card),
-        "--repo-id",
+        "--repo_id",
         "me/ds",
         "--push",
-        "--output-dir",
+        "--output_dir",
         str(tmp_path / "release"),
     ]
     wrong = "hf_wrongTokenAlsoSecret987"
@@ -82,7 +82,7 @@ def test_wrong_token_fails_cleanly(tmp_path):
         result = run_cli(args, hub_env(hub, tmp_path / "hf_home", token=wrong))
         assert hub.repos == {}
     assert result.returncode == 2
-    assert "error:" in result.stderr and "401" in result.stderr
+    assert "python -m openfly_agent.hub release-dataset: " in result.stderr and "401" in result.stderr
     assert wrong not in result.stdout + result.stderr
 
 
@@ -115,10 +115,10 @@ def test_push_without_a_hub_fails_before_writing_anything(command, hub_state, tm
     from bridge_fakes import free_port
 
     out = tmp_path / "release"
-    args = [command, "--repo-id", "me/x", "--push", "--output-dir", str(out)]
+    args = [command, "--repo_id", "me/x", "--push", "--output_dir", str(out)]
     if command == "release-dataset":
         root, _ = make_dataset_root(tmp_path / "data")
-        args += ["--dataset-root", str(root), "--card", str(CARD)]
+        args += ["--dataset_root", str(root), "--card", str(CARD)]
     else:  # checked after the Hub: the folder does not even need to exist
         args += ["--checkpoint", str(tmp_path / "checkpoint")]
     env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGINGFACE_"))}
@@ -128,7 +128,9 @@ def test_push_without_a_hub_fails_before_writing_anything(command, hub_state, tm
     result = run_cli(args, env)
     assert result.returncode == 2
     errors = result.stderr.strip().splitlines()
-    assert len(errors) == 1 and errors[0].startswith("error: "), result.stderr[-2000:]
+    assert len(errors) == 1 and errors[0].startswith(f"python -m openfly_agent.hub {command}: "), (
+        result.stderr[-2000:]
+    )
     expected = "unset HF_HUB_OFFLINE" if hub_state == "offline" else f"{env['HF_ENDPOINT']} cannot be reached"
     assert expected in errors[0] and TOKEN not in result.stderr
     assert not out.exists()  # nothing written: the same command works once the Hub is back

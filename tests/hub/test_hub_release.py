@@ -268,9 +268,9 @@ def pushed(source, tmp_path_factory):
 def _run_cli(work: Path, endpoint: str, online: dict, results: Path, source) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("HF_", "HUGGINGFACE_"))}
     env.update(HF_HOME=str(work / "hf_home"), PYTHONPATH=str(REPO_ROOT), HF_ENDPOINT=endpoint, **online)
-    args = ["release", "--checkpoint", str(source.checkpoint), "--repo-id", "me/openfly-tiny", "--push"]
-    args += ["--results", str(results), "--output-dir", str(work / "release"), "--max-shard-size", "2MB"]
-    args += ["--card.base-model", "openvla/openvla-7b", "--card.eval-dataset", "me/openfly-embedded"]
+    args = ["release", "--checkpoint", str(source.checkpoint), "--repo_id", "me/openfly-tiny", "--push"]
+    args += ["--results", str(results), "--output_dir", str(work / "release"), "--max_shard_size", "2MB"]
+    args += ["--card.base_model", "openvla/openvla-7b", "--card.eval_dataset", "me/openfly-embedded"]
     command = [sys.executable, "-m", "openfly_agent.hub", *args]
     return run_group(command, timeout=300, cwd=REPO_ROOT, env=env, stdin=subprocess.DEVNULL)
 

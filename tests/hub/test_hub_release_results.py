@@ -58,8 +58,8 @@ def evaluated(tmp_path_factory):
     other = _training_run(root / "other", seed=1)
     out = root / "eval"
     argv = [
-        "--checkpoint", str(run / "checkpoints" / "last"), "--baselines", "random", "agent_true_box",
-        "--split", C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN, "--max_episodes", "2", "--max_steps", "4",
+        "--checkpoint", str(run / "checkpoints" / "last"), "--baselines=[random,agent_true_box]",
+        f"--split=[{C.SPLIT_TEST_SEEN},{C.SPLIT_TEST_UNSEEN}]", "--max_episodes", "2", "--max_steps", "4",
         "--plots=0", "--progress=false", "--torch_threads", "1", f"--dataset_root={dataset}",
         f"--output_dir={out}",
     ]  # fmt: skip
@@ -68,8 +68,8 @@ def evaluated(tmp_path_factory):
 
 
 def _release(checkpoint: Path, results: Path, out: Path) -> int:
-    argv = ["release", "--checkpoint", str(checkpoint), "--repo-id", "me/tiny", "--results", str(results)]
-    return hub_main([*argv, "--output-dir", str(out)])
+    argv = ["release", "--checkpoint", str(checkpoint), "--repo_id", "me/tiny", "--results", str(results)]
+    return hub_main([*argv, "--output_dir", str(out)])
 
 
 def test_results_of_other_weights_are_refused_naming_both(evaluated, tmp_path, capsys):

@@ -16,13 +16,11 @@ from openfly_agent.model.config import (
     MemoryConfig,
     ModelConfig,
     VisionConfig,
-    config_from_dict,
-    config_to_dict,
     make_model_config,
     openfly_7b_config,
     tiny_config,
 )
-from openfly_agent.utils.config import load_yaml_config
+from openfly_agent.utils.config import config_from_dict, config_to_dict, load_yaml_config
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -45,9 +43,15 @@ def test_token_counts():
 
 def test_dict_round_trip():
     cfg = openfly_7b_config()
-    assert config_from_dict(config_to_dict(cfg)) == cfg
-    with pytest.raises(ValueError, match="unknown key.*'memory'"):
-        config_from_dict({**config_to_dict(cfg), "memory": {"capacity": 2, "gird": 16}})
+    assert config_from_dict(ModelConfig, config_to_dict(cfg)) == cfg
+    with pytest.raises(
+        ValueError, match="^ModelConfig: memory: The fields `gird` are not valid for MemoryConfig$"
+    ):
+        config_from_dict(ModelConfig, {**config_to_dict(cfg), "memory": {"capacity": 2, "gird": 16}})
+    with pytest.raises(ValueError, match="^ModelConfig: memory.capacity: expected an int, got 'x'$"):
+        config_from_dict(ModelConfig, {"memory": {"capacity": "x"}})
+    with pytest.raises(ValueError, match="memory.capacity=-1 must be >= 0"):
+        config_from_dict(ModelConfig, {"memory": {"capacity": -1}})
 
 
 def test_validation_messages_say_what_to_change():

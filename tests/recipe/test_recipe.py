@@ -31,10 +31,9 @@ def _flag(command: list[str], name: str) -> str | None:
 
 
 def _values(command: list[str], name: str) -> list[str]:
-    """The values after `--name` up to the next option."""
-    start = command.index(f"--{name}") + 1
-    end = next((i for i in range(start, len(command)) if command[i].startswith("--")), len(command))
-    return command[start:end]
+    """The items of the list option `--name=[a,b]`."""
+    value = _flag(command, name)
+    return value.strip("[]").split(",") if value.strip("[]") else []
 
 
 def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
@@ -56,7 +55,10 @@ def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
     assert _flag(by_name["dagger-r1-train"].command, "data.extra_train_roots") == f"[{r1}]"
     assert _flag(by_name["dagger-r2-train"].command, "data.extra_train_roots") == f"[{r1},{r2}]"
     assert _flag(by_name["eval"].command, "checkpoint") == str(out / "dagger" / "r2" / "train")
-    assert "box_servo" in by_name["eval"].command and _flag(by_name["eval"].command, "max_episodes") is None
+    assert (
+        "box_servo" in _values(by_name["eval"].command, "baselines")
+        and _flag(by_name["eval"].command, "max_episodes") is None
+    )
     assert _flag(by_name["grounding"].command, "steps") == str(cfg.grounding.steps)
     assert _flag(by_name["dagger-r2-train"].command, "time_limit_minutes") == str(cfg.dagger.train.minutes)
     assert {_flag(s.command, "optim.horizon") for s in steps if s.kind == KIND_TRAIN} == {"steps"}
@@ -153,7 +155,8 @@ def test_more_cities_are_generated_with_the_datasets_and_their_unseen_split_eval
     evaluate, main = by_name["eval-embedded-small-unseen-more"], by_name["eval"]
     assert evaluate.kind == KIND_EVAL and evaluate.folder == tmp_path / "eval-embedded-small-unseen-more"
     assert (
-        _flag(evaluate.command, "dataset_root") == root and _flag(evaluate.command, "split") == "test_unseen"
+        _flag(evaluate.command, "dataset_root") == root
+        and _flag(evaluate.command, "split") == "[test_unseen]"
     )
     assert (
         _flag(evaluate.command, "checkpoint")

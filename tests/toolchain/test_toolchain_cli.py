@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from openfly_agent.toolchain.__main__ import _config_args, main
+from openfly_agent.toolchain.__main__ import main
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.utils.config import load_yaml_config
 
@@ -61,13 +61,7 @@ def test_a_plain_generate_is_exactly_the_default_dataset_config(capsys):
     assert "embedded-small.yaml" in capsys.readouterr().out
 
 
-def test_config_flag_aliases_and_overrides():
-    assert _config_args(["--config", "a.yaml", "--config=b.yaml", "--x=1"]) == [
-        "--config_path",
-        "a.yaml",
-        "--config_path=b.yaml",
-        "--x=1",
-    ]
+def test_config_overrides():
     cfg = load_yaml_config(
         GenerateConfig, CONFIGS / "embedded-small.yaml", ["--shard=1/4", "--render.width=96"]
     )
@@ -76,9 +70,9 @@ def test_config_flag_aliases_and_overrides():
 
 def test_bad_config_values_name_the_field(capsys):
     config = str(CONFIGS / "embedded-small.yaml")
-    assert main(["generate", "--config", config, "--instructions.backend=gpt"]) == 2
+    assert main(["generate", "--config_path", config, "--instructions.backend=gpt"]) == 2
     assert "instructions.backend must be 'template' or 'vlm'" in capsys.readouterr().err
-    assert main(["generate", "--config", config, "--route.chain_prob=2"]) == 2
+    assert main(["generate", "--config_path", config, "--route.chain_prob=2"]) == 2
     assert "route.chain_prob must be a probability" in capsys.readouterr().err
 
 
@@ -95,7 +89,7 @@ def test_a_missing_checkpoint_is_one_line_naming_it(command, tmp_path, capsys):
     if command == "dagger-round":
         args.append(f"--source_root={tmp_path / 'data'}")
     else:
-        args += ["--config", str(CONFIGS / "embedded-small.yaml")]
+        args += ["--config_path", str(CONFIGS / "embedded-small.yaml")]
     assert main(args) == 2
     err = capsys.readouterr().err
     assert f"--checkpoint {missing!r}" in err and "Traceback" not in err

@@ -174,7 +174,7 @@ def test_resume_skips_finished_units_and_shards_merge_by_copying(dataset, tmp_pa
         shutil.copytree(tmp_path / f"shard{i}", merged, dirs_exist_ok=True)
     from openfly_agent.toolchain.__main__ import main
 
-    main(["summarize", "--root", str(merged), "--no-plots"])
+    assert main(["summarize", f"--root={merged}", "--plots=false"]) == 0
     merged_summary = json.loads((merged / C.TOOLCHAIN_SUMMARY_JSON).read_text())
     assert merged_summary["trajectories"] == summary["trajectories"]
     assert merged_summary["per_split"] == summary["per_split"]
@@ -292,7 +292,7 @@ def test_cli_generate_writes_a_dataset(tmp_path, capsys):
     import yaml
 
     config.write_text(yaml.safe_dump(config_to_dict(cfg)))
-    main(["generate", "--config", str(config), "--shard=0/1"])
+    main(["generate", "--config_path", str(config), "--shard=0/1"])
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert printed["trajectories"] == sum(printed["per_split"].values()) > 0
     assert (tmp_path / "cli" / C.DATASET_INFO_JSON).is_file()
@@ -315,7 +315,7 @@ def test_a_rerun_with_other_settings_is_refused_unless_overwrite(dataset, tmp_pa
     # The command line says the same in one line, exit code 2.
     config = tmp_path / "small.yaml"
     config.write_text(yaml.safe_dump(config_to_dict(dataclasses.replace(cfg, output_dir=str(copy)))))
-    assert main(["generate", "--config", str(config), "--render.width=96", "--render.height=96"]) == 2
+    assert main(["generate", "--config_path", str(config), "--render.width=96", "--render.height=96"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "render.width: 64 -> 96" in err[0] and "--overwrite=true" in err[0]
     # Settings that do not change the data (workers, plots, shard) still resume, to the same dataset.

@@ -104,7 +104,7 @@ def built_agent(cfg):
 
     reset_accelerate()
     try:
-        return prepare_agent(cfg, load_splits(cfg), make_accelerator(cfg), None)
+        return prepare_agent(cfg, load_splits(cfg.data, cfg.model.grounding), make_accelerator(cfg), None)
     finally:
         reset_accelerate()
 
@@ -114,7 +114,7 @@ def split_batch(cfg, agent, split: str, indices) -> dict:
     from openfly_agent.data.collator import NavigationCollator
     from openfly_agent.training.builder import load_splits
 
-    dataset = load_splits(cfg).dataset(split, cfg, agent)
+    dataset = load_splits(cfg.data, cfg.model.grounding).dataset(split, cfg, agent)
     collate = NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size)
     return collate([dataset[i] for i in indices])
 

@@ -46,7 +46,7 @@ def test_navigation_batches_carry_the_targets_attributes(generated_dataset, tmp_
     from conftest import built_agent, split_batch
 
     cfg = _attribute_run(generated_dataset, tmp_path / "run")
-    splits = load_splits(cfg)
+    splits = load_splits(cfg.data, cfg.model.grounding)
     step = splits.dataset(cfg.data.train_split, cfg, built_agent(cfg))[0]
     lookup = LandmarkAttributes.for_dataset(generated_dataset)
     episode = splits.episodes[cfg.data.train_split][0]
@@ -73,7 +73,7 @@ def test_attribute_classes_must_match_the_city_vocabularies(generated_dataset, t
         generated_dataset, tmp_path / "run", model__grounding__attribute_classes="[12,6,3,9]"
     )
     with pytest.raises(PreflightError, match="vocabularies"):
-        load_splits(cfg)
+        load_splits(cfg.data, cfg.model.grounding)
 
 
 def test_a_dataset_the_toolchain_did_not_make_has_no_attributes(tmp_path):

@@ -36,9 +36,8 @@ def test_without_cuda_it_exits_at_once_with_one_line():
 def test_the_plan_parses_against_the_entry_points(tmp_path):
     from accelerate.commands.launch import launch_command_parser
 
-    from openfly_agent.eval.cli import normalize_argv
     from openfly_agent.eval.config import EvalConfig
-    from openfly_agent.toolchain.__main__ import _config_args, _parse_generate
+    from openfly_agent.toolchain.__main__ import _parse_generate
     from openfly_agent.training.cli import parse_args
     from openfly_agent.utils.config import parse_config
 
@@ -59,11 +58,11 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
             )
             parsed["train"].append((Path(launch.config_file).name, cfg))
         elif tokens[1] == "eval.py":
-            cfg = parse_config(EvalConfig, normalize_argv(tokens[2:]))
+            cfg = parse_config(EvalConfig, tokens[2:])
             assert cfg.checkpoint == str(tmp_path / "lora") and cfg.max_episodes == 4
             parsed["eval"].append(cfg)
         elif tokens[1:4] == ["-m", "openfly_agent.toolchain", "generate"]:
-            cfg = _parse_generate(_config_args(tokens[4:]))
+            cfg = _parse_generate(tokens[4:])
             assert cfg.scenes.train_seeds == [0, 1] and cfg.output_dir == str(tmp_path / "data")
             parsed["generate"].append(cfg)
         else:  # a bench script: each option it passes is one the script declares

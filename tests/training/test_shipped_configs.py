@@ -100,10 +100,9 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
             [
                 "eval.py",
                 f"--checkpoint={run}",
-                "--sim=embedded",
+                "--sim.type=embedded",
                 f"--dataset_root={generated_dataset}",
-                "--split",
-                "test_unseen",
+                "--split=[test_unseen]",
                 "--max_episodes=2",
                 f"--output_dir={evaluation}",
                 "--plots=0",
@@ -125,9 +124,9 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
                 "release",
                 "--checkpoint",
                 str(run),
-                "--repo-id",
+                "--repo_id",
                 "me/openfly-7b-lora-reduced",
-                "--output-dir",
+                "--output_dir",
                 str(release),
             ]
         )

@@ -106,7 +106,7 @@ def base_of(checkpoint: Path, override: str | None) -> str:
         return str(init["checkpoint"])
     raise ValueError(
         f"{checkpoint} is a LoRA checkpoint without base weights and {train_config.name} names no "
-        "init.checkpoint: pass --base-checkpoint <folder or repo id> (the weights the run started from), or "
+        "init.checkpoint: pass --base_checkpoint <folder or repo id> (the weights the run started from), or "
         "release the full folder training merges at the end (<output_dir>/merged, lora.merge_at_end)"
     )
 
@@ -160,7 +160,7 @@ def _check_same_sections(base_sections: dict, own_sections: dict, base: Path, ch
     if differing:
         raise ValueError(
             f"base {base} does not match the LoRA checkpoint {checkpoint}: model sections differ at "
-            f"{differing[:8]}; pass the weights the run started from as --base-checkpoint"
+            f"{differing[:8]}; pass the weights the run started from as --base_checkpoint"
         )
 
 
