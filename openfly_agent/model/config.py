@@ -11,9 +11,6 @@ from dataclasses import dataclass, field
 from openfly_agent.model.config_checks import check_choice, check_positive, fill_tiny_fields
 from openfly_agent.model.grounding.config import GroundingConfig
 from openfly_agent.model.vision.config import (
-    CNN_INIT_NORMAL,
-    CNN_INIT_TIMM,
-    CNN_INITS,
     CNN_STEM_PATCH4,
     CNN_STEMS,
     CNN_STRIDE,
@@ -408,9 +405,6 @@ _SECTION_TYPES = {
 }
 
 __all__ = [  # the vision section's names are re-exported: model.config is the one place to import config from
-    "CNN_INITS",
-    "CNN_INIT_NORMAL",
-    "CNN_INIT_TIMM",
     "CNN_STEMS",
     "CNN_STEM_PATCH4",
     "CNN_STRIDE",

@@ -53,24 +53,6 @@ def make_agent(tiny_tokenizer):
 
 
 @pytest.fixture
-def record_instruction_codes():
-    """Factory: wrap an agent's vision backbone so that each instruction code it is called with is appended,
-    in call order, to the returned list (the backbone still computes its features)."""
-
-    def _record(agent) -> list[torch.Tensor]:
-        codes, forward = [], agent.vision_backbone.forward
-
-        def spy(pixels, code, index=None):
-            codes.append(code)
-            return forward(pixels, code, index)
-
-        agent.vision_backbone.forward = spy
-        return codes
-
-    return _record
-
-
-@pytest.fixture
 def make_batch():
     """Factory: a training batch with the keys and dtypes of docs/INTERFACES.md for `agent`."""
 

@@ -31,15 +31,13 @@ SHARED_KEYS = [
 ]
 BOX_MLP_KEYS = ["box_mlp.0.weight", "box_mlp.0.bias", "box_mlp.2.weight", "box_mlp.2.bias"]
 REGRESSION_KEYS = ["box_queries", *SHARED_KEYS, *BOX_MLP_KEYS]
-CELL_KEYS = [  # every option on: visual skip, one fusion layer, attribute classifiers and their match
+CELL_KEYS = [  # every option on: visual skip, attribute classifiers
     "box_queries",
-    "attribute_match_weight",
     *SHARED_KEYS,
     "text_query.weight",
     "text_query.bias",
     "visual_proj.weight",
     "visual_proj.bias",
-    *(f"cell_layers.0.{key}" for key in ONE_LAYER),
     "cell_scorer.norm.weight",
     "cell_scorer.norm.bias",
     "cell_scorer.scale.weight",
@@ -65,9 +63,7 @@ def test_the_config_picks_the_head_and_the_keys_stay_those_of_earlier_checkpoint
     everything = GroundingConfig(
         cells=True,
         visual_skip=True,
-        cell_fusion_layers=1,
         attribute_weight=1.0,
-        attribute_match=True,
         **common,
     )
     cells = make_grounding_head(24, everything, grid_side=2)
@@ -92,9 +88,7 @@ def test_an_agent_starts_from_openvla_weights_with_either_head(
 ):
     from safetensors.torch import save_file
 
-    grounding = GroundingConfig(
-        dim=32, num_heads=2, cells=cells, attribute_weight=float(cells), attribute_match=cells
-    )
+    grounding = GroundingConfig(dim=32, num_heads=2, cells=cells, attribute_weight=float(cells))
     source = make_agent(grounding=grounding)
     save_file(
         {k: v.contiguous() for k, v in to_openvla_state_dict(source).items()},
@@ -108,6 +102,4 @@ def test_an_agent_starts_from_openvla_weights_with_either_head(
     new = [key for key in report.missing_new if key.startswith("grounding_head.")]
     assert new == sorted(f"grounding_head.{key}" for key in head.state_dict())
     assert all(torch.isfinite(p).all() for p in head.parameters()) and head.box_queries.std() > 0
-    if cells:
-        assert torch.equal(head.attribute_match_weight, torch.ones(4))
     torch.testing.assert_close(agent.projector.fc1.weight, source.projector.fc1.weight)

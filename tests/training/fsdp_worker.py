@@ -56,7 +56,7 @@ LR = 1e-3
 MODELS = {
     # tiny-cnn (whose 7 x 7 stem FSDP refused while it was channels-last) at 64 px, no random box-token jitter
     "tiny": tiny_config(
-        vision=VisionConfig(image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16),
+        vision=VisionConfig(image_size=64, cnn_channels=[16, 16, 16, 32]),
         memory=MemoryConfig(capacity=2, grid=4),
         action_head=ActionHeadConfig(box_token_jitter=0.0),
     ),

@@ -31,9 +31,6 @@ class GroundingConfig:
     )
     cells: bool = True  # per-cell scoring and box centre (False: the paper's box regression, the 7B presets)
     cell_weight: float = 1.0  # weight of the cell cross-entropy (with `cells`)
-    # with `cells`: each token cell is scored as subcells x subcells sub-cells (logits from its hidden state), so
-    # the centre and the cross-entropy live on a grid subcells times finer than the tokens (1: the token grid)
-    subcells: int = 1
     # with `cells`, at inference: the centre and the size's context come from the (2w + 1) x (2w + 1) cells around
     # the best-scoring one (their softmax renormalised); null: from every cell, as in training (a two-peaked score
     # then puts the centre between two landmarks). Checkpoints older than the option load with the default.
@@ -44,25 +41,13 @@ class GroundingConfig:
     attribute_weight: float = 0.0
     # classes of each attribute (colour, type, size, feature): the embedded city's vocabularies (sim/city_vocab.py)
     attribute_classes: list[int] = field(default_factory=lambda: [12, 6, 3, 8])
-    # with `attribute_weight`: each cell's logit gains sum_k w_k x E_query[log p_cell(attribute k)], the agreement
-    # of the cell's attribute prediction with the query's (w_k learned, start at 1)
-    attribute_match: bool = False
-    # with `attribute_weight`: weight of the dense attribute loss, the cross-entropy of every labelled cell's
-    # attributes on the grounding stage's expression frames, whose every visible landmark has a box (each cell
-    # takes the attributes of the smallest landmark whose box holds its centre or whose centre it holds;
-    # model/grounding/landmark_cells.py); 0: only the target's cell is supervised
-    dense_attribute_weight: float = 0.0
-    # with `cells`: layers in which every cell of the current frame cross-attends to the readable sequence (the
-    # prompt's tokens, the frame's other cells, the memory) before it is scored, so a cell's features see the
-    # words; 0: the cells are the LLM's hidden states as they are (a causal LLM puts the frame before the prompt)
-    cell_fusion_layers: int = 0
     # with `cells`: each cell also gets a projection of the current frame's visual token there (the projector's
     # output, as it enters the LLM), a skip past the LLM, whose layers mix the cells and lose what tells
     # one landmark from another (its colour); false: the cells are the LLM's hidden states only
     visual_skip: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
+        for name in ("num_layers", "num_queries", "dim", "num_heads"):
             check_positive("grounding", name, getattr(self, name))
         if self.centre_window is not None and self.centre_window < 0:
             raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
@@ -71,28 +56,14 @@ class GroundingConfig:
                 f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"
             )
         weights = ("loss_weight", "l1_weight", "visibility_weight", "cell_weight", "attribute_weight")
-        for name in (*weights, "dense_attribute_weight"):
+        for name in weights:
             if getattr(self, name) < 0:
                 raise ValueError(f"grounding.{name} must be >= 0, got {getattr(self, name)}")
         if len(self.attribute_classes) != 4 or min(self.attribute_classes) < 2:
             raise ValueError(
                 f"grounding.attribute_classes={self.attribute_classes}: 4 counts of >= 2 classes"
             )
-        if self.cell_fusion_layers < 0:
-            raise ValueError(f"grounding.cell_fusion_layers must be >= 0, got {self.cell_fusion_layers}")
-        if self.cell_fusion_layers and not self.cells:
-            raise ValueError(
-                "grounding.cell_fusion_layers needs grounding.cells (it updates the scored cells)"
-            )
         if self.visual_skip and not self.cells:
             raise ValueError("grounding.visual_skip needs grounding.cells (it adds to the scored cells)")
         if self.attribute_weight and not self.cells:
             raise ValueError("grounding.attribute_weight needs grounding.cells (the target's cell is read)")
-        if self.dense_attribute_weight and not self.attribute_weight:
-            raise ValueError(
-                "grounding.dense_attribute_weight needs grounding.attribute_weight > 0 (the cell classifiers)"
-            )
-        if self.attribute_match and not self.attribute_weight:
-            raise ValueError(
-                "grounding.attribute_match needs grounding.attribute_weight > 0 (it reads both sides)"
-            )

@@ -132,9 +132,8 @@ class FusedVisionBackbone(nn.Module):
         return self.cfg.featurizer_widths[0]
 
 
-def build_vision_backbone(cfg: VisionConfig, text_dim: int | None = None) -> nn.Module:
-    """The backbone of a vision section: the fused ViTs (`dinosiglip-224px`, `tiny`) or the ResNet (`tiny-cnn`;
-    `text_dim`, the LLM's embedding width, sizes its instruction FiLM when `cnn_instruction_film` is on)."""
+def build_vision_backbone(cfg: VisionConfig) -> nn.Module:
+    """The backbone of a vision section: the fused ViTs (`dinosiglip-224px`, `tiny`) or the ResNet (`tiny-cnn`)."""
     if cfg.preset == VISION_TINY_CNN:
-        return ConvVisionBackbone(cfg, text_dim)
+        return ConvVisionBackbone(cfg)
     return FusedVisionBackbone(cfg)

@@ -20,16 +20,13 @@ DINOSIGLIP_TIMM_IDS = ("vit_large_patch14_reg4_dinov2", "vit_so400m_patch14_sigl
 DINOSIGLIP_WIDTHS = (1024, 1152)
 
 RESIZE_MODES = ("bicubic", "area")
-CNN_INIT_NORMAL = "normal"  # tiny-cnn init: every conv N(0, 0.02) and BN gamma 1 (the agent's generic init)
-CNN_INIT_TIMM = "timm"  # tiny-cnn init: timm's ResNet init (Kaiming-normal convs, last BN of each block zero)
-CNN_INITS = (CNN_INIT_NORMAL, CNN_INIT_TIMM)
 CNN_STEM_RESNET = "resnet"  # tiny-cnn stem: timm's 7 x 7 stride-2 conv (64 ch) + 3 x 3 stride-2 max pool
 CNN_STEM_PATCH4 = "patch4"  # tiny-cnn stem: one 4 x 4 stride-4 conv (64 channels), no pool: no full-res maps
 CNN_STEMS = (CNN_STEM_RESNET, CNN_STEM_PATCH4)
 # Sizes of the `tiny` and `tiny-cnn` presets, taken by the tiny-only fields left at None (rejected by the 7B preset
 # when set).
 TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
-TINY_CNN_VISION = {"cnn_channels": [32, 64, 96, 128], "cnn_stem_width": 16}
+TINY_CNN_VISION = {"cnn_channels": [32, 64, 96, 128]}
 
 
 @dataclass
@@ -55,22 +52,10 @@ class VisionConfig:
     cnn_channels: list[int] | None = (
         None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
     )
-    # tiny-cnn only: timm's `stem_width`, which only its deep stems read: the plain 7 x 7 stem used here has 64
-    # channels whatever this says (kept so that existing configs load; docs/ARCHITECTURE.md)
-    cnn_stem_width: int | None = None
-    # tiny-cnn only: add to each token the stride-8 features of the 2 x 2 cells under it (the second stage's
-    # output, concatenated and projected to the token width), for small far landmarks
-    cnn_fine_fusion: bool = False
-    # tiny-cnn only: the instruction's mean prompt-token embedding scales and shifts the channels entering the
-    # third and fourth ResNet stages (FiLM): the cell features are computed for the landmark asked for
-    cnn_instruction_film: bool = False
     # tiny-cnn only: add to each token a projection of its cell's colour statistics (mean and spread of the
     # normalised RGB over the cell, the means of its 2 x 2 quarters): the trained ResNet's features keep a
     # landmark's type but not its colour (docs/experiments/2026-11-24-grounding-levers.md, "Which landmark the head picks")
     cnn_colour_stats: bool = False
-    # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
-    # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)
-    cnn_init: str = CNN_INIT_NORMAL
     # tiny-cnn only: the ResNet's stem (CNN_STEMS), both stride 4 with 64 channels into the first stage: `resnet`
     # (timm's, whose 64-channel maps at half the input resolution took about 30 % of a CPU training step) or
     # `patch4` (a 4 x 4 stride-4 convolution, as a ViT's patch embedding; docs/experiments/2026-11-26-speed-levers.md, "The patch stem")
@@ -80,7 +65,6 @@ class VisionConfig:
     def __post_init__(self) -> None:
         check_choice("vision", "preset", self.preset, VISION_PRESETS)
         check_choice("vision", "resize", self.resize, RESIZE_MODES)
-        check_choice("vision", "cnn_init", self.cnn_init, CNN_INITS)
         check_choice("vision", "cnn_stem", self.cnn_stem, CNN_STEMS)
         fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
         fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
@@ -101,20 +85,13 @@ class VisionConfig:
                 raise ValueError(
                     f"vision.preset=tiny-cnn has a stride of {CNN_STRIDE}: set patch_size={CNN_STRIDE}"
                 )
-            if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0 or self.cnn_stem_width <= 0:
-                raise ValueError(
-                    f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
-                    f"vision.cnn_stem_width={self.cnn_stem_width} positive"
-                )
-            if self.cnn_fine_fusion and self.cnn_instruction_film:
-                raise ValueError("vision.cnn_fine_fusion and vision.cnn_instruction_film: choose one")
+            if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0:
+                raise ValueError(f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths")
         else:
-            for name in ("cnn_fine_fusion", "cnn_instruction_film", "cnn_colour_stats"):
-                if getattr(self, name):
-                    raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
-            for name, default in (("cnn_init", CNN_INIT_NORMAL), ("cnn_stem", CNN_STEM_RESNET)):
-                if getattr(self, name) != default:
-                    raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
+            if self.cnn_colour_stats:
+                raise ValueError(f"vision.cnn_colour_stats is a tiny-cnn option (preset={self.preset})")
+            if self.cnn_stem != CNN_STEM_RESNET:
+                raise ValueError(f"vision.cnn_stem is a tiny-cnn option (preset={self.preset})")
         if self.preset != VISION_TINY:
             return
         for name in TINY_VISION:

@@ -1,5 +1,5 @@
-"""The grounding head's cells beyond the LLM's hidden states (model/grounding/head.py): `grounding.cell_fusion_layers`
-(the cells read the prompt) and `grounding.visual_skip` (the cells get the frame's visual tokens)."""
+"""The grounding head's cells beyond the LLM's hidden states (model/grounding/cells.py): `grounding.visual_skip`
+(the cells get the frame's visual tokens)."""
 
 from __future__ import annotations
 
@@ -15,11 +15,9 @@ LAST_PROMPT = torch.tensor([5])
 KEY_MASK = torch.tensor([[True, True, True, True, True, True, False]])
 
 
-def _head(layers: int, visual_skip: bool = False) -> CellGroundingHead:
+def _head(visual_skip: bool = False) -> CellGroundingHead:
     torch.manual_seed(0)
-    cfg = GroundingConfig(
-        dim=8, num_heads=2, attribute_weight=1.0, cell_fusion_layers=layers, visual_skip=visual_skip
-    )
+    cfg = GroundingConfig(dim=8, num_heads=2, attribute_weight=1.0, visual_skip=visual_skip)
     return CellGroundingHead(16, cfg, grid_side=2).eval()
 
 
@@ -31,26 +29,9 @@ def _cell_side(
         return head(hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT, visual).cell_attributes
 
 
-def test_fused_cells_read_the_prompt_and_plain_cells_do_not():
-    hidden = torch.randn(1, 7, 16)
-    changed_prompt = hidden.clone()
-    changed_prompt[0, 5] += 3.0
-    plain, fused = _head(0), _head(2)
-    torch.testing.assert_close(_cell_side(plain, hidden), _cell_side(plain, changed_prompt))
-    assert not torch.allclose(_cell_side(fused, hidden), _cell_side(fused, changed_prompt))
-
-
-def test_fused_cells_ignore_unreadable_positions():
-    hidden = torch.randn(1, 7, 16)
-    changed_padding = hidden.clone()
-    changed_padding[0, 6] += 3.0
-    fused = _head(1)
-    torch.testing.assert_close(_cell_side(fused, hidden), _cell_side(fused, changed_padding))
-
-
 def test_the_visual_skip_adds_each_cells_own_visual_token():
     hidden, visual = torch.randn(1, 7, 16), torch.randn(1, 4, 16)
-    head = _head(0, visual_skip=True)
+    head = _head(visual_skip=True)
     changed = visual.clone()
     changed[0, 2] += 3.0  # the third cell's token only
     moved = (_cell_side(head, hidden, changed) - _cell_side(head, hidden, visual)).abs().sum(dim=-1)  # (1, 4)
@@ -65,16 +46,10 @@ def test_the_visual_skip_adds_each_cells_own_visual_token():
     torch.testing.assert_close(zero_skip, _cell_side(head, hidden))
 
 
-def test_no_fusion_layers_keep_the_state_dict_of_earlier_checkpoints():
-    assert not any(name.startswith(("cell_layers", "visual_proj")) for name in _head(0).state_dict())
-    names = {name.split(".")[1] for name in _head(2).state_dict() if name.startswith("cell_layers")}
-    assert names == {"0", "1"}
+def test_without_the_skip_the_state_dict_is_that_of_earlier_checkpoints():
+    assert not any(name.startswith("visual_proj") for name in _head().state_dict())
 
 
-def test_fusion_options_are_checked():
-    with pytest.raises(ValueError, match="cell_fusion_layers must be >= 0"):
-        GroundingConfig(cell_fusion_layers=-1)
-    with pytest.raises(ValueError, match="cell_fusion_layers needs grounding.cells"):
-        GroundingConfig(cells=False, cell_fusion_layers=1)
+def test_the_skip_is_checked():
     with pytest.raises(ValueError, match="visual_skip needs grounding.cells"):
         GroundingConfig(cells=False, visual_skip=True)
