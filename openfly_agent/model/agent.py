@@ -32,7 +32,13 @@ from openfly_agent.constants import (
     TARGET_ATTRIBUTES,
 )
 from openfly_agent.model.agent_inference import ClosedLoopInference
-from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig, config_to_dict
+from openfly_agent.model.config import (
+    HEAD_DISCRETE,
+    BinsActionHeadConfig,
+    DiscreteActionHeadConfig,
+    ModelConfig,
+    config_to_dict,
+)
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
 from openfly_agent.model.freeze import freeze
@@ -160,8 +166,11 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
 
     def set_action_decoding(self, decode_rule: str | None = None, unnorm_key: str | None = None) -> None:
         """Change how `openvla_bins` tokens decode (rule, norm-stats profile) through the config: config.json's
-        sections, `config.action_tokenizer`, the action tokenizer and the processor all follow (None: keep)."""
+        sections, `config.action_tokenizer`, the action tokenizer and the processor all follow (None: keep). The
+        discrete head has one decoding: nothing changes."""
         head = self.model_cfg.action_head
+        if not isinstance(head, BinsActionHeadConfig):
+            return
         head = dataclasses.replace(
             head, decode_rule=decode_rule or head.decode_rule, unnorm_key=unnorm_key or head.unnorm_key
         )
@@ -303,7 +312,8 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             raise ValueError("batch has no labelled action token: labels are all -100")
         logits = self.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
         target = targets[selected]  # (n,)
-        stop_weight = self.model_cfg.action_head.stop_loss_weight
+        head = self.model_cfg.action_head
+        stop_weight = head.stop_loss_weight if isinstance(head, DiscreteActionHeadConfig) else 1.0
         if stop_weight == 1.0:
             loss = F.cross_entropy(logits, target)
         else:  # a weighted mean: STOP-labelled steps count stop_weight times (discrete head, config-checked)

@@ -1,12 +1,21 @@
 """Model configs written by older code, in today's layout: what `config.json` held before a change to the model
-config, read by today's loader (model/pretrained_config.py). Stdlib only.
+config, read by today's loader (model/pretrained_config.py).
 
     agent = upgraded_model_dict(json.loads(path.read_text())["agent"])
+
+Before issue 40 the vision backbone, the grounding head and the action head were one flat section each, every
+field present whatever the variant (`vision: {preset: tiny-cnn, width: null, ...}`, `grounding: {cells: true,
+...}`); they are registered choices now (`vision: {type: tiny-cnn, cnn_channels: ...}`), each variant with only its
+own fields. The upgrade names the variant under `type` and drops the other variants' fields where they hold a
+value that did nothing (the old config refused any other).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
+
+from openfly_agent.model.config import ActionHeadConfig, GroundingConfig, VisionConfig
 
 # Deleted research switches at the value that turned them off (docs/experiments/2026-11-27-deleted-research-switches.md;
 # commit 7544758 still has them). A config that holds one at that value loads without it; any other value is
@@ -34,6 +43,25 @@ LEGACY_TINY_SIZES = {
 }
 
 
+ANY = object()  # a field another variant ignored whatever it held
+# Fields of the old flat sections that only another variant reads, with the values they held there.
+FOREIGN_FIELDS = {
+    "vision": {
+        "width": (None,), "fused_width": (None,), "depth": (None,), "num_heads": (None,), "cnn_channels": (None,),
+        "cnn_colour_stats": (False,), "cnn_stem": ("resnet",),
+    },
+    "grounding": {
+        "cell_weight": ANY, "centre_window": ANY, "attribute_classes": ANY, "attribute_weight": (0.0,),
+        "visual_skip": (False,),
+    },
+    "action_head": {
+        "decode_rule": ANY, "unnorm_key": ANY, "box_token": (None, False), "box_token_jitter": ANY,
+        "stop_loss_weight": (1.0,),
+    },
+}  # fmt: skip
+CHOICE_SECTIONS = {"vision": VisionConfig, "grounding": GroundingConfig, "action_head": ActionHeadConfig}
+
+
 class RetiredOptionError(ValueError):
     """An older config turns on a switch that was deleted: its checkpoint needs the code of that time."""
 
@@ -58,4 +86,16 @@ def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
     for section, names in DEAD_FIELDS.items():
         for name in names:
             agent.get(section, {}).pop(name, None)
+    if "preset" in agent.get("vision", {}):
+        agent["vision"]["type"] = agent["vision"].pop("preset")
+    if "cells" in agent.get("grounding", {}):
+        agent["grounding"]["type"] = "cells" if agent["grounding"].pop("cells") else "box"
+    for section, registry in CHOICE_SECTIONS.items():
+        values = agent.get(section)
+        if not values or values.get("type") not in registry.get_known_choices():
+            continue  # a variant the loader will name as unknown
+        own = {f.name for f in dataclasses.fields(registry.get_choice_class(values["type"]))}
+        for name, inert in FOREIGN_FIELDS[section].items():
+            if name in values and name not in own and (inert is ANY or values[name] in inert):
+                del values[name]
     return agent

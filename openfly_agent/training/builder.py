@@ -23,7 +23,7 @@ from openfly_agent.data.grounding import read_grounding_expressions
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, ModelConfig
+from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, CellGroundingConfig, ModelConfig
 from openfly_agent.model.language.tokenizer import load_tokenizer, train_bpe_tokenizer
 from openfly_agent.model.persistence.checkpoint_path import (
     UnreadableWeightsError,
@@ -108,7 +108,7 @@ def load_splits(cfg: TrainConfig) -> Splits:
 def attribute_lookup(cfg: TrainConfig) -> LandmarkAttributes | None:
     """The target attributes' lookup when the grounding head learns them (`model.grounding.attribute_weight`)."""
     grounding = cfg.model.grounding
-    if not (grounding.enabled and grounding.attribute_weight):
+    if not (isinstance(grounding, CellGroundingConfig) and grounding.enabled and grounding.attribute_weight):
         return None
     if list(grounding.attribute_classes) != vocabulary_sizes():
         raise PreflightError(

@@ -152,11 +152,18 @@ def _type_name(hint: Any) -> str:
     return getattr(hint, "__name__", str(hint)).upper()
 
 
+def _choices(cls: type) -> dict[str, type]:
+    """The registered variants of a section typed by a draccus choice registry (`vision: {type: tiny}`), else {}."""
+    known = getattr(cls, "get_known_choices", None)
+    return dict(known()) if known is not None else {}
+
+
 def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
     """{dotted option: takes any sub-key} for every field of `cls` and its nested sections.
 
     A section (`optim`) is an option too: draccus reads `--optim=<yaml file>`. Fields typed `dict` accept any
-    sub-key.
+    sub-key. A registered-choice section has `type` and the fields of every variant (draccus refuses those of
+    another variant than the chosen one).
     """
     options: dict[str, bool] = {}
     hints = _hints(cls)
@@ -166,7 +173,11 @@ def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
         origin = typing.get_origin(hints.get(f.name))
         options[name] = origin is dict or hints.get(f.name) is dict
         if nested is not None:
-            options.update(known_options(nested, prefix=name + "."))
+            variants = _choices(nested)
+            if variants:
+                options[name + ".type"] = False
+            for section in variants.values() or [nested]:
+                options.update(known_options(section, prefix=name + "."))
     return options
 
 
@@ -228,6 +239,8 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
         value = getattr(config, f.name, None) if config is not None else None
         sub = _nested_class(hints.get(f.name))
         if sub is not None:
+            if _choices(sub) and value is not None:  # the chosen variant's fields
+                sub = type(value)
             nested.append((f, sub, value))
             continue
         text = docs.get(f.name, "")
@@ -239,6 +252,11 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
         title = f"{prefix}{f.name}"
         summary = field_docs(cls).get(f.name) or class_summary(sub)
         out += ["", *textwrap.wrap(f"{title}: {summary}" if summary else f"{title}:", WIDTH)]
+        registry = next((c for c in sub.__mro__ if "_choice_registry" in vars(c)), None)
+        if registry is not None:  # a registered choice: its variant, then that variant's own fields
+            names = ", ".join(registry.get_known_choices())
+            text = f"the variant: {names}; each has only its own fields (default: {value.type})"
+            out += [line.replace(_NBSP, " ") for line in _flag_lines(f"--{title}.type STR", text)]
         out += _section_lines(sub, value, prefix=title + ".")
     return out
 

@@ -7,7 +7,16 @@ import math
 import pytest
 import torch
 
-from openfly_agent.model.config import GroundingConfig, MemoryConfig, MergingConfig, openfly_7b_config
+from openfly_agent.model.config import (
+    BinsActionHeadConfig,
+    BoxGroundingConfig,
+    CellGroundingConfig,
+    DiscreteActionHeadConfig,
+    MemoryConfig,
+    MergingConfig,
+    TinyCnnVisionConfig,
+    openfly_7b_config,
+)
 from openfly_agent.model.grounding.cells import (
     CellGroundingHead,
     cell_centres,
@@ -20,22 +29,23 @@ from openfly_agent.model.grounding.head import (
     grounding_loss,
     iou_and_giou,
 )
-from openfly_agent.model.vision.config import VisionConfig
 
 LOG_KEYS = {"loss", "action_loss", "grounding_loss", "action_accuracy", "box_iou", "num_visible_boxes"}
 
 
 COLOUR_STATS = {  # tiny-cnn at 64 px with each token's cell colour statistics
-    "vision": VisionConfig(
+    "vision": TinyCnnVisionConfig(
         image_size=64, cnn_channels=[16, 16, 16, 32], cnn_colour_stats=True
     ),  # (narrower ResNets crash oneDNN's channels-last backward in torch 2.13)
-    "grounding": GroundingConfig(dim=32, num_heads=2),
+    "grounding": CellGroundingConfig(dim=32, num_heads=2),
 }
 
 
-ATTRIBUTES = {"grounding": GroundingConfig(dim=32, num_heads=2, attribute_weight=1.0)}  # the attribute loss
+ATTRIBUTES = {
+    "grounding": CellGroundingConfig(dim=32, num_heads=2, attribute_weight=1.0)
+}  # the attribute loss
 VISUAL_SKIP = {  # cells that get the frame's visual tokens
-    "grounding": GroundingConfig(dim=32, num_heads=2, visual_skip=True)
+    "grounding": CellGroundingConfig(dim=32, num_heads=2, visual_skip=True)
 }
 
 
@@ -104,7 +114,7 @@ def test_missing_memory_sets_contribute_nothing(make_agent, make_batch):
 
 
 def test_right_padding_does_not_change_samples(make_agent, make_batch):
-    agent = make_agent(grounding=GroundingConfig(enabled=False))
+    agent = make_agent(grounding=CellGroundingConfig(enabled=False))
     batch = make_batch(agent, batch_size=3)
     loss_all, _ = agent(batch)
     singles = []
@@ -118,7 +128,7 @@ def test_right_padding_does_not_change_samples(make_agent, make_batch):
 
 
 def test_an_agent_without_grounding_head_logs_no_box_iou(make_agent, make_batch):
-    agent = make_agent(grounding=GroundingConfig(enabled=False))
+    agent = make_agent(grounding=CellGroundingConfig(enabled=False))
     _, logs = agent(make_batch(agent, batch_size=2))
     # nothing measured, not an IoU of 0
     assert math.isnan(logs["box_iou"]) and logs["num_visible_boxes"] == 0.0
@@ -164,7 +174,7 @@ def test_giou_by_hand(pred, target, iou, giou):
 
 
 def test_grounding_loss_ignores_invisible_targets():
-    cfg = GroundingConfig(l1_weight=2.0, visibility_weight=0.0, cells=False)
+    cfg = BoxGroundingConfig(l1_weight=2.0, visibility_weight=0.0)
     pred = GroundingOutput(torch.tensor([[0.5, 0.5, 0.4, 0.4], [0.5, 0.5, 0.2, 0.2]]), torch.zeros(2))
     target = torch.tensor([[0.5, 0.5, 0.8, 0.8], [0.1, 0.1, 0.1, 0.1]])
     visible = torch.tensor([True, False])
@@ -179,7 +189,7 @@ def test_grounding_loss_ignores_invisible_targets():
 
 
 def test_grounding_head_outputs_unit_boxes():
-    head = BoxRegressionHead(24, GroundingConfig(dim=16, num_heads=2, num_queries=3, cells=False))
+    head = BoxRegressionHead(24, BoxGroundingConfig(dim=16, num_heads=2, num_queries=3))
     hidden = torch.randn(2, 7, 24) * 10
     mask = torch.tensor([[True] * 7, [True] * 3 + [False] * 4])
     out = head(hidden, mask)
@@ -203,10 +213,10 @@ def _fit_head(head, inputs, targets, cfg, steps: int) -> dict[str, float]:
 
 def test_cell_head_centres_the_box_on_its_cells_and_learns_the_right_cell():
     torch.manual_seed(0)
-    cfg = GroundingConfig(dim=16, num_heads=2, cells=True)
+    cfg = CellGroundingConfig(dim=16, num_heads=2)
     head = CellGroundingHead(24, cfg, grid_side=2)
     with pytest.raises(ValueError, match="grid side"):
-        CellGroundingHead(24, GroundingConfig(dim=16, num_heads=2, cells=True), grid_side=0)
+        CellGroundingHead(24, CellGroundingConfig(dim=16, num_heads=2), grid_side=0)
     # sequence: 4 image tokens (a 2 x 2 grid) then 2 prompt tokens; the prompt's last token names the cell
     hidden = torch.randn(4, 6, 24)
     hidden[:, :4] += torch.eye(4, 24) * 3  # each cell has its own feature
@@ -246,14 +256,12 @@ def test_a_centre_window_picks_one_of_two_peaks_instead_of_their_middle():
     assert 0.4 < float(everywhere[0, 0]) < 0.5 and 0.4 < float(everywhere[0, 1]) < 0.5  # between the two
     torch.testing.assert_close(around_best, torch.tensor([[1 / 6, 1 / 6]]), atol=1e-4, rtol=0)  # on the best
     with pytest.raises(ValueError, match="centre_window"):
-        GroundingConfig(centre_window=-1)
+        CellGroundingConfig(centre_window=-1)
 
 
 def test_the_centre_window_is_a_decoding_rule_training_reads_every_cell():
     torch.manual_seed(0)
-    head = CellGroundingHead(
-        24, GroundingConfig(dim=16, num_heads=2, cells=True, centre_window=1), grid_side=4
-    )
+    head = CellGroundingHead(24, CellGroundingConfig(dim=16, num_heads=2, centre_window=1), grid_side=4)
     hidden = torch.randn(8, 18, 24)  # 16 image tokens (a 4 x 4 grid), then 2 prompt tokens
     inputs = (
         hidden,
@@ -272,7 +280,7 @@ def test_the_centre_window_is_a_decoding_rule_training_reads_every_cell():
     assert not torch.allclose(windowed.boxes, everywhere.boxes)  # applied at inference
     # the scores themselves unchanged
     torch.testing.assert_close(windowed.cell_logits, everywhere.cell_logits)
-    assert GroundingConfig().centre_window == 1  # the tiny preset's default
+    assert CellGroundingConfig().centre_window == 1  # the tiny preset's default
 
 
 def test_activation_checkpointing_gives_the_same_gradients(make_agent, make_batch):
@@ -352,10 +360,8 @@ def test_the_stop_loss_weight_is_a_weighted_mean_over_the_labelled_steps(make_ag
 
 
 def test_the_stop_loss_weight_is_checked():
-    from openfly_agent.model.config import ActionHeadConfig
-
     with pytest.raises(ValueError, match="stop_loss_weight=0.0 must be > 0"):
-        ActionHeadConfig(stop_loss_weight=0.0)
-    with pytest.raises(ValueError, match="discrete head"):
-        ActionHeadConfig(type="openvla_bins", stop_loss_weight=2.0)
-    assert ActionHeadConfig(stop_loss_weight=2.0).stop_loss_weight == 2.0
+        DiscreteActionHeadConfig(stop_loss_weight=0.0)
+    with pytest.raises(TypeError, match="stop_loss_weight"):
+        BinsActionHeadConfig(stop_loss_weight=2.0)  # a field of the discrete head only
+    assert DiscreteActionHeadConfig(stop_loss_weight=2.0).stop_loss_weight == 2.0

@@ -9,17 +9,20 @@ import pytest
 
 from openfly_agent.model.config import (
     LLAMA2_7B_ARCH,
-    TINY_CNN_VISION,
     TINY_LLM,
-    TINY_VISION,
+    BoxGroundingConfig,
+    DinoSiglipVisionConfig,
     LLMConfig,
     MemoryConfig,
     ModelConfig,
+    TinyCnnVisionConfig,
+    TinyVitVisionConfig,
     VisionConfig,
     config_from_dict,
     config_to_dict,
     make_model_config,
     openfly_7b_config,
+    openvla_compat_7b_config,
     tiny_config,
 )
 from openfly_agent.utils.config import load_yaml_config
@@ -56,32 +59,53 @@ def test_validation_messages_say_what_to_change():
     with pytest.raises(ValueError, match="multiple of vision.patch_size"):
         VisionConfig(image_size=100, patch_size=14)
     with pytest.raises(ValueError, match="dinosiglip-224px needs image_size=224"):
-        VisionConfig(preset="dinosiglip-224px", image_size=112)
+        DinoSiglipVisionConfig(image_size=112)
     with pytest.raises(ValueError, match="action_head.type=openvla_bins"):
         tiny_config(mode="openvla_compat")
     with pytest.raises(ValueError, match="unknown model preset"):
         make_model_config("huge")
 
 
-def test_tiny_only_fields_are_filled_for_tiny_and_rejected_for_7b():
+def test_each_vision_variant_has_only_its_own_fields():
     tiny = tiny_config()
-    assert {name: getattr(tiny.vision, name) for name in TINY_CNN_VISION} == TINY_CNN_VISION
-    assert all(getattr(tiny.vision, name) is None for name in TINY_VISION)  # the ViT sizes: not the CNN's
-    vit = VisionConfig(preset="tiny", image_size=112, patch_size=14)
-    assert {name: getattr(vit, name) for name in TINY_VISION} == TINY_VISION
-    with pytest.raises(ValueError, match=r"vision.width=96 is read by the tiny preset only"):
-        VisionConfig(width=96)  # tiny-cnn
-    assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
+    assert type(tiny.vision) is TinyCnnVisionConfig and tiny.vision.type == "tiny-cnn"
+    assert tiny.vision.cnn_channels == [32, 64, 96, 128] and not hasattr(tiny.vision, "width")
+    vit = TinyVitVisionConfig(image_size=112, patch_size=14, width=64, num_heads=2)
+    assert (vit.type, vit.fused_width, vit.depth) == ("tiny", 128, 3)  # unset: the variant's defaults
+    assert vit.featurizer_widths == (64, 128) and not hasattr(vit, "cnn_channels")
+    with pytest.raises(TypeError, match="width"):
+        TinyCnnVisionConfig(width=96)
     big = openfly_7b_config()
-    assert all(getattr(big.vision, name) is None for name in TINY_VISION)
+    assert big.vision == DinoSiglipVisionConfig() and big.vision.feature_dim == 2176
+    with pytest.raises(TypeError, match="depth"):
+        DinoSiglipVisionConfig(depth=24)
+    assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
     assert all(getattr(big.llm, name) is None for name in TINY_LLM)
     assert big.llm.resolved_hidden_size == LLAMA2_7B_ARCH["hidden_size"] == 4096
     with pytest.raises(ValueError, match=r"llm.hidden_size=4096 is read by the tiny preset only.*remove"):
         LLMConfig(preset="llama2-7b", hidden_size=4096)
-    with pytest.raises(ValueError, match=r"vision.depth=24 is read by the tiny preset only"):
-        VisionConfig(preset="dinosiglip-224px", image_size=224, depth=24)
-    vit = VisionConfig(preset="tiny", image_size=112, patch_size=14, width=64, num_heads=2)
-    assert vit.fused_width == TINY_VISION["fused_width"]  # unset: the default
+
+
+def test_the_variants_serialise_under_type_and_parse_from_yaml_and_flags(tmp_path):
+    from openfly_agent.utils.config import load_yaml_config
+
+    cfg = openvla_compat_7b_config()
+    data = config_to_dict(cfg)
+    assert data["vision"]["type"] == "dinosiglip-224px" and data["grounding"] == {
+        "type": "box",
+        **data["grounding"],
+    }
+    assert data["action_head"]["type"] == "openvla_bins" and "box_token" not in data["action_head"]
+    assert config_from_dict(data) == cfg
+    path = tmp_path / "model.yaml"
+    path.write_text("vision: {type: tiny, image_size: 112, patch_size: 14}\ngrounding: {type: box}\n")
+    parsed = load_yaml_config(ModelConfig, path, ["--grounding.dim=64", "--vision.depth=4"])
+    assert parsed.vision == TinyVitVisionConfig(image_size=112, patch_size=14, depth=4)
+    assert parsed.grounding == BoxGroundingConfig(dim=64)
+    flags = ["--vision.type=tiny-cnn", "--vision.image_size=128", "--vision.patch_size=16"]
+    assert (
+        load_yaml_config(ModelConfig, path, flags).vision == TinyCnnVisionConfig()
+    )  # the ResNet's own defaults
 
 
 def test_config_json_of_older_7b_checkpoints_still_loads():
@@ -90,7 +114,6 @@ def test_config_json_of_older_7b_checkpoints_still_loads():
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
     old = config_to_dict(openfly_7b_config())
-    old["vision"].update(TINY_VISION)
     old["llm"].update(TINY_LLM)
     assert OpenFlyAgentConfig(agent=old).model_config == openfly_7b_config()
     old["llm"]["hidden_size"] = 64

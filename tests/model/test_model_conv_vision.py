@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from openfly_agent.model.vision.config import VisionConfig
+from openfly_agent.model.config import TinyCnnVisionConfig, TinyVitVisionConfig
 from openfly_agent.model.vision.conv import COLOUR_STATS, ConvVisionBackbone, cell_colour_stats
 
 SMALL = {"image_size": 64, "cnn_channels": [16, 16, 16, 32]}  # narrower aborts oneDNN
@@ -18,7 +18,7 @@ def _pixels(count: int = 2, size: int = 64) -> torch.Tensor:
 
 
 def test_tokens_form_the_stride_16_grid():
-    backbone = ConvVisionBackbone(VisionConfig(**SMALL)).eval()
+    backbone = ConvVisionBackbone(TinyCnnVisionConfig(**SMALL)).eval()
     assert backbone(_pixels()).shape == (2, 16, 32)  # 64 px / 16 = a 4 x 4 grid of 32-d tokens
 
 
@@ -45,8 +45,8 @@ def test_cell_colour_stats_by_hand():
 
 def test_colour_stats_add_a_projection_of_each_cells_statistics():
     torch.manual_seed(0)
-    plain = ConvVisionBackbone(VisionConfig(**SMALL)).eval()
-    coloured = ConvVisionBackbone(VisionConfig(**SMALL, cnn_colour_stats=True)).eval()
+    plain = ConvVisionBackbone(TinyCnnVisionConfig(**SMALL)).eval()
+    coloured = ConvVisionBackbone(TinyCnnVisionConfig(**SMALL, cnn_colour_stats=True)).eval()
     coloured.load_state_dict(plain.state_dict(), strict=False)  # same ResNet and position embedding
     assert plain.colour_proj is None and coloured.colour_proj.in_features == COLOUR_STATS
     with torch.no_grad():
@@ -66,14 +66,14 @@ def test_colour_stats_add_a_projection_of_each_cells_statistics():
         # the sequences of a frame index read their frame's statistics
         index = torch.tensor([1, 1, 0])
         torch.testing.assert_close(coloured(pixels, frame_index=index), coloured(pixels)[index])
-    with pytest.raises(ValueError, match="tiny-cnn option"):
-        VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_colour_stats=True)
+    with pytest.raises(TypeError, match="cnn_colour_stats"):  # a field of the ResNet only
+        TinyVitVisionConfig(image_size=112, patch_size=14, cnn_colour_stats=True)
 
 
 def test_patch4_stem_is_one_4x4_stride_4_conv_into_the_same_first_stage():
     torch.manual_seed(0)
-    plain = ConvVisionBackbone(VisionConfig(**SMALL)).eval()
-    patch = ConvVisionBackbone(VisionConfig(**SMALL, cnn_stem="patch4")).eval()
+    plain = ConvVisionBackbone(TinyCnnVisionConfig(**SMALL)).eval()
+    patch = ConvVisionBackbone(TinyCnnVisionConfig(**SMALL, cnn_stem="patch4")).eval()
     conv = patch.featurizer.conv1
     assert (conv.kernel_size, conv.stride, conv.out_channels) == ((4, 4), (4, 4), 64)
     assert isinstance(patch.featurizer.maxpool, torch.nn.Identity)
@@ -99,6 +99,6 @@ def test_patch4_stem_is_one_4x4_stride_4_conv_into_the_same_first_stage():
 
 def test_cnn_stem_choices_and_presets():
     with pytest.raises(ValueError, match="cnn_stem"):
-        VisionConfig(**SMALL, cnn_stem="patch8")
-    with pytest.raises(ValueError, match="tiny-cnn option"):
-        VisionConfig(preset="tiny", image_size=112, patch_size=14, cnn_stem="patch4")
+        TinyCnnVisionConfig(**SMALL, cnn_stem="patch8")
+    with pytest.raises(TypeError, match="cnn_stem"):  # a field of the ResNet only
+        TinyVitVisionConfig(image_size=112, patch_size=14, cnn_stem="patch4")

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import torch
 
+from openfly_agent.model.config import TinyCnnVisionConfig
+
 pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")]
 
 INSTRUCTIONS = [
@@ -77,12 +79,11 @@ def test_cuda_closed_loop_actions_equal_the_cpu_ones(make_agent):
 
 
 def test_cuda_patch_stem_gives_the_cpu_values():
-    from openfly_agent.model.config import VisionConfig
     from openfly_agent.model.vision.conv import ConvVisionBackbone
 
     generator = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
-    backbone = ConvVisionBackbone(VisionConfig(cnn_stem="patch4", cnn_colour_stats=True)).eval()
+    backbone = ConvVisionBackbone(TinyCnnVisionConfig(cnn_stem="patch4", cnn_colour_stats=True)).eval()
     pixels = torch.randint(0, 256, (2, 3, 128, 128), dtype=torch.uint8, generator=generator)
     with torch.no_grad():
         cpu_tokens = backbone(pixels)

@@ -7,10 +7,10 @@ import math
 import pytest
 import torch
 
-from openfly_agent.model.config import GroundingConfig
+from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
 from openfly_agent.model.grounding.head import GroundingOutput, attribute_loss, grounding_loss
 
-CFG = GroundingConfig(dim=8, num_heads=2, attribute_weight=2.0, attribute_classes=[2, 2, 2, 2])
+CFG = CellGroundingConfig(dim=8, num_heads=2, attribute_weight=2.0, attribute_classes=[2, 2, 2, 2])
 
 
 def _output(query: torch.Tensor, cells: torch.Tensor) -> GroundingOutput:
@@ -70,8 +70,8 @@ def test_grounding_loss_adds_the_weighted_attribute_term_only_with_attributes():
 
 def test_attribute_options_are_checked():
     with pytest.raises(ValueError, match="attribute_weight"):
-        GroundingConfig(attribute_weight=-1.0)
+        CellGroundingConfig(attribute_weight=-1.0)
     with pytest.raises(ValueError, match="attribute_classes"):
-        GroundingConfig(attribute_classes=[12, 6, 3])
-    with pytest.raises(ValueError, match="needs grounding.cells"):
-        GroundingConfig(cells=False, attribute_weight=1.0)
+        CellGroundingConfig(attribute_classes=[12, 6, 3])
+    with pytest.raises(TypeError, match="attribute_weight"):  # the box head has no attribute classifiers
+        BoxGroundingConfig(attribute_weight=1.0)

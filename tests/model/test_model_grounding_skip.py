@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from openfly_agent.model.config import GroundingConfig
+from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
 from openfly_agent.model.grounding.cells import CellGroundingHead
 
 # a 2 x 2 grid at positions 1-4 of a 7-position sequence; position 5 is a prompt token, 6 padding (not readable)
@@ -17,7 +17,7 @@ KEY_MASK = torch.tensor([[True, True, True, True, True, True, False]])
 
 def _head(visual_skip: bool = False) -> CellGroundingHead:
     torch.manual_seed(0)
-    cfg = GroundingConfig(dim=8, num_heads=2, attribute_weight=1.0, visual_skip=visual_skip)
+    cfg = CellGroundingConfig(dim=8, num_heads=2, attribute_weight=1.0, visual_skip=visual_skip)
     return CellGroundingHead(16, cfg, grid_side=2).eval()
 
 
@@ -50,6 +50,6 @@ def test_without_the_skip_the_state_dict_is_that_of_earlier_checkpoints():
     assert not any(name.startswith("visual_proj") for name in _head().state_dict())
 
 
-def test_the_skip_is_checked():
-    with pytest.raises(ValueError, match="visual_skip needs grounding.cells"):
-        GroundingConfig(cells=False, visual_skip=True)
+def test_the_skip_is_a_field_of_the_cell_head_only():
+    with pytest.raises(TypeError, match="visual_skip"):
+        BoxGroundingConfig(visual_skip=True)

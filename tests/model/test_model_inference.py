@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from openfly_agent.model.config import (
-    ActionHeadConfig,
-    GroundingConfig,
+    BinsActionHeadConfig,
+    CellGroundingConfig,
+    DiscreteActionHeadConfig,
     KeyframeConfig,
     MemoryConfig,
     PromptConfig,
@@ -32,7 +33,7 @@ def memory_agent(make_agent, **overrides):
     every change point yields a keyframe set (all predicted boxes visible, theta = 0)."""
     agent = make_agent(
         seed=1,
-        grounding=overrides.pop("grounding", GroundingConfig(dim=32, num_heads=2, visibility_weight=0.0)),
+        grounding=overrides.pop("grounding", CellGroundingConfig(dim=32, num_heads=2, visibility_weight=0.0)),
         keyframes=KeyframeConfig(theta=0.0),
         **overrides,
     )
@@ -58,7 +59,7 @@ def _obs(episode: int, frame: np.ndarray) -> dict:
     }
 
 
-SKIP_HEAD = GroundingConfig(  # cells that get the frame's visual tokens
+SKIP_HEAD = CellGroundingConfig(  # cells that get the frame's visual tokens
     dim=32, num_heads=2, visibility_weight=0.0, visual_skip=True
 )
 
@@ -123,7 +124,7 @@ def test_reset_and_errors(make_agent):
 
 
 def test_kv_cache_decoding_equals_full_recompute(make_agent):
-    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
     torch.manual_seed(1)
     rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
     embeds, mask = left_pad(rows)
@@ -148,7 +149,8 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
 
     from transformers.utils import logging as hf_logging
 
-    agent = make_agent(action_head=ActionHeadConfig(type=head), norm_stats=NORM_STATS)
+    head_cfg = BinsActionHeadConfig() if head == "openvla_bins" else DiscreteActionHeadConfig()
+    agent = make_agent(action_head=head_cfg, norm_stats=NORM_STATS)
     hf_logging.warning_once.cache_clear()  # "once": a warning an earlier test triggered would be silent
     records: list[str] = []
     handler = logging.Handler()
@@ -168,9 +170,7 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
 
 
 def test_bins_head_select_action(make_agent):
-    agent = make_agent(
-        action_head=ActionHeadConfig(type="openvla_bins", decode_rule="nearest"), norm_stats=NORM_STATS
-    )
+    agent = make_agent(action_head=BinsActionHeadConfig(decode_rule="nearest"), norm_stats=NORM_STATS)
     frames = _frames(2, 3)
     for t in range(3):
         results = agent.predict_step([_obs(e, frames[e, t]) for e in range(2)])
@@ -189,7 +189,7 @@ def test_compat_mode_runs_the_released_layout(make_agent):
         mode="openvla_compat",
         memory=MemoryConfig(capacity=2, grid=4),
         prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
-        action_head=ActionHeadConfig(type="openvla_bins"),
+        action_head=BinsActionHeadConfig(),
         norm_stats=NORM_STATS,
     )
     frames = _frames(1, 4)

@@ -1,4 +1,4 @@
-"""The cell grounding head (`grounding.cells: true`, the tiny preset): per-cell scoring of the current frame.
+"""The cell grounding head (`grounding.type: cells`, the tiny preset): per-cell scoring of the current frame.
 
 The query starts from the hidden state of the last prompt token (it has read the whole instruction), its code
 scales and shifts each cell's features (FiLM), an MLP gives one logit per cell, and the box centre is the
@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.grounding.config import CellGroundingConfig
 from openfly_agent.model.grounding.layers import GroundingOutput, QueryReader
 
 
@@ -45,13 +45,13 @@ class CellGroundingHead(QueryReader):
 
     Args:
         llm_dim: LLM hidden size.
-        cfg: grounding section of the model config (`cells: true`).
+        cfg: grounding section of the model config (`type: cells`).
         grid_side: cells per side of the current frame's token grid.
     """
 
-    def __init__(self, llm_dim: int, cfg: GroundingConfig, grid_side: int) -> None:
+    def __init__(self, llm_dim: int, cfg: CellGroundingConfig, grid_side: int) -> None:
         if not grid_side:
-            raise ValueError("grounding.cells needs the frame's token grid side")
+            raise ValueError("grounding.type=cells needs the frame's token grid side")
         super().__init__(llm_dim, cfg)
         self.grid_side = grid_side
         self.centre_window = cfg.centre_window

@@ -3,8 +3,8 @@
 Learned queries cross-attend (3 layers) to the LLM's last hidden states over the image and text positions
 (model/grounding/layers.py) and give the instruction landmark's box `(cx, cy, w, h)` in [0, 1] in the current
 frame, plus a visibility logit (our addition: at inference an invisible landmark has no box, so no keyframe area).
-`grounding.cells` picks the head: false, `BoxRegressionHead`, the paper's box regressed from the pooled queries
-(every 7B preset); true, `CellGroundingHead` (model/grounding/cells.py, the tiny preset), which scores every cell
+`grounding.type` picks the head: `box`, `BoxRegressionHead`, the paper's box regressed from the pooled queries
+(every 7B preset); `cells`, `CellGroundingHead` (model/grounding/cells.py, the tiny preset), which scores every cell
 of the frame's token grid and places the box centre from those scores. The loss is GIoU + L1 with a visibility
 mask (+ the cell head's cell and attribute terms).
 """
@@ -16,12 +16,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from openfly_agent.model.grounding.cells import CellGroundingHead
-from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.grounding.config import CellGroundingConfig, GroundingConfig
 from openfly_agent.model.grounding.layers import GroundingOutput, QueryReader
 
 
 class BoxRegressionHead(QueryReader):
-    """The paper's head (`grounding.cells: false`): an MLP regresses the box from the pooled queries.
+    """The paper's head (`grounding.type: box`): an MLP regresses the box from the pooled queries.
 
     Args:
         llm_dim: LLM hidden size.
@@ -51,9 +51,9 @@ GroundingHead = BoxRegressionHead | CellGroundingHead
 
 
 def make_grounding_head(llm_dim: int, cfg: GroundingConfig, grid_side: int) -> GroundingHead:
-    """The head `cfg.cells` names: `CellGroundingHead` on the frame's grid_side x grid_side token grid, or the
-    paper's `BoxRegressionHead`."""
-    if cfg.cells:
+    """The head `cfg.type` names: `CellGroundingHead` on the frame's grid_side x grid_side token grid (`cells`), or
+    the paper's `BoxRegressionHead` (`box`)."""
+    if isinstance(cfg, CellGroundingConfig):
         return CellGroundingHead(llm_dim, cfg, grid_side)
     return BoxRegressionHead(llm_dim, cfg)
 
@@ -125,9 +125,9 @@ def grounding_loss(
     else:
         iou, giou_term, l1_term = torch.zeros(1), zero, zero
     vis_term = F.binary_cross_entropy_with_logits(visibility_logits.float(), visible.float())
-    loss = (
-        giou_term + cfg.l1_weight * l1_term + cfg.visibility_weight * vis_term + cfg.cell_weight * cell_term
-    )
+    loss = giou_term + cfg.l1_weight * l1_term + cfg.visibility_weight * vis_term
+    if output.cell_logits is not None:  # the cell head: its config has the weight
+        loss = loss + cfg.cell_weight * cell_term
     attribute_logs = {}
     if output.query_attributes is not None and attributes is not None:
         attribute_term, attribute_logs = attribute_loss(output, target_boxes, visible, attributes, cfg)
