@@ -11,6 +11,7 @@ from openfly_agent.model.config import (
     LLAMA2_7B_ARCH,
     TINY_LLM,
     BoxGroundingConfig,
+    CellGroundingConfig,
     DinoSiglipVisionConfig,
     LLMConfig,
     MemoryConfig,
@@ -119,3 +120,48 @@ def test_config_json_of_older_7b_checkpoints_still_loads():
     old["llm"]["hidden_size"] = 64
     with pytest.raises(ValueError, match="llm.hidden_size=64 is read by the tiny preset only"):
         OpenFlyAgentConfig(agent=old)
+
+
+# The model sections of a config.json written before issue 40 (`agent` of the tiny run's step-50 checkpoint, the
+# sections the upgrade changes): flat vision and grounding sections with every variant's fields and the deleted
+# switches at their off values.
+OLD_AGENT = {
+    "action_head": {
+        "box_token": None, "box_token_jitter": 0.05, "decode_rule": "exact", "n_bins": 256,
+        "stop_loss_weight": 1.0, "type": "discrete", "unnorm_key": None, "vocab_end": 810,
+    },
+    "grounding": {
+        "attribute_classes": [12, 6, 3, 8], "attribute_match": False, "attribute_weight": 0.0,
+        "cell_fusion_layers": 0, "cell_weight": 1.0, "cells": True, "centre_window": 1,
+        "dense_attribute_weight": 0.0, "dim": 128, "enabled": True, "l1_weight": 1.0, "loss_weight": 1.0,
+        "num_heads": 4, "num_layers": 3, "num_queries": 1, "subcells": 1, "visibility_weight": 0.5,
+        "visual_skip": False,
+    },
+    "llm": {"vocab_size": 810, "pad_token_id": 3},
+    "vision": {
+        "cnn_channels": [32, 64, 96, 128], "cnn_colour_stats": False, "cnn_fine_fusion": False,
+        "cnn_init": "normal", "cnn_instruction_film": False, "cnn_stem": "resnet", "cnn_stem_width": 16,
+        "depth": None, "fused_width": None, "image_size": 128, "num_heads": None, "patch_size": 16,
+        "preset": "tiny-cnn", "resize": "bicubic", "width": None,
+    },
+}  # fmt: skip
+
+
+def test_an_old_flat_config_json_loads_as_its_variants():
+    from openfly_agent.model.config import DiscreteActionHeadConfig, LLMConfig
+    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    cfg = OpenFlyAgentConfig(agent=OLD_AGENT).model_config
+    assert cfg.vision == TinyCnnVisionConfig()
+    assert cfg.grounding == CellGroundingConfig()
+    assert cfg.action_head == DiscreteActionHeadConfig(vocab_end=810)
+    assert cfg.llm == LLMConfig(vocab_size=810, pad_token_id=3)
+    upgraded = upgraded_model_dict(OLD_AGENT)
+    assert upgraded["vision"]["type"] == "tiny-cnn" and upgraded["grounding"]["type"] == "cells"
+    assert upgraded_model_dict(upgraded) == upgraded  # today's layout passes unchanged
+    box = {**OLD_AGENT, "grounding": {**OLD_AGENT["grounding"], "cells": False, "dim": 256, "num_heads": 8}}
+    assert OpenFlyAgentConfig(agent=box).model_config.grounding == BoxGroundingConfig(dim=256, num_heads=8)
+    on = {**OLD_AGENT, "grounding": {**OLD_AGENT["grounding"], "attribute_match": True}}
+    with pytest.raises(RetiredOptionError, match="grounding.attribute_match was deleted.*7544758"):
+        OpenFlyAgentConfig(agent=on)
