@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from openfly_agent.model.config import CNN_STEMS, VisionConfig
+from openfly_agent.model.config import CNN_STEMS, TinyCnnVisionConfig
 from openfly_agent.model.vision.conv import ConvVisionBackbone
 
 
@@ -33,7 +33,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     backbone = ConvVisionBackbone(
-        VisionConfig(image_size=args.image_size, cnn_stem=args.stem, cnn_colour_stats=True)
+        TinyCnnVisionConfig(image_size=args.image_size, cnn_stem=args.stem, cnn_colour_stats=True)
     ).train()
     pixels = torch.randint(0, 256, (args.batch, 3, args.image_size, args.image_size), dtype=torch.uint8)
     times = []

@@ -47,8 +47,9 @@ SIZES = ("full", "reduced")
 # keyframe set to 1 token as g = 16 does on the 16 x 16 grid), and the `tiny` Llama (width 128, 2 layers). Every
 # other model setting (vocabulary 32064, grounding head, action head, keyframes, merging) stays as shipped.
 REDUCED_WIDTH = {
-    "vision.preset": "tiny",
+    "vision.type": "tiny",
     "vision.image_size": "56",
+    "vision.patch_size": "14",
     "memory.grid": "4",
     "llm.preset": "tiny",
 }

@@ -6,7 +6,7 @@
 Configurations (one JSON line each):
 - `tiny-cpu`: the tiny preset (the `tiny-cnn` ResNet backbone), full fine-tune, fp32, on the CPU (the embedded
   default of train.py);
-- `tiny-vit-cpu`: the same with `vision.preset=tiny` (the two small ViTs at 112 px, the default before issue 12);
+- `tiny-vit-cpu`: the same with `vision.type=tiny` (the two small ViTs at 112 px, the default before issue 12);
 - `7b-lora-bf16`: the OpenFly-Agent 7B shape (random init) with LoRA r=32 on every LLM linear layer, the
   vision backbone frozen, bf16 autocast, gradient checkpointing (configs/train/openfly-7b-lora.yaml, 1 GPU).
 Batches are synthetic but shaped like training: random 128 px frames resized by the agent's transform,
@@ -32,7 +32,7 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
-from openfly_agent.model.config import LoraSettings, VisionConfig, make_model_config
+from openfly_agent.model.config import LoraSettings, TinyVitVisionConfig, make_model_config
 from openfly_agent.model.freeze import freeze
 from openfly_agent.model.language.lora import attach_lora
 from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
@@ -105,7 +105,7 @@ def build_agent(preset: str, device: str, vit: bool = False):
     tokenizer = train_bpe_tokenizer(instructions(64), vocab_size=1024)
     cfg = make_model_config(preset)
     if vit:
-        cfg = dataclasses.replace(cfg, vision=VisionConfig(preset="tiny", image_size=112, patch_size=14))
+        cfg = dataclasses.replace(cfg, vision=TinyVitVisionConfig(image_size=112, patch_size=14))
     if cfg.llm.preset == "tiny":
         return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device)
     with torch.device("meta"):

@@ -61,8 +61,6 @@ PIXEL_VALUES = "pixel_values"  # (B, 3, H, W) uint8, current frame
 MEMORY_PIXEL_VALUES = "memory_pixel_values"  # (B, K, S, 3, H, W) uint8, keyframe sets oldest first
 TARGET_ATTRIBUTES = "target_attributes"  # (B, 4) long: target's colour, type, size, feature ids (-1: unknown)
 # grounding batches: every visible landmark of each row's frame (expression frames; none on instruction rows)
-LANDMARK_BOXES = "landmark_boxes"  # (B, M, 4) float cxcywh; padding rows all 0
-LANDMARK_ATTRIBUTES = "landmark_attributes"  # (B, M, 4) long attribute ids as TARGET_ATTRIBUTES; padding -1
 MEMORY_FRAME_MASK = "memory_frame_mask"  # (B, K, S) bool, frame s of set k is real
 MEMORY_BOXES = "memory_boxes"  # (B, K, S, 4) float, (cx, cy, w, h) in [0, 1]
 MEMORY_BOX_VISIBLE = "memory_box_visible"  # (B, K, S) bool

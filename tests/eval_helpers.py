@@ -14,6 +14,7 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
+from openfly_agent.model.config import BinsActionHeadConfig, CellGroundingConfig, TinyVitVisionConfig
 from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
 from openfly_agent.sim.dynamics import rollout_array, step_motion
 from openfly_agent.sim.occupancy import OccupancyGrid
@@ -110,14 +111,14 @@ def generate_tiny_dataset(root, seed: int = 0) -> None:
 
 def small_agent_config():
     """The tiny model preset shrunk further (56 px, 2 blocks of width 32/48, a 2-layer LM of width 64)."""
-    from openfly_agent.model.config import GroundingConfig, LLMConfig, MemoryConfig, VisionConfig, tiny_config
+    from openfly_agent.model.config import LLMConfig, MemoryConfig, tiny_config
 
     return tiny_config(
-        vision=VisionConfig(
-            preset="tiny", image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
+        vision=TinyVitVisionConfig(
+            image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
         ),
         llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
-        grounding=GroundingConfig(dim=32, num_heads=2),
+        grounding=CellGroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
     )
 
@@ -159,7 +160,7 @@ def save_released_format_agent(folder, texts, seed: int = 0):
     from safetensors.torch import save_file
 
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.config import ActionHeadConfig, MemoryConfig, PromptConfig
+    from openfly_agent.model.config import MemoryConfig, PromptConfig
     from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
     from openfly_agent.model.persistence.openvla_loader import to_openvla_state_dict
     from openfly_agent.utils.config import config_to_dict
@@ -172,7 +173,7 @@ def save_released_format_agent(folder, texts, seed: int = 0):
         mode="openvla_compat",
         memory=MemoryConfig(capacity=2, grid=4),
         prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
-        action_head=ActionHeadConfig(type="openvla_bins", unnorm_key="vlnv1", decode_rule="nearest"),
+        action_head=BinsActionHeadConfig(unnorm_key="vlnv1", decode_rule="nearest"),
     )
     torch.manual_seed(seed)
     agent = OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer, norm_stats=NORM_STATS).eval()

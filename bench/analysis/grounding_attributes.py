@@ -211,8 +211,6 @@ class AttributeProbe:
         )
 
     def _backbone_tokens(self, pixels: torch.Tensor) -> torch.Tensor | None:
-        if self.agent.model_cfg.vision.cnn_instruction_film:
-            return None  # the tokens depend on the instruction there; not read
         return self.agent.vision_backbone(pixels)  # (B, P, C)
 
     def _pixel_stats(self, pixels: torch.Tensor) -> torch.Tensor:

@@ -208,7 +208,7 @@ def collect_target_boxes(
     if centre_window != "checkpoint":
         if not isinstance(agent.grounding_head, CellGroundingHead):
             raise ValueError(
-                f"{folder}: a centre window needs the cell grounding head (grounding.cells=true)"
+                f"{folder}: a centre window needs the cell grounding head (grounding.type=cells)"
             )
         agent.grounding_head.centre_window = centre_window
     data = stage_data(cfg, load_splits(cfg.data, cfg.model.grounding), agent)

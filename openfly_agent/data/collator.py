@@ -146,18 +146,13 @@ class GroundingCollator:
     def __call__(self, samples: Sequence[dict]) -> dict[str, torch.Tensor]:
         if not samples:
             raise ValueError("cannot collate an empty list of samples")
-        prompts, boxes, visible, frame_index, attributes, landmarks = [], [], [], [], [], []
-        none = (np.zeros((0, 4), np.float32), np.zeros((0, 4), np.int64))  # an instruction row's landmarks
+        prompts, boxes, visible, frame_index, attributes = [], [], [], [], []
         # a sequence without attributes gets -1 ids, which the attribute loss skips
         unknown = np.full(4, -1, dtype=np.int64)
         for frame, sample in enumerate(samples):
             if sample[GROUNDING_KIND] == EXPRESSION_SAMPLE:
                 count = len(sample[EXPRESSIONS])
                 attributes.extend(sample.get(C.TARGET_ATTRIBUTES, [unknown] * count))
-                if C.LANDMARK_BOXES in sample:
-                    landmarks.extend([(sample[C.LANDMARK_BOXES], sample[C.LANDMARK_ATTRIBUTES])] * count)
-                else:
-                    landmarks.extend([none] * count)
                 for expression, box in zip(sample[EXPRESSIONS], sample[BOXES]):
                     prompts.append(self.processor.grounding_prompt(expression))
                     boxes.append(np.asarray(box, dtype=np.float32))
@@ -165,7 +160,6 @@ class GroundingCollator:
                     frame_index.append(frame)
             else:
                 attributes.append(sample.get(C.TARGET_ATTRIBUTES, unknown))
-                landmarks.append(none)
                 prompts.append(self.processor.navigation_prompt(sample[C.OBS_INSTRUCTION]))
                 shown = bool(sample[C.BOX_VISIBLE])
                 boxes.append(
@@ -186,18 +180,4 @@ class GroundingCollator:
         }
         if any(C.TARGET_ATTRIBUTES in s for s in samples):
             batch[C.TARGET_ATTRIBUTES] = torch.as_tensor(np.stack(attributes), dtype=torch.long)  # (B, 4)
-        if any(C.LANDMARK_BOXES in s for s in samples):
-            batch[C.LANDMARK_BOXES], batch[C.LANDMARK_ATTRIBUTES] = padded_landmarks(landmarks)
         return batch
-
-
-def padded_landmarks(rows: list[tuple[np.ndarray, np.ndarray]]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each row's (boxes (E, 4), attribute ids (E, 4)) -> (B, M, 4) float boxes padded with 0 and (B, M, 4) long
-    ids padded with -1, M the most landmarks of a row."""
-    most = max(len(row_boxes) for row_boxes, _ in rows)
-    boxes = np.zeros((len(rows), most, 4), np.float32)
-    ids = np.full((len(rows), most, 4), -1, np.int64)
-    for k, (row_boxes, row_ids) in enumerate(rows):
-        boxes[k, : len(row_boxes)] = row_boxes
-        ids[k, : len(row_ids)] = row_ids
-    return torch.from_numpy(boxes), torch.from_numpy(ids)

@@ -93,10 +93,6 @@ class DataConfig:
         instruction_fraction: grounding stage: share of its samples that are navigation steps (instruction and
             target box) rather than referring expressions.
         expressions_per_frame: grounding stage: expressions per grounding frame in a batch (one encode each).
-        expression_area_power: grounding stage: draw a frame's expressions with probability proportional to
-            their box area to this power (0: uniform; most are far, tiny landmarks, unlike navigation targets).
-        group_by_kind: grounding stage: each micro-batch holds expression frames only or navigation steps only, so
-            the short expression prompts are not padded to the navigation instructions' length.
     """
 
     # dataset root (relative to the working directory); the toolchain writes embedded-small there
@@ -113,16 +109,12 @@ class DataConfig:
     grounding_root: str | None = None
     instruction_fraction: float = 0.25
     expressions_per_frame: int = 4
-    expression_area_power: float = 0.0
-    group_by_kind: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.instruction_fraction < 1.0:
             raise ValueError(f"data.instruction_fraction={self.instruction_fraction} must be in [0, 1)")
         if self.expressions_per_frame < 1:
             raise ValueError(f"data.expressions_per_frame={self.expressions_per_frame} must be >= 1")
-        if self.expression_area_power < 0:
-            raise ValueError(f"data.expression_area_power={self.expression_area_power} must be >= 0")
         for name in ("train_split", "val_split", "test_split"):
             value = getattr(self, name)
             if value not in C.SPLITS:

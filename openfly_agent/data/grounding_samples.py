@@ -22,19 +22,14 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
     """One sample per grounding frame: its RGB and `expressions_per_frame` of its expressions with their boxes.
 
     The expressions of a frame are drawn without replacement (all of them when it has fewer) from a generator
-    seeded by (seed, epoch, index), so a sample is reproducible and `set_epoch` shows other expressions. With
-    `area_power` p > 0 an expression is drawn with probability proportional to its box area to the power p:
-    most landmarks in a frame are far and tiny (two thirds of embedded-small's expressions cover under 2 % of
-    the frame, against 9 % of the navigation targets), and p shifts the draws toward the sizes navigation needs.
+    seeded by (seed, epoch, index), so a sample is reproducible and `set_epoch` shows other expressions.
 
     Args:
         frames: rows of the grounding dataset (`read_grounding_frames`).
         expressions_per_frame: sequences per frame (the frame is encoded once for all of them).
         seed: seed of the draws.
-        area_power: exponent of the box area in the draw weights (0: uniform).
         target_attributes: (scene id, landmark id) -> (4,) attribute ids; each sample then carries the
-            attributes of its expressions' landmarks, (k, 4) (model.grounding.attribute_weight), and the boxes
-            and attributes of every landmark of the frame, (E, 4) each (model.grounding.dense_attribute_weight).
+            attributes of its expressions' landmarks, (k, 4) (model.grounding.attribute_weight).
     """
 
     def __init__(
@@ -42,16 +37,12 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         frames: list[GroundingFrame],
         expressions_per_frame: int = 4,
         seed: int = 0,
-        area_power: float = 0.0,
         target_attributes: Callable[[str, str], np.ndarray] | None = None,
     ) -> None:
         if expressions_per_frame < 1:
             raise ValueError(f"expressions_per_frame={expressions_per_frame} must be >= 1")
-        if area_power < 0:
-            raise ValueError(f"area_power={area_power} must be >= 0")
         self.frames = [f for f in frames if f.expressions]
         self.expressions_per_frame, self.seed, self.epoch = expressions_per_frame, seed, 0
-        self.area_power = float(area_power)
         self.target_attributes = target_attributes
 
     def __len__(self) -> int:
@@ -65,7 +56,7 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         frame = self.frames[index]
         rng = np.random.default_rng([self.seed, self.epoch, index])
         count = min(self.expressions_per_frame, len(frame.expressions))
-        picks = np.sort(rng.choice(len(frame.expressions), size=count, replace=False, p=self._weights(frame)))
+        picks = np.sort(rng.choice(len(frame.expressions), size=count, replace=False))
         sample = {
             GROUNDING_KIND: EXPRESSION_SAMPLE,
             C.OBS_RGB: frame.rgb(),
@@ -77,17 +68,7 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
                 [self.target_attributes(frame.scene_id, key) for key in frame.landmark_ids]
             )  # (E, 4)
             sample[C.TARGET_ATTRIBUTES] = every[picks]  # (k, 4)
-            sample[C.LANDMARK_BOXES] = frame.boxes.astype(np.float32)  # (E, 4)
-            sample[C.LANDMARK_ATTRIBUTES] = every
         return sample
-
-    def _weights(self, frame: GroundingFrame) -> np.ndarray | None:
-        """Draw probabilities of a frame's expressions: box area ** area_power, normalised (None: uniform)."""
-        if not self.area_power:
-            return None
-        areas = np.clip(frame.boxes[:, 2] * frame.boxes[:, 3], 1e-6, None).astype(np.float64)  # (E,)
-        weights = areas**self.area_power
-        return weights / weights.sum()
 
 
 class GroundingMixture(torch.utils.data.Dataset):
@@ -123,10 +104,6 @@ class GroundingMixture(torch.utils.data.Dataset):
         self.expressions.set_epoch(epoch)
         if self.instructions is not None and hasattr(self.instructions, "set_epoch"):
             self.instructions.set_epoch(epoch)
-
-    def sample_groups(self) -> list[int]:
-        """The kind of each sample: 0 for an expression frame, 1 for a navigation step (grouped batches)."""
-        return [0] * len(self.expressions) + [1] * self.num_instructions
 
     def __getitem__(self, index: int) -> dict:
         if index < len(self.expressions):

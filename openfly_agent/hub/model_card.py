@@ -90,11 +90,11 @@ def describe_architecture(cfg: ModelConfig) -> str:
     vision = cfg.vision
     grid = f"{vision.grid_side} x {vision.grid_side} tokens per frame"
     backbones = {
-        VISION_DINOSIGLIP_224: f"the fused DINOv2 + SigLIP vision encoder (`{vision.preset}`, {vision.image_size} "
+        VISION_DINOSIGLIP_224: f"the fused DINOv2 + SigLIP vision encoder (`{vision.type}`, {vision.image_size} "
         f"px, {grid})",
-        VISION_TINY: f"two small ViTs of the DINOv2 + SigLIP structure (`{vision.preset}`, {vision.image_size} px, "
+        VISION_TINY: f"two small ViTs of the DINOv2 + SigLIP structure (`{vision.type}`, {vision.image_size} px, "
         f"{grid})",
-        VISION_TINY_CNN: f"a small ResNet vision encoder (`{vision.preset}`, {vision.image_size} px, {grid})",
+        VISION_TINY_CNN: f"a small ResNet vision encoder (`{vision.type}`, {vision.image_size} px, {grid})",
     }
     llm = cfg.llm
     language_model = (
@@ -102,7 +102,7 @@ def describe_architecture(cfg: ModelConfig) -> str:
         if llm.preset == LLM_LLAMA2_7B
         else f"a {llm.num_layers}-layer Llama-architecture causal LM of width {llm.hidden_size} (`{llm.preset}`)"
     )
-    parts = [backbones[vision.preset], "an MLP projector", language_model]
+    parts = [backbones[vision.type], "an MLP projector", language_model]
     parts.append("a landmark grounding head" if cfg.grounding.enabled else "no grounding head")
     capacity = cfg.memory.capacity
     if capacity:

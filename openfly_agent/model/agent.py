@@ -29,9 +29,15 @@ from openfly_agent.constants import (
     LABELS,
     MODEL_TYPE,
     PIXEL_VALUES,
+    TARGET_ATTRIBUTES,
 )
 from openfly_agent.model.agent_inference import ClosedLoopInference
-from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
+from openfly_agent.model.config import (
+    HEAD_DISCRETE,
+    BinsActionHeadConfig,
+    DiscreteActionHeadConfig,
+    ModelConfig,
+)
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
 from openfly_agent.model.freeze import freeze
@@ -43,7 +49,6 @@ from openfly_agent.model.grounding.box_token import (
 )
 from openfly_agent.model.grounding.head import (
     GroundingOutput,
-    grounding_labels,
     grounding_loss,
     make_grounding_head,
 )
@@ -92,7 +97,7 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             )
         self.model_cfg = cfg
         llm_dim = cfg.llm.resolved_hidden_size
-        self.vision_backbone = build_vision_backbone(cfg.vision, llm_dim)
+        self.vision_backbone = build_vision_backbone(cfg.vision)
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         self.grounding_head = (
@@ -161,8 +166,11 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
 
     def set_action_decoding(self, decode_rule: str | None = None, unnorm_key: str | None = None) -> None:
         """Change how `openvla_bins` tokens decode (rule, norm-stats profile) through the config: config.json's
-        sections, `config.action_tokenizer`, the action tokenizer and the processor all follow (None: keep)."""
+        sections, `config.action_tokenizer`, the action tokenizer and the processor all follow (None: keep). The
+        discrete head has one decoding: nothing changes."""
         head = self.model_cfg.action_head
+        if not isinstance(head, BinsActionHeadConfig):
+            return
         head = dataclasses.replace(
             head, decode_rule=decode_rule or head.decode_rule, unnorm_key=unnorm_key or head.unnorm_key
         )
@@ -182,22 +190,17 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         """(B, L) ids -> (B, L, D) input embeddings."""
         return unwrap_causal_lm(self.language_model).get_input_embeddings()(input_ids)
 
-    def encode_visual(
-        self, batch: dict[str, Any], instruction: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode_visual(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
         """Visual tokens of a training batch: memory (oldest first) then the current frame.
 
         A grounding batch may hold fewer frames than sequences: `frame_index` (B,) says which frame of
-        `pixel_values` (F, 3, H, W) each sequence reads (each frame is encoded once, or once per sequence
-        under its (B, D) `instruction` code).
+        `pixel_values` (F, 3, H, W) each sequence reads (each frame is encoded once).
 
         Returns:
             (B, M + P, D) tokens and their (B, M + P) bool mask (False on missing memory sets).
         """
-        current = self.projector(
-            self.encode_frames(batch[PIXEL_VALUES], instruction, batch.get(FRAME_INDEX))
-        )  # (B, P, D)
-        memory, memory_mask = self.encode_memory_batch(batch, instruction)  # (B, M, D), (B, M)
+        current = self.projector(self.encode_frames(batch[PIXEL_VALUES], batch.get(FRAME_INDEX)))  # (B, P, D)
+        memory, memory_mask = self.encode_memory_batch(batch)  # (B, M, D), (B, M)
         if memory.shape[0] != current.shape[0]:  # a grounding batch has no memory: one empty row per sequence
             memory = current.new_zeros(current.shape[0], 0, current.shape[-1])  # (B, 0, D)
             memory_mask = torch.zeros(current.shape[0], 0, dtype=torch.bool, device=current.device)
@@ -238,10 +241,7 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         labels = batch.get(LABELS)
         if labels is None:
             labels = torch.full_like(input_ids, IGNORE_INDEX)
-        prompt = batch[ATTENTION_MASK].bool() & (labels == IGNORE_INDEX)  # BOS + prompt, never the targets
-        visual, visual_mask = self.encode_visual(
-            batch, self.instruction_code(input_ids[:, 1:], prompt[:, 1:])
-        )
+        visual, visual_mask = self.encode_visual(batch)
         embeds, mask, labels = splice_after_bos(
             self.embed_text(input_ids), batch[ATTENTION_MASK], labels, visual, visual_mask
         )  # [BOS] [memory] [current] [prompt] [action]: (B, L', D), (B, L'), (B, L')
@@ -276,7 +276,7 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             )
             targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
             g_loss, g_logs = grounding_loss(
-                output, *targets, self.model_cfg.grounding, *grounding_labels(batch)
+                output, *targets, self.model_cfg.grounding, batch.get(TARGET_ATTRIBUTES)
             )
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
             logs.update(g_logs, grounding_loss=float(g_loss.detach()))
@@ -312,7 +312,8 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             raise ValueError("batch has no labelled action token: labels are all -100")
         logits = self.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
         target = targets[selected]  # (n,)
-        stop_weight = self.model_cfg.action_head.stop_loss_weight
+        head = self.model_cfg.action_head
+        stop_weight = head.stop_loss_weight if isinstance(head, DiscreteActionHeadConfig) else 1.0
         if stop_weight == 1.0:
             loss = F.cross_entropy(logits, target)
         else:  # a weighted mean: STOP-labelled steps count stop_weight times (discrete head, config-checked)

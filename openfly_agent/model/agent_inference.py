@@ -57,12 +57,7 @@ class ClosedLoopInference:
         states = [self._episode_state(obs[EPISODE_ID], obs[OBS_INSTRUCTION]) for obs in observations]
         device = self.projector.fc1.weight.device
         pixels = torch.stack([self.processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
-        instruction = self.episode_instruction_code([state.prompt_ids for state in states], device)  # (B, D)
-        patches, dino_cls = (
-            self.vision_backbone.forward_with_cls(pixels)
-            if instruction is None
-            else (self.vision_backbone(pixels, instruction), None)
-        )  # (B, P, D_v), (B, D_dino) or None
+        patches, dino_cls = self.vision_backbone.forward_with_cls(pixels)  # (B, P, D_v), (B, D_dino) or None
         current = self.projector(patches)  # (B, P, D)
         compat = self.model_cfg.mode == MODE_OPENVLA_COMPAT
         own_history = self.history_tokens(patches, dino_cls) if compat else None  # (B, D)

@@ -1,6 +1,8 @@
 """Typed configuration of the OpenFly-Agent model: one nested dataclass per component, plus the presets.
 
-Leaf module (stdlib + constants only) so run configs can compose it without importing torch.
+Leaf module (stdlib, draccus and constants only) so run configs can compose it without importing torch. The
+vision backbone, the grounding head and the action head are registered choices (draccus `ChoiceRegistry`): the
+section's `type` names the variant, and each variant has only its own fields.
 """
 
 from __future__ import annotations
@@ -8,24 +10,30 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
+from draccus import ChoiceRegistry
+
 from openfly_agent.model.config_checks import check_choice, check_positive, fill_tiny_fields
-from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.grounding.config import (
+    GROUNDING_BOX,
+    GROUNDING_CELLS,
+    BoxGroundingConfig,
+    CellGroundingConfig,
+    GroundingConfig,
+)
 from openfly_agent.model.vision.config import (
-    CNN_INIT_NORMAL,
-    CNN_INIT_TIMM,
-    CNN_INITS,
     CNN_STEM_PATCH4,
     CNN_STEMS,
     CNN_STRIDE,
     DINOSIGLIP_TIMM_IDS,
     DINOSIGLIP_WIDTHS,
     RESIZE_MODES,
-    TINY_CNN_VISION,
-    TINY_VISION,
     VISION_DINOSIGLIP_224,
     VISION_PRESETS,
     VISION_TINY,
     VISION_TINY_CNN,
+    DinoSiglipVisionConfig,
+    TinyCnnVisionConfig,
+    TinyVitVisionConfig,
     VisionConfig,
 )
 
@@ -194,46 +202,70 @@ class MemoryConfig:
 
 
 @dataclass
-class ActionHeadConfig:
-    """Action tokens: `discrete` (one token per step) or `openvla_bins` (8 dims x 256 bins, OpenVLA format).
+class ActionHeadConfig(ChoiceRegistry):
+    """Action tokens: `type` picks `discrete` (one token per step, `DiscreteActionHeadConfig`, the default) or
+    `openvla_bins` (8 dims x 256 bins, OpenVLA format, `BinsActionHeadConfig`).
 
     Both use the 256 ids just below `vocab_end` (None = llm vocab size). The discrete head maps action a to id
     `vocab_end - 256 + a`; the bins head maps bin b (1..256) to `vocab_end - b` as OpenVLA does.
-
-    `box_token` (None: on exactly when the head is discrete and the grounding head enabled; the 7B presets set
-    it off to keep the paper's layout): the grounding head's box of the target, embedded as one more
-    input token after the prompt, is what the action is read at, so the action is conditioned on where the
-    target is (a grounded chain of thought, as ECoT's bounding boxes before the action). Training embeds the
-    ground-truth box jittered by `box_token_jitter`; inference the predicted one (docs/ARCHITECTURE.md).
     """
 
-    type: str = HEAD_DISCRETE
     n_bins: int = NUM_ACTION_SLOTS
-    decode_rule: str = DECODE_EXACT  # openvla_bins: exact (official: exact match else STOP) | nearest
-    unnorm_key: str | None = None  # which entry of norm_stats un-normalises the bins (None: the only one)
     vocab_end: int | None = None
-    # the action is read at an embedded-box token after the prompt (None: when discrete with grounding)
-    box_token: bool | None = None
-    box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
-    # weight of the STOP-labelled steps in the action cross-entropy (discrete head; 1.0: plain cross-entropy)
-    stop_loss_weight: float = 1.0
+
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return HEAD_DISCRETE
+
+    @property
+    def type(self) -> str:
+        """The registered name of this head (`discrete`, `openvla_bins`)."""
+        return self.get_choice_name(type(self))
 
     def __post_init__(self) -> None:
-        check_choice("action_head", "type", self.type, ACTION_HEADS)
-        check_choice("action_head", "decode_rule", self.decode_rule, DECODE_RULES)
         if self.n_bins != NUM_ACTION_SLOTS:
             raise ValueError(f"action_head.n_bins={self.n_bins}: only {NUM_ACTION_SLOTS} bins are supported")
         if self.vocab_end is not None and self.vocab_end < NUM_ACTION_SLOTS:
             raise ValueError(f"action_head.vocab_end={self.vocab_end} must be >= {NUM_ACTION_SLOTS}")
+
+
+@ActionHeadConfig.register_subclass(HEAD_DISCRETE)
+@dataclass
+class DiscreteActionHeadConfig(ActionHeadConfig):
+    """`discrete`: one token per step.
+
+    `box_token` (None: on exactly when the grounding head is enabled; the 7B presets set it off to keep the
+    paper's layout): the grounding head's box of the target, embedded as one more input token after the prompt,
+    is what the action is read at, so the action is conditioned on where the target is (a grounded chain of
+    thought, as ECoT's bounding boxes before the action). Training embeds the ground-truth box jittered by
+    `box_token_jitter`; inference the predicted one (docs/ARCHITECTURE.md).
+    """
+
+    # the action is read at an embedded-box token after the prompt (None: when the grounding head is enabled)
+    box_token: bool | None = None
+    box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
+    # weight of the STOP-labelled steps in the action cross-entropy (1.0: plain cross-entropy)
+    stop_loss_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
         if self.box_token_jitter < 0:
             raise ValueError(f"action_head.box_token_jitter={self.box_token_jitter} must be >= 0")
         if self.stop_loss_weight <= 0:
             raise ValueError(f"action_head.stop_loss_weight={self.stop_loss_weight} must be > 0")
-        if self.stop_loss_weight != 1.0 and self.type != HEAD_DISCRETE:
-            raise ValueError(
-                "action_head.stop_loss_weight weights the one STOP token of the discrete head: "
-                f"set action_head.type={HEAD_DISCRETE} or leave the weight at 1.0"
-            )
+
+
+@ActionHeadConfig.register_subclass(HEAD_OPENVLA_BINS)
+@dataclass
+class BinsActionHeadConfig(ActionHeadConfig):
+    """`openvla_bins`: 8 action dims x 256 bins, decoded greedily and un-normalised with a norm-stats profile."""
+
+    decode_rule: str = DECODE_EXACT  # exact (official: exact match else STOP) | nearest
+    unnorm_key: str | None = None  # which entry of norm_stats un-normalises the bins (None: the only one)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_choice("action_head", "decode_rule", self.decode_rule, DECODE_RULES)
 
 
 @dataclass
@@ -241,15 +273,15 @@ class ModelConfig:
     """Everything that defines an OpenFly-Agent network (serialised inside config.json)."""
 
     mode: str = MODE_OPENFLY  # openfly | openvla_compat (the released checkpoint's forward)
-    vision: VisionConfig = field(default_factory=VisionConfig)
+    vision: VisionConfig = field(default_factory=TinyCnnVisionConfig)
     projector: ProjectorConfig = field(default_factory=ProjectorConfig)
     llm: LLMConfig = field(default_factory=LLMConfig)
     prompt: PromptConfig = field(default_factory=PromptConfig)
-    grounding: GroundingConfig = field(default_factory=GroundingConfig)
+    grounding: GroundingConfig = field(default_factory=CellGroundingConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     merging: MergingConfig = field(default_factory=MergingConfig)
     memory: MemoryConfig = field(default_factory=MemoryConfig)
-    action_head: ActionHeadConfig = field(default_factory=ActionHeadConfig)
+    action_head: ActionHeadConfig = field(default_factory=DiscreteActionHeadConfig)
 
     def __post_init__(self) -> None:
         check_choice("model", "mode", self.mode, MODES)
@@ -267,14 +299,14 @@ class ModelConfig:
             raise ValueError(
                 f"mode=openvla_compat summarises each history frame in one token: set memory.grid={side}"
             )
-        if self.action_head.box_token and not self._box_token_possible:
+        if self.uses_box_token and not self.grounding.enabled:
             raise ValueError(
                 "action_head.box_token reads the action at the grounding head's box: it needs "
-                "action_head.type=discrete and grounding.enabled=true (or set action_head.box_token=false)"
+                "grounding.enabled=true (or set action_head.box_token=false)"
             )
-        if self.mode == MODE_OPENVLA_COMPAT and self.vision.preset == VISION_TINY_CNN:
+        if self.mode == MODE_OPENVLA_COMPAT and self.vision.type == VISION_TINY_CNN:
             raise ValueError(
-                "mode=openvla_compat reproduces the released ViT backbone: not vision.preset=tiny-cnn"
+                "mode=openvla_compat reproduces the released ViT backbone: not vision.type=tiny-cnn"
             )
         vocab = self.llm.vocab_size
         if (
@@ -294,15 +326,13 @@ class ModelConfig:
         return (self.vision.grid_side // self.memory.grid) ** 2
 
     @property
-    def _box_token_possible(self) -> bool:
-        return self.action_head.type == HEAD_DISCRETE and self.grounding.enabled
-
-    @property
     def uses_box_token(self) -> bool:
-        """`action_head.box_token`, with None resolved: on when the head is discrete and grounding enabled."""
-        if self.action_head.box_token is None:
-            return self._box_token_possible
-        return self.action_head.box_token
+        """`action_head.box_token` of the discrete head, with None resolved: on when grounding is enabled; never
+        with the bins head."""
+        head = self.action_head
+        if not isinstance(head, DiscreteActionHeadConfig):
+            return False
+        return self.grounding.enabled if head.box_token is None else head.box_token
 
     def visual_tokens_per_step(self, num_memory_sets: int | None = None) -> int:
         """P current-frame tokens + memory tokens (K full sets by default): 256 + 2 = 258 for 7B."""
@@ -324,7 +354,7 @@ def tiny_config(**overrides) -> ModelConfig:
 def openfly_7b_config(**overrides) -> ModelConfig:
     """The paper's model: dinosiglip-224px + llama2-7b, K = 2, g = 16 (256 + 2 visual tokens per step)."""
     cfg = ModelConfig(
-        vision=VisionConfig(preset=VISION_DINOSIGLIP_224, image_size=224, patch_size=14),
+        vision=DinoSiglipVisionConfig(),
         llm=LLMConfig(
             preset=LLM_LLAMA2_7B,
             vocab_size=LLAMA2_PADDED_VOCAB,
@@ -332,8 +362,8 @@ def openfly_7b_config(**overrides) -> ModelConfig:
             length_groups=1,
         ),
         prompt=PromptConfig(),
-        action_head=ActionHeadConfig(vocab_end=LLAMA2_TOKENIZER_VOCAB, box_token=False),
-        grounding=GroundingConfig(dim=256, num_heads=8, cells=False),
+        action_head=DiscreteActionHeadConfig(vocab_end=LLAMA2_TOKENIZER_VOCAB, box_token=False),
+        grounding=BoxGroundingConfig(dim=256, num_heads=8),
         memory=MemoryConfig(capacity=2, grid=16),
     )
     return dataclasses.replace(cfg, **overrides)
@@ -344,12 +374,8 @@ def openvla_compat_7b_config(**overrides) -> ModelConfig:
     cfg = openfly_7b_config(
         mode=MODE_OPENVLA_COMPAT,
         prompt=PromptConfig(template="{instruction}", suffix_token_id=29871),
-        action_head=ActionHeadConfig(
-            type=HEAD_OPENVLA_BINS,
-            vocab_end=LLAMA2_TOKENIZER_VOCAB,
-            decode_rule=DECODE_EXACT,
-            unnorm_key="vlnv1",
-            box_token=False,
+        action_head=BinsActionHeadConfig(
+            vocab_end=LLAMA2_TOKENIZER_VOCAB, decode_rule=DECODE_EXACT, unnorm_key="vlnv1"
         ),
     )
     return dataclasses.replace(cfg, **overrides)
@@ -370,22 +396,24 @@ def make_model_config(preset: str, **overrides) -> ModelConfig:
 
 
 __all__ = [  # the vision section's names are re-exported: model.config is the one place to import config from
-    "CNN_INITS",
-    "CNN_INIT_NORMAL",
-    "CNN_INIT_TIMM",
     "CNN_STEMS",
     "CNN_STEM_PATCH4",
     "CNN_STRIDE",
     "DINOSIGLIP_TIMM_IDS",
     "DINOSIGLIP_WIDTHS",
+    "GROUNDING_BOX",
+    "GROUNDING_CELLS",
     "RESIZE_MODES",
-    "TINY_CNN_VISION",
-    "TINY_VISION",
     "VISION_DINOSIGLIP_224",
     "VISION_PRESETS",
     "VISION_TINY",
     "VISION_TINY_CNN",
     "ActionHeadConfig",
+    "BinsActionHeadConfig",
+    "BoxGroundingConfig",
+    "CellGroundingConfig",
+    "DinoSiglipVisionConfig",
+    "DiscreteActionHeadConfig",
     "GroundingConfig",
     "KeyframeConfig",
     "LLMConfig",
@@ -394,6 +422,8 @@ __all__ = [  # the vision section's names are re-exported: model.config is the o
     "ModelConfig",
     "ProjectorConfig",
     "PromptConfig",
+    "TinyCnnVisionConfig",
+    "TinyVitVisionConfig",
     "VisionConfig",
     "make_model_config",
 ]

@@ -1,4 +1,5 @@
-"""Value checks shared by the model config sections (model/config.py, model/vision/config.py); stdlib only."""
+"""Value checks shared by the model config sections (model/config.py, model/vision/config.py, model/grounding/config.py);
+stdlib only."""
 
 from __future__ import annotations
 

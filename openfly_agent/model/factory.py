@@ -6,10 +6,12 @@ import dataclasses
 import logging
 
 from openfly_agent.model.config import (
+    DECODE_EXACT,
     HEAD_DISCRETE,
     LLAMA2_PADDED_VOCAB,
     LLM_LLAMA2_7B,
     NUM_ACTION_SLOTS,
+    BinsActionHeadConfig,
     ModelConfig,
 )
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer, select_action_stats
@@ -32,7 +34,7 @@ def make_action_tokenizer(cfg: ModelConfig, norm_stats: dict | None) -> ActionTo
         vocab_end=head.vocab_end or cfg.llm.vocab_size,
         eos_token_id=cfg.llm.eos_token_id,
         action_stats=action_stats_of(cfg, norm_stats),
-        decode_rule=head.decode_rule,
+        decode_rule=head.decode_rule if isinstance(head, BinsActionHeadConfig) else DECODE_EXACT,
     )
 
 

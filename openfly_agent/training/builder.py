@@ -24,7 +24,13 @@ from openfly_agent.data.grounding import read_grounding_expressions
 from openfly_agent.data.schema import Episode
 from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.config import HEAD_OPENVLA_BINS, LLM_TINY, GroundingConfig, ModelConfig
+from openfly_agent.model.config import (
+    HEAD_OPENVLA_BINS,
+    LLM_TINY,
+    CellGroundingConfig,
+    GroundingConfig,
+    ModelConfig,
+)
 from openfly_agent.model.language.tokenizer import load_tokenizer, train_bpe_tokenizer
 from openfly_agent.model.persistence.checkpoint_path import (
     UnreadableWeightsError,
@@ -108,8 +114,8 @@ def load_splits(data: DataConfig, grounding: GroundingConfig) -> Splits:
 
 def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttributes | None:
     """The target attributes' lookup of the dataset at `data_root` when the grounding head learns them
-    (`model.grounding.attribute_weight`)."""
-    if not (grounding.enabled and grounding.attribute_weight):
+    (`model.grounding.attribute_weight`, the cells head's)."""
+    if not (isinstance(grounding, CellGroundingConfig) and grounding.enabled and grounding.attribute_weight):
         return None
     if list(grounding.attribute_classes) != vocabulary_sizes():
         raise PreflightError(

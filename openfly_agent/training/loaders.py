@@ -11,7 +11,7 @@ from torch.utils.data import DataLoader
 
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.training.config import TrainConfig
-from openfly_agent.training.sampler import EpochShuffleSampler, GroupedShuffleSampler
+from openfly_agent.training.sampler import EpochShuffleSampler
 from openfly_agent.training.state import TrainerState
 
 logger = logging.getLogger(__name__)
@@ -20,16 +20,8 @@ logger = logging.getLogger(__name__)
 def make_train_loader(
     dataset: NavigationStepDataset, collate_fn, cfg: TrainConfig
 ) -> tuple[DataLoader, EpochShuffleSampler]:
-    """Per-device micro-batches in the order of an `EpochShuffleSampler` (seed, epoch, global batch); with
-    `data.group_by_kind` and a dataset that names its samples' kinds (`sample_groups`), a
-    `GroupedShuffleSampler` whose micro-batches each hold one kind."""
-    groups = getattr(dataset, "sample_groups", None) if cfg.data.group_by_kind else None
-    if groups is not None:
-        sampler = GroupedShuffleSampler(
-            groups(), cfg.batch.per_device_batch_size, cfg.batch.global_batch_size, cfg.seed
-        )
-    else:
-        sampler = EpochShuffleSampler(len(dataset), cfg.batch.global_batch_size, cfg.seed)
+    """Per-device micro-batches in the order of an `EpochShuffleSampler` (seed, epoch, global batch)."""
+    sampler = EpochShuffleSampler(len(dataset), cfg.batch.global_batch_size, cfg.seed)
     loader = DataLoader(
         dataset,
         batch_size=cfg.batch.per_device_batch_size,

@@ -79,7 +79,6 @@ def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
         frames,
         data.expressions_per_frame,
         seed=cfg.seed,
-        area_power=data.expression_area_power,
         target_attributes=splits.attributes,
     )
     targets = {

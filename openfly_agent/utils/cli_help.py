@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from functools import lru_cache
 from typing import Any
 
-from openfly_agent.utils.cli_options import CONFIG_FLAG, config_path_of, nested_class, type_hints
+from openfly_agent.utils.cli_options import CONFIG_FLAG, choices_of, config_path_of, nested_class, type_hints
 from openfly_agent.utils.config import parse_config
 
 HELP_FLAGS = ("-h", "--help")
@@ -167,6 +167,8 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
         value = getattr(config, f.name, None) if config is not None else None
         sub = nested_class(hints.get(f.name))
         if sub is not None:
+            if choices_of(sub) and value is not None:  # the chosen variant's fields
+                sub = type(value)
             nested.append((f, sub, value))
             continue
         text = docs.get(f.name, "")
@@ -178,6 +180,11 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
         title = f"{prefix}{f.name}"
         summary = field_docs(cls).get(f.name) or class_summary(sub)
         out += ["", *textwrap.wrap(f"{title}: {summary}" if summary else f"{title}:", WIDTH)]
+        registry = next((c for c in sub.__mro__ if "_choice_registry" in vars(c)), None)
+        if registry is not None:  # a registered choice: its variant, then that variant's own fields
+            names = ", ".join(registry.get_known_choices())
+            text = f"the variant: {names}; each has only its own fields (default: {value.type})"
+            out += [line.replace(_NBSP, " ") for line in _flag_lines(f"--{title}.type STR", text)]
         out += _section_lines(sub, value, prefix=title + ".")
     return out
 

@@ -44,7 +44,8 @@ def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
     """{dotted option: takes any sub-key} for every field of `cls` and its nested sections.
 
     A section (`optim`) is an option too: draccus reads `--optim=<yaml file>`. Fields typed `dict` accept any
-    sub-key.
+    sub-key. A registered-choice section has `type` and the fields of every variant (draccus refuses those of
+    another variant than the chosen one).
     """
     options: dict[str, bool] = {}
     hints = type_hints(cls)
@@ -54,8 +55,18 @@ def known_options(cls: type, prefix: str = "") -> dict[str, bool]:
         origin = typing.get_origin(hints.get(f.name))
         options[name] = origin is dict or hints.get(f.name) is dict
         if nested is not None:
-            options.update(known_options(nested, prefix=name + "."))
+            variants = choices_of(nested)
+            if variants:
+                options[name + ".type"] = False
+            for section in variants.values() or [nested]:
+                options.update(known_options(section, prefix=name + "."))
     return options
+
+
+def choices_of(cls: type) -> dict[str, type]:
+    """The registered variants of a section typed by a draccus choice registry (`vision: {type: tiny}`), else {}."""
+    known = getattr(cls, "get_known_choices", None)
+    return dict(known()) if known is not None else {}
 
 
 def _option_hint(cls: type, name: str) -> Any:

@@ -30,8 +30,6 @@ def test_bad_values_say_what_to_change():
         HistoryConfig(mode="latest")
     with pytest.raises(ValueError, match="num_workers=-1"):
         DataConfig(num_workers=-1)
-    with pytest.raises(ValueError, match="expression_area_power=-0.5"):
-        DataConfig(expression_area_power=-0.5)
 
 
 def test_make_step_dataset(tmp_path):

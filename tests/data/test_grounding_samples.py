@@ -33,27 +33,6 @@ def _frame(index: int, count: int) -> GroundingFrame:
     )  # fmt: skip
 
 
-def test_area_power_draws_expressions_in_proportion_to_their_box_area():
-    frame = _frame(0, 3)
-    frame.boxes[:, 2:] = [[0.1, 0.1], [0.1, 0.3], [0.3, 0.2]]  # areas 0.01, 0.03, 0.06
-    uniform = GroundingFrameDataset([frame], expressions_per_frame=1)
-    assert uniform._weights(frame) is None
-    by_area = GroundingFrameDataset([frame], expressions_per_frame=1, seed=3, area_power=1.0)
-    np.testing.assert_allclose(by_area._weights(frame), [0.1, 0.3, 0.6])
-    np.testing.assert_allclose(
-        GroundingFrameDataset([frame], area_power=0.5)._weights(frame),
-        np.sqrt([1, 3, 6]) / np.sqrt([1, 3, 6]).sum(),
-    )
-    counts = np.zeros(3)
-    for epoch in range(2000):
-        by_area.set_epoch(epoch)
-        counts[int(by_area[0][EXPRESSIONS][0].rsplit(" ", 1)[1])] += 1
-    np.testing.assert_allclose(counts / counts.sum(), [0.1, 0.3, 0.6], atol=0.03)
-    assert len(GroundingFrameDataset([frame], expressions_per_frame=5, area_power=1.0)[0][EXPRESSIONS]) == 3
-    with pytest.raises(ValueError, match="area_power"):
-        GroundingFrameDataset([frame], area_power=-1.0)
-
-
 class _Steps:
     """A stand-in for a navigation step dataset: instruction, frame, target box."""
 
@@ -158,27 +137,3 @@ def test_attributes_follow_each_expression_and_unknown_rows_are_minus_one():
     assert batch[C.TARGET_ATTRIBUTES].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0], [-1, -1, -1, -1]]
     plain = GroundingCollator(_Processor())([GroundingFrameDataset([_frame(3, 2)], 3)[0]])
     assert C.TARGET_ATTRIBUTES not in plain  # no lookup, no key: the loss then has no attribute term
-
-
-def test_every_landmark_of_the_frame_reaches_each_of_its_rows_and_instruction_rows_have_none():
-    def lookup(scene_id: str, landmark_id: str) -> np.ndarray:
-        k = int(landmark_id.removeprefix("lm"))
-        return np.array([k, k + 1, 0, 0], dtype=np.int64)
-
-    expressions = GroundingFrameDataset([_frame(3, 2), _frame(4, 3)], 2, seed=1, target_attributes=lookup)
-    wide = expressions[1]  # two of the three expressions drawn; all three landmarks carried
-    assert wide[C.LANDMARK_ATTRIBUTES].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0], [2, 3, 0, 0]]
-    np.testing.assert_allclose(wide[C.LANDMARK_BOXES], _frame(4, 3).boxes)
-    instruction = GroundingMixture(expressions, _Steps(2), 0.5)[3]
-    batch = GroundingCollator(_Processor())([expressions[0], wide, instruction])
-    boxes, ids = batch[C.LANDMARK_BOXES], batch[C.LANDMARK_ATTRIBUTES]
-    assert boxes.shape == (5, 3, 4) and ids.shape == (5, 3, 4)  # 2 + 2 + 1 rows, padded to 3 landmarks
-    assert ids[0].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0], [-1, -1, -1, -1]]  # frame 3 has 2 landmarks
-    assert (
-        ids[1].tolist() == ids[0].tolist()
-        and ids[2].tolist() == ids[3].tolist() == wide[C.LANDMARK_ATTRIBUTES].tolist()
-    )
-    assert ids[4].tolist() == [[-1] * 4] * 3 and boxes[4].abs().sum() == 0  # the instruction row: none
-    assert boxes[0, 2].abs().sum() == 0  # padding boxes are empty
-    plain = GroundingCollator(_Processor())([GroundingFrameDataset([_frame(3, 2)], 3)[0]])
-    assert C.LANDMARK_BOXES not in plain

@@ -7,6 +7,8 @@ import dataclasses
 import pytest
 import torch
 
+from openfly_agent.model.config import CellGroundingConfig, TinyVitVisionConfig
+
 INSTRUCTIONS = [
     "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower.",
     "Ascend above the white house and stop near the blue dome.",
@@ -24,14 +26,14 @@ def tiny_tokenizer(tmp_path_factory):
 
 def small_config(**overrides):
     """The tiny preset shrunk further (2 blocks of width 32/48 at 56 px, 4x4 patches) for fast tests."""
-    from openfly_agent.model.config import GroundingConfig, LLMConfig, MemoryConfig, VisionConfig, tiny_config
+    from openfly_agent.model.config import LLMConfig, MemoryConfig, tiny_config
 
     cfg = tiny_config(
-        vision=VisionConfig(
-            preset="tiny", image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
+        vision=TinyVitVisionConfig(
+            image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
         ),
         llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
-        grounding=GroundingConfig(dim=32, num_heads=2),
+        grounding=CellGroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
     )
     return dataclasses.replace(cfg, **overrides)
@@ -50,24 +52,6 @@ def make_agent(tiny_tokenizer):
         return agent.eval()
 
     return _make
-
-
-@pytest.fixture
-def record_instruction_codes():
-    """Factory: wrap an agent's vision backbone so that each instruction code it is called with is appended,
-    in call order, to the returned list (the backbone still computes its features)."""
-
-    def _record(agent) -> list[torch.Tensor]:
-        codes, forward = [], agent.vision_backbone.forward
-
-        def spy(pixels, code, index=None):
-            codes.append(code)
-            return forward(pixels, code, index)
-
-        agent.vision_backbone.forward = spy
-        return codes
-
-    return _record
 
 
 @pytest.fixture

@@ -9,15 +9,19 @@ import pytest
 
 from openfly_agent.model.config import (
     LLAMA2_7B_ARCH,
-    TINY_CNN_VISION,
     TINY_LLM,
-    TINY_VISION,
+    BoxGroundingConfig,
+    CellGroundingConfig,
+    DinoSiglipVisionConfig,
     LLMConfig,
     MemoryConfig,
     ModelConfig,
+    TinyCnnVisionConfig,
+    TinyVitVisionConfig,
     VisionConfig,
     make_model_config,
     openfly_7b_config,
+    openvla_compat_7b_config,
     tiny_config,
 )
 from openfly_agent.utils.config import config_from_dict, config_to_dict, load_yaml_config
@@ -60,32 +64,53 @@ def test_validation_messages_say_what_to_change():
     with pytest.raises(ValueError, match="multiple of vision.patch_size"):
         VisionConfig(image_size=100, patch_size=14)
     with pytest.raises(ValueError, match="dinosiglip-224px needs image_size=224"):
-        VisionConfig(preset="dinosiglip-224px", image_size=112)
+        DinoSiglipVisionConfig(image_size=112)
     with pytest.raises(ValueError, match="action_head.type=openvla_bins"):
         tiny_config(mode="openvla_compat")
     with pytest.raises(ValueError, match="unknown model preset"):
         make_model_config("huge")
 
 
-def test_tiny_only_fields_are_filled_for_tiny_and_rejected_for_7b():
+def test_each_vision_variant_has_only_its_own_fields():
     tiny = tiny_config()
-    assert {name: getattr(tiny.vision, name) for name in TINY_CNN_VISION} == TINY_CNN_VISION
-    assert all(getattr(tiny.vision, name) is None for name in TINY_VISION)  # the ViT sizes: not the CNN's
-    vit = VisionConfig(preset="tiny", image_size=112, patch_size=14)
-    assert {name: getattr(vit, name) for name in TINY_VISION} == TINY_VISION
-    with pytest.raises(ValueError, match=r"vision.width=96 is read by the tiny preset only"):
-        VisionConfig(width=96)  # tiny-cnn
-    assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
+    assert type(tiny.vision) is TinyCnnVisionConfig and tiny.vision.type == "tiny-cnn"
+    assert tiny.vision.cnn_channels == [32, 64, 96, 128] and not hasattr(tiny.vision, "width")
+    vit = TinyVitVisionConfig(image_size=112, patch_size=14, width=64, num_heads=2)
+    assert (vit.type, vit.fused_width, vit.depth) == ("tiny", 128, 3)  # unset: the variant's defaults
+    assert vit.featurizer_widths == (64, 128) and not hasattr(vit, "cnn_channels")
+    with pytest.raises(TypeError, match="width"):
+        TinyCnnVisionConfig(width=96)
     big = openfly_7b_config()
-    assert all(getattr(big.vision, name) is None for name in TINY_VISION)
+    assert big.vision == DinoSiglipVisionConfig() and big.vision.feature_dim == 2176
+    with pytest.raises(TypeError, match="depth"):
+        DinoSiglipVisionConfig(depth=24)
+    assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
     assert all(getattr(big.llm, name) is None for name in TINY_LLM)
     assert big.llm.resolved_hidden_size == LLAMA2_7B_ARCH["hidden_size"] == 4096
     with pytest.raises(ValueError, match=r"llm.hidden_size=4096 is read by the tiny preset only.*remove"):
         LLMConfig(preset="llama2-7b", hidden_size=4096)
-    with pytest.raises(ValueError, match=r"vision.depth=24 is read by the tiny preset only"):
-        VisionConfig(preset="dinosiglip-224px", image_size=224, depth=24)
-    vit = VisionConfig(preset="tiny", image_size=112, patch_size=14, width=64, num_heads=2)
-    assert vit.fused_width == TINY_VISION["fused_width"]  # unset: the default
+
+
+def test_the_variants_serialise_under_type_and_parse_from_yaml_and_flags(tmp_path):
+    from openfly_agent.utils.config import load_yaml_config
+
+    cfg = openvla_compat_7b_config()
+    data = config_to_dict(cfg)
+    assert data["vision"]["type"] == "dinosiglip-224px" and data["grounding"] == {
+        "type": "box",
+        **data["grounding"],
+    }
+    assert data["action_head"]["type"] == "openvla_bins" and "box_token" not in data["action_head"]
+    assert config_from_dict(ModelConfig, data) == cfg
+    path = tmp_path / "model.yaml"
+    path.write_text("vision: {type: tiny, image_size: 112, patch_size: 14}\ngrounding: {type: box}\n")
+    parsed = load_yaml_config(ModelConfig, path, ["--grounding.dim=64", "--vision.depth=4"])
+    assert parsed.vision == TinyVitVisionConfig(image_size=112, patch_size=14, depth=4)
+    assert parsed.grounding == BoxGroundingConfig(dim=64)
+    flags = ["--vision.type=tiny-cnn", "--vision.image_size=128", "--vision.patch_size=16"]
+    assert (
+        load_yaml_config(ModelConfig, path, flags).vision == TinyCnnVisionConfig()
+    )  # the ResNet's own defaults
 
 
 def test_config_json_of_older_7b_checkpoints_still_loads():
@@ -94,9 +119,53 @@ def test_config_json_of_older_7b_checkpoints_still_loads():
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
     old = config_to_dict(openfly_7b_config())
-    old["vision"].update(TINY_VISION)
     old["llm"].update(TINY_LLM)
     assert OpenFlyAgentConfig(agent=old).model_config == openfly_7b_config()
     old["llm"]["hidden_size"] = 64
     with pytest.raises(ValueError, match="llm.hidden_size=64 is read by the tiny preset only"):
         OpenFlyAgentConfig(agent=old)
+
+
+# The model sections of a config.json written before issue 40 (`agent` of the tiny run's step-50 checkpoint, the
+# sections the upgrade changes): flat vision and grounding sections with every variant's fields and the deleted
+# switches at their off values.
+OLD_AGENT = {
+    "action_head": {
+        "box_token": None, "box_token_jitter": 0.05, "decode_rule": "exact", "n_bins": 256,
+        "stop_loss_weight": 1.0, "type": "discrete", "unnorm_key": None, "vocab_end": 810,
+    },
+    "grounding": {
+        "attribute_classes": [12, 6, 3, 8], "attribute_match": False, "attribute_weight": 0.0,
+        "cell_fusion_layers": 0, "cell_weight": 1.0, "cells": True, "centre_window": 1,
+        "dense_attribute_weight": 0.0, "dim": 128, "enabled": True, "l1_weight": 1.0, "loss_weight": 1.0,
+        "num_heads": 4, "num_layers": 3, "num_queries": 1, "subcells": 1, "visibility_weight": 0.5,
+        "visual_skip": False,
+    },
+    "llm": {"vocab_size": 810, "pad_token_id": 3},
+    "vision": {
+        "cnn_channels": [32, 64, 96, 128], "cnn_colour_stats": False, "cnn_fine_fusion": False,
+        "cnn_init": "normal", "cnn_instruction_film": False, "cnn_stem": "resnet", "cnn_stem_width": 16,
+        "depth": None, "fused_width": None, "image_size": 128, "num_heads": None, "patch_size": 16,
+        "preset": "tiny-cnn", "resize": "bicubic", "width": None,
+    },
+}  # fmt: skip
+
+
+def test_an_old_flat_config_json_loads_as_its_variants():
+    from openfly_agent.model.config import DiscreteActionHeadConfig, LLMConfig
+    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    cfg = OpenFlyAgentConfig(agent=OLD_AGENT).model_config
+    assert cfg.vision == TinyCnnVisionConfig()
+    assert cfg.grounding == CellGroundingConfig()
+    assert cfg.action_head == DiscreteActionHeadConfig(vocab_end=810)
+    assert cfg.llm == LLMConfig(vocab_size=810, pad_token_id=3)
+    upgraded = upgraded_model_dict(OLD_AGENT)
+    assert upgraded["vision"]["type"] == "tiny-cnn" and upgraded["grounding"]["type"] == "cells"
+    assert upgraded_model_dict(upgraded) == upgraded  # today's layout passes unchanged
+    box = {**OLD_AGENT, "grounding": {**OLD_AGENT["grounding"], "cells": False, "dim": 256, "num_heads": 8}}
+    assert OpenFlyAgentConfig(agent=box).model_config.grounding == BoxGroundingConfig(dim=256, num_heads=8)
+    on = {**OLD_AGENT, "grounding": {**OLD_AGENT["grounding"], "attribute_match": True}}
+    with pytest.raises(RetiredOptionError, match="grounding.attribute_match was deleted.*7544758"):
+        OpenFlyAgentConfig(agent=on)

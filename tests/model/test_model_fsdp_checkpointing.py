@@ -43,7 +43,7 @@ def seven_b_like_agent(make_agent, small_config):
 
 def test_fsdp_style_checkpointing_gives_the_same_loss_and_gradients(make_agent, make_batch, small_config):
     agent = seven_b_like_agent(make_agent, small_config)
-    assert agent.model_cfg.vision.preset == "tiny" and agent.model_cfg.llm.preset == "tiny"
+    assert agent.model_cfg.vision.type == "tiny" and agent.model_cfg.llm.preset == "tiny"
     wrapped = copy.deepcopy(agent)
     # 2 decoder layers + the 2 ViTs' blocks (depth 3, pruned after block depth - 2: 2 blocks each)
     assert wrap_blocks_as_fsdp_does(wrapped) == 2 + 2 + 2
@@ -92,7 +92,7 @@ def test_fsdp_preparation_makes_the_tiny_preset_contiguous_with_equal_outputs(ti
     from openfly_agent.training.builder import make_parameters_contiguous
 
     agent = OpenFlyAgent.from_model_config(tiny_config(), tokenizer=tiny_tokenizer)
-    assert agent.model_cfg.vision.preset == "tiny-cnn"
+    assert agent.model_cfg.vision.type == "tiny-cnn"
     strided = [name for name, p in agent.named_parameters() if not p.is_contiguous()]
     assert strided, "the unsharded tiny preset keeps channels-last weights"
     before = {name: p.detach().clone() for name, p in agent.named_parameters()}

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from openfly_agent.model.config import GroundingConfig
+from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
 from openfly_agent.model.grounding.cells import CellGroundingHead
 from openfly_agent.model.grounding.head import BoxRegressionHead, make_grounding_head
 from openfly_agent.model.persistence.openvla_loader import (
@@ -31,15 +31,13 @@ SHARED_KEYS = [
 ]
 BOX_MLP_KEYS = ["box_mlp.0.weight", "box_mlp.0.bias", "box_mlp.2.weight", "box_mlp.2.bias"]
 REGRESSION_KEYS = ["box_queries", *SHARED_KEYS, *BOX_MLP_KEYS]
-CELL_KEYS = [  # every option on: visual skip, one fusion layer, attribute classifiers and their match
+CELL_KEYS = [  # every option on: visual skip, attribute classifiers
     "box_queries",
-    "attribute_match_weight",
     *SHARED_KEYS,
     "text_query.weight",
     "text_query.bias",
     "visual_proj.weight",
     "visual_proj.bias",
-    *(f"cell_layers.0.{key}" for key in ONE_LAYER),
     "cell_scorer.norm.weight",
     "cell_scorer.norm.bias",
     "cell_scorer.scale.weight",
@@ -59,15 +57,12 @@ CELL_KEYS = [  # every option on: visual skip, one fusion layer, attribute class
 
 def test_the_config_picks_the_head_and_the_keys_stay_those_of_earlier_checkpoints():
     common = {"dim": 16, "num_heads": 2, "num_layers": 1}
-    regression = make_grounding_head(24, GroundingConfig(cells=False, **common), grid_side=2)
+    regression = make_grounding_head(24, BoxGroundingConfig(**common), grid_side=2)
     assert type(regression) is BoxRegressionHead
     assert list(regression.state_dict()) == REGRESSION_KEYS
-    everything = GroundingConfig(
-        cells=True,
+    everything = CellGroundingConfig(
         visual_skip=True,
-        cell_fusion_layers=1,
         attribute_weight=1.0,
-        attribute_match=True,
         **common,
     )
     cells = make_grounding_head(24, everything, grid_side=2)
@@ -76,7 +71,7 @@ def test_the_config_picks_the_head_and_the_keys_stay_those_of_earlier_checkpoint
 
 
 def test_the_regression_head_initialises_in_a_fresh_agent_and_trains(make_agent, make_batch):
-    agent = make_agent(grounding=GroundingConfig(dim=32, num_heads=2, cells=False))
+    agent = make_agent(grounding=BoxGroundingConfig(dim=32, num_heads=2))
     head = agent.grounding_head
     assert isinstance(head, BoxRegressionHead) and head.box_queries.std() > 0  # the queries' own init ran
     agent.train()
@@ -92,9 +87,8 @@ def test_an_agent_starts_from_openvla_weights_with_either_head(
 ):
     from safetensors.torch import save_file
 
-    grounding = GroundingConfig(
-        dim=32, num_heads=2, cells=cells, attribute_weight=float(cells), attribute_match=cells
-    )
+    common = {"dim": 32, "num_heads": 2}
+    grounding = CellGroundingConfig(**common, attribute_weight=1.0) if cells else BoxGroundingConfig(**common)
     source = make_agent(grounding=grounding)
     save_file(
         {k: v.contiguous() for k, v in to_openvla_state_dict(source).items()},
@@ -108,6 +102,4 @@ def test_an_agent_starts_from_openvla_weights_with_either_head(
     new = [key for key in report.missing_new if key.startswith("grounding_head.")]
     assert new == sorted(f"grounding_head.{key}" for key in head.state_dict())
     assert all(torch.isfinite(p).all() for p in head.parameters()) and head.box_queries.std() > 0
-    if cells:
-        assert torch.equal(head.attribute_match_weight, torch.ones(4))
     torch.testing.assert_close(agent.projector.fc1.weight, source.projector.fc1.weight)

@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from openfly_agent.model.config import (
-    ActionHeadConfig,
-    GroundingConfig,
+    BinsActionHeadConfig,
+    CellGroundingConfig,
+    DiscreteActionHeadConfig,
     KeyframeConfig,
     MemoryConfig,
     PromptConfig,
@@ -17,7 +18,6 @@ from openfly_agent.model.episode import compat_history_indices
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.language.decoding import greedy_decode, new_cache, run_cached
 from openfly_agent.model.language.sequence import left_pad
-from openfly_agent.model.vision.config import VisionConfig
 
 INSTRUCTIONS = [
     "Fly to the red tower and turn left.",
@@ -33,7 +33,7 @@ def memory_agent(make_agent, **overrides):
     every change point yields a keyframe set (all predicted boxes visible, theta = 0)."""
     agent = make_agent(
         seed=1,
-        grounding=overrides.pop("grounding", GroundingConfig(dim=32, num_heads=2, visibility_weight=0.0)),
+        grounding=overrides.pop("grounding", CellGroundingConfig(dim=32, num_heads=2, visibility_weight=0.0)),
         keyframes=KeyframeConfig(theta=0.0),
         **overrides,
     )
@@ -59,36 +59,14 @@ def _obs(episode: int, frame: np.ndarray) -> dict:
     }
 
 
-FILM_VISION = VisionConfig(  # tiny-cnn at 64 px, stages 3-4 conditioned on the instruction
-    image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16, cnn_instruction_film=True
+SKIP_HEAD = CellGroundingConfig(  # cells that get the frame's visual tokens
+    dim=32, num_heads=2, visibility_weight=0.0, visual_skip=True
 )
 
 
-def film_agent(make_agent):
-    """`memory_agent` with the instruction-conditioned backbone, its FiLM away from the identity. The agent's
-    fresh init (std 0.02 convolutions) leaves an eval-mode ResNet nearly blind: Kaiming init and a louder
-    projector make the actions follow the frames, so that memory fills."""
-    agent = memory_agent(make_agent, vision=FILM_VISION)
-    with torch.no_grad():
-        torch.nn.init.normal_(agent.vision_backbone.instruction_film.net[-1].weight, std=0.5)
-        for module in agent.vision_backbone.modules():
-            if isinstance(module, torch.nn.Conv2d):
-                torch.nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
-        agent.projector.fc1.weight.mul_(10.0)
-    return agent
-
-
-FUSED_HEAD = GroundingConfig(  # cells that read the prompt and the frame's visual tokens
-    dim=32, num_heads=2, visibility_weight=0.0, cell_fusion_layers=1, visual_skip=True
-)
-
-
-@pytest.mark.parametrize("variant", ["plain", "instruction_film", "fused_head"])
+@pytest.mark.parametrize("variant", ["plain", "skip_head"])
 def test_batched_equals_one_episode_at_a_time(make_agent, variant):
-    if variant == "instruction_film":
-        agent = film_agent(make_agent)
-    else:
-        agent = memory_agent(make_agent, **({"grounding": FUSED_HEAD} if variant == "fused_head" else {}))
+    agent = memory_agent(make_agent, **({"grounding": SKIP_HEAD} if variant == "skip_head" else {}))
     episodes, steps = 3, 10
     frames = _frames(episodes, steps, size=agent.model_cfg.vision.image_size)
     batched = [agent.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]
@@ -105,20 +83,6 @@ def test_batched_equals_one_episode_at_a_time(make_agent, variant):
             )
             np.testing.assert_allclose(single.box, batched[t][e].box, rtol=1e-4, atol=1e-5)
         assert agent.episodes[f"ep{e}"].memory.keys() == batched_memory[e]
-
-
-def test_instruction_film_reads_the_training_code_online(make_agent, make_batch, record_instruction_codes):
-    agent = film_agent(make_agent)
-    codes = record_instruction_codes(agent)
-    agent(make_batch(agent, batch_size=1))
-    # make_batch's first instruction (tests/model/conftest.py), online
-    instruction = "Fly forward to the red skyscraper with a rooftop billboard, then turn left at the tower."
-    frame = _frames(1, 1, size=64)[0, 0]
-    agent.predict_step([dict(_obs(0, frame), instruction=instruction)])
-    training, online = codes[0], codes[-1]  # the current frame's code in each
-    torch.testing.assert_close(online, training)
-    (other,) = [codes.clear(), agent.predict_step([dict(_obs(1, frame), instruction="Go straight.")])][1]
-    assert (codes[0] - training).abs().max() > 1e-4
 
 
 def test_memory_follows_the_keyframe_selector(make_agent):
@@ -160,7 +124,7 @@ def test_reset_and_errors(make_agent):
 
 
 def test_kv_cache_decoding_equals_full_recompute(make_agent):
-    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
     torch.manual_seed(1)
     rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
     embeds, mask = left_pad(rows)
@@ -185,7 +149,8 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
 
     from transformers.utils import logging as hf_logging
 
-    agent = make_agent(action_head=ActionHeadConfig(type=head), norm_stats=NORM_STATS)
+    head_cfg = BinsActionHeadConfig() if head == "openvla_bins" else DiscreteActionHeadConfig()
+    agent = make_agent(action_head=head_cfg, norm_stats=NORM_STATS)
     hf_logging.warning_once.cache_clear()  # "once": a warning an earlier test triggered would be silent
     records: list[str] = []
     handler = logging.Handler()
@@ -205,9 +170,7 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
 
 
 def test_bins_head_select_action(make_agent):
-    agent = make_agent(
-        action_head=ActionHeadConfig(type="openvla_bins", decode_rule="nearest"), norm_stats=NORM_STATS
-    )
+    agent = make_agent(action_head=BinsActionHeadConfig(decode_rule="nearest"), norm_stats=NORM_STATS)
     frames = _frames(2, 3)
     for t in range(3):
         results = agent.predict_step([_obs(e, frames[e, t]) for e in range(2)])
@@ -226,7 +189,7 @@ def test_compat_mode_runs_the_released_layout(make_agent):
         mode="openvla_compat",
         memory=MemoryConfig(capacity=2, grid=4),
         prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
-        action_head=ActionHeadConfig(type="openvla_bins"),
+        action_head=BinsActionHeadConfig(),
         norm_stats=NORM_STATS,
     )
     frames = _frames(1, 4)

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.config import ActionHeadConfig, LoraSettings
+from openfly_agent.model.config import BinsActionHeadConfig, LoraSettings
 from openfly_agent.model.freeze import FREEZE_STAGES
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.language.lora import (
@@ -39,7 +39,7 @@ def _logits(agent, batch) -> torch.Tensor:
 
 
 def test_save_load_gives_identical_logits(make_agent, make_batch, tmp_path):
-    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
     batch = make_batch(agent)
     agent.save_pretrained(tmp_path)
     files = {p.name for p in tmp_path.iterdir()}
@@ -240,7 +240,7 @@ def test_decoding_overrides_go_through_the_config(make_agent, tmp_path):
     from openfly_agent.rollout.checkpoints import load_agent
 
     stats = {"a": NORM_STATS["demo"], "b": {"action": {"q01": [-1.0] * 8, "q99": [20.0] * 8}}}
-    head = ActionHeadConfig(type="openvla_bins", unnorm_key="a", decode_rule="exact")
+    head = BinsActionHeadConfig(unnorm_key="a", decode_rule="exact")
     make_agent(action_head=head, norm_stats=stats).save_pretrained(tmp_path)
     agent = load_agent(str(tmp_path), "cpu", dtype="float32", decode_rule="nearest", unnorm_key="b")
     assert (

@@ -12,7 +12,7 @@ from test_model_inference import memory_agent
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
-from openfly_agent.model.config import ActionHeadConfig
+from openfly_agent.model.config import BinsActionHeadConfig
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.processor import OpenFlyProcessor
 
@@ -72,7 +72,7 @@ def test_bos_is_added_once_and_the_suffix_appended(add_bos):
 
 
 def test_bins_target_has_one_eos(make_agent):
-    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
     processor = agent.processor
     _, labels = processor.encode(processor.navigation_prompt(INSTRUCTION), 1)
     target = [t for t in labels if t != C.IGNORE_INDEX]
@@ -98,7 +98,7 @@ def test_batch_call_pads_right(make_agent):
 def test_save_and_load_the_processor(make_agent, tmp_path):
     from transformers import AutoProcessor
 
-    agent = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS)
+    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
     agent.save_pretrained(tmp_path)
     saved = json.loads((tmp_path / C.PROCESSOR_CONFIG_NAME).read_text())
     assert saved["image_size"] == agent.model_cfg.vision.image_size and saved["action_stats"] is not None

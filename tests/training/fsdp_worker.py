@@ -41,11 +41,12 @@ sys.path.insert(0, str(REPO_ROOT))
 from bench.train_throughput import synthetic_batch  # noqa: E402
 from openfly_agent.model.agent import OpenFlyAgent  # noqa: E402
 from openfly_agent.model.config import (  # noqa: E402
-    ActionHeadConfig,
-    GroundingConfig,
+    CellGroundingConfig,
+    DiscreteActionHeadConfig,
     LLMConfig,
     MemoryConfig,
-    VisionConfig,
+    TinyCnnVisionConfig,
+    TinyVitVisionConfig,
     tiny_config,
 )
 from openfly_agent.model.language.tokenizer import load_tokenizer  # noqa: E402
@@ -56,18 +57,18 @@ LR = 1e-3
 MODELS = {
     # tiny-cnn (whose 7 x 7 stem FSDP refused while it was channels-last) at 64 px, no random box-token jitter
     "tiny": tiny_config(
-        vision=VisionConfig(image_size=64, cnn_channels=[16, 16, 16, 32], cnn_stem_width=16),
+        vision=TinyCnnVisionConfig(image_size=64, cnn_channels=[16, 16, 16, 32]),
         memory=MemoryConfig(capacity=2, grid=4),
-        action_head=ActionHeadConfig(box_token_jitter=0.0),
+        action_head=DiscreteActionHeadConfig(box_token_jitter=0.0),
     ),
     "vit-llama": tiny_config(  # the 7B preset's module classes, the 7B layout (no box token, one decoder call)
-        vision=VisionConfig(
-            preset="tiny", image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
+        vision=TinyVitVisionConfig(
+            image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
         ),
         llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128, length_groups=1),
-        grounding=GroundingConfig(dim=32, num_heads=2),
+        grounding=CellGroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
-        action_head=ActionHeadConfig(box_token=False),
+        action_head=DiscreteActionHeadConfig(box_token=False),
     ),
 }
 

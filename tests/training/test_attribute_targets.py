@@ -10,7 +10,7 @@ import pytest
 from conftest import make_config, train_in_process
 
 from openfly_agent import constants as C
-from openfly_agent.model.config import GroundingConfig
+from openfly_agent.model.config import CellGroundingConfig
 from openfly_agent.sim.city import COLORS, FEATURES, SIZES, TYPES, CityConfig, generate_city
 from openfly_agent.sim.embedded_scenes import EmbeddedScenes
 from openfly_agent.toolchain.config import GroundingDataConfig
@@ -35,7 +35,7 @@ def test_lookup_gives_the_vocabulary_ids_of_each_landmark():
         assert lookup("embedded-5", landmark.landmark_id).tolist() == expected
     assert lookup("embedded-5", "no such landmark").tolist() == [-1, -1, -1, -1]
     assert lookup("real-city/Map", "b1").tolist() == [-1, -1, -1, -1]  # not an embedded city
-    assert vocabulary_sizes() == GroundingConfig().attribute_classes
+    assert vocabulary_sizes() == CellGroundingConfig().attribute_classes
 
 
 def _attribute_run(dataset, out, **overrides):

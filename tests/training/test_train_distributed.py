@@ -42,8 +42,7 @@ def _final_test_metrics(output_dir) -> dict[str, float]:
 # SyncBatchNorm on GPUs), and its box token jitters the training box with random noise drawn per process (like
 # dropout), so equality between 1 and 2 processes is checked with the batch-independent ViTs and no jitter.
 VIT = {
-    "model__vision__preset": "tiny", "model__vision__image_size": 64, "model__vision__patch_size": 8,
-    "model__vision__cnn_channels": "null", "model__vision__cnn_stem_width": "null",
+    "model__vision__type": "tiny", "model__vision__image_size": 64, "model__vision__patch_size": 8,
     "model__action_head__box_token_jitter": 0.0,
 }  # fmt: skip
 

@@ -17,7 +17,7 @@ from openfly_agent.training.optim import (
     make_param_groups,
     make_scheduler,
 )
-from openfly_agent.training.sampler import EpochShuffleSampler, GroupedShuffleSampler
+from openfly_agent.training.sampler import EpochShuffleSampler
 
 
 def _net() -> nn.Module:
@@ -136,40 +136,3 @@ def test_sampler_order_depends_only_on_seed_and_epoch():
 def test_sampler_rejects_dataset_smaller_than_a_global_batch():
     with pytest.raises(ValueError, match="fewer than one global batch"):
         EpochShuffleSampler(3, 4, seed=0)
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    sizes=st.lists(st.integers(0, 30), min_size=1, max_size=3),
-    micro=st.sampled_from([1, 2, 4]),
-    seed=st.integers(0, 5),
-    epoch=st.integers(0, 3),
-)
-def test_grouped_sampler_gives_one_group_per_micro_batch(sizes, micro, seed, epoch):
-    groups = [g for g, n in enumerate(sizes) for _ in range(n)]
-    whole = sum(n // micro * micro for n in sizes)
-    if whole < 2 * micro:
-        with pytest.raises(ValueError, match="fewer than one global batch"):
-            GroupedShuffleSampler(groups, micro, 2 * micro, seed)
-        return
-    sampler = GroupedShuffleSampler(groups, micro, 2 * micro, seed)
-    sampler.set_epoch(epoch)
-    order = list(sampler)
-    assert len(order) == len(sampler) == sampler.steps_per_epoch * 2 * micro
-    assert len(set(order)) == len(order) and set(order) <= set(range(len(groups)))
-    for start in range(0, len(order), micro):
-        assert len({groups[i] for i in order[start : start + micro]}) == 1
-    again = GroupedShuffleSampler(groups, micro, 2 * micro, seed)
-    again.set_epoch(epoch)
-    assert list(again) == order  # the order depends only on (seed, epoch)
-
-
-def test_grouped_sampler_keeps_each_groups_share_and_mixes_them_by_hand():
-    groups = [0] * 12 + [1] * 4  # 3 micro-batches of group 0, 1 of group 1
-    sampler = GroupedShuffleSampler(groups, micro_batch_size=4, global_batch_size=8, seed=0)
-    order = list(sampler)
-    assert sampler.steps_per_epoch == 2 and sorted(order) == list(range(16))
-    kinds = [groups[order[k]] for k in range(0, 16, 4)]
-    assert sorted(kinds) == [0, 0, 0, 1]
-    with pytest.raises(ValueError, match="must divide"):
-        GroupedShuffleSampler(groups, micro_batch_size=3, global_batch_size=8, seed=0)

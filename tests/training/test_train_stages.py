@@ -140,45 +140,15 @@ def test_grounding_errors_refuse_a_folder_that_is_not_a_run(tmp_path):
         collect_target_boxes(tmp_path)
 
 
-class _Kinds(torch.utils.data.Dataset):
-    """Samples 0..9 of kind 0, 10..15 of kind 1 (the grounding mixture's `sample_groups` contract)."""
-
-    def __len__(self):
-        return 16
-
-    def __getitem__(self, index):
-        return index
-
-    def sample_groups(self):
-        return [0] * 10 + [1] * 6
-
-
-def test_group_by_kind_gives_micro_batches_of_one_kind(generated_dataset, tmp_path):
-    from openfly_agent.training.loaders import make_train_loader
-    from openfly_agent.training.sampler import EpochShuffleSampler, GroupedShuffleSampler
-
-    kinds = _Kinds().sample_groups()
-    grouped = make_config(generated_dataset, tmp_path, data__group_by_kind="true")
-    loader, sampler = make_train_loader(_Kinds(), list, grouped)
-    assert isinstance(sampler, GroupedShuffleSampler)
-    batches = list(loader)
-    assert batches and all(len({kinds[i] for i in batch}) == 1 for batch in batches)
-    plain, sampler = make_train_loader(_Kinds(), list, make_config(generated_dataset, tmp_path))
-    assert type(sampler) is EpochShuffleSampler
-
-
-def test_grounding_stage_trains_the_dense_attribute_term_with_grouped_batches(
-    generated_dataset, grounding_root, tmp_path
-):
+def test_grounding_stage_trains_the_attribute_term(generated_dataset, grounding_root, tmp_path):
     cfg = make_config(
         generated_dataset, tmp_path, stage="grounding", data__grounding_root=str(grounding_root),
-        freeze_stage="full", model__action_head__box_token="false", data__group_by_kind="true",
-        model__grounding__attribute_weight="1.0", model__grounding__dense_attribute_weight="1.0",
+        freeze_stage="full", model__action_head__box_token="false", model__grounding__attribute_weight="1.0",
     )  # fmt: skip
     assert train_in_process(cfg).state.step == 4
     records = [json.loads(line) for line in (tmp_path / "logs" / "metrics.jsonl").read_text().splitlines()]
-    dense = [r["train/dense_attribute_loss"] for r in records if "train/dense_attribute_loss" in r]
-    assert dense and all(value >= 0 for value in dense) and max(dense) > 0
+    terms = [r["train/attribute_loss"] for r in records if "train/attribute_loss" in r]
+    assert terms and all(value >= 0 for value in terms) and max(terms) > 0
 
 
 def test_grounding_step_bench_times_the_stage_and_counts_its_padding(

@@ -1,22 +1,27 @@
-"""The grounding section of the model config: the landmark grounding head and its loss weights; stdlib only.
+"""The grounding section of the model config: the landmark grounding head, one registered choice per head
+(`type:` in YAML, `--model.grounding.type=` on the command line), each with only its own fields; stdlib and
+draccus only.
 
-Part of the typed model config (model/config.py, which re-exports `GroundingConfig`).
+Part of the typed model config (model/config.py, which re-exports these names).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from draccus import ChoiceRegistry
+
 from openfly_agent.model.config_checks import check_positive
+
+GROUNDING_BOX = "box"  # the paper's box regression (model/grounding/head.py, the 7B presets)
+GROUNDING_CELLS = "cells"  # per-cell scoring (model/grounding/cells.py, the tiny preset)
 
 
 @dataclass
-class GroundingConfig:
-    """Landmark grounding head: learned queries cross-attend to the LLM hidden states and regress a box.
+class GroundingConfig(ChoiceRegistry):
+    """Landmark grounding head: learned queries cross-attend to the LLM hidden states and give the landmark's box.
 
-    `cells` (the tiny preset) adds per-cell scoring of the current frame: the query starts from the last prompt
-    token, FiLM-scores every cell, the box centre is the softmax-weighted cell centre plus an offset, and
-    `cell_weight` x the cross-entropy of the cell holding the box centre joins the loss (model/grounding/head.py).
+    `type` picks the head: `cells` (the default, `CellGroundingConfig`) or `box` (`BoxGroundingConfig`).
     """
 
     enabled: bool = True
@@ -29,70 +34,65 @@ class GroundingConfig:
     visibility_weight: float = (
         0.5  # 0 disables the visibility logit's loss (predicted boxes then always count)
     )
-    cells: bool = True  # per-cell scoring and box centre (False: the paper's box regression, the 7B presets)
-    cell_weight: float = 1.0  # weight of the cell cross-entropy (with `cells`)
-    # with `cells`: each token cell is scored as subcells x subcells sub-cells (logits from its hidden state), so
-    # the centre and the cross-entropy live on a grid subcells times finer than the tokens (1: the token grid)
-    subcells: int = 1
-    # with `cells`, at inference: the centre and the size's context come from the (2w + 1) x (2w + 1) cells around
-    # the best-scoring one (their softmax renormalised); null: from every cell, as in training (a two-peaked score
-    # then puts the centre between two landmarks). Checkpoints older than the option load with the default.
-    centre_window: int | None = 1
-    # with `cells`: weight of the attribute loss, the cross-entropy of the target landmark's colour, type, size and
-    # feature (`TARGET_ATTRIBUTES`, embedded cities only) read from the head's query (what it took from the text)
-    # and from the cell under the target's centre (what the frame shows there); 0: no attribute classifiers
-    attribute_weight: float = 0.0
-    # classes of each attribute (colour, type, size, feature): the embedded city's vocabularies (sim/city_vocab.py)
-    attribute_classes: list[int] = field(default_factory=lambda: [12, 6, 3, 8])
-    # with `attribute_weight`: each cell's logit gains sum_k w_k x E_query[log p_cell(attribute k)], the agreement
-    # of the cell's attribute prediction with the query's (w_k learned, start at 1)
-    attribute_match: bool = False
-    # with `attribute_weight`: weight of the dense attribute loss, the cross-entropy of every labelled cell's
-    # attributes on the grounding stage's expression frames, whose every visible landmark has a box (each cell
-    # takes the attributes of the smallest landmark whose box holds its centre or whose centre it holds;
-    # model/grounding/landmark_cells.py); 0: only the target's cell is supervised
-    dense_attribute_weight: float = 0.0
-    # with `cells`: layers in which every cell of the current frame cross-attends to the readable sequence (the
-    # prompt's tokens, the frame's other cells, the memory) before it is scored, so a cell's features see the
-    # words; 0: the cells are the LLM's hidden states as they are (a causal LLM puts the frame before the prompt)
-    cell_fusion_layers: int = 0
-    # with `cells`: each cell also gets a projection of the current frame's visual token there (the projector's
-    # output, as it enters the LLM), a skip past the LLM, whose layers mix the cells and lose what tells
-    # one landmark from another (its colour); false: the cells are the LLM's hidden states only
-    visual_skip: bool = False
+
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return GROUNDING_CELLS
+
+    @property
+    def type(self) -> str:
+        """The registered name of this head (`cells`, `box`)."""
+        return self.get_choice_name(type(self))
 
     def __post_init__(self) -> None:
-        for name in ("num_layers", "num_queries", "dim", "num_heads", "subcells"):
+        for name in ("num_layers", "num_queries", "dim", "num_heads"):
             check_positive("grounding", name, getattr(self, name))
-        if self.centre_window is not None and self.centre_window < 0:
-            raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
         if self.dim % self.num_heads:
             raise ValueError(
                 f"grounding.dim={self.dim} must be divisible by grounding.num_heads={self.num_heads}"
             )
-        weights = ("loss_weight", "l1_weight", "visibility_weight", "cell_weight", "attribute_weight")
-        for name in (*weights, "dense_attribute_weight"):
+        for name in ("loss_weight", "l1_weight", "visibility_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"grounding.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@GroundingConfig.register_subclass(GROUNDING_BOX)
+@dataclass
+class BoxGroundingConfig(GroundingConfig):
+    """`box`: the paper's head, an MLP regresses the box from the pooled queries (the 7B presets)."""
+
+
+@GroundingConfig.register_subclass(GROUNDING_CELLS)
+@dataclass
+class CellGroundingConfig(GroundingConfig):
+    """`cells`: per-cell scoring of the current frame. The query starts from the last prompt token, FiLM-scores
+    every cell, the box centre is the softmax-weighted cell centre plus an offset, and `cell_weight` x the
+    cross-entropy of the cell holding the box centre joins the loss (model/grounding/cells.py)."""
+
+    cell_weight: float = 1.0  # weight of the cell cross-entropy
+    # at inference: the centre and the size's context come from the (2w + 1) x (2w + 1) cells around the
+    # best-scoring one (their softmax renormalised); null: from every cell, as in training (a two-peaked score
+    # then puts the centre between two landmarks)
+    centre_window: int | None = 1
+    # weight of the attribute loss, the cross-entropy of the target landmark's colour, type, size and feature
+    # (`TARGET_ATTRIBUTES`, embedded cities only) read from the head's query (what it took from the text) and from
+    # the cell under the target's centre (what the frame shows there); 0: no attribute classifiers
+    attribute_weight: float = 0.0
+    # classes of each attribute (colour, type, size, feature): the embedded city's vocabularies (sim/city_vocab.py)
+    attribute_classes: list[int] = field(default_factory=lambda: [12, 6, 3, 8])
+    # each cell also gets a projection of the current frame's visual token there (the projector's output, as it
+    # enters the LLM), a skip past the LLM, whose layers mix the cells and lose what tells one landmark from
+    # another (its colour); false: the cells are the LLM's hidden states only
+    visual_skip: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.centre_window is not None and self.centre_window < 0:
+            raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
+        for name in ("cell_weight", "attribute_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"grounding.{name} must be >= 0, got {getattr(self, name)}")
         if len(self.attribute_classes) != 4 or min(self.attribute_classes) < 2:
             raise ValueError(
                 f"grounding.attribute_classes={self.attribute_classes}: 4 counts of >= 2 classes"
-            )
-        if self.cell_fusion_layers < 0:
-            raise ValueError(f"grounding.cell_fusion_layers must be >= 0, got {self.cell_fusion_layers}")
-        if self.cell_fusion_layers and not self.cells:
-            raise ValueError(
-                "grounding.cell_fusion_layers needs grounding.cells (it updates the scored cells)"
-            )
-        if self.visual_skip and not self.cells:
-            raise ValueError("grounding.visual_skip needs grounding.cells (it adds to the scored cells)")
-        if self.attribute_weight and not self.cells:
-            raise ValueError("grounding.attribute_weight needs grounding.cells (the target's cell is read)")
-        if self.dense_attribute_weight and not self.attribute_weight:
-            raise ValueError(
-                "grounding.dense_attribute_weight needs grounding.attribute_weight > 0 (the cell classifiers)"
-            )
-        if self.attribute_match and not self.attribute_weight:
-            raise ValueError(
-                "grounding.attribute_match needs grounding.attribute_weight > 0 (it reads both sides)"
             )

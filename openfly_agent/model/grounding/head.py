@@ -3,29 +3,25 @@
 Learned queries cross-attend (3 layers) to the LLM's last hidden states over the image and text positions
 (model/grounding/layers.py) and give the instruction landmark's box `(cx, cy, w, h)` in [0, 1] in the current
 frame, plus a visibility logit (our addition: at inference an invisible landmark has no box, so no keyframe area).
-`grounding.cells` picks the head: false, `BoxRegressionHead`, the paper's box regressed from the pooled queries
-(every 7B preset); true, `CellGroundingHead` (model/grounding/cells.py, the tiny preset), which scores every cell
+`grounding.type` picks the head: `box`, `BoxRegressionHead`, the paper's box regressed from the pooled queries
+(every 7B preset); `cells`, `CellGroundingHead` (model/grounding/cells.py, the tiny preset), which scores every cell
 of the frame's token grid and places the box centre from those scores. The loss is GIoU + L1 with a visibility
 mask (+ the cell head's cell and attribute terms).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from openfly_agent.constants import LANDMARK_ATTRIBUTES, LANDMARK_BOXES, TARGET_ATTRIBUTES
 from openfly_agent.model.grounding.cells import CellGroundingHead
-from openfly_agent.model.grounding.config import GroundingConfig
-from openfly_agent.model.grounding.landmark_cells import box_cells, dense_attribute_loss
+from openfly_agent.model.grounding.config import CellGroundingConfig, GroundingConfig
 from openfly_agent.model.grounding.layers import GroundingOutput, QueryReader
 
 
 class BoxRegressionHead(QueryReader):
-    """The paper's head (`grounding.cells: false`): an MLP regresses the box from the pooled queries.
+    """The paper's head (`grounding.type: box`): an MLP regresses the box from the pooled queries.
 
     Args:
         llm_dim: LLM hidden size.
@@ -55,9 +51,9 @@ GroundingHead = BoxRegressionHead | CellGroundingHead
 
 
 def make_grounding_head(llm_dim: int, cfg: GroundingConfig, grid_side: int) -> GroundingHead:
-    """The head `cfg.cells` names: `CellGroundingHead` on the frame's grid_side x grid_side token grid, or the
-    paper's `BoxRegressionHead`."""
-    if cfg.cells:
+    """The head `cfg.type` names: `CellGroundingHead` on the frame's grid_side x grid_side token grid (`cells`), or
+    the paper's `BoxRegressionHead` (`box`)."""
+    if isinstance(cfg, CellGroundingConfig):
         return CellGroundingHead(llm_dim, cfg, grid_side)
     return BoxRegressionHead(llm_dim, cfg)
 
@@ -82,15 +78,11 @@ def iou_and_giou(pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor
     return iou, iou - (hull - union) / hull.clamp(min=1e-9)
 
 
-def grounding_labels(
-    batch: Mapping,
-) -> tuple[torch.Tensor | None, tuple[torch.Tensor, torch.Tensor] | None]:
-    """A batch's labels for `grounding_loss` beyond the box: (target attribute ids (B, 4) or None, (landmark
-    boxes (B, M, 4), landmark attribute ids (B, M, 4)) or None)."""
-    landmarks = None
-    if LANDMARK_BOXES in batch:
-        landmarks = (batch[LANDMARK_BOXES], batch[LANDMARK_ATTRIBUTES])
-    return batch.get(TARGET_ATTRIBUTES), landmarks
+def box_cells(boxes: torch.Tensor, grid_side: int) -> torch.Tensor:
+    """(..., 4) cxcywh -> (...) index of the cell holding each box centre (row-major on a grid_side grid)."""
+    col = (boxes[..., 0] * grid_side).long().clamp(0, grid_side - 1)
+    row = (boxes[..., 1] * grid_side).long().clamp(0, grid_side - 1)
+    return row * grid_side + col
 
 
 def grounding_loss(
@@ -99,12 +91,10 @@ def grounding_loss(
     visible: torch.Tensor,
     cfg: GroundingConfig,
     attributes: torch.Tensor | None = None,
-    landmarks: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """GIoU + l1_weight * L1 on visible boxes (mean), + visibility_weight * BCE on every sample, + cell_weight *
     cross-entropy of the cell holding the box centre (visible boxes, when the head scores cells), +
-    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them), +
-    dense_attribute_weight * `dense_attribute_loss` of every labelled cell (when the batch has `landmarks`).
+    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them).
 
     Args:
         output: the head's prediction (boxes (B, 4) cxcywh, visibility logits (B,), cell logits (B, P) or None).
@@ -112,8 +102,6 @@ def grounding_loss(
         visible: (B,) bool ground-truth visibility mask.
         cfg: grounding config (weights).
         attributes: (B, 4) long target attribute ids, -1 where unknown (None: no attribute term).
-        landmarks: (boxes (B, M, 4), attribute ids (B, M, 4)) of every landmark of each row's frame
-            (model/grounding/landmark_cells.py; None: no dense term).
 
     Returns:
         The scalar loss and float logs: `box_iou` (mean IoU over visible boxes, 0 when none),
@@ -137,19 +125,13 @@ def grounding_loss(
     else:
         iou, giou_term, l1_term = torch.zeros(1), zero, zero
     vis_term = F.binary_cross_entropy_with_logits(visibility_logits.float(), visible.float())
-    loss = (
-        giou_term + cfg.l1_weight * l1_term + cfg.visibility_weight * vis_term + cfg.cell_weight * cell_term
-    )
+    loss = giou_term + cfg.l1_weight * l1_term + cfg.visibility_weight * vis_term
+    if output.cell_logits is not None:  # the cell head: its config has the weight
+        loss = loss + cfg.cell_weight * cell_term
     attribute_logs = {}
     if output.query_attributes is not None and attributes is not None:
         attribute_term, attribute_logs = attribute_loss(output, target_boxes, visible, attributes, cfg)
         loss = loss + cfg.attribute_weight * attribute_term
-    if output.cell_attributes is not None and cfg.dense_attribute_weight and landmarks is not None:
-        dense_term, dense_logs = dense_attribute_loss(
-            output.cell_attributes, *landmarks, cfg.attribute_classes
-        )
-        loss = loss + cfg.dense_attribute_weight * dense_term
-        attribute_logs.update(dense_logs)
     logs = {
         "box_iou": float(iou.detach().mean()) if count else 0.0,
         "num_visible_boxes": float(count),
@@ -175,7 +157,7 @@ def attribute_loss(
     Returns the loss and logs: `attribute_loss` and the colour accuracies `query_color_accuracy` and
     `cell_color_accuracy` (each absent when no row has a known colour to read)."""
     attributes = attributes.to(output.query_attributes.device).long()  # (B, 4)
-    side = int(round(output.cell_attributes.shape[1] ** 0.5))  # the token grid (sub-cells are not classified)
+    side = int(round(output.cell_attributes.shape[1] ** 0.5))  # the token grid
     rows = torch.nonzero(visible.to(attributes.device), as_tuple=True)[0]  # (V,)
     cells = box_cells(target_boxes[rows].to(output.cell_attributes.device).float(), side)  # (V,)
     at_target = output.cell_attributes[rows, cells]  # (V, A)

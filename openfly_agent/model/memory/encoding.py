@@ -1,6 +1,5 @@
-"""Frames and keyframe memory -> features and LLM tokens: frames through the vision backbone (under the
-instruction's code when it is conditioned, model/vision/instruction_film.py), each keyframe set merged into its
-largest-box frame, grid-pooled and projected (openfly mode), or one token per history frame (openvla_compat).
+"""Frames and keyframe memory -> features and LLM tokens: frames through the vision backbone, each keyframe set
+merged into its largest-box frame, grid-pooled and projected (openfly mode), or one token per history frame (openvla_compat).
 
 `MemoryEncoding` is a mixin of `OpenFlyAgent` (model/agent.py): it uses the agent's `vision_backbone`,
 `projector`, `embed_text` and `model_cfg`.
@@ -20,42 +19,15 @@ from openfly_agent.constants import (
     PIXEL_VALUES,
 )
 from openfly_agent.model.config import MODE_OPENVLA_COMPAT
-from openfly_agent.model.language.sequence import left_pad_ids
 from openfly_agent.model.memory.bank import grid_pool
 from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
-from openfly_agent.model.vision.instruction_film import mean_prompt_embedding
 
 
 class MemoryEncoding:
     """Frame features, and the memory tokens of a training batch and of the agent's online keyframe sets."""
 
-    def instruction_code(self, input_ids: torch.Tensor, prompt_mask: torch.Tensor) -> torch.Tensor | None:
-        """(B, L) ids, (B, L) bool prompt positions -> (B, D) code of the instruction-conditioned backbone
-        (`vision.cnn_instruction_film`; None without it)."""
-        if not self.model_cfg.vision.cnn_instruction_film:
-            return None
-        return mean_prompt_embedding(self.embed_text(input_ids), prompt_mask.to(input_ids.device))
-
-    def episode_instruction_code(
-        self, prompt_ids: list[list[int]], device: torch.device
-    ) -> torch.Tensor | None:
-        """Online: the (B, D) code of each episode's prompt ids ([BOS] + prompt, as the training rows' prompt
-        positions), left-padded; None without `vision.cnn_instruction_film` (nothing is padded then)."""
-        if not self.model_cfg.vision.cnn_instruction_film:
-            return None
-        prompts, prompt_mask = left_pad_ids([ids[1:] for ids in prompt_ids], device)  # (B, L), BOS dropped
-        return self.instruction_code(prompts, prompt_mask)
-
-    def encode_frames(
-        self,
-        pixels: torch.Tensor,
-        instruction: torch.Tensor | None = None,
-        frame_index: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """(F, 3, H, W) uint8 -> (N, P, D_v) features; sequence i reads frame `frame_index[i]` (default i),
-        under its (N, D) instruction code when the backbone is conditioned."""
-        if instruction is not None:
-            return self.vision_backbone(pixels, instruction, frame_index)
+    def encode_frames(self, pixels: torch.Tensor, frame_index: torch.Tensor | None = None) -> torch.Tensor:
+        """(F, 3, H, W) uint8 -> (N, P, D_v) features; sequence i reads frame `frame_index[i]` (default i)."""
         features = self.vision_backbone(pixels)  # (F, P, D_v)
         return features if frame_index is None else features[frame_index.to(features.device)]
 
@@ -89,13 +61,8 @@ class MemoryEncoding:
         pooled = grid_pool(siglip, self.model_cfg.memory.grid)[:, 0]  # (N, D_siglip)
         return self.projector(torch.cat([dino_cls, pooled], dim=-1))  # (N, D)
 
-    def encode_memory_batch(
-        self, batch: dict[str, Any], instruction: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Memory tokens of a training batch -> (B, M, D) tokens and (B, M) bool mask (missing sets off).
-
-        With `instruction` ((B, D) codes of the conditioned backbone) each frame is encoded under its row's.
-        """
+    def encode_memory_batch(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Memory tokens of a training batch -> (B, M, D) tokens and (B, M) bool mask (missing sets off)."""
         current = batch[PIXEL_VALUES]
         b = current.shape[0]
         if self.model_cfg.memory.capacity == 0 or MEMORY_PIXEL_VALUES not in batch:
@@ -121,9 +88,7 @@ class MemoryEncoding:
         p, dv = self.model_cfg.vision.num_patches, self.model_cfg.vision.feature_dim
         features = self.projector.fc1.weight.new_zeros(b, k, s, p, dv)  # (B, K, S, P, D_v)
         if real.shape[0]:
-            rows = frame_mask.nonzero()[:, 0]  # (n_real,) the sequence of each real frame
-            code = None if instruction is None else instruction[rows.to(instruction.device)]
-            features[frame_mask] = self.encode_frames(real, code).to(features.dtype)
+            features[frame_mask] = self.encode_frames(real).to(features.dtype)
         tokens = self.memory_set_tokens(
             features.flatten(0, 1),
             frame_mask.flatten(0, 1),

@@ -31,7 +31,7 @@ def build_featurizers(cfg: VisionConfig, prune: bool = True) -> tuple[nn.Module,
         prune: drop the last block, the final norm and the pooling head (what the backbone uses); False gives
             the full architectures, whose extra keys the OpenVLA loader recognises as unused.
     """
-    if cfg.preset == VISION_DINOSIGLIP_224:
+    if cfg.type == VISION_DINOSIGLIP_224:
         import timm
 
         dino = timm.create_model(DINOSIGLIP_TIMM_IDS[0], pretrained=False, num_classes=0, img_size=224)
@@ -132,9 +132,8 @@ class FusedVisionBackbone(nn.Module):
         return self.cfg.featurizer_widths[0]
 
 
-def build_vision_backbone(cfg: VisionConfig, text_dim: int | None = None) -> nn.Module:
-    """The backbone of a vision section: the fused ViTs (`dinosiglip-224px`, `tiny`) or the ResNet (`tiny-cnn`;
-    `text_dim`, the LLM's embedding width, sizes its instruction FiLM when `cnn_instruction_film` is on)."""
-    if cfg.preset == VISION_TINY_CNN:
-        return ConvVisionBackbone(cfg, text_dim)
+def build_vision_backbone(cfg: VisionConfig) -> nn.Module:
+    """The backbone of a vision section: the fused ViTs (`dinosiglip-224px`, `tiny`) or the ResNet (`tiny-cnn`)."""
+    if cfg.type == VISION_TINY_CNN:
+        return ConvVisionBackbone(cfg)
     return FusedVisionBackbone(cfg)

@@ -1,13 +1,16 @@
-"""The vision section of the model config: backbone presets, input size and the tiny-only sizes; stdlib only.
+"""The vision section of the model config: one registered choice per backbone (`type:` in YAML,
+`--model.vision.type=` on the command line), each with only its own fields; stdlib and draccus only.
 
 Part of the typed model config (model/config.py, which re-exports these names).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from openfly_agent.model.config_checks import check_choice, check_positive, fill_tiny_fields
+from draccus import ChoiceRegistry
+
+from openfly_agent.model.config_checks import check_choice, check_positive
 
 VISION_DINOSIGLIP_224 = "dinosiglip-224px"
 VISION_TINY = "tiny"  # two small ViTs of the dinosiglip structure
@@ -20,75 +23,35 @@ DINOSIGLIP_TIMM_IDS = ("vit_large_patch14_reg4_dinov2", "vit_so400m_patch14_sigl
 DINOSIGLIP_WIDTHS = (1024, 1152)
 
 RESIZE_MODES = ("bicubic", "area")
-CNN_INIT_NORMAL = "normal"  # tiny-cnn init: every conv N(0, 0.02) and BN gamma 1 (the agent's generic init)
-CNN_INIT_TIMM = "timm"  # tiny-cnn init: timm's ResNet init (Kaiming-normal convs, last BN of each block zero)
-CNN_INITS = (CNN_INIT_NORMAL, CNN_INIT_TIMM)
 CNN_STEM_RESNET = "resnet"  # tiny-cnn stem: timm's 7 x 7 stride-2 conv (64 ch) + 3 x 3 stride-2 max pool
 CNN_STEM_PATCH4 = "patch4"  # tiny-cnn stem: one 4 x 4 stride-4 conv (64 channels), no pool: no full-res maps
 CNN_STEMS = (CNN_STEM_RESNET, CNN_STEM_PATCH4)
-# Sizes of the `tiny` and `tiny-cnn` presets, taken by the tiny-only fields left at None (rejected by the 7B preset
-# when set).
-TINY_VISION = {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}
-TINY_CNN_VISION = {"cnn_channels": [32, 64, 96, 128], "cnn_stem_width": 16}
 
 
 @dataclass
-class VisionConfig:
+class VisionConfig(ChoiceRegistry):
     """The vision backbone: uint8 frames -> one feature vector per cell of a square token grid.
 
-    `dinosiglip-224px` builds the real timm architectures (224 px, patch 14, 256 patches,
-    1024 + 1152 = 2176-d); `tiny` builds two small ViTs of the same structure from `image_size`,
-    `patch_size`, `width`, `fused_width`, `depth` and `num_heads` (None takes `TINY_VISION`). Both read the
-    output of the second-to-last block, without the final norm. `tiny-cnn` (the CPU default) is a small timm
-    ResNet of output stride 16 with `cnn_channels` stage widths (None takes `TINY_CNN_VISION`): a 128 px frame
-    gives the same 8 x 8 token grid, into the same projector and LLM (model/vision/conv.py). `image_size` and
-    `resize` also define the image preprocessing (the processor's image transform).
+    `type` picks the backbone: `tiny-cnn` (the CPU default, `TinyCnnVisionConfig`), `tiny`
+    (`TinyVitVisionConfig`) or `dinosiglip-224px` (`DinoSiglipVisionConfig`). `image_size` and `resize` also
+    define the image preprocessing (the processor's image transform).
     """
 
-    preset: str = VISION_TINY_CNN
     image_size: int = 128  # square input side in pixels; must be a multiple of patch_size
     patch_size: int = CNN_STRIDE  # pixels per token side (tiny-cnn: the ResNet's stride, 16)
-    width: int | None = None  # tiny only: DINO-style ViT width
-    fused_width: int | None = None  # tiny only: SigLIP-style ViT width
-    depth: int | None = None  # tiny only: blocks per ViT (features come from block depth - 2)
-    num_heads: int | None = None  # tiny only
-    cnn_channels: list[int] | None = (
-        None  # tiny-cnn only: widths of the 4 ResNet stages (the last = features)
-    )
-    # tiny-cnn only: timm's `stem_width`, which only its deep stems read: the plain 7 x 7 stem used here has 64
-    # channels whatever this says (kept so that existing configs load; docs/ARCHITECTURE.md)
-    cnn_stem_width: int | None = None
-    # tiny-cnn only: add to each token the stride-8 features of the 2 x 2 cells under it (the second stage's
-    # output, concatenated and projected to the token width), for small far landmarks
-    cnn_fine_fusion: bool = False
-    # tiny-cnn only: the instruction's mean prompt-token embedding scales and shifts the channels entering the
-    # third and fourth ResNet stages (FiLM): the cell features are computed for the landmark asked for
-    cnn_instruction_film: bool = False
-    # tiny-cnn only: add to each token a projection of its cell's colour statistics (mean and spread of the
-    # normalised RGB over the cell, the means of its 2 x 2 quarters): the trained ResNet's features keep a
-    # landmark's type but not its colour (docs/experiments/2026-11-24-grounding-levers.md, "Which landmark the head picks")
-    cnn_colour_stats: bool = False
-    # tiny-cnn only: how a fresh ResNet is initialised (CNN_INITS): `normal` as every other layer of the agent,
-    # `timm` as timm's ResNet (Kaiming-normal convs, zero gamma on the last BN of each residual branch)
-    cnn_init: str = CNN_INIT_NORMAL
-    # tiny-cnn only: the ResNet's stem (CNN_STEMS), both stride 4 with 64 channels into the first stage: `resnet`
-    # (timm's, whose 64-channel maps at half the input resolution took about 30 % of a CPU training step) or
-    # `patch4` (a 4 x 4 stride-4 convolution, as a ViT's patch embedding; docs/experiments/2026-11-26-speed-levers.md, "The patch stem")
-    cnn_stem: str = CNN_STEM_RESNET
     resize: str = "bicubic"  # image transform interpolation: bicubic (PIL, as OpenVLA) | area (OpenCV)
 
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return VISION_TINY_CNN
+
+    @property
+    def type(self) -> str:
+        """The registered name of this backbone (`tiny-cnn`, `tiny`, `dinosiglip-224px`)."""
+        return self.get_choice_name(type(self))
+
     def __post_init__(self) -> None:
-        check_choice("vision", "preset", self.preset, VISION_PRESETS)
         check_choice("vision", "resize", self.resize, RESIZE_MODES)
-        check_choice("vision", "cnn_init", self.cnn_init, CNN_INITS)
-        check_choice("vision", "cnn_stem", self.cnn_stem, CNN_STEMS)
-        fill_tiny_fields("vision", self, self.preset == VISION_TINY, TINY_VISION)
-        fill_tiny_fields("vision", self, self.preset == VISION_TINY_CNN, TINY_CNN_VISION)
-        if self.preset == VISION_DINOSIGLIP_224 and (self.image_size, self.patch_size) != (224, 14):
-            raise ValueError(
-                f"vision.preset=dinosiglip-224px needs image_size=224 and patch_size=14 "
-                f"(got {self.image_size}, {self.patch_size}); use preset=tiny for other sizes"
-            )
         for name in ("image_size", "patch_size"):
             check_positive("vision", name, getattr(self, name))
         if self.image_size % self.patch_size:
@@ -96,36 +59,6 @@ class VisionConfig:
                 f"vision.image_size={self.image_size} must be a multiple of "
                 f"vision.patch_size={self.patch_size}"
             )
-        if self.preset == VISION_TINY_CNN:
-            if self.patch_size != CNN_STRIDE:
-                raise ValueError(
-                    f"vision.preset=tiny-cnn has a stride of {CNN_STRIDE}: set patch_size={CNN_STRIDE}"
-                )
-            if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0 or self.cnn_stem_width <= 0:
-                raise ValueError(
-                    f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths and "
-                    f"vision.cnn_stem_width={self.cnn_stem_width} positive"
-                )
-            if self.cnn_fine_fusion and self.cnn_instruction_film:
-                raise ValueError("vision.cnn_fine_fusion and vision.cnn_instruction_film: choose one")
-        else:
-            for name in ("cnn_fine_fusion", "cnn_instruction_film", "cnn_colour_stats"):
-                if getattr(self, name):
-                    raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
-            for name, default in (("cnn_init", CNN_INIT_NORMAL), ("cnn_stem", CNN_STEM_RESNET)):
-                if getattr(self, name) != default:
-                    raise ValueError(f"vision.{name} is a tiny-cnn option (preset={self.preset})")
-        if self.preset != VISION_TINY:
-            return
-        for name in TINY_VISION:
-            check_positive("vision", name, getattr(self, name))
-        if self.depth < 2:
-            raise ValueError(f"vision.depth={self.depth}: need >= 2 blocks (features of the second-to-last)")
-        for name in ("width", "fused_width"):
-            if getattr(self, name) % self.num_heads:
-                raise ValueError(
-                    f"vision.{name}={getattr(self, name)} must be divisible by num_heads={self.num_heads}"
-                )
 
     @property
     def grid_side(self) -> int:
@@ -139,12 +72,94 @@ class VisionConfig:
 
     @property
     def featurizer_widths(self) -> tuple[int, int]:
-        """Widths of (featurizer, fused_featurizer); tiny-cnn has no fused featurizer (width 0)."""
-        if self.preset == VISION_TINY_CNN:
-            return (self.cnn_channels[-1], 0)
-        return DINOSIGLIP_WIDTHS if self.preset == VISION_DINOSIGLIP_224 else (self.width, self.fused_width)
+        """Widths of (featurizer, fused_featurizer)."""
+        raise NotImplementedError
 
     @property
     def feature_dim(self) -> int:
         """Fused per-patch feature width (2176 for dinosiglip-224px)."""
         return sum(self.featurizer_widths)
+
+
+@VisionConfig.register_subclass(VISION_TINY_CNN)
+@dataclass
+class TinyCnnVisionConfig(VisionConfig):
+    """`tiny-cnn`: a small timm ResNet of output stride 16: a 128 px frame gives an 8 x 8 token grid, into the same
+    projector and LLM as the ViTs' patches (model/vision/conv.py)."""
+
+    cnn_channels: list[int] = field(
+        default_factory=lambda: [32, 64, 96, 128]
+    )  # widths of the 4 ResNet stages
+    # add to each token a projection of its cell's colour statistics (mean and spread of the normalised RGB over
+    # the cell, the means of its 2 x 2 quarters): the trained ResNet's features keep a landmark's type but not its
+    # colour (docs/experiments/2026-11-24-grounding-levers.md, "Which landmark the head picks")
+    cnn_colour_stats: bool = False
+    # the ResNet's stem (CNN_STEMS), both stride 4 with 64 channels into the first stage: `resnet` (timm's, whose
+    # 64-channel maps at half the input resolution took about 30 % of a CPU training step) or `patch4` (a 4 x 4
+    # stride-4 convolution, as a ViT's patch embedding; docs/experiments/2026-11-26-speed-levers.md, "The patch stem")
+    cnn_stem: str = CNN_STEM_RESNET
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_choice("vision", "cnn_stem", self.cnn_stem, CNN_STEMS)
+        if self.patch_size != CNN_STRIDE:
+            raise ValueError(
+                f"vision.type=tiny-cnn has a stride of {CNN_STRIDE}: set patch_size={CNN_STRIDE}"
+            )
+        if len(self.cnn_channels) != 4 or min(self.cnn_channels) <= 0:
+            raise ValueError(f"vision.cnn_channels={self.cnn_channels} must be 4 positive stage widths")
+
+    @property
+    def featurizer_widths(self) -> tuple[int, int]:
+        """The ResNet's last stage; no fused featurizer (width 0)."""
+        return (self.cnn_channels[-1], 0)
+
+
+@VisionConfig.register_subclass(VISION_TINY)
+@dataclass
+class TinyVitVisionConfig(VisionConfig):
+    """`tiny`: two small ViTs of the dinosiglip structure, read at the output of the second-to-last block,
+    without the final norm."""
+
+    width: int = 96  # DINO-style ViT width
+    fused_width: int = 128  # SigLIP-style ViT width
+    depth: int = 3  # blocks per ViT (features come from block depth - 2)
+    num_heads: int = 4
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("width", "fused_width", "depth", "num_heads"):
+            check_positive("vision", name, getattr(self, name))
+        if self.depth < 2:
+            raise ValueError(f"vision.depth={self.depth}: need >= 2 blocks (features of the second-to-last)")
+        for name in ("width", "fused_width"):
+            if getattr(self, name) % self.num_heads:
+                raise ValueError(
+                    f"vision.{name}={getattr(self, name)} must be divisible by num_heads={self.num_heads}"
+                )
+
+    @property
+    def featurizer_widths(self) -> tuple[int, int]:
+        return (self.width, self.fused_width)
+
+
+@VisionConfig.register_subclass(VISION_DINOSIGLIP_224)
+@dataclass
+class DinoSiglipVisionConfig(VisionConfig):
+    """`dinosiglip-224px`: the real timm architectures (224 px, patch 14, 256 patches, 1024 + 1152 = 2176-d),
+    read at the output of the second-to-last block, without the final norm."""
+
+    image_size: int = 224
+    patch_size: int = 14
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if (self.image_size, self.patch_size) != (224, 14):
+            raise ValueError(
+                f"vision.type=dinosiglip-224px needs image_size=224 and patch_size=14 "
+                f"(got {self.image_size}, {self.patch_size}); use type=tiny for other sizes"
+            )
+
+    @property
+    def featurizer_widths(self) -> tuple[int, int]:
+        return DINOSIGLIP_WIDTHS

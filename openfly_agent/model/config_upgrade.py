@@ -1,0 +1,101 @@
+"""Model configs written by older code, in today's layout: what `config.json` held before a change to the model
+config, read by today's loader (model/pretrained_config.py).
+
+    agent = upgraded_model_dict(json.loads(path.read_text())["agent"])
+
+Before issue 40 the vision backbone, the grounding head and the action head were one flat section each, every
+field present whatever the variant (`vision: {preset: tiny-cnn, width: null, ...}`, `grounding: {cells: true,
+...}`); they are registered choices now (`vision: {type: tiny-cnn, cnn_channels: ...}`), each variant with only its
+own fields. The upgrade names the variant under `type` and drops the other variants' fields where they hold a
+value that did nothing (the old config refused any other).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from openfly_agent.model.config import ActionHeadConfig, GroundingConfig, VisionConfig
+
+# Deleted research switches at the value that turned them off (docs/experiments/2026-11-27-deleted-research-switches.md;
+# commit 7544758 still has them). A config that holds one at that value loads without it; any other value is
+# refused: the checkpoint was trained with code that no longer exists.
+DELETED_SWITCHES = {
+    "vision": {
+        "cnn_fine_fusion": False,
+        "cnn_instruction_film": False,
+        "cnn_init": "normal",
+    },
+    "grounding": {
+        "subcells": 1,
+        "attribute_match": False,
+        "dense_attribute_weight": 0.0,
+        "cell_fusion_layers": 0,
+    },
+}
+# Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width).
+DEAD_FIELDS = {"vision": ("cnn_stem_width",)}
+# Before the tiny-only size fields defaulted to None, every config.json held the tiny sizes, also under the
+# 7B presets (which ignored them). Those exact values are dropped when such a file is read.
+LEGACY_TINY_SIZES = {
+    "vision": ("tiny", {"width": 96, "fused_width": 128, "depth": 3, "num_heads": 4}),
+    "llm": ("tiny", {"hidden_size": 128, "num_layers": 2, "num_heads": 4, "intermediate_size": 344}),
+}
+
+
+ANY = object()  # a field another variant ignored whatever it held
+# Fields of the old flat sections that only another variant reads, with the values they held there.
+FOREIGN_FIELDS = {
+    "vision": {
+        "width": (None,), "fused_width": (None,), "depth": (None,), "num_heads": (None,), "cnn_channels": (None,),
+        "cnn_colour_stats": (False,), "cnn_stem": ("resnet",),
+    },
+    "grounding": {
+        "cell_weight": ANY, "centre_window": ANY, "attribute_classes": ANY, "attribute_weight": (0.0,),
+        "visual_skip": (False,),
+    },
+    "action_head": {
+        "decode_rule": ANY, "unnorm_key": ANY, "box_token": (None, False), "box_token_jitter": ANY,
+        "stop_loss_weight": (1.0,),
+    },
+}  # fmt: skip
+CHOICE_SECTIONS = {"vision": VisionConfig, "grounding": GroundingConfig, "action_head": ActionHeadConfig}
+
+
+class RetiredOptionError(ValueError):
+    """An older config turns on a switch that was deleted: its checkpoint needs the code of that time."""
+
+
+def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
+    """The model sections of an older `config.json` (`agent`) in today's layout; today's layout is returned as
+    it is. Raises `RetiredOptionError` for a deleted switch that is on."""
+    agent = {key: dict(value) if isinstance(value, dict) else value for key, value in agent.items()}
+    for section, (tiny_preset, sizes) in LEGACY_TINY_SIZES.items():
+        values = agent.get(section)
+        if isinstance(values, dict) and values.get("preset", tiny_preset) != tiny_preset:
+            agent[section] = {k: v for k, v in values.items() if not (k in sizes and v == sizes[k])}
+    for section, switches in DELETED_SWITCHES.items():
+        values = agent.get(section, {})
+        for name, off in switches.items():
+            if name in values and values.pop(name) != off:
+                raise RetiredOptionError(
+                    f"model config: {section}.{name} was deleted (no measured gain; "
+                    "docs/experiments/2026-11-27-deleted-research-switches.md): load this checkpoint with "
+                    "commit 7544758"
+                )
+    for section, names in DEAD_FIELDS.items():
+        for name in names:
+            agent.get(section, {}).pop(name, None)
+    if "preset" in agent.get("vision", {}):
+        agent["vision"]["type"] = agent["vision"].pop("preset")
+    if "cells" in agent.get("grounding", {}):
+        agent["grounding"]["type"] = "cells" if agent["grounding"].pop("cells") else "box"
+    for section, registry in CHOICE_SECTIONS.items():
+        values = agent.get(section)
+        if not values or values.get("type") not in registry.get_known_choices():
+            continue  # a variant the loader will name as unknown
+        own = {f.name for f in dataclasses.fields(registry.get_choice_class(values["type"]))}
+        for name, inert in FOREIGN_FIELDS[section].items():
+            if name in values and name not in own and (inert is ANY or values[name] in inert):
+                del values[name]
+    return agent
