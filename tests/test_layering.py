@@ -323,6 +323,7 @@ def test_own_modules_are_imported_at_module_top():
 
 TESTS = Path(__file__).resolve().parent
 REPOSITORY_WIDE_TESTS = {
+    "test_config_defaults.py",
     "test_cli_help.py",
     "test_docs.py",
     "test_eval_e2e.py",

@@ -189,7 +189,7 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
     return out
 
 
-def _unchecked_defaults(cls: type) -> Any:
+def unchecked_defaults(cls: type) -> Any:
     """An instance of `cls` holding its field defaults, built without `__post_init__` (whose checks may
     refuse the bare defaults, e.g. a policy that needs a checkpoint)."""
     config = object.__new__(cls)
@@ -226,7 +226,7 @@ def config_help(
         extra_options: (flag, text) of options the command takes besides the fields.
     """
     if config is None:
-        config = _unchecked_defaults(cls)
+        config = unchecked_defaults(cls)
     lines = [f"usage: {prog} [--config_path YAML] [--<field>=VALUE ...]", ""]
     lines += textwrap.wrap(" ".join(description.split()), WIDTH)
     lines += ["", *textwrap.wrap(DIALECT, WIDTH)]
