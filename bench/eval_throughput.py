@@ -34,7 +34,7 @@ from openfly_agent.eval.config import AgentSettings, EvalConfig  # noqa: E402
 from openfly_agent.eval.distributed import ProcessInfo  # noqa: E402
 from openfly_agent.eval.factory import embedded_sim_config, load_splits, make_env  # noqa: E402
 from openfly_agent.eval.rollout import LockstepRunner  # noqa: E402
-from openfly_agent.model.config import tiny_config  # noqa: E402
+from openfly_agent.model import tiny_config  # noqa: E402
 from openfly_agent.model.language.tokenizer import train_bpe_tokenizer  # noqa: E402
 from openfly_agent.toolchain.config import GenerateConfig, RenderConfig, SceneConfig  # noqa: E402
 from openfly_agent.toolchain.generate import generate  # noqa: E402
@@ -70,7 +70,7 @@ def _measure(agent, episodes, cfg, batch: int, device: str) -> dict:
 
     cfg.batch_size = batch
     env = make_env(cfg, ProcessInfo(), episodes, render=True)
-    runner = LockstepRunner(AgentPolicy(agent), env, cfg.max_steps, show_progress=False)
+    runner = LockstepRunner(AgentPolicy(agent.new_session()), env, cfg.max_steps, show_progress=False)
     runner.run(episodes[:batch], "warmup", lambda record: None)  # GL context, city upload, first kernels
     start = time.perf_counter()
     stats = runner.run(episodes, "bench", lambda record: None)

@@ -31,7 +31,7 @@ class AgentPolicy:
     """Adapter from the agent's inference API to the runner's `Policy` protocol.
 
     Args:
-        agent: an `OpenFlyAgent` (or anything with `select_action`, `reset`).
+        agent: an `AgentSession` of an `OpenFlyAgent` (or anything with `select_action`, `reset`).
         name: the policy name in tables and folders.
         true_boxes: feed the simulator's true target box to the agent in place of its grounding head's
             (`agent_true_box`: the agent with perfect grounding; the runner adds `target_box` to observations).
@@ -67,7 +67,7 @@ class AgentPolicy:
             else:
                 results = self.agent.predict_step(inputs)
         for obs, result in zip(inputs, results):
-            self._details[obs[OBS_EPISODE_ID]] = _details(self.agent, obs[OBS_EPISODE_ID], result)
+            self._details[obs[OBS_EPISODE_ID]] = _details(result)
         return [int(result.action) for result in results]
 
     def step_details(self, episode_ids: list[str]) -> list[dict]:
@@ -75,14 +75,12 @@ class AgentPolicy:
         return [self._details.get(episode_id, {}) for episode_id in episode_ids]
 
 
-def _details(agent, episode_id: str, result) -> dict:
+def _details(result) -> dict:
     """`box`: (cx, cy, w, h) or None; `keyframes`: frame indices of the keyframe sets in the agent memory."""
     box = [float(v) for v in result.box] if getattr(result, "box_visible", False) else None
-    state = getattr(agent, "episodes", {}).get(episode_id)
-    memory = getattr(state, "memory", None)
-    if memory is None:
+    sets = getattr(result, "memory_sets", None)  # one tuple of frame indices per keyframe set, oldest first
+    if sets is None:
         return {"box": box, "keyframes": None}
-    sets = memory.keys()  # MemoryBank keys: one tuple of frame indices per keyframe set, oldest first
     return {"box": box, "keyframes": [[int(i) for i in frames] for frames in sets]}
 
 

@@ -1,5 +1,6 @@
-"""Level-1 model: the agent (agent.py) and its components by sub-package: vision/, grounding/, memory/, language/,
-persistence/ (checkpoint folders).
+"""Level-1 model: the agent (agent.py: loss, processor, save / load) around its network (network.py: encode,
+decode), the closed-loop session (session.py) and the components by sub-package: vision/, grounding/, memory/,
+language/, persistence/ (checkpoint folders).
 
 The torch / transformers parts are imported on first use, so `import openfly_agent.model` stays cheap.
 """
@@ -13,6 +14,9 @@ from openfly_agent.model.config import ModelConfig, make_model_config, openfly_7
 _LAZY = {
     "OpenFlyAgent": ".agent",
     "register_auto_classes": ".agent",
+    "OpenFlyNetwork": ".network",
+    "AgentSession": ".session",
+    "StepResult": ".episode",
     "OpenFlyAgentConfig": ".pretrained_config",
     "OpenFlyProcessor": ".processor",
     "ImageTransform": ".vision.image_transform",

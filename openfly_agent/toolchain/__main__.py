@@ -189,6 +189,13 @@ def load_agent(checkpoint: str, agent_class: str):
     return cls.from_pretrained(str(folder))
 
 
+def _session(agent):
+    """An `OpenFlyAgent` acts through its session (`new_session`); another `--agent_class` is its own session."""
+    from openfly_agent.model import OpenFlyAgent
+
+    return agent.new_session() if isinstance(agent, OpenFlyAgent) else agent
+
+
 DAGGER_OPTIONS = [
     ("--checkpoint DIR", "trained agent folder (or Hub id) that flies the DAgger episodes (required)"),
     (
@@ -210,7 +217,7 @@ def cmd_dagger(args: list[str]) -> None:
         raise InputError("dagger needs --checkpoint <trained agent folder> (dagger --help lists the options)")
     cfg = _parse_generate(rest)
     setup_logging()
-    policy = AgentPolicy(load_agent(ns.checkpoint, ns.agent_class))
+    policy = AgentPolicy(_session(load_agent(ns.checkpoint, ns.agent_class)))
     try:
         summary = generate(cfg, policy=policy, kinds=(KIND_DAGGER_POLICY,))
     except GenerateSettingsError as err:
@@ -280,7 +287,7 @@ def cmd_dagger_round(args: list[str]) -> None:
 
         torch.set_num_threads(ns.torch_threads)
     agent = load_agent(ns.checkpoint, ns.agent_class).eval()
-    print(json.dumps(run_dagger_round(BatchAgentPolicy(agent), cfg)))
+    print(json.dumps(run_dagger_round(BatchAgentPolicy(_session(agent)), cfg)))
 
 
 HANDLERS = {
