@@ -1,12 +1,12 @@
 """What a running episode keeps between steps, and what one inference step returns.
 
-Plain data used by `AgentSession` (model/session.py), which owns one `EpisodeState` per episode id; the memory
-part (`EpisodeMemory`) comes from the network's memory encoding (model/memory/encoding.py). Nothing here runs a
-network.
+Plain data used by `AgentSession` (model/session.py), which owns one `EpisodeState` per episode id; its memory
+is an `EpisodeMemory` of the network's memory encoding (model/memory/encoding.py). Nothing here runs a network.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -14,9 +14,16 @@ from typing import Any
 import torch
 
 from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
-from openfly_agent.model.memory.encoding import EpisodeMemory
 
 Box = tuple[float, float, float, float]  # (cx, cy, w, h), normalised to [0, 1]
+
+
+class EpisodeMemory(ABC):
+    """What one running episode keeps of its past frames (made by the memory encoding's `new_episode`)."""
+
+    @abstractmethod
+    def sets(self) -> list[tuple[int, ...]]:
+        """Frame indices of the keyframe sets in memory, oldest first (none for the history encoding)."""
 
 
 @dataclass

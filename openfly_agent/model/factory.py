@@ -78,5 +78,5 @@ def make_memory_encoding(cfg: ModelConfig, selector: KeyframeSelector) -> Memory
     """The memory encoding of `cfg.mode`, chosen once: the OpenVLA-compatible history (`openvla_compat`) or the
     keyframe memory read through `selector` (every other mode)."""
     if cfg.mode == MODE_OPENVLA_COMPAT:
-        return HistoryMemory(cfg.memory.capacity, cfg.memory.grid)
+        return HistoryMemory(cfg.memory.capacity, cfg.memory.grid, cfg.llm.resolved_hidden_size)
     return KeyframeMemory(cfg, selector)

@@ -1,7 +1,7 @@
 """`OpenFlyNetwork`: the agent's modules and its two halves, as timm's `forward_features` / `forward_head`.
 
-`encode` turns frames and memory into visual tokens (training batch) and `encode_step` the frames of one
-closed-loop step; the LLM runs between; `predict_boxes` / `decode_actions` turn hidden states into the landmark
+`encode` turns frames and memory into visual tokens (training batch), `encode_step` the frames of one
+closed-loop step and `read_memory` / `write_memory` each running episode's memory; the LLM runs between; `predict_boxes` / `decode_actions` turn hidden states into the landmark
 box and the action (logits, or bin tokens decoded greedily with the KV cache: `new_cache`, `run_cached`,
 `decode_one`, `greedy_decode`). The memory encoding (keyframe sets or the OpenVLA-compatible history) is chosen
 once from the config (`self.memory`, model/memory/encoding.py). Loss, processor and save / load belong to the
@@ -17,6 +17,7 @@ from torch import nn
 
 from openfly_agent.constants import FRAME_INDEX, MEMORY_PIXEL_VALUES, PIXEL_VALUES
 from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
+from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_memory_encoding
 from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, last_true_index
 from openfly_agent.model.grounding.head import GroundingOutput, make_grounding_head
@@ -25,7 +26,7 @@ from openfly_agent.model.language.llm import build_language_model, cache_keyword
 from openfly_agent.model.language.sequence import left_pad_ids, position_ids_from_mask
 from openfly_agent.model.memory.encoding import StepFrames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
-from openfly_agent.model.vision.backbone import build_vision_backbone
+from openfly_agent.model.vision.backbone import build_vision_backbone, encode_frames
 from openfly_agent.model.vision.instruction_film import mean_prompt_embedding
 from openfly_agent.model.vision.projector import FusedMLPProjector
 
@@ -83,19 +84,6 @@ class OpenFlyNetwork(nn.Module):
         prompts, prompt_mask = left_pad_ids([ids[1:] for ids in prompt_ids], device)  # (B, L), BOS dropped
         return self.instruction_code(prompts, prompt_mask)
 
-    def encode_frames(
-        self,
-        pixels: torch.Tensor,
-        instruction: torch.Tensor | None = None,
-        frame_index: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """(F, 3, H, W) uint8 -> (N, P, D_v) features; sequence i reads frame `frame_index[i]` (default i),
-        under its (N, D) instruction code when the backbone is conditioned."""
-        if instruction is not None:
-            return self.vision_backbone(pixels, instruction, frame_index)
-        features = self.vision_backbone(pixels)  # (F, P, D_v)
-        return features if frame_index is None else features[frame_index.to(features.device)]
-
     def encode(
         self, batch: dict[str, Any], instruction: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -109,7 +97,7 @@ class OpenFlyNetwork(nn.Module):
             (B, M + P, D) tokens and their (B, M + P) bool mask (False on missing memory sets).
         """
         current = self.projector(
-            self.encode_frames(batch[PIXEL_VALUES], instruction, batch.get(FRAME_INDEX))
+            encode_frames(self.vision_backbone, batch[PIXEL_VALUES], instruction, batch.get(FRAME_INDEX))
         )  # (B, P, D)
         memory, memory_mask = self._batch_memory(batch, instruction)  # (B, M, D), (B, M)
         if memory.shape[0] != current.shape[0]:  # a grounding batch has no memory: one empty row per sequence
@@ -131,7 +119,7 @@ class OpenFlyNetwork(nn.Module):
         sets = batch[MEMORY_PIXEL_VALUES].shape[1]  # (B, K, S, 3, H, W)
         if sets > capacity:
             raise ValueError(f"batch holds {sets} memory sets but memory.capacity is {capacity}")
-        return self.memory.batch_tokens(self, batch, instruction)
+        return self.memory.batch_tokens(self.vision_backbone, self.projector, batch, instruction)
 
     def encode_step(self, pixels: torch.Tensor, instruction: torch.Tensor | None) -> StepFrames:
         """The current frames of one closed-loop step: (B, 3, H, W) uint8 -> backbone features, DINO CLS
@@ -142,6 +130,14 @@ class OpenFlyNetwork(nn.Module):
             else (self.vision_backbone(pixels, instruction), None)
         )  # (B, P, D_v), (B, D_dino) or None
         return StepFrames(patches, dino_cls, self.projector(patches))
+
+    def read_memory(self, episodes: list[EpisodeState], frames: StepFrames) -> list[torch.Tensor]:
+        """Each running episode's (M_i, D) memory tokens at this step, oldest first."""
+        return self.memory.read(self.vision_backbone, self.projector, episodes, frames)
+
+    def write_memory(self, episodes: list[EpisodeState], frames: StepFrames) -> None:
+        """Remember this step's frames in each episode's memory (after the episode recorded the step)."""
+        self.memory.write(self.projector, episodes, frames)
 
     # --- the LLM ----------------------------------------------------------------------------------
     def run_llm(self, embeds: torch.Tensor, attention_mask: torch.Tensor, **kwargs) -> Any:

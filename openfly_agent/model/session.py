@@ -7,7 +7,7 @@ processor prepares the inputs, its network (model/network.py) encodes and decode
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import torch
 
@@ -15,10 +15,19 @@ from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
 from openfly_agent.model.config import HEAD_DISCRETE
 from openfly_agent.model.episode import Box, EpisodeState, StepResult, check_observations
 from openfly_agent.model.grounding.box_token import given_boxes
+from openfly_agent.model.language.action_tokenizer import ActionTokenizer
 from openfly_agent.model.language.sequence import left_pad
+from openfly_agent.model.network import OpenFlyNetwork
+from openfly_agent.model.processor import OpenFlyProcessor
 
-if TYPE_CHECKING:
-    from openfly_agent.model.agent import OpenFlyAgent
+
+class SessionAgent(Protocol):
+    """What a session reads of its agent (`OpenFlyAgent`, model/agent.py), each step anew: `set_action_decoding`
+    may rebuild the processor and the action tokenizer."""
+
+    network: OpenFlyNetwork
+    processor: OpenFlyProcessor | None
+    action_tokenizer: ActionTokenizer
 
 
 class AgentSession:
@@ -28,7 +37,7 @@ class AgentSession:
         agent: the `OpenFlyAgent` that acts (its processor is needed once an episode starts).
     """
 
-    def __init__(self, agent: OpenFlyAgent) -> None:
+    def __init__(self, agent: SessionAgent) -> None:
         self.agent = agent
         self.episodes: dict[str, EpisodeState] = {}
 
@@ -73,7 +82,7 @@ class AgentSession:
             [state.prompt_ids for state in states], device
         )  # (B, D)
         frames = network.encode_step(pixels, instruction)
-        memories = network.memory.read(network, states, frames)  # (M_i, D) per episode
+        memories = network.read_memory(states, frames)  # (M_i, D) per episode
         sequences = []
         for row, state in enumerate(states):
             prompt = network.embed_text(torch.tensor(state.prompt_ids, device=device))  # (L, D)
@@ -113,7 +122,7 @@ class AgentSession:
         boxes = boxes.float().cpu()
         for row, state in enumerate(states):
             state.record(actions[row], tuple(float(v) for v in boxes[row]) if visible[row] else None)
-        network.memory.write(network, states, frames)
+        network.write_memory(states, frames)
         return [
             StepResult(
                 actions[row],

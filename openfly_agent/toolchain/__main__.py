@@ -191,7 +191,7 @@ def load_agent(checkpoint: str, agent_class: str):
 
 def _session(agent):
     """An `OpenFlyAgent` acts through its session (`new_session`); another `--agent_class` is its own session."""
-    from openfly_agent.model import OpenFlyAgent
+    from openfly_agent.model import OpenFlyAgent  # lazy: torch and transformers, for the DAgger commands only
 
     return agent.new_session() if isinstance(agent, OpenFlyAgent) else agent
 

@@ -3,20 +3,20 @@
 Two encodings implement it, chosen once from the config by `make_memory_encoding` (model/factory.py):
 `KeyframeMemory` (model/memory/keyframe_memory.py: keyframe sets merged into their largest-box frame,
 grid-pooled, projected) and `HistoryMemory` (model/memory/history_memory.py: the OpenVLA-compatible history, one
-token per past frame). Each network call they need is a method of the `OpenFlyNetwork` passed in.
+token per past frame). They run the network's vision backbone and projector, passed in by the network
+(model/network.py).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
+from torch import nn
 
-if TYPE_CHECKING:
-    from openfly_agent.model.episode import EpisodeState
-    from openfly_agent.model.network import OpenFlyNetwork
+from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 
 
 @dataclass
@@ -30,20 +30,16 @@ class StepFrames:
     current: torch.Tensor  # (B, P, D) projected tokens, as they enter the LLM
 
 
-class EpisodeMemory(ABC):
-    """What one running episode keeps of its past frames."""
-
-    @abstractmethod
-    def sets(self) -> list[tuple[int, ...]]:
-        """Frame indices of the keyframe sets in memory, oldest first (none for the history encoding)."""
-
-
 class MemoryEncoding(ABC):
     """Memory tokens of a training batch, and of each running episode before and after its step."""
 
     @abstractmethod
     def batch_tokens(
-        self, network: OpenFlyNetwork, batch: dict[str, Any], instruction: torch.Tensor | None
+        self,
+        vision_backbone: nn.Module,
+        projector: nn.Module,
+        batch: dict[str, Any],
+        instruction: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, M, D) memory tokens of a training batch holding `memory_*` keys, and their (B, M) bool mask.
 
@@ -56,10 +52,14 @@ class MemoryEncoding(ABC):
 
     @abstractmethod
     def read(
-        self, network: OpenFlyNetwork, episodes: list[EpisodeState], frames: StepFrames
+        self,
+        vision_backbone: nn.Module,
+        projector: nn.Module,
+        episodes: list[EpisodeState],
+        frames: StepFrames,
     ) -> list[torch.Tensor]:
         """Each episode's (M_i, D) memory tokens at this step, oldest first."""
 
     @abstractmethod
-    def write(self, network: OpenFlyNetwork, episodes: list[EpisodeState], frames: StepFrames) -> None:
+    def write(self, projector: nn.Module, episodes: list[EpisodeState], frames: StepFrames) -> None:
         """Remember this step's frames (after each episode recorded its action and box)."""

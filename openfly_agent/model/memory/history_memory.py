@@ -5,17 +5,15 @@ first frame."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
+from torch import nn
 
 from openfly_agent.constants import MEMORY_FRAME_MASK, MEMORY_PIXEL_VALUES
+from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 from openfly_agent.model.memory.bank import grid_pool
-from openfly_agent.model.memory.encoding import EpisodeMemory, MemoryEncoding, StepFrames
-
-if TYPE_CHECKING:
-    from openfly_agent.model.episode import EpisodeState
-    from openfly_agent.model.network import OpenFlyNetwork
+from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames
 
 
 @dataclass
@@ -39,30 +37,34 @@ def history_indices(step: int, count: int) -> list[int]:
 
 
 class HistoryMemory(MemoryEncoding):
-    """Past frames -> one token each (`memory.capacity` frames, `memory.grid` pooling)."""
+    """Past frames -> one token each (`memory.capacity` frames, `memory.grid` pooling, LLM width `llm_dim`)."""
 
-    def __init__(self, capacity: int, grid: int) -> None:
-        self.capacity, self.grid = capacity, grid
+    def __init__(self, capacity: int, grid: int, llm_dim: int) -> None:
+        self.capacity, self.grid, self.llm_dim = capacity, grid, llm_dim
 
     def frame_tokens(
-        self, network: OpenFlyNetwork, patches: torch.Tensor, dino_cls: torch.Tensor
+        self, vision_backbone: nn.Module, projector: nn.Module, patches: torch.Tensor, dino_cls: torch.Tensor
     ) -> torch.Tensor:
         """(N, P, D_v) fused patches, (N, D_dino) CLS -> (N, D_llm): DINO CLS ++ pooled SigLIP patches, projected."""
-        siglip = patches[..., network.vision_backbone.dino_dim :]  # (N, P, D_siglip)
+        siglip = patches[..., vision_backbone.dino_dim :]  # (N, P, D_siglip)
         pooled = grid_pool(siglip, self.grid)[:, 0]  # (N, D_siglip)
-        return network.projector(torch.cat([dino_cls, pooled], dim=-1))  # (N, D)
+        return projector(torch.cat([dino_cls, pooled], dim=-1))  # (N, D)
 
     def batch_tokens(
-        self, network: OpenFlyNetwork, batch: dict[str, Any], instruction: torch.Tensor | None
+        self,
+        vision_backbone: nn.Module,
+        projector: nn.Module,
+        batch: dict[str, Any],
+        instruction: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         pixels = batch[MEMORY_PIXEL_VALUES]  # (B, K, S, 3, H, W)
         frame_mask = batch[MEMORY_FRAME_MASK].bool().to(pixels.device)  # (B, K, S)
         b, k, s = pixels.shape[:3]
         real = pixels[frame_mask]  # (n_real, 3, H, W)
-        tokens = network.projector.fc3.weight.new_zeros(b, k * s, network.llm_dim)  # (B, K*S, D)
+        tokens = projector.fc3.weight.new_zeros(b, k * s, self.llm_dim)  # (B, K*S, D)
         if real.shape[0]:
             tokens[frame_mask.view(b, k * s)] = self.frame_tokens(
-                network, *network.vision_backbone.forward_with_cls(real)
+                vision_backbone, projector, *vision_backbone.forward_with_cls(real)
             )
         return tokens, frame_mask.view(b, k * s)
 
@@ -70,10 +72,14 @@ class HistoryMemory(MemoryEncoding):
         return HistoryEpisodeMemory()
 
     def read(
-        self, network: OpenFlyNetwork, episodes: list[EpisodeState], frames: StepFrames
+        self,
+        vision_backbone: nn.Module,
+        projector: nn.Module,
+        episodes: list[EpisodeState],
+        frames: StepFrames,
     ) -> list[torch.Tensor]:
         """The (K, D) history of each episode; the current frame's own token pads the first step."""
-        own = self.frame_tokens(network, frames.patches, frames.dino_cls)  # (B, D)
+        own = self.frame_tokens(vision_backbone, projector, frames.patches, frames.dino_cls)  # (B, D)
         history = []
         for row, episode in enumerate(episodes):
             episode.memory.current = own[row]
@@ -84,7 +90,7 @@ class HistoryMemory(MemoryEncoding):
             history.append(torch.stack(tokens) if tokens else own.new_zeros(0, own.shape[-1]))
         return history
 
-    def write(self, network: OpenFlyNetwork, episodes: list[EpisodeState], frames: StepFrames) -> None:
+    def write(self, projector: nn.Module, episodes: list[EpisodeState], frames: StepFrames) -> None:
         """Keep the step's frame token; only frame 0 and the last `capacity` frames stay."""
         for episode in episodes:
             memory = episode.memory

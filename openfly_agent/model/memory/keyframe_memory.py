@@ -4,21 +4,19 @@ grid-pooled and projected to LLM tokens; online, the sets the keyframe selector 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 from torch import nn
 
 from openfly_agent.constants import MEMORY_BOX_VISIBLE, MEMORY_BOXES, MEMORY_FRAME_MASK, MEMORY_PIXEL_VALUES
+from openfly_agent.model.config import ModelConfig
+from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 from openfly_agent.model.memory.bank import MemoryBank, grid_pool
-from openfly_agent.model.memory.encoding import EpisodeMemory, MemoryEncoding, StepFrames
+from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
-
-if TYPE_CHECKING:
-    from openfly_agent.model.config import ModelConfig
-    from openfly_agent.model.episode import EpisodeState
-    from openfly_agent.model.network import OpenFlyNetwork
+from openfly_agent.model.vision.backbone import encode_frames
 
 
 @dataclass
@@ -82,21 +80,25 @@ class KeyframeMemory(MemoryEncoding):
         return projector(grid_pool(merged, self.grid))  # (N, m, D)
 
     def batch_tokens(
-        self, network: OpenFlyNetwork, batch: dict[str, Any], instruction: torch.Tensor | None
+        self,
+        vision_backbone: nn.Module,
+        projector: nn.Module,
+        batch: dict[str, Any],
+        instruction: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         pixels = batch[MEMORY_PIXEL_VALUES]  # (B, K, S, 3, H, W)
         frame_mask = batch[MEMORY_FRAME_MASK].bool().to(pixels.device)  # (B, K, S)
         b, k, s = pixels.shape[:3]
         real = pixels[frame_mask]  # (n_real, 3, H, W)
-        features = network.projector.fc1.weight.new_zeros(
+        features = projector.fc1.weight.new_zeros(
             b, k, s, self.num_patches, self.feature_dim
         )  # (B, K, S, P, D_v)
         if real.shape[0]:
             rows = frame_mask.nonzero()[:, 0]  # (n_real,) the sequence of each real frame
             code = None if instruction is None else instruction[rows.to(instruction.device)]
-            features[frame_mask] = network.encode_frames(real, code).to(features.dtype)
+            features[frame_mask] = encode_frames(vision_backbone, real, code).to(features.dtype)
         tokens = self.set_tokens(
-            network.projector,
+            projector,
             features.flatten(0, 1),
             frame_mask.flatten(0, 1),
             batch[MEMORY_BOXES].flatten(0, 1),
@@ -110,12 +112,16 @@ class KeyframeMemory(MemoryEncoding):
         return KeyframeEpisodeMemory(MemoryBank(self.capacity))
 
     def read(
-        self, network: OpenFlyNetwork, episodes: list[EpisodeState], frames: StepFrames
+        self,
+        vision_backbone: nn.Module,
+        projector: nn.Module,
+        episodes: list[EpisodeState],
+        frames: StepFrames,
     ) -> list[torch.Tensor]:
         empty = frames.current[0, :0]  # (0, D): the dtype and device of an empty memory
         return [torch.cat([empty, *episode.memory.bank.tokens()], dim=0) for episode in episodes]
 
-    def write(self, network: OpenFlyNetwork, episodes: list[EpisodeState], frames: StepFrames) -> None:
+    def write(self, projector: nn.Module, episodes: list[EpisodeState], frames: StepFrames) -> None:
         """Keep each frame's features, then push newly completed keyframe sets (same selector as the dataset,
         predicted boxes) into the banks, all episodes' sets in one batch."""
         for row, episode in enumerate(episodes):
@@ -138,6 +144,6 @@ class KeyframeMemory(MemoryEncoding):
                 features[row, col] = episode.memory.frame_features[frame]
                 boxes[row, col] = torch.tensor(episode.boxes[frame], device=first.device)
             frame_mask[row, : len(frame_set)] = True
-        tokens = self.set_tokens(network.projector, features, frame_mask, boxes, frame_mask)  # (N, m, D)
+        tokens = self.set_tokens(projector, features, frame_mask, boxes, frame_mask)  # (N, m, D)
         for row, (episode, frame_set) in enumerate(pending):
             episode.memory.bank.push(tuple(frame_set), tokens[row])

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+
+from torch import nn
 
 from openfly_agent.constants import ACTION_TOKENIZER_NAME, NORM_STATS_NAME
 from openfly_agent.model.language.lora import has_lora
@@ -17,11 +18,8 @@ from openfly_agent.model.persistence.checkpoint_path import (
     resolve_checkpoint_folder,
 )
 
-if TYPE_CHECKING:
-    from openfly_agent.model.agent import OpenFlyAgent
 
-
-def check_no_lora(agent: OpenFlyAgent) -> None:
+def check_no_lora(agent: nn.Module) -> None:
     """Raise when LoRA is attached: the plain key layout is saved only once it is merged."""
     if has_lora(agent):
         raise ValueError(
@@ -30,9 +28,9 @@ def check_no_lora(agent: OpenFlyAgent) -> None:
         )
 
 
-def save_processor_files(agent: OpenFlyAgent, folder: str | Path) -> None:
-    """What prepares inputs and reads outputs: the processor (processor_config.json + tokenizer files),
-    action_tokenizer.json and the norm stats (dataset_statistics.json)."""
+def save_processor_files(agent: nn.Module, folder: str | Path) -> None:
+    """What prepares inputs and reads outputs of `agent` (an `OpenFlyAgent`): the processor (processor_config.json
+    + tokenizer files), action_tokenizer.json and the norm stats (dataset_statistics.json)."""
     folder = Path(folder)
     agent.action_tokenizer.save(folder / ACTION_TOKENIZER_NAME)
     if agent.config.norm_stats:

@@ -138,3 +138,17 @@ def build_vision_backbone(cfg: VisionConfig, text_dim: int | None = None) -> nn.
     if cfg.preset == VISION_TINY_CNN:
         return ConvVisionBackbone(cfg, text_dim)
     return FusedVisionBackbone(cfg)
+
+
+def encode_frames(
+    backbone: nn.Module,
+    pixels: torch.Tensor,
+    instruction: torch.Tensor | None = None,
+    frame_index: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(F, 3, H, W) uint8 -> (N, P, D_v) features of `backbone`; sequence i reads frame `frame_index[i]` (default
+    i), under its (N, D) instruction code when the backbone is conditioned (`vision.cnn_instruction_film`)."""
+    if instruction is not None:
+        return backbone(pixels, instruction, frame_index)
+    features = backbone(pixels)  # (F, P, D_v)
+    return features if frame_index is None else features[frame_index.to(features.device)]
