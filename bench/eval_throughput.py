@@ -71,7 +71,7 @@ def _measure(agent, episodes, cfg, batch: int, device: str) -> dict:
 
     cfg.batch_size = batch
     env = make_env(cfg, ProcessInfo(), episodes, render=True)
-    runner = LockstepRunner(AgentPolicy(agent), env, cfg.max_steps, show_progress=False)
+    runner = LockstepRunner(AgentPolicy(agent.new_session()), env, cfg.max_steps, show_progress=False)
     runner.run(episodes[:batch], "warmup")  # GL context, city upload, first kernels
     start = time.perf_counter()
     stats = runner.run(episodes, "bench")

@@ -57,22 +57,25 @@ def build_agent(cfg: ModelConfig, device: str, dtype: torch.dtype):
     return agent.eval()
 
 
-def fill_memory(agent, episode_ids: list[str]) -> None:
-    """Push K keyframe sets (tokens of random frames through the real merge / pool / projector path)."""
-    cfg = agent.model_cfg
-    device = agent.projector.fc1.weight.device
+def fill_memory(session, episode_ids: list[str]) -> None:
+    """Push K keyframe sets (tokens of random frames through the real merge / pool / projector path) into the
+    memories of the agent session's episodes."""
+    network = session.agent.network
+    cfg = network.cfg
+    device = network.projector.fc1.weight.device
     for episode_id in episode_ids:
-        state = agent.episodes[episode_id]
+        state = session.episodes[episode_id]
         for k in range(cfg.memory.capacity):
             s = cfg.keyframes.set_size
             pixels = torch.randint(
                 0, 256, (s, 3, cfg.vision.image_size, cfg.vision.image_size), dtype=torch.uint8
             )
             with torch.no_grad():
-                features = agent.vision_backbone(pixels.to(device))[None]  # (1, S, P, D_v)
+                features = network.vision_backbone(pixels.to(device))[None]  # (1, S, P, D_v)
                 mask = torch.ones(1, s, dtype=torch.bool, device=device)
                 boxes = torch.full((1, s, 4), 0.5, device=device)
-                state.memory.push(("bench", k), agent.memory_set_tokens(features, mask, boxes, mask)[0])
+                tokens = network.memory.set_tokens(network.projector, features, mask, boxes, mask)[0]
+                state.memory.bank.push(("bench", k), tokens)
 
 
 def time_steps(agent, batch: int, steps: int, warmup: int) -> tuple[float, float]:
@@ -88,22 +91,22 @@ def time_steps(agent, batch: int, steps: int, warmup: int) -> tuple[float, float
             for i, e in enumerate(ids)
         ]
 
-    agent.reset()
-    agent.select_action(observations())
-    fill_memory(agent, ids)
+    session = agent.new_session()
+    session.select_action(observations())
+    fill_memory(session, ids)
     for _ in range(warmup):
-        agent.select_action(observations())
+        session.select_action(observations())
     sync = torch.cuda.synchronize if agent.projector.fc1.weight.is_cuda else (lambda: None)
     times = []
     for _ in range(steps):
         obs = observations()
         sync()
         start = time.perf_counter()
-        agent.select_action(obs)
+        session.select_action(obs)
         sync()
         times.append(1000.0 * (time.perf_counter() - start))
     for i in ids:  # memory must still be full (K sets) for the numbers to mean what they say
-        assert len(agent.episodes[i].memory) == agent.model_cfg.memory.capacity
+        assert len(session.episodes[i].memory) == agent.model_cfg.memory.capacity
     return float(np.median(times)), float(np.mean(times))
 
 

@@ -301,7 +301,7 @@ def test_released_checkpoint_runs_through_the_compat_path(dataset, tmp_path):
     for agent in (loaded, source):  # the folder's agent flies exactly like the one that wrote it
         env = make_env(cfg, ProcessInfo(), episodes, render=True)
         records = []
-        LockstepRunner(AgentPolicy(agent), env, cfg.max_steps, show_progress=False).run(
+        LockstepRunner(AgentPolicy(agent.new_session()), env, cfg.max_steps, show_progress=False).run(
             episodes, "s", records.append
         )
         env.close()

@@ -198,6 +198,7 @@ def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: Proce
         return make_baseline(
             name, episodes, seed=cfg.seed, oracle_mode=cfg.oracle_mode, box_servo=cfg.box_servo
         )
+
     device = resolve_device(cfg.device, getattr(info.state, "device", None))
     settings = cfg.agent
     agent = load_agent(
@@ -208,4 +209,4 @@ def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: Proce
         settings.unnorm_key,
         settings.model_config,
     )
-    return AgentPolicy(agent, name, true_boxes=name == AGENT_TRUE_BOX)
+    return AgentPolicy(agent.new_session(), name, true_boxes=name == AGENT_TRUE_BOX)

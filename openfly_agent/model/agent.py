@@ -1,16 +1,17 @@
-"""`OpenFlyAgent`: fused ViT backbone + projector + Llama + grounding head + keyframe memory + action head.
+"""`OpenFlyAgent`: the network (model/network.py) with its loss, processor, action tokenizer and save / load.
 
 A `transformers.PreTrainedModel`, so save / load (safetensors, sharding), AutoModel registration and
-`push_to_hub` come from transformers. Inputs are prepared by `self.processor` (model/processor.py), in training
-(through the collator) and in inference alike. Training: `forward(batch) -> (loss, logs)`. Closed-loop
-inference, as lerobot's policies: `select_action(observations)` / `predict_step` / `reset(episode_ids)`, with
-each running episode's state (model/episode.py) in `self.episodes` (model/agent_inference.py).
+`push_to_hub` come from transformers; config.json's model sections (`config.agent`) are the one configuration.
+Inputs are prepared by `self.processor` (model/processor.py), in training (through the collator) and in
+inference alike. Training: `forward(batch) -> (loss, logs)`. Closed-loop inference runs in the `AgentSession` of
+`new_session()` (model/session.py), which holds the running episodes.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -23,59 +24,53 @@ from openfly_agent.constants import (
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
-    FRAME_INDEX,
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
     MODEL_TYPE,
-    PIXEL_VALUES,
     TARGET_ATTRIBUTES,
 )
-from openfly_agent.model.agent_inference import ClosedLoopInference
 from openfly_agent.model.config import (
     HEAD_DISCRETE,
     BinsActionHeadConfig,
     DiscreteActionHeadConfig,
     ModelConfig,
 )
-from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
 from openfly_agent.model.freeze import freeze
-from openfly_agent.model.grounding.box_token import (
-    BoxTokenEmbedding,
-    insert_before_targets,
-    jitter_boxes,
-    last_true_index,
-)
-from openfly_agent.model.grounding.head import (
-    GroundingOutput,
-    grounding_loss,
-    make_grounding_head,
-)
+from openfly_agent.model.grounding.box_token import insert_before_targets, jitter_boxes
+from openfly_agent.model.grounding.head import grounding_loss
 from openfly_agent.model.grounding.layers import QueryReader
 from openfly_agent.model.language.length_groups import run_in_length_groups
-from openfly_agent.model.language.llm import build_language_model, unwrap_causal_lm
-from openfly_agent.model.language.sequence import position_ids_from_mask, splice_after_bos
+from openfly_agent.model.language.sequence import splice_after_bos
 from openfly_agent.model.language.tokenizer import load_tokenizer
-from openfly_agent.model.memory.encoding import MemoryEncoding
-from openfly_agent.model.memory.keyframes import KeyframeSelector
-from openfly_agent.model.persistence.agent_io import AgentPersistence
+from openfly_agent.model.network import OpenFlyNetwork
+from openfly_agent.model.persistence.agent_io import (
+    check_no_lora,
+    loadable_checkpoint,
+    save_processor_files,
+    saved_tokenizer,
+)
+from openfly_agent.model.persistence.remote_code import write_remote_code
 from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 from openfly_agent.model.processor import OpenFlyProcessor
-from openfly_agent.model.vision.backbone import build_vision_backbone
+from openfly_agent.model.session import AgentSession
 from openfly_agent.model.vision.conv import ConvVisionBackbone
-from openfly_agent.model.vision.projector import FusedMLPProjector
 from openfly_agent.utils.config import config_to_dict
 
 logger = logging.getLogger(__name__)
 
 
-class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTrainedModel):
+class OpenFlyAgent(PreTrainedModel):
     """OpenFly-Agent under OpenVLA's module names (`vision_backbone`, `projector`, `language_model`).
+
+    The agent's modules are its network's: `self._modules` is `self.network._modules` (one dict, no `network.`
+    child), so the state-dict keys stay `vision_backbone.*`, `language_model.*`, ... (checkpoints written before
+    the network was its own module load unchanged) and a module replaced on one (LoRA's wrapper) is on both.
 
     Args:
         config: the transformers config (build fresh models with `from_model_config`).
-        tokenizer: optional text tokenizer; with it the agent has its `processor` (needed by `select_action`).
+        tokenizer: optional text tokenizer; with it the agent has its `processor` (needed by `AgentSession`).
     """
 
     config_class = OpenFlyAgentConfig
@@ -95,23 +90,13 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
                 "llm.vocab_size is unresolved: build fresh agents with "
                 "OpenFlyAgent.from_model_config(cfg, tokenizer)"
             )
-        self.model_cfg = cfg
-        llm_dim = cfg.llm.resolved_hidden_size
-        self.vision_backbone = build_vision_backbone(cfg.vision)
-        self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
-        self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
-        self.grounding_head = (
-            make_grounding_head(llm_dim, cfg.grounding, cfg.vision.grid_side)
-            if cfg.grounding.enabled
-            else None
-        )
-        self.box_token_embed = BoxTokenEmbedding(llm_dim) if cfg.uses_box_token else None
-        self.action_tokenizer = make_action_tokenizer(cfg, config.norm_stats)  # built from the config only
-        config.action_tokenizer = self.action_tokenizer.to_dict()
-        self.keyframe_selector = KeyframeSelector.from_config(cfg.keyframes, cfg.memory.capacity)
+        self._parsed_config: tuple[dict, ModelConfig] = (dict(config.agent), cfg)
+        network = OpenFlyNetwork(cfg)
+        object.__setattr__(self, "network", network)  # not a child: its modules are the agent's own
+        object.__setattr__(self, "_modules", network._modules)
+        self._build_action_tokenizer()
         self.processor: OpenFlyProcessor | None = None
         self.tokenizer = tokenizer  # builds the processor
-        self.episodes: dict[str, EpisodeState] = {}  # running episodes of select_action / predict_step
         self.post_init()
 
     # --- construction -----------------------------------------------------------------------------
@@ -150,6 +135,25 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         elif isinstance(module, (QueryReader, ConvVisionBackbone)):  # either grounding head, tiny-cnn
             module.init_weights()
 
+    def train(self, mode: bool = True) -> OpenFlyAgent:
+        """`nn.Module.train`, the network's own flag included (it is not a child)."""
+        self.network.training = mode
+        return super().train(mode)
+
+    # --- the one configuration --------------------------------------------------------------------
+    @property
+    def model_cfg(self) -> ModelConfig:
+        """The typed model sections of `config.agent` (parsed again only after the dict changed)."""
+        agent = self.config.agent
+        if self._parsed_config[0] != agent:
+            self._parsed_config = (dict(agent), self.config.model_config)
+        return self._parsed_config[1]
+
+    def _build_action_tokenizer(self) -> None:
+        """The action tokenizer of the config; `config.action_tokenizer` records its settings in config.json."""
+        self.action_tokenizer = make_action_tokenizer(self.model_cfg, self.config.norm_stats)
+        self.config.action_tokenizer = self.action_tokenizer.to_dict()
+
     @property
     def tokenizer(self):
         """The text tokenizer of the processor (None: the agent has no processor)."""
@@ -165,57 +169,17 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         )
 
     def set_action_decoding(self, decode_rule: str | None = None, unnorm_key: str | None = None) -> None:
-        """Change how `openvla_bins` tokens decode (rule, norm-stats profile) through the config: config.json's
-        sections, `config.action_tokenizer`, the action tokenizer and the processor all follow (None: keep). The
-        discrete head has one decoding: nothing changes."""
+        """Change how `openvla_bins` tokens decode (rule, norm-stats profile) in the config; the action
+        tokenizer and the processor are rebuilt from it (None: keep)."""
         head = self.model_cfg.action_head
         if not isinstance(head, BinsActionHeadConfig):
             return
         head = dataclasses.replace(
             head, decode_rule=decode_rule or head.decode_rule, unnorm_key=unnorm_key or head.unnorm_key
         )
-        self.model_cfg = dataclasses.replace(self.model_cfg, action_head=head)
-        self.config.agent = config_to_dict(self.model_cfg)
-        self.action_tokenizer = make_action_tokenizer(self.model_cfg, self.config.norm_stats)
-        self.config.action_tokenizer = self.action_tokenizer.to_dict()
+        self.config.agent = config_to_dict(dataclasses.replace(self.model_cfg, action_head=head))
+        self._build_action_tokenizer()
         self.tokenizer = self.tokenizer  # rebuilds the processor from the new config
-
-    # --- encoders ---------------------------------------------------------------------------------
-    @property
-    def llm_dim(self) -> int:
-        """LLM hidden size."""
-        return self.model_cfg.llm.resolved_hidden_size
-
-    def embed_text(self, input_ids: torch.Tensor) -> torch.Tensor:
-        """(B, L) ids -> (B, L, D) input embeddings."""
-        return unwrap_causal_lm(self.language_model).get_input_embeddings()(input_ids)
-
-    def encode_visual(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Visual tokens of a training batch: memory (oldest first) then the current frame.
-
-        A grounding batch may hold fewer frames than sequences: `frame_index` (B,) says which frame of
-        `pixel_values` (F, 3, H, W) each sequence reads (each frame is encoded once).
-
-        Returns:
-            (B, M + P, D) tokens and their (B, M + P) bool mask (False on missing memory sets).
-        """
-        current = self.projector(self.encode_frames(batch[PIXEL_VALUES], batch.get(FRAME_INDEX)))  # (B, P, D)
-        memory, memory_mask = self.encode_memory_batch(batch)  # (B, M, D), (B, M)
-        if memory.shape[0] != current.shape[0]:  # a grounding batch has no memory: one empty row per sequence
-            memory = current.new_zeros(current.shape[0], 0, current.shape[-1])  # (B, 0, D)
-            memory_mask = torch.zeros(current.shape[0], 0, dtype=torch.bool, device=current.device)
-        visual = torch.cat([memory.to(current.dtype), current], dim=1)  # (B, M + P, D)
-        return visual, torch.cat([memory_mask, memory_mask.new_ones(current.shape[:2])], dim=1)
-
-    def run_llm(self, embeds: torch.Tensor, attention_mask: torch.Tensor, **kwargs) -> Any:
-        """Decoder stack without the LM head -> transformers output (last_hidden_state, past_key_values)."""
-        kwargs.setdefault("position_ids", position_ids_from_mask(attention_mask))
-        core = unwrap_causal_lm(self.language_model).model
-        return core(inputs_embeds=embeds, attention_mask=attention_mask, **kwargs)
-
-    def lm_logits(self, hidden: torch.Tensor) -> torch.Tensor:
-        """LM head on selected hidden states -> float32 logits."""
-        return unwrap_causal_lm(self.language_model).lm_head(hidden).float()
 
     # --- training ---------------------------------------------------------------------------------
     def forward(self, batch: dict[str, Any]) -> tuple[torch.Tensor, dict[str, float]]:
@@ -241,24 +205,24 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         labels = batch.get(LABELS)
         if labels is None:
             labels = torch.full_like(input_ids, IGNORE_INDEX)
-        visual, visual_mask = self.encode_visual(batch)
+        visual, visual_mask = self.network.encode(batch)
         embeds, mask, labels = splice_after_bos(
-            self.embed_text(input_ids), batch[ATTENTION_MASK], labels, visual, visual_mask
+            self.network.embed_text(input_ids), batch[ATTENTION_MASK], labels, visual, visual_mask
         )  # [BOS] [memory] [current] [prompt] [action]: (B, L', D), (B, L'), (B, L')
         readable = mask.bool() & (labels == IGNORE_INDEX)  # what the grounding head may read: no targets
         has_actions = bool((labels != IGNORE_INDEX).any())
-        if self.box_token_embed is not None and has_actions:
+        if self.network.box_token_embed is not None and has_actions:
             box = jitter_boxes(
                 batch[BOX].float(), self.model_cfg.action_head.box_token_jitter if self.training else 0
             )
-            token = self.box_token_embed(box, batch[BOX_VISIBLE].bool())  # (B, D)
+            token = self.network.box_token_embed(box, batch[BOX_VISIBLE].bool())  # (B, D)
             embeds, mask, labels, at = insert_before_targets(embeds, mask, labels, token)
             readable = mask.bool() & (labels == IGNORE_INDEX)
             readable[torch.arange(readable.shape[0], device=readable.device), at] = False
         # no KV cache in training: under activation checkpointing applied from outside (FSDP's checkpoint
         # wrapper), a recomputed decoder layer would append its keys to the same cache a second time
         hidden = run_in_length_groups(
-            lambda rows, rows_mask: self.run_llm(rows, rows_mask, use_cache=False).last_hidden_state,
+            lambda rows, rows_mask: self.network.run_llm(rows, rows_mask, use_cache=False).last_hidden_state,
             embeds,
             mask,
             self.model_cfg.llm.length_groups,
@@ -269,9 +233,9 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             action_loss, accuracy = self._action_loss(hidden, labels)
             loss = loss + action_loss
             logs.update(action_loss=float(action_loss.detach()), action_accuracy=accuracy)
-        if self.grounding_head is not None and BOX in batch:
+        if self.network.grounding_head is not None and BOX in batch:
             first_image = visual.shape[1] - self.model_cfg.vision.num_patches + 1  # after BOS and the memory
-            output = self.ground(
+            output = self.network.ground(
                 hidden, readable, first_image, visual[:, -self.model_cfg.vision.num_patches :]
             )
             targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
@@ -283,34 +247,17 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
         else:
             # no head, no box measured: NaN, which the running means and the evaluation leave out (not a 0 IoU)
             logs.update(grounding_loss=0.0, box_iou=float("nan"), num_visible_boxes=0.0)
-        if not has_actions and self.grounding_head is None:
+        if not has_actions and self.network.grounding_head is None:
             raise ValueError("batch has no labelled action token and the agent has no grounding head")
         logs["loss"] = float(loss.detach())
         return loss, logs
-
-    def ground(
-        self, hidden: torch.Tensor, readable: torch.Tensor, first_image, current: torch.Tensor | None = None
-    ) -> GroundingOutput:
-        """The grounding head on a sequence's hidden states.
-
-        Args:
-            hidden: (B, L, D) LLM hidden states.
-            readable: (B, L) bool, the positions the head may read (image + prompt; no padding, targets or box).
-            first_image: (B,) long or int, position of each row's first current-frame token.
-            current: (B, P, D) the current frame's visual tokens as they entered the LLM (read with
-                `grounding.visual_skip`).
-        """
-        p = self.model_cfg.vision.num_patches
-        first = torch.as_tensor(first_image, device=hidden.device).reshape(-1, 1)  # (B or 1, 1)
-        image_positions = (first + torch.arange(p, device=hidden.device)[None]).expand(hidden.shape[0], p)
-        return self.grounding_head(hidden, readable, image_positions, last_true_index(readable), current)
 
     def _action_loss(self, hidden: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, float]:
         targets = labels[:, 1:]  # next-token targets
         selected = targets != IGNORE_INDEX  # (B, L'-1)
         if not bool(selected.any()):
             raise ValueError("batch has no labelled action token: labels are all -100")
-        logits = self.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
+        logits = self.network.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
         target = targets[selected]  # (n,)
         head = self.model_cfg.action_head
         stop_weight = head.stop_loss_weight if isinstance(head, DiscreteActionHeadConfig) else 1.0
@@ -335,6 +282,41 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
             )
         return loss, accuracy
 
+    def new_session(self) -> AgentSession:
+        """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`."""
+        return AgentSession(self)
+
+    # --- persistence ------------------------------------------------------------------------------
+    def save_pretrained(self, save_directory, *args, **kwargs) -> None:
+        """transformers' save (config.json + safetensors), then the processor files and the remote code."""
+        check_no_lora(self)
+        # transformers would upload before the extra files exist: push the finished folder afterwards instead
+        push = kwargs.pop("push_to_hub", False)
+        hub = {k: kwargs.pop(k) for k in ("repo_id", "commit_message", "create_pr", "private") if k in kwargs}
+        super().save_pretrained(save_directory, *args, **kwargs)
+        if not kwargs.get("is_main_process", True):
+            return
+        folder = Path(save_directory)
+        save_processor_files(self, folder)
+        write_remote_code(folder)
+        if push:
+            hub.update({k: kwargs[k] for k in ("token", "max_shard_size") if k in kwargs})
+            self.push_to_hub(hub.pop("repo_id", folder.name), **hub)
+
+    @classmethod
+    def from_pretrained(cls, pretrained_model_name_or_path, *args, tokenizer=None, **kwargs):
+        """transformers' load, plus the tokenizer saved beside the weights (folder or Hub repo id).
+
+        Also takes a training run folder, `<run>/checkpoints` or the `checkpoints/last` pointer: they load the
+        newest checkpoint. A LoRA checkpoint (`adapter/`, no weights) raises with what to load instead; a
+        truncated or corrupt weights file raises `UnreadableWeightsError` naming it.
+        """
+        name = loadable_checkpoint(str(pretrained_model_name_or_path))
+        loaded = super().from_pretrained(name, *args, **kwargs)
+        model = loaded[0] if isinstance(loaded, tuple) else loaded
+        model.tokenizer = tokenizer if tokenizer is not None else saved_tokenizer(name, kwargs)
+        return loaded
+
     # --- training set-up ---------------------------------------------------------------------------
     def freeze(self, stage: str) -> dict[str, int]:
         """Apply a named freeze stage (`full`, `frozen_vision`, `heads_only`, `lora`); see model/freeze.py."""
@@ -343,7 +325,7 @@ class OpenFlyAgent(ClosedLoopInference, MemoryEncoding, AgentPersistence, PreTra
     def _set_gradient_checkpointing(self, enable: bool = True, **kwargs) -> None:
         """transformers' activation checkpointing on the Llama layers, plus timm's on both ViTs."""
         super()._set_gradient_checkpointing(enable=enable, **kwargs)
-        self.vision_backbone.set_grad_checkpointing(enable)
+        self.network.vision_backbone.set_grad_checkpointing(enable)
 
     def get_optim_params(self, weight_decay: float = 0.0) -> list[dict]:
         """Trainable parameters in two AdamW groups: decay on matrices, none on biases / norms / tokens."""

@@ -1,4 +1,4 @@
-"""Builders shared by the agent: vocabulary resolution from a tokenizer, the action tokenizer of a config."""
+"""Builders from the config: vocabulary resolution from a tokenizer, the action tokenizer, the memory encoding."""
 
 from __future__ import annotations
 
@@ -10,11 +10,16 @@ from openfly_agent.model.config import (
     HEAD_DISCRETE,
     LLAMA2_PADDED_VOCAB,
     LLM_LLAMA2_7B,
+    MODE_OPENVLA_COMPAT,
     NUM_ACTION_SLOTS,
     BinsActionHeadConfig,
     ModelConfig,
 )
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer, select_action_stats
+from openfly_agent.model.memory.encoding import MemoryEncoding
+from openfly_agent.model.memory.history_memory import HistoryMemory
+from openfly_agent.model.memory.keyframe_memory import KeyframeMemory
+from openfly_agent.model.memory.keyframes import KeyframeSelector
 
 logger = logging.getLogger(__name__)
 
@@ -69,3 +74,11 @@ def resolve_vocabulary(cfg: ModelConfig, tokenizer) -> ModelConfig:
             head.vocab_end - 1,
         )
     return dataclasses.replace(cfg, llm=llm, action_head=head)
+
+
+def make_memory_encoding(cfg: ModelConfig, selector: KeyframeSelector) -> MemoryEncoding:
+    """The memory encoding of `cfg.mode`, chosen once: the OpenVLA-compatible history (`openvla_compat`) or the
+    keyframe memory read through `selector` (every other mode)."""
+    if cfg.mode == MODE_OPENVLA_COMPAT:
+        return HistoryMemory(cfg.memory.capacity, cfg.memory.grid, cfg.llm.resolved_hidden_size)
+    return KeyframeMemory(cfg, selector)

@@ -159,10 +159,11 @@ def cmd_summarize(args: list[str]) -> None:
     print(json.dumps(write_summary(cfg.root, plots=cfg.plots), indent=2))
 
 
-def _load_agent(checkpoint: str):
-    """The agent behind `checkpoint` (a folder, a training run or its pointer, or a Hub id), on the CPU."""
+def _agent_session(checkpoint: str):
+    """A closed-loop session of the agent behind `checkpoint` (a folder, a training run or its pointer, or a Hub
+    id), on the CPU."""
     try:
-        return load_agent(checkpoint, "cpu")
+        return load_agent(checkpoint, "cpu").new_session()
     except (FileNotFoundError, CheckpointError) as err:
         raise InputError(str(err)) from None
 
@@ -183,7 +184,7 @@ def cmd_dagger(args: list[str]) -> None:
         raise InputError("dagger needs --checkpoint <trained agent folder> (dagger --help lists the options)")
     cfg = _parse_generate(rest)
     setup_logging()
-    policy = AgentPolicy(_load_agent(ns.checkpoint))
+    policy = AgentPolicy(_agent_session(ns.checkpoint))
     try:
         summary = generate(cfg, policy=policy, kinds=(KIND_DAGGER_POLICY,))
     except GenerateSettingsError as err:
@@ -255,7 +256,7 @@ def cmd_dagger_round(args: list[str]) -> None:
         import torch
 
         torch.set_num_threads(ns.torch_threads)
-    print(json.dumps(run_dagger_round(AgentPolicy(_load_agent(ns.checkpoint)), cfg)))
+    print(json.dumps(run_dagger_round(AgentPolicy(_agent_session(ns.checkpoint)), cfg)))
 
 
 HANDLERS = {

@@ -81,7 +81,7 @@ class Splits:
             history or cfg.data.history.mode,
             capacity=cfg.model.memory.capacity,
             set_size=cfg.model.keyframes.set_size,
-            keyframe_selector=agent.keyframe_selector,
+            keyframe_selector=agent.network.keyframe_selector,
             seed=cfg.seed,
             target_attributes=self.attributes,
         )

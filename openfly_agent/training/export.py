@@ -18,6 +18,7 @@ from torch import nn
 
 from openfly_agent import constants as C
 from openfly_agent.model.language.lora import TRAINABLE_PARTS, TRAINABLES_NAME, has_lora
+from openfly_agent.model.persistence.agent_io import save_processor_files
 from openfly_agent.model.persistence.remote_code import remove_auto_map, write_remote_code
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.lora import lora_scalings, merge_lora_state_dict
@@ -50,7 +51,7 @@ def write_model_metadata(agent: nn.Module, folder: Path) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     agent.config.save_pretrained(str(folder))
     remove_auto_map(folder)
-    agent.save_processor_files(folder)
+    save_processor_files(agent, folder)
 
 
 def write_lora_folder(agent: nn.Module, state_dict: dict, folder: Path) -> Path:

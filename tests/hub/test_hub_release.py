@@ -43,7 +43,7 @@ PROBE = textwrap.dedent(
         # 3 episodes x `steps` batched steps on fixed random frames: actions, action logits, boxes
         rng = np.random.RandomState(7)
         episodes = {"e0": INSTRUCTIONS[0], "e1": INSTRUCTIONS[1], "e2": INSTRUCTIONS[2]}
-        agent.reset()
+        session = agent.new_session()
         out = []
         for t in range(steps):
             obs = [
@@ -51,7 +51,7 @@ PROBE = textwrap.dedent(
                  "rgb": rng.randint(0, 256, (96, 128, 3)).astype(np.uint8)}
                 for e, text in episodes.items()
             ]
-            for r in agent.predict_step(obs):
+            for r in session.predict_step(obs):
                 logits = r.action_logits.float().tolist()
                 out.append({"action": r.action, "logits": logits, "box": list(r.box)})
         return out

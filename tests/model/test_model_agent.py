@@ -70,8 +70,8 @@ def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overri
 
 def test_visual_token_count_tiny(make_agent, make_batch):
     agent = make_agent()  # 4x4 patches, g = 2 -> 4 tokens per set, K = 2
-    visual, mask = agent.encode_visual(make_batch(agent, batch_size=2))
-    assert visual.shape == (2, 16 + 2 * 4, agent.llm_dim)
+    visual, mask = agent.network.encode(make_batch(agent, batch_size=2))
+    assert visual.shape == (2, 16 + 2 * 4, agent.network.llm_dim)
     assert agent.model_cfg.visual_tokens_per_step() == 24
     assert mask[:, -16:].all()
 
@@ -85,7 +85,8 @@ def test_7b_shapes_on_meta_device():
     pixels = torch.zeros(2, 3, 224, 224, dtype=torch.uint8, device="meta")
     features = agent.vision_backbone(pixels)
     assert features.shape == (2, 256, 2176)
-    sets = agent.memory_set_tokens(
+    sets = agent.network.memory.set_tokens(
+        agent.projector,
         torch.zeros(4, 5, 256, 2176, device="meta"),
         torch.ones(4, 5, dtype=torch.bool, device="meta"),
         torch.zeros(4, 5, 4, device="meta"),
@@ -140,7 +141,7 @@ def test_merging_disabled_and_memory_off(make_agent, make_batch):
     assert torch.isfinite(loss)
     agent = make_agent(memory=MemoryConfig(capacity=0, grid=2))
     batch = make_batch(agent, capacity=0)
-    visual, _ = agent.encode_visual(batch)
+    visual, _ = agent.network.encode(batch)
     assert visual.shape[1] == 16
     assert torch.isfinite(agent(batch)[0])
 
@@ -314,7 +315,7 @@ def test_tiny_preset_forward(tiny_tokenizer, make_batch):
     assert agent.model_cfg.llm.vocab_size == len(tiny_tokenizer) + 256
     assert agent.action_tokenizer.discrete_token_ids[0] == len(tiny_tokenizer)  # first reserved id
     batch = make_batch(agent, batch_size=2)
-    visual, _ = agent.encode_visual(batch)
+    visual, _ = agent.network.encode(batch)
     assert visual.shape == (2, 64 + 2, 128)  # 8x8 patches + K = 2 sets of (8 / 8)^2 tokens
     loss, _ = agent(batch)
     assert torch.isfinite(loss)

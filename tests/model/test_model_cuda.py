@@ -61,9 +61,9 @@ def test_cuda_closed_loop_actions_equal_the_cpu_ones(make_agent):
     frames = np.random.default_rng(0).integers(0, 256, (2, 5, 56, 56, 3), dtype=np.uint8)
 
     def fly(agent) -> list[list[int]]:
-        agent.reset()
+        session = agent.new_session()
         return [
-            agent.select_action(
+            session.select_action(
                 [{"episode_id": f"ep{e}", "instruction": INSTRUCTIONS[e], "rgb": frames[e, t], "pose": (0.0, 0.0, 10.0, 0.0)}
                  for e in range(2)]
             )

@@ -113,7 +113,7 @@ def test_the_agent_loss_and_gradients_do_not_depend_on_the_grouping(make_agent, 
         agent = make_agent(seed=3, llm=llm)
         batch = make_batch(agent, batch_size=4, seed=1)
         calls = []
-        agent.run_llm = _counting(agent.run_llm, calls)
+        agent.network.run_llm = _counting(agent.network.run_llm, calls)
         loss, logs = agent(batch)
         assert len(calls) == llm.length_groups  # the second instruction is much shorter: two groups
         loss.backward()

@@ -167,8 +167,8 @@ def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_confi
     frame = torch.randint(0, 256, (56, 56, 3), dtype=torch.uint8).numpy()
     obs = [{"episode_id": "a", "instruction": "Fly to the red tower.", "rgb": frame}]
     torch.testing.assert_close(
-        agent.predict_step(obs)[0].action_logits,
-        reference.predict_step(obs)[0].action_logits,
+        agent.new_session().predict_step(obs)[0].action_logits,
+        reference.new_session().predict_step(obs)[0].action_logits,
         rtol=1e-5,
         atol=1e-5,
     )

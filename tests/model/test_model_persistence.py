@@ -31,11 +31,11 @@ def _logits(agent, batch) -> torch.Tensor:
     from openfly_agent.model.language.sequence import splice_after_bos
 
     with torch.no_grad():
-        visual, visual_mask = agent.encode_visual(batch)
+        visual, visual_mask = agent.network.encode(batch)
         embeds, mask, _ = splice_after_bos(
-            agent.embed_text(batch["input_ids"]), batch["attention_mask"], None, visual, visual_mask
+            agent.network.embed_text(batch["input_ids"]), batch["attention_mask"], None, visual, visual_mask
         )
-        return agent.lm_logits(agent.run_llm(embeds, mask).last_hidden_state)
+        return agent.network.lm_logits(agent.network.run_llm(embeds, mask).last_hidden_state)
 
 
 def test_save_load_gives_identical_logits(make_agent, make_batch, tmp_path):
@@ -76,6 +76,7 @@ def test_loaded_agent_acts_like_the_saved_one(make_agent, tmp_path):
     agent = make_agent()
     agent.save_pretrained(tmp_path)
     loaded = OpenFlyAgent.from_pretrained(tmp_path).eval()
+    own_session, loaded_session = agent.new_session(), loaded.new_session()
     rng = np.random.default_rng(0)
     for _ in range(3):
         obs = [
@@ -85,7 +86,7 @@ def test_loaded_agent_acts_like_the_saved_one(make_agent, tmp_path):
                 "rgb": rng.integers(0, 256, (80, 60, 3), np.uint8),
             }
         ]
-        ours, theirs = agent.predict_step(obs)[0], loaded.predict_step(obs)[0]
+        ours, theirs = own_session.predict_step(obs)[0], loaded_session.predict_step(obs)[0]
         assert ours.action == theirs.action
         # bit-identical weights; memory-mapped tensors may take other SIMD paths (~1e-8 differences)
         torch.testing.assert_close(ours.action_logits, theirs.action_logits, rtol=0, atol=1e-6)

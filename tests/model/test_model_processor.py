@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from test_model_inference import memory_agent
+from test_model_session import memory_agent
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
@@ -115,10 +115,11 @@ class _Spy:
 
     def __init__(self, agent):
         self.ids, self.pixels, self.llm = [], [], []
-        embed, vision, llm = agent.embed_text, agent.vision_backbone.forward_with_cls, agent.run_llm
-        agent.embed_text = lambda ids: (self.ids.append(ids.clone()), embed(ids))[1]
+        network = agent.network
+        embed, vision, llm = network.embed_text, network.vision_backbone.forward_with_cls, network.run_llm
+        network.embed_text = lambda ids: (self.ids.append(ids.clone()), embed(ids))[1]
         agent.vision_backbone.forward_with_cls = lambda px: (self.pixels.append(px.clone()), vision(px))[1]
-        agent.run_llm = lambda embeds, mask, **kw: (
+        network.run_llm = lambda embeds, mask, **kw: (
             self.llm.append((embeds.clone(), mask.clone())),
             llm(embeds, mask, **kw),
         )[1]  # noqa: E501
@@ -132,14 +133,15 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
     frames = rng.integers(0, 256, (12, 40, 40, 3), dtype=np.uint8)  # not the model's size: resized by both
     obs = lambda t: {"episode_id": "e", "instruction": INSTRUCTION, "rgb": frames[t], "pose": (0, 0, 9, 0)}  # noqa: E731
     spy = _Spy(agent)
+    session = agent.new_session()
     steps = 11
     for t in range(steps):
-        agent.predict_step([obs(t)])
-    state = agent.episodes["e"]
-    memory_sets, boxes = state.memory.keys(), list(state.boxes)  # what step `steps` reads (oldest set first)
+        session.predict_step([obs(t)])
+    state = session.episodes["e"]
+    memory_sets, boxes = state.memory.sets(), list(state.boxes)  # what step `steps` reads (oldest set first)
     assert memory_sets, "the scripted episode should hold keyframe sets"
     pixels_at = {t: spy.pixels[t][0] for t in range(steps)}  # what the backbone saw when frame t was current
-    (result,) = agent.predict_step([obs(steps)])
+    (result,) = session.predict_step([obs(steps)])
     inference_pixels = spy.pixels[-1][0]
     # the prefill, then (box token) one cached step that embeds the predicted target box
     box_token = agent.box_token_embed is not None

@@ -30,5 +30,7 @@ def test_meta_agent_materialised_with_the_documented_values():
     assert rotary and all(torch.isfinite(b).all() and (b > 0).all() for b in rotary)
     agent.eval()
     rgb = np.zeros((128, 128, 3), dtype=np.uint8)
-    (action,) = agent.select_action([{"episode_id": "e", "instruction": "fly to the red tower", "rgb": rgb}])
+    (action,) = agent.new_session().select_action(
+        [{"episode_id": "e", "instruction": "fly to the red tower", "rgb": rgb}]
+    )
     assert 0 <= action <= 9

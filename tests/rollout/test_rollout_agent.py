@@ -6,7 +6,6 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
-import pytest
 
 from openfly_agent import constants as C
 from openfly_agent.rollout.agent import AgentPolicy
@@ -21,26 +20,32 @@ def _obs(episode_id: str, rgb: np.ndarray, **extra) -> dict:
     return {**obs, **extra}
 
 
+def _result(action, box=(0.0, 0.0, 0.0, 0.0), visible=False, sets=()):
+    """A `StepResult` as the session returns it (the fields the adapter reads)."""
+    return SimpleNamespace(action=action, box=box, box_visible=visible, memory_sets=list(sets))
+
+
 def test_the_adapter_passes_the_agent_api_dicts():
-    class ScriptedAgent:  # stands in for OpenFlyAgent's select_action / reset API
+    class ScriptedSession:  # stands in for AgentSession's predict_step / reset
         def __init__(self):
-            self.calls, self.resets = [], []
+            self.calls, self.resets, self.true_boxes = [], [], "unset"
 
         def reset(self, ids):
             self.resets.append(ids)
 
-        def select_action(self, observations):
+        def predict_step(self, observations, true_boxes=None):
             self.calls.append(observations)
-            return [C.ACTION_TURN_LEFT]
+            self.true_boxes = true_boxes
+            return [_result(C.ACTION_TURN_LEFT, sets=[(0,), (3, 4)])]
 
-    agent = ScriptedAgent()
-    policy = AgentPolicy(agent)
+    session = ScriptedSession()
+    policy = AgentPolicy(session)
     assert policy.features == PolicyFeatures(frames=True, target_box=False, step_details=True)
     policy.reset(["embedded-0/dagger/3"])
     rgb = np.zeros((8, 8, 3), np.uint8)
     assert policy.act([_obs("embedded-0/dagger/3", rgb)]) == [C.ACTION_TURN_LEFT]
-    (obs,) = agent.calls[0]
-    assert agent.resets == [["embedded-0/dagger/3"]]
+    (obs,) = session.calls[0]
+    assert session.resets == [["embedded-0/dagger/3"]] and session.true_boxes is None
     assert set(obs) == {
         C.EPISODE_ID,
         C.OBS_INSTRUCTION,
@@ -48,8 +53,7 @@ def test_the_adapter_passes_the_agent_api_dicts():
         C.OBS_POSE,
     }  # the agent's API, nothing more
     assert obs[C.OBS_RGB] is rgb and obs[C.OBS_POSE].tolist() == [1.0, 2.0, 3.0, 0.5]
-    with pytest.raises(ValueError, match="no predict_step"):
-        AgentPolicy(agent, true_boxes=True)
+    assert policy.step_details(["embedded-0/dagger/3"]) == [{"box": None, "keyframes": [[0], [3, 4]]}]
 
 
 def test_true_boxes_reach_the_agent_and_its_predictions_are_the_step_details():
@@ -62,10 +66,7 @@ def test_true_boxes_reach_the_agent_and_its_predictions_are_the_step_details():
 
         def predict_step(self, observations, true_boxes=None):
             self.true_boxes = true_boxes
-            return [
-                SimpleNamespace(action=C.ACTION_FORWARD, box=(0.25, 0.5, 0.1, 0.2), box_visible=True),
-                SimpleNamespace(action=C.ACTION_STOP, box=(0.0, 0.0, 0.0, 0.0), box_visible=False),
-            ]
+            return [_result(C.ACTION_FORWARD, (0.25, 0.5, 0.1, 0.2), True), _result(C.ACTION_STOP)]
 
     agent = BoxAgent()
     policy = AgentPolicy(agent, "agent_true_box", true_boxes=True)
@@ -78,8 +79,8 @@ def test_true_boxes_reach_the_agent_and_its_predictions_are_the_step_details():
     assert policy.act(observations) == [C.ACTION_FORWARD, C.ACTION_STOP]
     assert agent.true_boxes == [[0.5, 0.5, 0.3, 0.3], None]
     assert policy.step_details(["b", "a"]) == [
-        {"box": None, "keyframes": None},
-        {"box": [0.25, 0.5, 0.1, 0.2], "keyframes": None},  # this agent keeps no memory bank
+        {"box": None, "keyframes": []},
+        {"box": [0.25, 0.5, 0.1, 0.2], "keyframes": []},  # no keyframe set in memory yet
     ]
     policy.reset(["a"])
     assert policy.step_details(["a"]) == [{}]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -254,16 +255,19 @@ def test_policy_dagger_relabels_a_trained_agent_rollout(dataset, tmp_path):
     from openfly_agent.rollout.agent import AgentPolicy
     from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY
 
-    class AlwaysLeftAgent:  # stands in for a trained agent behind the select_action / reset API
+    class AlwaysLeftAgent:  # stands in for a trained agent's session (predict_step / reset)
         def __init__(self):
             self.frames = 0
 
         def reset(self, ids):
             pass
 
-        def select_action(self, observations):
+        def predict_step(self, observations, true_boxes=None):
             self.frames += sum(o[C.OBS_RGB].shape == (64, 64, 3) for o in observations)
-            return [C.ACTION_TURN_LEFT] * len(observations)
+            left = SimpleNamespace(
+                action=C.ACTION_TURN_LEFT, box=(0.0,) * 4, box_visible=False, memory_sets=[]
+            )
+            return [left] * len(observations)
 
     cfg, _, _ = dataset
     agent = AlwaysLeftAgent()

@@ -42,7 +42,12 @@ def test_a_few_steps_lower_the_loss_on_a_fixed_batch(generated_dataset, tmp_path
     agent = OpenFlyAgent.from_model_config(cfg.model, tokenizer=tokenizer).train()
     k, s = cfg.model.memory.capacity, cfg.model.keyframes.set_size
     dataset = NavigationStepDataset(
-        episodes, FrameStore(generated_dataset), "keyframes", k, s, keyframe_selector=agent.keyframe_selector
+        episodes,
+        FrameStore(generated_dataset),
+        "keyframes",
+        k,
+        s,
+        keyframe_selector=agent.network.keyframe_selector,
     )
     collate = NavigationCollator(agent.processor, k, s)
     batch = collate([dataset[i] for i in range(0, len(dataset), len(dataset) // 4)][:4])
@@ -111,7 +116,8 @@ def test_saved_checkpoint_loads_and_acts(reference_run, generated_dataset):
         }
         for t in range(2)
     ]
-    actions = [agent.select_action([obs])[0] for obs in observations]
+    session = agent.new_session()
+    actions = [session.select_action([obs])[0] for obs in observations]
     assert all(a in C.MODEL_ACTION_IDS for a in actions)
 
 

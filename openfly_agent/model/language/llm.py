@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import functools
+import inspect
+
 from torch import nn
 
 from openfly_agent.model.config import LLAMA2_7B_ARCH, LLM_LLAMA2_7B, LLMConfig
@@ -45,3 +48,10 @@ def unwrap_causal_lm(language_model: nn.Module) -> nn.Module:
     """The underlying `LlamaForCausalLM`, also when peft wrapped it for LoRA (layers are patched in place)."""
     get_base = getattr(language_model, "get_base_model", None)
     return get_base() if callable(get_base) else language_model
+
+
+@functools.cache
+def cache_keyword(decoder_class: type) -> str:
+    """The decoder's keyword for the KV cache: `cache`, or `past_key_values` before transformers renamed it (read
+    once per class: every decoding step passes it)."""
+    return "cache" if "cache" in inspect.signature(decoder_class.forward).parameters else "past_key_values"

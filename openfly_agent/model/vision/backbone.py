@@ -137,3 +137,14 @@ def build_vision_backbone(cfg: VisionConfig) -> nn.Module:
     if cfg.type == VISION_TINY_CNN:
         return ConvVisionBackbone(cfg)
     return FusedVisionBackbone(cfg)
+
+
+def encode_frames(
+    backbone: nn.Module,
+    pixels: torch.Tensor,
+    frame_index: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """(F, 3, H, W) uint8 -> (N, P, D_v) features of `backbone`; sequence i reads frame `frame_index[i]` (default
+    i)."""
+    features = backbone(pixels)  # (F, P, D_v)
+    return features if frame_index is None else features[frame_index.to(features.device)]

@@ -1,4 +1,5 @@
-"""Closed-loop inference: batched == one episode at a time, memory updates, KV-cache decoding, compat mode."""
+"""`AgentSession` (model/session.py): batched == one episode at a time, reset, memory updates, cached decoding,
+compat mode."""
 
 from __future__ import annotations
 
@@ -14,10 +15,7 @@ from openfly_agent.model.config import (
     MemoryConfig,
     PromptConfig,
 )
-from openfly_agent.model.episode import compat_history_indices
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
-from openfly_agent.model.language.decoding import greedy_decode, new_cache, run_cached
-from openfly_agent.model.language.sequence import left_pad
 
 INSTRUCTIONS = [
     "Fly to the red tower and turn left.",
@@ -67,77 +65,91 @@ SKIP_HEAD = CellGroundingConfig(  # cells that get the frame's visual tokens
 @pytest.mark.parametrize("variant", ["plain", "skip_head"])
 def test_batched_equals_one_episode_at_a_time(make_agent, variant):
     agent = memory_agent(make_agent, **({"grounding": SKIP_HEAD} if variant == "skip_head" else {}))
+    session = agent.new_session()
     episodes, steps = 3, 10
     frames = _frames(episodes, steps, size=agent.model_cfg.vision.image_size)
-    batched = [agent.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]
-    batched_memory = {e: agent.episodes[f"ep{e}"].memory.keys() for e in range(episodes)}
+    batched = [session.predict_step([_obs(e, frames[e, t]) for e in range(episodes)]) for t in range(steps)]
+    batched_memory = {e: session.episodes[f"ep{e}"].memory.sets() for e in range(episodes)}
     assert any(batched_memory.values()), "the scripted run should fill some memory"
-    agent.reset()
-    assert agent.episodes == {}
+    session.reset()
+    assert session.episodes == {}
     for e in range(episodes):
         for t in range(steps):
-            (single,) = agent.predict_step([_obs(e, frames[e, t])])
+            (single,) = session.predict_step([_obs(e, frames[e, t])])
             assert single.action == batched[t][e].action
             torch.testing.assert_close(
                 single.action_logits, batched[t][e].action_logits, rtol=1e-4, atol=1e-4
             )
             np.testing.assert_allclose(single.box, batched[t][e].box, rtol=1e-4, atol=1e-5)
-        assert agent.episodes[f"ep{e}"].memory.keys() == batched_memory[e]
+        assert session.episodes[f"ep{e}"].memory.sets() == batched_memory[e]
 
 
 def test_memory_follows_the_keyframe_selector(make_agent):
     agent = memory_agent(make_agent)
+    session = agent.new_session()
     frames = _frames(1, 14, seed=3)
     for t in range(14):
-        agent.select_action([_obs(0, frames[0, t])])
-        state = agent.episodes["ep0"]
-        expected = agent.keyframe_selector.select(state.actions, state.box_areas, state.step)
-        assert state.memory.keys() == [tuple(s) for s in expected]
-        assert len(state.frame_features) <= agent.keyframe_selector.set_size + 1
-    assert len(agent.episodes["ep0"].memory) > 0
+        session.select_action([_obs(0, frames[0, t])])
+        state = session.episodes["ep0"]
+        expected = agent.network.keyframe_selector.select(state.actions, state.box_areas, state.step)
+        assert state.memory.sets() == [tuple(s) for s in expected]
+        assert len(state.memory.frame_features) <= agent.network.keyframe_selector.set_size + 1
+    assert len(session.episodes["ep0"].memory) > 0
 
 
 def test_black_and_white_images_give_different_action_logits(make_agent):
     agent = make_agent()
+    session = agent.new_session()
     size = agent.model_cfg.vision.image_size
     black = np.zeros((size, size, 3), np.uint8)
     white = np.full((size, size, 3), 255, np.uint8)
-    results = agent.predict_step(
+    results = session.predict_step(
         [{**_obs(0, black), "episode_id": "b"}, {**_obs(0, white), "episode_id": "w"}]
     )
     assert (results[0].action_logits - results[1].action_logits).abs().max() > 1e-3
 
 
-def test_reset_and_errors(make_agent):
+def test_reset_forgets_one_episode_only(make_agent):
+    """After `reset(["ep0"])`, ep1 goes on exactly as in a session that never held ep0; ep0 starts afresh."""
+    agent = memory_agent(make_agent)
+    frames = _frames(2, 6, seed=2)
+    shared, alone = agent.new_session(), agent.new_session()
+    for t in range(3):
+        shared.predict_step([_obs(0, frames[0, t]), _obs(1, frames[1, t])])
+    shared.reset(["ep0"])
+    assert set(shared.episodes) == {"ep1"}
+    for t in range(3):
+        (expected,) = alone.predict_step([_obs(1, frames[1, t])])
+    for t in range(3, 6):
+        restarted, result = shared.predict_step([_obs(0, frames[0, t - 3]), _obs(1, frames[1, t])])
+        (expected,) = alone.predict_step([_obs(1, frames[1, t])])
+        assert result.action == expected.action and result.memory_sets == expected.memory_sets
+        torch.testing.assert_close(result.action_logits, expected.action_logits, rtol=1e-4, atol=1e-4)
+    assert shared.episodes["ep0"].step == 3 and shared.episodes["ep1"].step == 6
+
+
+def test_sessions_of_one_agent_are_independent(make_agent):
     agent = make_agent()
     frame = _frames(1, 1)[0, 0]
-    agent.select_action([_obs(0, frame), _obs(1, frame)])
-    agent.reset(["ep0"])
-    assert set(agent.episodes) == {"ep1"}
+    first, second = agent.new_session(), agent.new_session()
+    first.select_action([_obs(0, frame)])
+    assert set(first.episodes) == {"ep0"} and second.episodes == {}
+
+
+def test_reset_and_errors(make_agent):
+    agent = make_agent()
+    session = agent.new_session()
+    frame = _frames(1, 1)[0, 0]
+    session.select_action([_obs(0, frame), _obs(1, frame)])
+    session.reset(["ep0"])
+    assert set(session.episodes) == {"ep1"}
     with pytest.raises(ValueError, match="appears twice"):
-        agent.select_action([_obs(1, frame), _obs(1, frame)])
+        session.select_action([_obs(1, frame), _obs(1, frame)])
     with pytest.raises(ValueError, match="changed its instruction"):
-        agent.select_action([{**_obs(1, frame), "instruction": "something else"}])
+        session.select_action([{**_obs(1, frame), "instruction": "something else"}])
     with pytest.raises(ValueError, match="lacks"):
-        agent.select_action([{"episode_id": "x", "rgb": frame}])
-    assert agent.select_action([]) == []
-
-
-def test_kv_cache_decoding_equals_full_recompute(make_agent):
-    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
-    torch.manual_seed(1)
-    rows = [torch.randn(n, agent.llm_dim) for n in (7, 4, 9)]
-    embeds, mask = left_pad(rows)
-    cache = new_cache(agent)
-    out = run_cached(agent, embeds, mask, cache)
-    cached = greedy_decode(agent, agent.lm_logits(out.last_hidden_state[:, -1]), mask, cache, 8)
-    seq, seq_mask, tokens = embeds, mask, []
-    for _ in range(8):
-        token = agent.lm_logits(agent.run_llm(seq, seq_mask).last_hidden_state[:, -1]).argmax(-1)
-        tokens.append(token)
-        seq = torch.cat([seq, agent.embed_text(token[:, None])], dim=1)
-        seq_mask = torch.cat([seq_mask, seq_mask.new_ones(3, 1)], dim=1)
-    assert torch.equal(cached, torch.stack(tokens, dim=1))
+        session.select_action([{"episode_id": "x", "rgb": frame}])
+    assert session.select_action([]) == []
 
 
 @pytest.mark.parametrize("head", ["discrete", "openvla_bins"])
@@ -151,6 +163,7 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
 
     head_cfg = BinsActionHeadConfig() if head == "openvla_bins" else DiscreteActionHeadConfig()
     agent = make_agent(action_head=head_cfg, norm_stats=NORM_STATS)
+    session = agent.new_session()
     hf_logging.warning_once.cache_clear()  # "once": a warning an earlier test triggered would be silent
     records: list[str] = []
     handler = logging.Handler()
@@ -162,7 +175,7 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
             warnings.simplefilter("always")
             frames = _frames(2, 2)
             for t in range(2):
-                agent.select_action([_obs(e, frames[e, t]) for e in range(2)])
+                session.select_action([_obs(e, frames[e, t]) for e in range(2)])
     finally:
         hf_logger.removeHandler(handler)
     messages = [str(w.message) for w in caught] + records
@@ -171,17 +184,11 @@ def test_cached_decoding_uses_the_cache_api_without_deprecation_warnings(make_ag
 
 def test_bins_head_select_action(make_agent):
     agent = make_agent(action_head=BinsActionHeadConfig(decode_rule="nearest"), norm_stats=NORM_STATS)
+    session = agent.new_session()
     frames = _frames(2, 3)
     for t in range(3):
-        results = agent.predict_step([_obs(e, frames[e, t]) for e in range(2)])
+        results = session.predict_step([_obs(e, frames[e, t]) for e in range(2)])
         assert all(0 <= r.action <= 9 and r.action_logits.shape == (8,) for r in results)
-
-
-def test_compat_history_indices():
-    assert compat_history_indices(0, 2) == [0, 0]
-    assert compat_history_indices(1, 2) == [0, 0]  # eval: [f0, f0, f1]
-    assert compat_history_indices(2, 2) == [0, 1]
-    assert compat_history_indices(7, 2) == [5, 6]
 
 
 def test_compat_mode_runs_the_released_layout(make_agent):
@@ -192,45 +199,47 @@ def test_compat_mode_runs_the_released_layout(make_agent):
         action_head=BinsActionHeadConfig(),
         norm_stats=NORM_STATS,
     )
+    session = agent.new_session()
     frames = _frames(1, 4)
     for t in range(4):
-        (result,) = agent.predict_step([_obs(0, frames[0, t])])
+        (result,) = session.predict_step([_obs(0, frames[0, t])])
         assert 0 <= result.action <= 9
-    state = agent.episodes["ep0"]
+    state = session.episodes["ep0"]
     assert state.prompt_ids[-1] == 5 and state.prompt_ids[0] == agent.tokenizer.bos_token_id
-    assert sorted(state.history_tokens) == [0, 2, 3]  # frame 0 (padding) + the last K frames
+    assert sorted(state.memory.tokens) == [0, 2, 3]  # frame 0 (padding) + the last K frames
     # history token = projector(DINO CLS ++ pooled SigLIP patches), one per frame
     pixels = agent.processor.image(frames[0, 3])[None]
     patches, cls = agent.vision_backbone.forward_with_cls(pixels)
     manual = agent.projector(torch.cat([cls, patches[..., agent.vision_backbone.dino_dim :].mean(1)], -1))
-    torch.testing.assert_close(state.history_tokens[3], manual[0], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(state.memory.tokens[3], manual[0], rtol=1e-5, atol=1e-5)
 
 
 def test_true_boxes_replace_the_grounding_heads_prediction(make_agent):
     agent = make_agent(seed=1, keyframes=KeyframeConfig(theta=0.0))  # with a visibility logit
+    session = agent.new_session()
     with torch.no_grad():
         agent.projector.fc3.weight.mul_(10.0)
     assert agent.box_token_embed is not None
     frames = _frames(2, 4, seed=5)
-    own = [agent.predict_step([_obs(e, frames[e, t]) for e in range(2)]) for t in range(4)]
-    agent.reset()
+    own = [session.predict_step([_obs(e, frames[e, t]) for e in range(2)]) for t in range(4)]
+    session.reset()
     # fed its own predictions as the "true" boxes, the agent acts exactly as before, memory included
     for t in range(4):
         given = [r.box if r.box_visible else None for r in own[t]]
-        results = agent.predict_step([_obs(e, frames[e, t]) for e in range(2)], true_boxes=given)
+        results = session.predict_step([_obs(e, frames[e, t]) for e in range(2)], true_boxes=given)
         for result, reference in zip(results, own[t]):
             assert result.action == reference.action and result.box_visible == reference.box_visible
             torch.testing.assert_close(result.action_logits, reference.action_logits, rtol=1e-4, atol=1e-4)
-    agent.reset()
+    session.reset()
     box = (0.2, 0.7, 0.1, 0.3)
-    visible, hidden = agent.predict_step(
+    visible, hidden = session.predict_step(
         [_obs(0, frames[0, 0]), _obs(1, frames[0, 0])], true_boxes=[box, None]
     )
     assert visible.box == pytest.approx(box) and visible.box_visible
-    assert not hidden.box_visible and agent.episodes["ep1"].box_areas == [None]
+    assert not hidden.box_visible and session.episodes["ep1"].box_areas == [None]
     # the same frame and instruction, only the box differs: the box token changes the logits
-    agent.reset()
-    (elsewhere,) = agent.predict_step([_obs(0, frames[0, 0])], true_boxes=[(0.8, 0.3, 0.4, 0.2)])
+    session.reset()
+    (elsewhere,) = session.predict_step([_obs(0, frames[0, 0])], true_boxes=[(0.8, 0.3, 0.4, 0.2)])
     assert (elsewhere.action_logits - visible.action_logits).abs().max() > 1e-4
     with pytest.raises(ValueError, match="true boxes for"):
-        agent.predict_step([_obs(0, frames[0, 1])], true_boxes=[box, box])
+        session.predict_step([_obs(0, frames[0, 1])], true_boxes=[box, box])
