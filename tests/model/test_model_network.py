@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from openfly_agent.model.config import ActionHeadConfig
+from openfly_agent.model.config import BinsActionHeadConfig
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.language.sequence import left_pad
 
@@ -12,7 +12,7 @@ NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).
 
 
 def test_kv_cache_decoding_equals_full_recompute(make_agent):
-    network = make_agent(action_head=ActionHeadConfig(type="openvla_bins"), norm_stats=NORM_STATS).network
+    network = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS).network
     torch.manual_seed(1)
     rows = [torch.randn(n, network.llm_dim) for n in (7, 4, 9)]
     embeds, mask = left_pad(rows)
