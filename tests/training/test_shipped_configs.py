@@ -110,7 +110,7 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
             ]
         )
     )
-    assert f"evaluating the LoRA run's merged model {run / 'merged'}" in output
+    assert f"loaded the LoRA run's merged model {run / 'merged'}" in output
     episodes = (evaluation / "agent" / "episodes.jsonl").read_text().splitlines()
     records = [json.loads(line) for line in episodes]
     assert len(records) == 2 and all(r["error"] is None and r["actions"] for r in records)
