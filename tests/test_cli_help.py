@@ -105,14 +105,16 @@ def test_eval_help_attaches_each_description_to_its_flag(capsys):
     assert "(default: outputs/eval)" in flag_text(text, "--output_dir") and "summary.md" in flag_text(
         text, "--output_dir"
     )
-    assert "(default: 9000)" not in text and "TCP port" in flag_text(text, "--sim.unrealcv.port")
+    # a bridge's fields appear when the sim is that bridge
+    unrealcv = _help(capsys, _script_main("eval"), ["--sim.type=unrealcv", "--help"])
+    assert "(default: 9000)" not in unrealcv and "TCP port" in flag_text(unrealcv, "--sim.unrealcv.port")
     assert "(default: 16)" in flag_text(text, "--batch_size")
     assert ends_with_example(text, "eval.py")
     preset = _help(
         capsys, _script_main("eval"), ["--config_path", "configs/eval/released-unrealcv.yaml", "--help"]
     )
     assert "(default: unrealcv)" in flag_text(preset, "--sim.type")
-    assert _script_main("eval")(["--sim.unrealcv.prot=1"]) == 2
+    assert _script_main("eval")(["--sim.type=unrealcv", "--sim.unrealcv.prot=1"]) == 2
     assert "did you mean --sim.unrealcv.port?" in capsys.readouterr().err
 
 

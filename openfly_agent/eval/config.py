@@ -1,13 +1,16 @@
 """`EvalConfig`: what `eval.py` evaluates, on which data and simulator, and where results go.
 
-Parsed with draccus from YAML (`configs/eval/*.yaml`) and dotted command-line overrides. It holds the
-bridges' own config dataclasses (`--sim.unrealcv.port=9001`), so no setting is declared twice.
+Parsed with draccus from YAML (`configs/eval/*.yaml`) and dotted command-line overrides. The simulator
+is a registered choice (`--sim.type=unrealcv`) whose engine variants hold the bridges' own config dataclasses
+(`--sim.unrealcv.port=9001`), so no setting is declared twice.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+
+from draccus import ChoiceRegistry
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
@@ -32,51 +35,115 @@ AGENT_TRUE_BOX = "agent_true_box"
 AGENT_POLICIES = ("agent", AGENT_TRUE_BOX)  # the policies that load --checkpoint
 TRUE_BOX_POLICIES = ("box_servo", AGENT_TRUE_BOX)  # the policies that read the true target box
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo", AGENT_TRUE_BOX)
-SIM_TYPES = ("embedded", "unrealcv", "airsim", "gs_http")
+SIM_EMBEDDED = "embedded"  # the default simulator; the others are engines reached through a bridge
 PROFILE_NAMES = ("openfly", "standard")
 ORACLE_MODES = ("auto", "replay", "teleport")
 DECODE_RULES = ("exact", "nearest")
 
 
 @dataclass
-class SimSettings:
-    """The simulator episodes run in.
+class SimSettings(ChoiceRegistry):
+    """The simulator episodes run in: one registered choice per simulator (`type:` in YAML, `--sim.type=` on the
+    command line), each with only its own fields.
 
-    `embedded` renders the procedural city of each `embedded-<seed>` scene (the city parameters and frame
-    size come from the dataset's toolchain config); the bridges connect to a running engine
-    (docs/BRIDGES.md, one engine per process). Collisions are recorded and never end an episode: each
-    metric profile decides what a collision means (docs/EVAL.md).
+    `embedded` (the default, `EmbeddedSimSettings`) renders the procedural city of each `embedded-<seed>` scene;
+    `unrealcv`, `airsim` and `gs_http` (`BridgeSimSettings`) connect to a running engine (docs/BRIDGES.md, one
+    engine per process). Collisions are recorded and never end an episode: each metric profile decides what a
+    collision means (docs/EVAL.md).
     """
 
-    type: str = "embedded"  # embedded | unrealcv | airsim | gs_http
-    width: int | None = None  # embedded frame size; None = the dataset's (toolchain config, else a frame)
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return SIM_EMBEDDED
+
+    @property
+    def type(self) -> str:
+        """The registered name of this simulator (`embedded`, `unrealcv`, `airsim`, `gs_http`)."""
+        return self.get_choice_name(type(self))
+
+    def result_identity(self) -> dict:
+        """The simulator settings that decide an episode's results (part of `EvalConfig.result_identity`)."""
+        raise NotImplementedError
+
+
+@SimSettings.register_subclass(SIM_EMBEDDED)
+@dataclass
+class EmbeddedSimSettings(SimSettings):
+    """`embedded`: the procedural city of each `embedded-<seed>` scene; the city parameters and, by default, the
+    frame size come from the dataset's toolchain config."""
+
+    width: int | None = None  # frame size; None = the dataset's (toolchain config, else a frame)
     height: int | None = None
-    unrealcv: UnrealCVConfig = field(default_factory=UnrealCVConfig)
-    airsim: AirSimConfig = field(default_factory=AirSimConfig)
-    gs_http: GSHttpConfig = field(default_factory=GSHttpConfig)
-    # Bridges: a point cloud per scene for collision checks, e.g. "scenes/{scene_id}.pcd" (None = no check,
-    # as the official evaluation); voxel size of the occupancy built from it.
-    occupancy_pcd: str | None = None
-    occupancy_voxel_m: float = 2.0
-    port_per_rank: bool = True  # bridges under a launcher: process k connects to port + k
 
     def __post_init__(self) -> None:
-        if self.type not in SIM_TYPES:
-            raise ValueError(f"sim.type={self.type!r}: choose one of {SIM_TYPES}")
         for name in ("width", "height"):
             value = getattr(self, name)
             if value is not None and value < 16:
                 raise ValueError(
                     f"sim.{name}={value}: frames must be at least 16 pixels (or null for the dataset's)"
                 )
+
+    def result_identity(self) -> dict:
+        return {
+            "sim_type": self.type,
+            "sim_width": self.width,
+            "sim_height": self.height,
+            "sim_occupancy": None,
+        }
+
+
+@dataclass
+class BridgeSimSettings(SimSettings):
+    """A running engine reached through its bridge (docs/BRIDGES.md); each engine's variant adds its bridge's own
+    config as the section of its name (`--sim.unrealcv.port=9001`)."""
+
+    # a point cloud per scene for collision checks, e.g. "scenes/{scene_id}.pcd" (None = no check, as the
+    # official evaluation); voxel size of the occupancy built from it
+    occupancy_pcd: str | None = None
+    occupancy_voxel_m: float = 2.0
+    port_per_rank: bool = True  # under a launcher: process k connects to port + k
+
+    def __post_init__(self) -> None:
         if self.occupancy_pcd is not None and "{scene_id}" not in self.occupancy_pcd:
             raise ValueError(f"sim.occupancy_pcd={self.occupancy_pcd!r} must contain '{{scene_id}}'")
         if self.occupancy_voxel_m <= 0:
             raise ValueError(f"sim.occupancy_voxel_m={self.occupancy_voxel_m} must be > 0 metres")
 
-    def bridge_config(self):
-        """The settings of the selected bridge (None for the embedded simulator)."""
-        return getattr(self, self.type) if self.type != "embedded" else None
+    def bridge_config(self) -> UnrealCVConfig | AirSimConfig | GSHttpConfig:
+        """The settings of this engine's bridge (the section named after it)."""
+        return getattr(self, self.type)
+
+    def result_identity(self) -> dict:
+        return {
+            "sim_type": self.type,
+            "sim_width": None,
+            "sim_height": None,
+            "sim_occupancy": self.occupancy_pcd,
+        }
+
+
+@SimSettings.register_subclass("unrealcv")
+@dataclass
+class UnrealCVSimSettings(BridgeSimSettings):
+    """`unrealcv`: a UE scene through the UnrealCV TCP server."""
+
+    unrealcv: UnrealCVConfig = field(default_factory=UnrealCVConfig)
+
+
+@SimSettings.register_subclass("airsim")
+@dataclass
+class AirSimSimSettings(BridgeSimSettings):
+    """`airsim`: an AirSim scene through its msgpack-RPC server."""
+
+    airsim: AirSimConfig = field(default_factory=AirSimConfig)
+
+
+@SimSettings.register_subclass("gs_http")
+@dataclass
+class GSHttpSimSettings(BridgeSimSettings):
+    """`gs_http`: a 3DGS scene served over HTTP by the patched SIBR viewer."""
+
+    gs_http: GSHttpConfig = field(default_factory=GSHttpConfig)
 
 
 @dataclass
@@ -120,7 +187,7 @@ class EvalConfig:
     # pose). Released-data parity: takeoff_landing=keep (start on the ground, goal = the landed point).
     reader: ReaderOptions = field(default_factory=ReaderOptions)
     max_episodes: int | None = None  # per split, N evenly spaced over the sorted ids (quick runs); None = all
-    sim: SimSettings = field(default_factory=SimSettings)
+    sim: SimSettings = field(default_factory=EmbeddedSimSettings)
     agent: AgentSettings = field(default_factory=AgentSettings)
     batch_size: int = 16  # episodes stepped in lockstep (the policy's batch)
     max_steps: int = C.MAX_EPISODE_STEPS  # actions per episode at most, STOP included
@@ -149,7 +216,7 @@ class EvalConfig:
         if len({self.policy, *self.baselines}) != 1 + len(self.baselines):
             raise ValueError(f"policy {self.policy!r} and baselines {self.baselines} must not repeat a name")
         for name in set(TRUE_BOX_POLICIES) & {self.policy, *self.baselines}:
-            if self.sim.type != "embedded":
+            if self.sim.type != SIM_EMBEDDED:
                 raise ValueError(
                     f"{name} reads the true target box, which only the embedded simulator gives: drop it from "
                     f"--baselines with --sim.type={self.sim.type}"
@@ -190,10 +257,7 @@ class EvalConfig:
             "dataset_root": self.dataset_root,
             "reader": [self.reader.takeoff_landing, self.reader.merged_forward_position],
             "max_steps": self.max_steps,
-            "sim_type": self.sim.type,
-            "sim_width": self.sim.width,
-            "sim_height": self.sim.height,
-            "sim_occupancy": self.sim.occupancy_pcd,
+            **self.sim.result_identity(),
         }
         if policy in AGENT_POLICIES:
             identity.update(

@@ -16,10 +16,10 @@ from openfly_agent.eval.baselines import make_baseline
 from openfly_agent.eval.config import (
     AGENT_POLICIES,
     AGENT_TRUE_BOX,
+    BridgeSimSettings,
     EngineUnreachableError,
     EvalConfig,
     EvalInputError,
-    SimSettings,
 )
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.rollout.agent import AgentPolicy
@@ -114,7 +114,7 @@ def scene_occupancy(template: str, scene_id: str, voxel_m: float):
 class _BridgeEnv(VectorSimulator):
     """One bridge; its collision occupancy follows the scene of the episode being reset."""
 
-    def __init__(self, bridge, settings: SimSettings):
+    def __init__(self, bridge, settings: BridgeSimSettings):
         super().__init__(sims=[bridge])
         self.settings = settings
         self._occupancy: dict[str, object] = {}
@@ -129,7 +129,7 @@ class _BridgeEnv(VectorSimulator):
         return super().reset_env(slot, spec)
 
 
-def make_bridge_env(settings: SimSettings, info: ProcessInfo) -> VectorSimulator:
+def make_bridge_env(settings: BridgeSimSettings, info: ProcessInfo) -> VectorSimulator:
     """One engine bridge per process (`port + rank` when `port_per_rank`), as a lockstep environment of width 1.
 
     Raises:

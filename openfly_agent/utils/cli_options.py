@@ -155,7 +155,8 @@ def _check_section_value(cls: type, name: str, option: str, args: Sequence[str])
     if value is None and option in args and args.index(option) + 1 < len(args):
         value = args[args.index(option) + 1]
     if value is not None and not value.startswith("--") and not value.endswith((".yaml", ".yml", ".json")):
-        first = dataclasses.fields(section)[0].name
+        # a registered choice names its variant first
+        first = "type" if choices_of(section) else dataclasses.fields(section)[0].name
         raise UnknownOptionError(
             f"--{name} is a section: set its fields (--{name}.{first}={value}) or give it a YAML file "
             "(--help lists every option)"

@@ -102,7 +102,7 @@ def test_box_servo_runs_on_the_true_target_boxes_through_eval(tmp_path):
 
 
 def test_box_servo_needs_the_embedded_simulator():
-    from openfly_agent.eval.config import EvalConfig, SimSettings
+    from openfly_agent.eval.config import EvalConfig, UnrealCVSimSettings
 
     with pytest.raises(ValueError, match="embedded simulator"):
-        EvalConfig(policy="random", baselines=["box_servo"], sim=SimSettings(type="unrealcv"))
+        EvalConfig(policy="random", baselines=["box_servo"], sim=UnrealCVSimSettings())

@@ -8,7 +8,7 @@ from eval_helpers import make_episode
 
 from openfly_agent import constants as C
 from openfly_agent.eval.baselines import OraclePolicy
-from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.eval.config import EvalConfig, UnrealCVSimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.factory import make_bridge_env, scene_occupancy
 from openfly_agent.eval.report import policy_results
@@ -33,7 +33,7 @@ def test_oracle_over_unrealcv_reaches_every_goal(tmp_path):
     )
     write_pcd(tmp_path / "env_ue_smallcity.pcd", wall, binary=True)
     with FakeUnrealCV(make_frame_bgr()) as server:
-        cfg = EvalConfig(policy="oracle", progress=False, sim=SimSettings(type="unrealcv"))
+        cfg = EvalConfig(policy="oracle", progress=False, sim=UnrealCVSimSettings())
         cfg.sim.unrealcv.port = server.port
         cfg.sim.unrealcv.read_timeout_s = 5.0
         cfg.sim.occupancy_pcd = str(tmp_path / "{scene_id}.pcd")

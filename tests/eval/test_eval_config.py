@@ -4,9 +4,21 @@ from __future__ import annotations
 
 import pytest
 
-from openfly_agent.eval.config import EvalConfig, SimSettings
+from openfly_agent.eval.config import AirSimSimSettings, EvalConfig
 from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
+
+
+def _eval_main():
+    """`main` of the repository's eval.py (a script, not a module of the package)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "eval.py"
+    spec = importlib.util.spec_from_file_location("eval_entry_point", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main
 
 
 def test_the_documented_command_line_parses():
@@ -64,7 +76,7 @@ def test_a_second_value_or_a_value_of_a_section_is_one_line_naming_the_option(ar
                 "policy": "agent",
                 "checkpoint": "c",
                 "baselines": ["agent_true_box"],
-                "sim": SimSettings(type="airsim"),
+                "sim": AirSimSimSettings(),
             },
             "agent_true_box reads the true target box",
         ),
@@ -130,3 +142,58 @@ def test_an_in_process_evaluation_leaves_the_callers_thread_count(tmp_path):
     with pytest.raises(FileNotFoundError):  # no dataset there
         run(cfg)
     assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize(
+    ("argv", "cls", "section"),
+    [
+        ([], "EmbeddedSimSettings", None),
+        (["--sim.type=embedded", "--sim.width=64"], "EmbeddedSimSettings", None),
+        (["--sim.type=unrealcv", "--sim.unrealcv.host=10.0.0.2"], "UnrealCVSimSettings", "unrealcv"),
+        (["--sim.type=airsim", "--sim.occupancy_pcd=pcd/{scene_id}.pcd"], "AirSimSimSettings", "airsim"),
+        (["--sim.type=gs_http", "--sim.port_per_rank=false"], "GSHttpSimSettings", "gs_http"),
+    ],
+)
+def test_each_sim_type_builds_its_variant_with_only_its_fields(argv, cls, section):
+    from openfly_agent.eval.config import BridgeSimSettings
+
+    sim = parse_config(EvalConfig, ["--policy=random", *argv]).sim
+    assert type(sim).__name__ == cls and sim.type == (section or "embedded")
+    assert isinstance(sim, BridgeSimSettings) == (section is not None)
+    assert hasattr(sim, "width") == (section is None)  # the embedded frame size only on the embedded sim
+    for other in ("unrealcv", "airsim", "gs_http"):  # a bridge's section only on its own variant
+        assert hasattr(sim, other) == (other == section)
+    if section is not None:
+        assert sim.bridge_config() is getattr(sim, section)
+
+
+def test_the_embedded_identity_keeps_its_keys():
+    """Logs written before the simulator became a choice resume: the embedded identity is unchanged."""
+    identity = parse_config(EvalConfig, ["--policy=random", "--sim.width=64"]).result_identity("random")
+    assert {k: v for k, v in identity.items() if k.startswith("sim_")} == {
+        "sim_type": "embedded",
+        "sim_width": 64,
+        "sim_height": None,
+        "sim_occupancy": None,
+    }
+
+
+def test_a_bridge_field_on_the_embedded_sim_is_one_line_naming_the_option(capsys):
+    main = _eval_main()
+    assert main(["--policy=random", "--sim.occupancy_pcd=pcd/{scene_id}.pcd"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--sim" in err and "occupancy_pcd" in err and "EmbeddedSimSettings" in err
+    assert main(["--policy=random", "--sim.type=airsim", "--sim.unrealcv.port=9001"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "unrealcv" in err and "AirSimSimSettings" in err
+
+
+def test_help_shows_the_chosen_sims_fields_only(capsys):
+    main = _eval_main()
+    assert main(["--sim.type=airsim", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "--sim.airsim.port" in text and "--sim.occupancy_pcd" in text
+    assert "--sim.unrealcv." not in text and "--sim.gs_http." not in text and "--sim.width" not in text
+    assert main(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert "--sim.width" in text and "--sim.airsim." not in text and "--sim.occupancy_pcd" not in text
