@@ -16,6 +16,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from openfly_agent.constants import MEMORY_FRAME_MASK, MEMORY_PIXEL_VALUES
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 
 
@@ -26,6 +27,14 @@ class StepFrames:
     patches: torch.Tensor  # (B, P, D_v) backbone features
     dino_cls: torch.Tensor | None  # (B, D_dino) DINO CLS tokens; None for the CNN
     current: torch.Tensor  # (B, P, D) projected tokens, as they enter the LLM
+
+
+def memory_frames(batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+    """A training batch's memory frames: the (B, K, S) bool mask of the real ones and those (n_real, 3, H, W)
+    frames, in the mask's row-major order."""
+    pixels = batch[MEMORY_PIXEL_VALUES]  # (B, K, S, 3, H, W)
+    frame_mask = batch[MEMORY_FRAME_MASK].bool().to(pixels.device)  # (B, K, S)
+    return frame_mask, pixels[frame_mask]
 
 
 class MemoryEncoding(ABC):

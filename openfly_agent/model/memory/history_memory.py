@@ -10,10 +10,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from openfly_agent.constants import MEMORY_FRAME_MASK, MEMORY_PIXEL_VALUES
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 from openfly_agent.model.memory.bank import grid_pool
-from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames
+from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames, memory_frames
 
 
 @dataclass
@@ -56,10 +55,8 @@ class HistoryMemory(MemoryEncoding):
         projector: nn.Module,
         batch: dict[str, Any],
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        pixels = batch[MEMORY_PIXEL_VALUES]  # (B, K, S, 3, H, W)
-        frame_mask = batch[MEMORY_FRAME_MASK].bool().to(pixels.device)  # (B, K, S)
-        b, k, s = pixels.shape[:3]
-        real = pixels[frame_mask]  # (n_real, 3, H, W)
+        frame_mask, real = memory_frames(batch)  # (B, K, S), (n_real, 3, H, W)
+        b, k, s = frame_mask.shape
         tokens = projector.fc3.weight.new_zeros(b, k * s, self.llm_dim)  # (B, K*S, D)
         if real.shape[0]:
             tokens[frame_mask.view(b, k * s)] = self.frame_tokens(

@@ -9,11 +9,11 @@ from typing import Any
 import torch
 from torch import nn
 
-from openfly_agent.constants import MEMORY_BOX_VISIBLE, MEMORY_BOXES, MEMORY_FRAME_MASK, MEMORY_PIXEL_VALUES
+from openfly_agent.constants import MEMORY_BOX_VISIBLE, MEMORY_BOXES
 from openfly_agent.model.config import ModelConfig
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 from openfly_agent.model.memory.bank import MemoryBank, grid_pool
-from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames
+from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames, memory_frames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
 from openfly_agent.model.vision.backbone import encode_frames
@@ -85,10 +85,8 @@ class KeyframeMemory(MemoryEncoding):
         projector: nn.Module,
         batch: dict[str, Any],
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        pixels = batch[MEMORY_PIXEL_VALUES]  # (B, K, S, 3, H, W)
-        frame_mask = batch[MEMORY_FRAME_MASK].bool().to(pixels.device)  # (B, K, S)
-        b, k, s = pixels.shape[:3]
-        real = pixels[frame_mask]  # (n_real, 3, H, W)
+        frame_mask, real = memory_frames(batch)  # (B, K, S), (n_real, 3, H, W)
+        b, k, s = frame_mask.shape
         features = projector.fc1.weight.new_zeros(
             b, k, s, self.num_patches, self.feature_dim
         )  # (B, K, S, P, D_v)
