@@ -160,9 +160,7 @@ def parse_command(file: str, line: int, text: str, block: int | None = None) -> 
             }
             if module in kinds:
                 command.kind = kinds[module]
-                if command.kind == "sim" or (
-                    command.kind != "recipe" and rest and not rest[0].startswith("-")
-                ):
+                if command.kind != "recipe" and rest and not rest[0].startswith("-"):
                     command.sub, rest = (rest[0], rest[1:]) if rest else (None, [])
                 command.args = rest
             return command

@@ -163,6 +163,8 @@ def test_hub_helps(capsys):
 
 def test_sim_cli_helps(capsys):
     text = _help(capsys, _sim, ["render", "--help"])
+    assert "(default: [0.0,0.0,60.0,0.0])" in flag_text(text, "--pose") and "yaw" in flag_text(text, "--pose")
+    assert "(default: 1000.0)" in flag_text(text, "--size_m")
     assert "(default: 224)" in flag_text(text, "--width") and "pixels" in flag_text(text, "--width")
     assert "negative = down" in flag_text(text, "--pitch")
     assert ends_with_example(text, "openfly_agent.sim.cli render")

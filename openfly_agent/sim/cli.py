@@ -1,15 +1,16 @@
 """Command line for the embedded city: render frames (with boxes) and export point clouds / landmark lists.
 
-python -m openfly_agent.sim.cli render --seed 0 --pose -200 -100 40 0.3 --pitch -45 --out frame.png --boxes
-python -m openfly_agent.sim.cli export --seed 0 --out city.ply [--spacing 2] [--ascii] [--ground]
-python -m openfly_agent.sim.cli landmarks --seed 0 --out landmarks.jsonl
+python -m openfly_agent.sim.cli render --seed=0 --pose=[-200,-100,40,0.3] --pitch=-45 --out=frame.png --boxes
+python -m openfly_agent.sim.cli export --seed=0 --out=city.ply [--spacing=2] [--ascii] [--ground]
+python -m openfly_agent.sim.cli landmarks --seed=0 --out=landmarks.jsonl
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,10 +18,60 @@ import numpy as np
 from openfly_agent.sim.city import CityConfig, generate_city, scene_id_of
 from openfly_agent.sim.embedded import EmbeddedSimConfig, EmbeddedSimulator
 from openfly_agent.sim.pointcloud import write_points
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.geometry import Pose
 from openfly_agent.utils.logging_utils import setup_logging
 
 logger = logging.getLogger(__name__)
+
+PROG = "python -m openfly_agent.sim.cli"
+EXIT_BAD_INPUT = 2
+
+
+@dataclass
+class CityOutputConfig:
+    """The city a command writes from, and the file it writes."""
+
+    seed: int = 0  # city seed (scene id embedded-<seed>)
+    size_m: float = 1000.0  # city side in metres
+    out: str = ""  # file to write (required)
+
+    def __post_init__(self) -> None:
+        if not self.out:
+            raise ValueError("--out is required: the file to write")
+
+
+@dataclass
+class RenderConfig(CityOutputConfig):
+    """`render`: one frame of a city (PNG), optionally with its landmark boxes."""
+
+    # camera [x, y, z, yaw]: position in metres and yaw in radians (counter-clockwise from +x)
+    pose: list[float] = field(default_factory=lambda: [0.0, 0.0, 60.0, 0.0])
+    pitch: float = 0.0  # degrees, negative = down
+    width: int = 224  # frame width in pixels
+    height: int = 224  # frame height in pixels
+    boxes: bool = False  # draw the landmark boxes
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if len(self.pose) != 4:
+            raise ValueError(f"--pose takes 4 numbers [x,y,z,yaw], got {len(self.pose)}")
+
+
+@dataclass
+class ExportConfig(CityOutputConfig):
+    """`export`: a city's surface as a point cloud (.ply / .pcd)."""
+
+    spacing: float = 2.0  # metres between surface samples
+    ascii: bool = False  # ASCII instead of binary
+    ground: bool = False  # also sample the ground plane
+
+
+@dataclass
+class LandmarksConfig(CityOutputConfig):
+    """`landmarks`: a city's landmark list (JSON lines)."""
 
 
 def draw_boxes(rgb: np.ndarray, boxes: dict[str, np.ndarray], color=(255, 255, 0)) -> np.ndarray:
@@ -37,90 +88,95 @@ def draw_boxes(rgb: np.ndarray, boxes: dict[str, np.ndarray], color=(255, 255, 0
     return out[..., ::-1]
 
 
-def _render(args: argparse.Namespace) -> None:
+def _render(cfg: RenderConfig) -> None:
     import cv2
 
-    cfg = EmbeddedSimConfig(width=args.width, height=args.height, city=CityConfig(size_m=args.size_m))
-    with EmbeddedSimulator(cfg) as sim:
-        obs = sim.render(scene_id_of(args.seed), Pose(*args.pose), args.pitch)
-    rgb = draw_boxes(obs.rgb, obs.boxes) if args.boxes else obs.rgb
-    cv2.imwrite(str(args.out), rgb[..., ::-1])
-    print(f"wrote {args.out}: {len(obs.boxes)} landmark boxes")
+    sim_cfg = EmbeddedSimConfig(width=cfg.width, height=cfg.height, city=CityConfig(size_m=cfg.size_m))
+    with EmbeddedSimulator(sim_cfg) as sim:
+        obs = sim.render(scene_id_of(cfg.seed), Pose(*cfg.pose), cfg.pitch)
+    rgb = draw_boxes(obs.rgb, obs.boxes) if cfg.boxes else obs.rgb
+    cv2.imwrite(cfg.out, rgb[..., ::-1])
+    print(f"wrote {cfg.out}: {len(obs.boxes)} landmark boxes")
 
 
-def _export(args: argparse.Namespace) -> None:
-    city = generate_city(args.seed, CityConfig(size_m=args.size_m))
-    points = city.point_cloud(args.spacing, include_ground=args.ground)
-    write_points(args.out, points, binary=not args.ascii)
-    print(f"wrote {args.out}: {len(points)} points of {city.scene_id}")
+def _export(cfg: ExportConfig) -> None:
+    city = generate_city(cfg.seed, CityConfig(size_m=cfg.size_m))
+    points = city.point_cloud(cfg.spacing, include_ground=cfg.ground)
+    write_points(Path(cfg.out), points, binary=not cfg.ascii)
+    print(f"wrote {cfg.out}: {len(points)} points of {city.scene_id}")
 
 
-def _landmarks(args: argparse.Namespace) -> None:
-    city = generate_city(args.seed, CityConfig(size_m=args.size_m))
-    with open(args.out, "w") as f:
+def _landmarks(cfg: LandmarksConfig) -> None:
+    city = generate_city(cfg.seed, CityConfig(size_m=cfg.size_m))
+    with open(cfg.out, "w") as f:
         for lm in city.landmarks:
             record = {k: getattr(lm, k) for k in ("landmark_id", "type", "color", "size", "shape", "feature")}
             record.update(position=list(lm.position), extent=list(lm.extent), description=lm.description())
             f.write(json.dumps(record) + "\n")
-    print(f"wrote {args.out}: {len(city.landmarks)} landmarks of {city.scene_id}")
+    print(f"wrote {cfg.out}: {len(city.landmarks)} landmarks of {city.scene_id}")
 
 
-PROG = "python -m openfly_agent.sim.cli"
-COMMANDS = {
+COMMANDS = {  # name: (config class, what it does, how it runs, example)
     "render": (
+        RenderConfig,
         "render one frame of a city (PNG), optionally with its landmark boxes",
-        f"{PROG} render --seed 0 --pose -200 -100 40 0.3 --pitch -45 --out frame.png --boxes",
+        _render,
+        f"{PROG} render --seed=0 --pose=[-200,-100,40,0.3] --pitch=-45 --out=frame.png --boxes",
     ),
     "export": (
+        ExportConfig,
         "export a city's surface as a point cloud (.ply / .pcd)",
-        f"{PROG} export --seed 0 --out city.ply --spacing 2",
+        _export,
+        f"{PROG} export --seed=0 --out=city.ply --spacing=2",
     ),
     "landmarks": (
+        LandmarksConfig,
         "write a city's landmark list (JSON lines)",
-        f"{PROG} landmarks --seed 0 --out landmarks.jsonl",
+        _landmarks,
+        f"{PROG} landmarks --seed=0 --out=landmarks.jsonl",
     ),
 }
 
 
-class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Defaults in every option's help, examples kept as written."""
+def usage() -> str:
+    """The help of `python -m openfly_agent.sim.cli --help` (each command's own: `<command> --help`)."""
+    lines = [
+        f"usage: {PROG} {{{','.join(COMMANDS)}}} [--<field>=VALUE ...]   (<command> --help for its options)"
+    ]
+    lines += ["", __doc__.split("\n\n")[0], "", "commands:"]
+    lines += [f"  {name:<10} {text}" for name, (_, text, _, _) in COMMANDS.items()]
+    lines += ["", "examples:", *(f"  {example}" for _, _, _, example in COMMANDS.values())]
+    return "\n".join(lines) + "\n"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """One sub-command per output; every option shows its default, every help ends with an example."""
-    examples = "examples:\n" + "\n".join(f"  {example}" for _, example in COMMANDS.values())
-    parser = argparse.ArgumentParser(
-        prog=PROG, description=__doc__.split("\n\n")[0], epilog=examples, formatter_class=_HelpFormatter
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-    for name, (text, example) in COMMANDS.items():
-        p = sub.add_parser(
-            name, help=text, description=text, epilog=f"example:\n  {example}", formatter_class=_HelpFormatter
-        )
-        p.add_argument("--seed", type=int, default=0, help="city seed (scene id embedded-<seed>)")
-        p.add_argument("--size-m", type=float, default=1000.0, help="city side in metres")
-        p.add_argument("--out", type=Path, required=True, help="file to write")
-        if name == "render":
-            p.add_argument(
-                "--pose", type=float, nargs=4, default=[0.0, 0.0, 60.0, 0.0], metavar=("X", "Y", "Z", "YAW"),
-                help="camera position in metres and yaw in radians (counter-clockwise from +x)",
-            )  # fmt: skip
-            p.add_argument("--pitch", type=float, default=0.0, help="degrees, negative = down")
-            p.add_argument("--width", type=int, default=224, help="frame width in pixels")
-            p.add_argument("--height", type=int, default=224, help="frame height in pixels")
-            p.add_argument("--boxes", action="store_true", help="draw the landmark boxes")
-        elif name == "export":
-            p.add_argument("--spacing", type=float, default=2.0, help="metres between surface samples")
-            p.add_argument("--ascii", action="store_true", help="ASCII instead of binary")
-            p.add_argument("--ground", action="store_true", help="also sample the ground plane")
-    return parser
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code (2 with one line on stderr for bad input)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("-h", "--help"):
+        print(usage(), end="")
+        return 0
+    if not argv or argv[0] not in COMMANDS:
+        what = f"unknown command {argv[0]!r}" if argv else "no command given"
+        print(f"{PROG}: {what}; choose one of {', '.join(COMMANDS)} (--help lists them)", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    command, args = argv[0], argv[1:]
+    config_class, description, run, example = COMMANDS[command]
+    if wants_help(args):
+        print(command_help(config_class, args, f"{PROG} {command}", description, [example]), end="")
+        return 0
+    try:
+        cfg = parse_config(config_class, args)
+    except Exception as err:  # an unknown option (did you mean ...), a bad value, a missing --out
+        from draccus.utils import DraccusException
 
-
-def main(argv: list[str] | None = None) -> None:
-    args = build_parser().parse_args(argv)
+        if not isinstance(err, (ValueError, DraccusException)):
+            raise
+        print(f"{PROG} {command}: {root_cause(err)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     setup_logging()
-    {"render": _render, "export": _export, "landmarks": _landmarks}[args.command](args)
+    run(cfg)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
