@@ -16,7 +16,7 @@ from openfly_agent.hub.dataset_release import build_dataset_release
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_release import build_model_release
 from openfly_agent.hub.push import check_push_ready, push_folder
-from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_help import choose_command, command_help, wants_help
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
@@ -72,15 +72,10 @@ def usage() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("-h", "--help"):
-        print(usage(), end="")
-        return 0
-    if not argv or argv[0] not in COMMANDS:
-        what = f"unknown command {argv[0]!r}" if argv else "no command given"
-        print(f"{PROG}: {what}; choose one of {', '.join(COMMANDS)} (--help lists them)", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    command, args = argv[0], argv[1:]
+    chosen = choose_command(list(sys.argv[1:] if argv is None else argv), list(COMMANDS), PROG, usage())
+    if isinstance(chosen, int):
+        return chosen
+    command, args = chosen
     config_class, description = COMMANDS[command]
     if wants_help(args):
         print(command_help(config_class, args, f"{PROG} {command}", description, EXAMPLES[command]), end="")

@@ -18,7 +18,7 @@ import numpy as np
 from openfly_agent.sim.city import CityConfig, generate_city, scene_id_of
 from openfly_agent.sim.embedded import EmbeddedSimConfig, EmbeddedSimulator
 from openfly_agent.sim.pointcloud import write_points
-from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_help import choose_command, command_help, wants_help
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.geometry import Pose
@@ -151,15 +151,10 @@ def usage() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (2 with one line on stderr for bad input)."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("-h", "--help"):
-        print(usage(), end="")
-        return 0
-    if not argv or argv[0] not in COMMANDS:
-        what = f"unknown command {argv[0]!r}" if argv else "no command given"
-        print(f"{PROG}: {what}; choose one of {', '.join(COMMANDS)} (--help lists them)", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    command, args = argv[0], argv[1:]
+    chosen = choose_command(list(sys.argv[1:] if argv is None else argv), list(COMMANDS), PROG, usage())
+    if isinstance(chosen, int):
+        return chosen
+    command, args = chosen
     config_class, description, run, example = COMMANDS[command]
     if wants_help(args):
         print(command_help(config_class, args, f"{PROG} {command}", description, [example]), end="")

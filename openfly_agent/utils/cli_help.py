@@ -17,6 +17,7 @@ import dataclasses
 import inspect
 import io
 import re
+import sys
 import textwrap
 import tokenize
 import typing
@@ -276,6 +277,21 @@ def command_help(
         f"Defaults below are the values of {config_path} (and of the options given)." if config_path else None
     )
     return config_help(cls, config, prog, description, examples, note, extra_options)
+
+
+def choose_command(
+    argv: Sequence[str], commands: Sequence[str], prog: str, usage: str
+) -> tuple[str, list[str]] | int:
+    """The first argument of a command-line with sub-commands, and the rest; or the exit code when there is none to
+    run: 0 after printing `usage` for `--help`, 2 after one line on stderr for a missing or unknown command."""
+    if argv and argv[0] in ("-h", "--help"):
+        print(usage, end="")  # noqa: T201 (the command-line help of an entry point)
+        return 0
+    if not argv or argv[0] not in commands:
+        what = f"unknown command {argv[0]!r}" if argv else "no command given"
+        print(f"{prog}: {what}; choose one of {', '.join(commands)} (--help lists them)", file=sys.stderr)  # noqa: T201
+        return 2
+    return argv[0], list(argv[1:])
 
 
 def wants_help(args: Sequence[str]) -> bool:
