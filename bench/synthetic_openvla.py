@@ -93,9 +93,13 @@ def openvla_shapes(cfg: ModelConfig, tokenizer) -> dict[str, torch.Size]:
 
 
 def random_tensor(key: str, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
-    """A bf16 tensor for `key`: matrices (and tokens) N(0, 0.02), norm weights 1, LayerScale 1e-5, biases 0."""
+    """A bf16 CPU tensor for `key`: matrices (and tokens) N(0, 0.02), norm weights 1, LayerScale 1e-5, biases 0.
+
+    The normal values are drawn on the generator's device (a GPU draws 7.5 B of them in well under a second; one
+    CPU thread of a GPU machine took over 150 s for a third of them), so they depend on that device."""
     if len(shape) >= 2:
-        return torch.empty(shape, dtype=torch.bfloat16).normal_(0.0, INIT_STD, generator=generator)
+        values = torch.empty(shape, dtype=torch.bfloat16, device=generator.device)
+        return values.normal_(0.0, INIT_STD, generator=generator).cpu()
     value = LAYER_SCALE_INIT if key.endswith("scale_factor") else 1.0 if key.endswith("weight") else 0.0
     return torch.full(shape, value, dtype=torch.bfloat16)
 
@@ -114,8 +118,13 @@ def shard_keys(shapes: dict[str, torch.Size], shards: int) -> list[list[str]]:
     return [*groups, current] if current else groups
 
 
-def write_synthetic_openvla(out: str | Path, size: str, shards: int = 3, seed: int = 0) -> dict:
-    """Write the folder (see the module docstring); returns a summary (parameters, tensors, shards, bytes)."""
+def write_synthetic_openvla(
+    out: str | Path, size: str, shards: int = 3, seed: int = 0, device: str = "cpu"
+) -> dict:
+    """Write the folder (see the module docstring); returns a summary (parameters, tensors, shards, bytes).
+
+    `device` draws the random values (`cuda` for the full size on a GPU machine; the same seed gives other
+    values on another device)."""
     from safetensors.torch import save_file
 
     folder = Path(out)
@@ -123,7 +132,7 @@ def write_synthetic_openvla(out: str | Path, size: str, shards: int = 3, seed: i
     tokenizer = train_bpe_tokenizer(CORPUS, TOKENIZER_VOCAB, out_dir=folder)
     shapes = openvla_shapes(model_config(size), tokenizer)
     groups = shard_keys(shapes, shards)
-    generator = torch.Generator().manual_seed(seed)
+    generator = torch.Generator(device=device).manual_seed(seed)
     weight_map, total_bytes = {}, 0
     for index, keys in enumerate(groups, start=1):
         name = f"model-{index:05d}-of-{len(groups):05d}.safetensors"
@@ -144,6 +153,7 @@ def write_synthetic_openvla(out: str | Path, size: str, shards: int = 3, seed: i
     return {
         "folder": str(folder),
         "size": size,
+        "device": device,
         "parameters": sum(shape.numel() for shape in shapes.values()),
         "tensors": len(shapes),
         "shards": len(groups),
@@ -162,9 +172,13 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--shards", type=int, default=3, help="safetensors shards (the released folders: 3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the random values")
+    parser.add_argument(
+        "--device", default=None, help="where the random values are drawn (default: cuda when there is one)"
+    )
     args = parser.parse_args(argv)
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     start = time.perf_counter()
-    summary = write_synthetic_openvla(args.out, args.size, args.shards, args.seed)
+    summary = write_synthetic_openvla(args.out, args.size, args.shards, args.seed, device)
     print(json.dumps({**summary, "seconds": round(time.perf_counter() - start, 1)}))
 
 

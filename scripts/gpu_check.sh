@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Check a machine with one CUDA GPU and no network, in about 8 minutes on an H100 (bench/gpu_check.py says what
+# Check a machine with one CUDA GPU and no network, in about 8.5 minutes on an H200 (bench/gpu_check.py says what
 # runs): the 7B chain at full size, the full fine-tune's first FSDP step, the benches; one table at the end.
 #   bash scripts/gpu_check.sh                      # results and logs in outputs/gpu_check
 #   python bench/gpu_check.py --plan               # the commands it would run (options: bench/gpu_check.py)

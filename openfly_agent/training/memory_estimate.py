@@ -21,15 +21,19 @@ stage or LoRA adapters applied; the rest is arithmetic on those counts and the c
 It is a lower bound of the peak, not a prediction: the allocator's fragmentation and transient buffers are not
 modelled. Measured on one H200, the LoRA recipe peaked at 54.5 GiB where this estimate gives 33.1 GiB (61 %); the
 full fine-tune under FSDP on one GPU ran out of memory in its first AdamW step, where this estimate gives
-140.7 GiB (docs/TRAINING.md, "Memory"). A run is refused only when the estimate alone exceeds the GPU.
+140.7 GiB (docs/TRAINING.md, "Memory"). A run is refused when the estimate alone exceeds the GPU, or when the
+model states it offloads exceed `HOST_MEMORY_USABLE` of the host's memory (the kernel kills such a run without a
+message: measured, below).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -49,6 +53,12 @@ CUDA_RESERVE_BYTES = 1 * GIB  # CUDA context, cuBLAS workspace, allocator slack
 # LoRA bench's samples had 357 LLM tokens with 258 visual ones: docs/BENCHMARKS.md)
 TEXT_TOKENS = 100
 SHARDING_NONE, SHARDING_FSDP, SHARDING_ZERO2, SHARDING_ZERO3 = "none", "fsdp", "zero2", "zero3"
+# The share of the host's memory that offloaded model states may take. On one H200 machine with 128 GiB of RAM,
+# the full fine-tune under fsdp_offload.yaml (111.8 GiB of offloaded states by this estimate, 87 %) was killed
+# by the kernel (SIGKILL, no message) in its first step, 2026-11-27: the process, the CUDA libraries, the loaded
+# checkpoint and the data workers need the rest.
+HOST_MEMORY_USABLE = 0.85
+CGROUP_MEMORY_LIMIT = "/sys/fs/cgroup/memory.max"  # cgroup v2: a container's limit, or "max"
 
 
 @dataclass(frozen=True)
@@ -279,6 +289,16 @@ def visible_gpu_bytes() -> list[int]:
     return [torch.cuda.mem_get_info(i)[1] for i in range(torch.cuda.device_count())]
 
 
+def host_memory_bytes(cgroup_limit: str | Path = CGROUP_MEMORY_LIMIT) -> int:
+    """The host's physical memory, or the container's cgroup limit when that is lower."""
+    physical = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    try:
+        limit = Path(cgroup_limit).read_text().strip()
+    except OSError:
+        return physical
+    return min(physical, int(limit)) if limit.isdigit() else physical
+
+
 def describe_run(cfg: TrainConfig, config_path: str | None = None) -> str:
     """`configs/train/x.yaml: llama2-7b, freeze_stage=full, precision=bf16, per-device batch 16`: the config
     file (when known) and the settings the estimate depends on."""
@@ -289,8 +309,24 @@ def describe_run(cfg: TrainConfig, config_path: str | None = None) -> str:
     return f"{config_path}: {settings}" if config_path else settings
 
 
-def refuse_if_too_big(estimate: MemoryEstimate, sharding: Sharding, gpu_bytes: list[int], run: str) -> None:
-    """`PreflightError` in one line when the estimate exceeds the smallest of `gpu_bytes`."""
+def refuse_if_too_big(
+    estimate: MemoryEstimate,
+    sharding: Sharding,
+    gpu_bytes: list[int],
+    run: str,
+    host_bytes: int | None = None,
+) -> None:
+    """`PreflightError` in one line when the estimate exceeds the smallest of `gpu_bytes`, or when what it
+    offloads exceeds `HOST_MEMORY_USABLE` of `host_bytes`."""
+    if host_bytes and estimate.host > HOST_MEMORY_USABLE * host_bytes:
+        raise PreflightError(
+            f"this run ({run}) keeps at least {estimate.host / GIB:.0f} GiB of model states in host memory with "
+            f"{sharding.world_size} process(es) ({sharding.kind}, offload), more than "
+            f"{HOST_MEMORY_USABLE:.0%} of the {host_bytes / GIB:.0f} GiB this machine has (the kernel would kill "
+            "it without a message): spread it over more machines (configs/accelerate/fsdp_multinode.yaml), "
+            "shard it over GPUs without offload (configs/accelerate/fsdp.yaml --num_processes N) or train LoRA "
+            "(configs/train/openfly-7b-lora.yaml); docs/TRAINING.md, 'Memory'"
+        )
     if not gpu_bytes or estimate.peak <= min(gpu_bytes):
         return
     raise PreflightError(
@@ -305,7 +341,7 @@ def refuse_if_too_big(estimate: MemoryEstimate, sharding: Sharding, gpu_bytes: l
 
 def check_memory(cfg: TrainConfig, accelerator) -> MemoryEstimate | None:
     """On CUDA: log the run's per-GPU estimate in one line, and refuse (`PreflightError`) when it exceeds the
-    smallest visible GPU. Nothing is estimated on the CPU."""
+    smallest visible GPU or offloads more than the host can hold. Nothing is estimated on the CPU."""
     if accelerator.device.type != "cuda":
         return None
     sharding = sharding_of(accelerator)
@@ -314,5 +350,5 @@ def check_memory(cfg: TrainConfig, accelerator) -> MemoryEstimate | None:
         "memory estimate (%s, %d process(es)): %s", sharding.kind, sharding.world_size, estimate.summary()
     )
     run = describe_run(cfg, config_path_of(sys.argv[1:]))  # the --config_path train.py was given
-    refuse_if_too_big(estimate, sharding, visible_gpu_bytes(), run)
+    refuse_if_too_big(estimate, sharding, visible_gpu_bytes(), run, host_memory_bytes())
     return estimate

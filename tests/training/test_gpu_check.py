@@ -3,6 +3,7 @@ parse against the entry points they call, and a recorded run's table renders."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import shlex
@@ -123,8 +124,7 @@ def test_the_table_of_a_recorded_run(tmp_path):
 
 
 def test_bench_lines_become_figures():
-    sys.path.insert(0, str(REPO_ROOT / "bench"))
-    gpu_check = importlib.import_module("gpu_check")
+    gpu_check = bench_module()
     output = "\n".join(
         [
             "loading...",
@@ -141,3 +141,65 @@ def test_bench_lines_become_figures():
         "MFU": 0.146,
         "peak GiB": 54.5,
     }
+
+
+def printing(line: str, times: int, code: int) -> list[str]:
+    """A process that writes `line` `times` times on stderr and exits with `code`."""
+    return [
+        sys.executable,
+        "-c",
+        f"import sys; sys.stderr.write(({line!r} + '\\n') * {times}); sys.exit({code})",
+    ]
+
+
+def bench_module():
+    sys.path.insert(0, str(REPO_ROOT / "bench"))
+    return importlib.import_module("gpu_check")
+
+
+HOST_REFUSAL = (
+    "train.py: this run (full) keeps at least 112 GiB of model states in host memory with 1 process(es)"
+)
+GPU_REFUSAL = (
+    "train.py: this run (full) needs at least 141 GiB per GPU with 1 process(es) (fsdp), more than ..."
+)
+
+
+@pytest.mark.parametrize(
+    ("lines", "code", "passed"),
+    [
+        (1, 1, True),  # refused once, torchrun's exit code: the machine is too small, and says so
+        (2, 1, False),  # printed twice
+        (1, 2, False),  # not through the launcher the check runs
+        (0, 1, False),  # failed without the refusal (e.g. killed): a failure
+        (0, 0, True),  # trained: passes
+    ],
+)
+def test_a_check_that_may_be_refused(tmp_path, lines, code, passed):
+    gpu_check = bench_module()
+    check = next(c for c in gpu_check.plan(tmp_path) if c.name == "FSDP offload, 1st step")
+    check = dataclasses.replace(
+        check, command=printing(HOST_REFUSAL, lines, code), needs=(), figures=lambda w, o: {}
+    )
+    result = gpu_check.run_check(check, tmp_path, {})
+    assert result.passed is passed, result
+    assert ("refused by the preflight" in result.note) == (passed and code == 1)
+    assert (tmp_path / "logs" / "fsdp-offload-1st-step.log").is_file()
+
+
+@pytest.mark.parametrize(
+    ("code", "times", "passed"), [(1, 1, True), (1, 2, False), (0, 1, False), (2, 1, False)]
+)
+def test_the_one_gpu_refusal_passes_once_through_the_launcher(tmp_path, code, times, passed):
+    gpu_check = bench_module()
+    check = next(c for c in gpu_check.plan(tmp_path) if c.name == "full FT on 1 GPU refused")
+    result = gpu_check.run_check(
+        dataclasses.replace(check, command=printing(GPU_REFUSAL, times, code), needs=()), tmp_path, {}
+    )
+    assert result.passed is passed, result
+
+
+def test_skipped_checks_are_named_by_their_table_name():
+    done = run_gpu_check("--skip", "no such check", script=(sys.executable, str(GPU_CHECK)))
+    assert done.returncode == 2
+    assert "unknown check(s) ['no such check']" in done.stderr and "'LoRA synthetic step'" in done.stderr

@@ -12,12 +12,14 @@ from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.memory_estimate import (
     CUDA_RESERVE_BYTES,
     GIB,
+    HOST_MEMORY_USABLE,
     ModelSizes,
     Sharding,
     activation_bytes,
     check_memory,
     describe_run,
     estimate_memory,
+    host_memory_bytes,
     model_sizes,
     refuse_if_too_big,
 )
@@ -119,6 +121,43 @@ def test_full_fine_tune_on_one_gpu_is_refused_in_one_line(sizes_7b):
     assert f"this run ({run}) needs at least 141 GiB per GPU with 1 process(es) (fsdp)" in message
     assert "fsdp_offload.yaml" in message
     assert f"{estimate.peak / GIB:.0f} GiB" in message and "--num_processes N" in message
+
+
+def test_offloading_more_than_the_host_holds_is_refused_in_one_line(sizes_7b):
+    cfg = train_config("openfly-7b-full.yaml")
+    offload = Sharding("fsdp", 1, offload=True, activation_checkpointing=True)
+    estimate = estimate_memory(sizes_7b["full"], cfg, offload)
+    assert estimate.host == 16 * sizes_7b["full"].params  # fp32 weights + gradients + two AdamW moments
+    assert round(estimate.host / GIB, 1) == 111.8
+    run = describe_run(cfg, "configs/train/openfly-7b-full.yaml")
+    # the H200 machine that killed this run in its first step had 128 GiB: 111.8 > 0.85 * 128 = 108.8
+    with pytest.raises(PreflightError) as err:
+        refuse_if_too_big(estimate, offload, [H200_BYTES], run, host_bytes=128 * GIB)
+    message = str(err.value)
+    assert "\n" not in message
+    assert (
+        f"this run ({run}) keeps at least 112 GiB of model states in host memory with 1 process(es)"
+        in message
+    )
+    assert "more than 85% of the 128 GiB this machine has" in message and "fsdp_multinode.yaml" in message
+    refuse_if_too_big(estimate, offload, [H200_BYTES], run, host_bytes=256 * GIB)  # room: no error
+    refuse_if_too_big(estimate, offload, [H200_BYTES], run)  # host unknown: the GPU check alone
+    # a run that offloads nothing is never refused for its host, however small
+    lora = estimate_memory(sizes_7b["lora"], train_config("openfly-7b-lora.yaml"), Sharding())
+    refuse_if_too_big(lora, Sharding(), [H200_BYTES], "lora", host_bytes=1 * GIB)
+    assert HOST_MEMORY_USABLE * 128 * GIB < estimate.host < HOST_MEMORY_USABLE * 132 * GIB
+
+
+def test_host_memory_is_the_lower_of_the_machine_and_its_cgroup(tmp_path):
+    physical = host_memory_bytes(tmp_path / "no-cgroup-file")
+    assert physical > 0
+    limit = tmp_path / "memory.max"
+    limit.write_text("max\n")  # cgroup v2 without a limit
+    assert host_memory_bytes(limit) == physical
+    limit.write_text(f"{GIB}\n")
+    assert host_memory_bytes(limit) == GIB
+    limit.write_text(f"{physical * 2}\n")
+    assert host_memory_bytes(limit) == physical
 
 
 @pytest.mark.parametrize(
