@@ -42,4 +42,5 @@ def test_render_is_called_once_per_visited_pose_with_the_scene_and_pitch():
         (second,), _ = env.step([C.ACTION_ASCEND])
     assert calls == [("embedded-3", SPEC.start, -45.0), ("embedded-3", Pose(10.0, 20.0, 33.0, 0.0), -45.0)]
     assert first.rgb[0, 0, 0] == 1 and second.rgb[0, 0, 0] == 2
-    assert first.pose == SPEC.start and second.pose == Pose(10.0, 20.0, 33.0, 0.0)  # its own pose, not render's
+    # each observation carries the simulator's own pose, not the one render put in it
+    assert first.pose == SPEC.start and second.pose == Pose(10.0, 20.0, 33.0, 0.0)
