@@ -2,9 +2,10 @@
 
 `FreeFlightSimulator` is what a caller uses that keeps its own obstacle check (the toolchain's DAgger generation
 replaces a move that would cross its dilated planning map before the step is executed): every action is flown
-as commanded. With a `render` callback each visited pose is rendered through it (e.g. `EmbeddedSimulator.render`);
-without one the observations carry a 1 x 1 black frame and no boxes, so a policy that never looks at frames
-costs no rendering.
+as commanded. With a `render` callback each visited pose is rendered through it (e.g. `EmbeddedSimulator.render`),
+or only the first `render_steps` poses of an episode (those a policy may still act at, when the caller knows);
+otherwise the observations carry a 1 x 1 black frame and no boxes, so a policy that never looks at frames costs
+no rendering.
 """
 
 from __future__ import annotations
@@ -30,17 +31,19 @@ class FreeFlightSimulator:
 
     Args:
         render: called once per visited pose with (scene id, pose, camera pitch); None: no frames.
+        render_steps: render only the first `render_steps` poses of each episode (None: all of them).
     """
 
-    def __init__(self, render: RenderFn | None = None):
-        self.render = render
+    def __init__(self, render: RenderFn | None = None, render_steps: int | None = None):
+        self.render, self.render_steps = render, render_steps
         self._episode: EpisodeSpec | None = None
         self._pose: Pose | None = None
+        self._visited = 0  # poses of the running episode so far, the current one included
         self._done = True
 
     def reset(self, episode: EpisodeSpec) -> Observation:
         """Start at the episode's start pose."""
-        self._episode, self._pose, self._done = episode, episode.start, False
+        self._episode, self._pose, self._visited, self._done = episode, episode.start, 0, False
         return self._observe()
 
     def step(self, action_id: int) -> tuple[Observation, StepInfo]:
@@ -52,7 +55,8 @@ class FreeFlightSimulator:
         return self._observe(), StepInfo(action=int(action_id), done=self._done)
 
     def _observe(self) -> Observation:
-        if self.render is None:
+        self._visited += 1
+        if self.render is None or (self.render_steps is not None and self._visited > self.render_steps):
             return Observation(rgb=_NO_FRAME, pose=self._pose, boxes={})
         obs = self.render(self._episode.scene_id, self._pose, self._episode.pitch_deg)
         return replace(obs, pose=self._pose)

@@ -84,7 +84,8 @@ def relabelled_rollout(
     """One episode flown from `episode`'s start through the `LockstepRunner` with the `ExpertLabelling` hook.
 
     The environment is one `FreeFlightSimulator` (the hook keeps moves off the dilated map); it renders through
-    `render` only for a policy whose `features.frames` ask for frames.
+    `render` only for a policy whose `features.frames` ask for frames, and only the first `max_policy_steps`
+    states (the policy acts at no later one).
 
     Args:
         policy: any `Policy` (batched, called with one observation per step).
@@ -108,7 +109,8 @@ def relabelled_rollout(
         max_steps=max_steps,
         label_in_observation=policy.features.expert_action,
     )
-    with VectorSimulator(sims=[FreeFlightSimulator(render if policy.features.frames else None)]) as env:
+    sim = FreeFlightSimulator(render if policy.features.frames else None, render_steps=max_policy_steps)
+    with VectorSimulator(sims=[sim]) as env:
         # the runner's cap is never met: the labelling ends a rollout at its (max_steps + 1)-th state
         runner = LockstepRunner(
             policy, env, max_steps + 1, [labelling, *hooks], whole_groups=False, show_progress=False

@@ -44,3 +44,17 @@ def test_render_is_called_once_per_visited_pose_with_the_scene_and_pitch():
     assert first.rgb[0, 0, 0] == 1 and second.rgb[0, 0, 0] == 2
     # each observation carries the simulator's own pose, not the one render put in it
     assert first.pose == SPEC.start and second.pose == Pose(10.0, 20.0, 33.0, 0.0)
+
+
+def test_render_steps_limits_rendering_to_the_first_poses_of_each_episode():
+    calls = []
+
+    def render(scene_id, pose, pitch_deg):
+        calls.append(pose)
+        return Observation(rgb=np.full((4, 4, 3), 9, np.uint8), pose=pose)
+
+    sim = FreeFlightSimulator(render, render_steps=2)
+    frames = [sim.reset(SPEC).rgb] + [sim.step(C.ACTION_FORWARD)[0].rgb for _ in range(3)]
+    assert [f.shape for f in frames] == [(4, 4, 3)] * 2 + [(1, 1, 3)] * 2 and len(calls) == 2
+    sim.reset(SPEC)  # a new episode renders again
+    assert len(calls) == 3 and calls[-1] == SPEC.start

@@ -227,6 +227,7 @@ def test_hand_checked_labels_on_a_short_straight_route(scene):
     ]
     assert [o[C.OBS_RGB][0, 0, 0] for o in policy.seen] == [1, 2]  # the frames of the poses it acted at
     assert [o[C.OBS_POSE].tolist() for o in policy.seen] == [p.as_array().tolist() for p in rollout.poses[:2]]
+    assert len(rendered) == 2  # the states the policy may act at, no more
     assert all(call[0] == "synthetic" and call[2] == -45.0 for call in rendered)
 
 
