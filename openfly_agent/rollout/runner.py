@@ -2,13 +2,14 @@
 
 At every step the policy gets the observations of the running episodes at once, the environment executes the
 actions, and an episode that stops, hits the step cap or meets an engine error ends (its `EpisodeRecord` goes to
-every hook's `on_episode_end`, then to the caller's `on_finish`). Hooks see each episode's start, each step and its end, and may end an episode
-before the policy acts, keep the policy out of a step or replace the action it chose (DAgger's expert).
+every hook's `on_episode_end`, then to the caller's `on_finish`). Hooks see each episode's start, each step and
+its end, and may end an episode before the policy acts, add fields to its observation, keep the policy out of a
+step or replace the action it chose (DAgger's expert labelling, in generation and in rounds).
 
 Slots are refilled by `whole_groups` (evaluation): consecutive groups of `num_envs` episodes start together and
 the next group starts when the last episode of this one has ended, so an episode's batch companions at every
 step depend only on the episode list and the batch size (a group recomputed after a kill gives bit-identical
-results; docs/EVAL.md), or, without it, each slot as soon as its episode ends (DAgger rounds).
+results; docs/EVAL.md), or, without it, each slot as soon as its episode ends (DAgger).
 """
 
 from __future__ import annotations
@@ -91,6 +92,10 @@ class RolloutHook:
     def asks_policy(self, running: RunningEpisode) -> bool:
         """Whether the policy chooses this step's action (False: `choose_action` gets None)."""
         return True
+
+    def observation_fields(self, running: RunningEpisode) -> dict:
+        """Fields this hook adds to the policy's observation of `running` (e.g. the expert's label)."""
+        return {}
 
     def choose_action(self, running: RunningEpisode, proposed: int | None) -> int:
         """The action executed: the policy's `proposed` one (None when it was not asked) or another."""
@@ -234,6 +239,8 @@ class LockstepRunner:
         }
         if self.policy.features.target_box:  # privileged: the simulator's box of the target landmark
             obs[OBS_TARGET_BOX] = running.target_box()
+        for hook in self.hooks:
+            obs.update(hook.observation_fields(running))
         return obs
 
     def _act(self, asked: list[RunningEpisode], stats: RolloutStats) -> list[int]:

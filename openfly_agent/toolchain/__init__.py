@@ -25,8 +25,7 @@ _EXPORTS = {
     "render_poses": "render",
     "make_instruction_backend": "instructions",
     "template_instruction": "instructions",
-    "AStarExpert": "dagger",
-    "rollout_with_relabel": "dagger",
+    "AStarExpert": "expert",
     "write_summary": "summary",
 }
 

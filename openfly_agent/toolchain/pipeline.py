@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import datetime as dt
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -181,28 +181,40 @@ class UnitResult:
     stats: dict = field(default_factory=dict)
 
 
-def build_episode(
-    unit: WorkUnit, base_seed: int, scene_id: str, planned: PlannedTrajectory, rendered: RenderedFrames
+def route_episode(
+    episode_id: str, scene_id: str, planned: PlannedTrajectory, split: str | None = None
 ) -> Episode:
-    """The OpenFly-format episode of a planned, rendered trajectory (instruction filled in later)."""
-    seq, stamp = planned.seq, unit.stamp().strftime("%Y%m%d_%H%M%S")
-    target = planned.route.landmark_ids[-1]
-    boxes, visible = target_boxes(rendered, target)
+    """The planned trajectory as an episode without frames (frame ids 0..T-1, no boxes, instruction empty): its
+    start pose, actions, final goal, target landmarks and camera pitch, what a closed-loop rollout starts from."""
+    seq = planned.seq
     return Episode(
-        episode_id=f"{scene_id}/astar_data/{planned.category}/{unit.traj_folder(base_seed)}",
+        episode_id=episode_id,
         scene_id=scene_id,
         instruction="",
         actions=seq.actions,
         positions=seq.positions,
         yaws=seq.yaws,
-        frame_ids=[f"{stamp}_{k}" for k in seq.raw_index],
-        split=unit.split,
+        frame_ids=[str(t) for t in range(len(seq))],
+        split=split,
         category=planned.category,
         pitch_deg=planned.pitch_deg,
-        boxes=boxes,
-        box_visible=visible,
         landmark_ids=list(planned.route.landmark_ids),
         goal=np.asarray(planned.route.legs[-1].goal, dtype=np.float64),
+    )
+
+
+def build_episode(
+    unit: WorkUnit, base_seed: int, scene_id: str, planned: PlannedTrajectory, rendered: RenderedFrames
+) -> Episode:
+    """The OpenFly-format episode of a planned, rendered trajectory (instruction filled in later)."""
+    stamp = unit.stamp().strftime("%Y%m%d_%H%M%S")
+    boxes, visible = target_boxes(rendered, planned.route.landmark_ids[-1])
+    episode_id = f"{scene_id}/astar_data/{planned.category}/{unit.traj_folder(base_seed)}"
+    return replace(
+        route_episode(episode_id, scene_id, planned, unit.split),
+        frame_ids=[f"{stamp}_{k}" for k in planned.seq.raw_index],
+        boxes=boxes,
+        box_visible=visible,
     )
 
 

@@ -75,3 +75,18 @@ def test_a_hook_ends_episodes_keeps_the_policy_out_and_replaces_its_action():
     assert policy.calls == 2 and len(policy.seen) == 3  # one call per group, at its first step
     assert stats.steps == 9
     assert all(not r.stopped and r.boxes == [None] * 3 for r in records)
+
+
+class TellsTheStep(RolloutHook):
+    """Adds the number of actions taken so far, twice over, to every observation the policy gets."""
+
+    def observation_fields(self, running):
+        return {"hint": 2 * len(running.record.actions)}
+
+
+def test_a_hook_adds_fields_to_the_policy_observation():
+    (episode,) = free_episodes(1)
+    policy = ScriptedPolicy({episode.episode_id: [C.ACTION_FORWARD, C.ACTION_TURN_LEFT]})
+    with tower_env(1) as env:
+        LockstepRunner(policy, env, hooks=[TellsTheStep()], show_progress=False).run([episode], "s")
+    assert [(obs["step"], obs["hint"]) for obs in policy.seen] == [(0, 0), (1, 2), (2, 4)]
