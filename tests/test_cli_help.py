@@ -179,3 +179,25 @@ def test_unknown_options_never_dump_the_usage(capsys, argv):
         assert _script_main("train")(argv) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "usage" not in err
+
+
+def test_the_usage_of_a_command_line_with_sub_commands():
+    from openfly_agent.utils.cli_help import commands_usage
+
+    text = commands_usage(
+        "prog", "What it does.", {"a": "first", "bb": "second"}, ["prog a --x=1", "prog bb"], name_width=3
+    )
+    assert text == (
+        "usage: prog {a,bb} [--<field>=VALUE ...]   (<command> --help for its options)\n"
+        "\n"
+        "What it does.\n"
+        "\n"
+        "commands:\n"
+        "  a   first\n"
+        "  bb  second\n"
+        "\n"
+        "examples:\n"
+        "  prog a --x=1\n"
+        "  prog bb\n"
+    )
+    assert commands_usage("p", "s", {"c": "t"}, [], options="[options]").startswith("usage: p {c} [options]   (")

@@ -16,7 +16,7 @@ from openfly_agent.hub.dataset_release import build_dataset_release
 from openfly_agent.hub.fake_hub import FakeHub
 from openfly_agent.hub.model_release import build_model_release
 from openfly_agent.hub.push import check_push_ready, push_folder
-from openfly_agent.utils.cli_help import choose_command, command_help, wants_help
+from openfly_agent.utils.cli_help import choose_command, command_help, commands_usage, wants_help
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
@@ -56,18 +56,10 @@ EXAMPLES = {
 
 def usage() -> str:
     """The help of `python -m openfly_agent.hub --help` (each command's own: `<command> --help`)."""
-    lines = [
-        f"usage: {PROG} {{{','.join(COMMANDS)}}} [--<field>=VALUE ...]   (<command> --help for its options)"
-    ]
-    lines += [
-        "",
-        "Release checkpoints and datasets to the Hugging Face Hub (docs/RELEASE.md).",
-        "",
-        "commands:",
-    ]
-    lines += [f"  {name:<16} {text}" for name, (_, text) in COMMANDS.items()]
-    lines += ["", "examples:", *(f"  {example}" for examples in EXAMPLES.values() for example in examples)]
-    return "\n".join(lines) + "\n"
+    summary = "Release checkpoints and datasets to the Hugging Face Hub (docs/RELEASE.md)."
+    commands = {name: text for name, (_, text) in COMMANDS.items()}
+    examples = [example for command_examples in EXAMPLES.values() for example in command_examples]
+    return commands_usage(PROG, summary, commands, examples, name_width=16)
 
 
 def main(argv: list[str] | None = None) -> int:

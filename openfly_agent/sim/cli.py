@@ -18,7 +18,7 @@ import numpy as np
 from openfly_agent.sim.city import CityConfig, generate_city, scene_id_of
 from openfly_agent.sim.embedded import EmbeddedSimConfig, EmbeddedSimulator
 from openfly_agent.sim.pointcloud import write_points
-from openfly_agent.utils.cli_help import choose_command, command_help, wants_help
+from openfly_agent.utils.cli_help import choose_command, command_help, commands_usage, wants_help
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.geometry import Pose
@@ -140,13 +140,9 @@ COMMANDS = {  # name: (config class, what it does, how it runs, example)
 
 def usage() -> str:
     """The help of `python -m openfly_agent.sim.cli --help` (each command's own: `<command> --help`)."""
-    lines = [
-        f"usage: {PROG} {{{','.join(COMMANDS)}}} [--<field>=VALUE ...]   (<command> --help for its options)"
-    ]
-    lines += ["", __doc__.split("\n\n")[0], "", "commands:"]
-    lines += [f"  {name:<10} {text}" for name, (_, text, _, _) in COMMANDS.items()]
-    lines += ["", "examples:", *(f"  {example}" for _, _, _, example in COMMANDS.values())]
-    return "\n".join(lines) + "\n"
+    commands = {name: text for name, (_, text, _, _) in COMMANDS.items()}
+    examples = [example for _, _, _, example in COMMANDS.values()]
+    return commands_usage(PROG, __doc__.split("\n\n")[0], commands, examples)
 
 
 def main(argv: list[str] | None = None) -> int:

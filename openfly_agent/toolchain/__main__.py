@@ -25,7 +25,7 @@ from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY, prepare_scene
 from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
 from openfly_agent.toolchain.settings import GenerateSettingsError
 from openfly_agent.toolchain.summary import write_summary
-from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_help import command_help, commands_usage, wants_help
 from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import root_cause
@@ -76,11 +76,10 @@ class InputError(Exception):
 
 
 def _usage() -> str:
-    lines = [f"usage: {PROG} {{{','.join(COMMANDS)}}} [options]   (<command> --help for its options)", ""]
-    lines += ["The OpenFly data toolchain (docs/TOOLCHAIN.md).", "", "commands:"]
-    lines += [f"  {name:<10} {text}" for name, text in COMMANDS.items()]
-    lines += ["", "examples:", *(f"  {example}" for examples in EXAMPLES.values() for example in examples)]
-    return "\n".join(lines) + "\n"
+    examples = [example for command_examples in EXAMPLES.values() for example in command_examples]
+    return commands_usage(
+        PROG, "The OpenFly data toolchain (docs/TOOLCHAIN.md).", COMMANDS, examples, options="[options]"
+    )
 
 
 def _generate_args(args: list[str]) -> list[str]:

@@ -279,6 +279,27 @@ def command_help(
     return config_help(cls, config, prog, description, examples, note, extra_options)
 
 
+def commands_usage(
+    prog: str,
+    summary: str,
+    commands: dict[str, str],
+    examples: Sequence[str],
+    name_width: int = 10,
+    options: str = "[--<field>=VALUE ...]",
+) -> str:
+    """The `--help` of a command-line with sub-commands: usage line, `summary`, one line per command (name ->
+    what it does), the examples."""
+    lines = [f"usage: {prog} {{{','.join(commands)}}} {options}   (<command> --help for its options)", ""]
+    lines += [
+        summary,
+        "",
+        "commands:",
+        *(f"  {name:<{name_width}} {text}" for name, text in commands.items()),
+    ]
+    lines += ["", "examples:", *(f"  {example}" for example in examples)]
+    return "\n".join(lines) + "\n"
+
+
 def choose_command(
     argv: Sequence[str], commands: Sequence[str], prog: str, usage: str
 ) -> tuple[str, list[str]] | int:
