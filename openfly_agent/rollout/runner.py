@@ -35,7 +35,7 @@ from openfly_agent.rollout.policy import (
     step_details,
 )
 from openfly_agent.rollout.record import EpisodeRecord
-from openfly_agent.sim.base import Observation
+from openfly_agent.sim.base import NO_FRAME, Observation
 from openfly_agent.sim.vector import ENGINE_ERRORS, ERROR_KEY, VectorSimulator
 
 logger = logging.getLogger(__name__)
@@ -219,7 +219,7 @@ class LockstepRunner:
             )
             record = new_record(episode, split, self.policy.name, spec.start.as_array())
             record.end_reason, record.error = "error", f"reset failed: {type(err).__name__}: {err}"
-            blank = Observation(rgb=np.zeros((1, 1, 3), dtype=np.uint8), pose=spec.start)
+            blank = Observation(rgb=NO_FRAME, pose=spec.start)
             return RunningEpisode(slot, episode, blank, record)
         stats.sim_s += time.perf_counter() - t0
         running = RunningEpisode(

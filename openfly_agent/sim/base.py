@@ -27,6 +27,10 @@ class EpisodeSpec:
     landmark_id: str | None = None  # the target landmark, when known
 
 
+# The frame of a simulator that does not render (one shared array: never write into it).
+NO_FRAME = np.zeros((1, 1, 3), dtype=np.uint8)
+
+
 @dataclass
 class Observation:
     """One frame from a simulator."""

@@ -8,17 +8,13 @@ a test checks that their records equal those from the rendering simulator.
 
 from __future__ import annotations
 
-import numpy as np
-
 from openfly_agent import constants as C
-from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
+from openfly_agent.sim.base import NO_FRAME, EpisodeSpec, Observation, StepInfo
 from openfly_agent.sim.city import City, generate_city, parse_scene_id
 from openfly_agent.sim.collision import motion_collides
 from openfly_agent.sim.dynamics import step_motion
 from openfly_agent.sim.embedded import EmbeddedSimConfig
 from openfly_agent.utils.geometry import Pose
-
-_NO_FRAME = np.zeros((1, 1, 3), dtype=np.uint8)
 
 
 class CityCache:
@@ -49,7 +45,7 @@ class BlindEmbeddedSimulator:
         self._city = self.cities(episode.scene_id)
         self._pose = Pose(*(float(v) for v in episode.start.as_array()))
         self._done = False
-        return Observation(rgb=_NO_FRAME, pose=self._pose, boxes={})
+        return Observation(rgb=NO_FRAME, pose=self._pose, boxes={})
 
     def step(self, action_id: int) -> tuple[Observation, StepInfo]:
         """Move through `sim/dynamics.py`; `collided`: the segment hits the city or the ground (counted)."""
@@ -59,7 +55,7 @@ class BlindEmbeddedSimulator:
         collided = motion_collides(self._city.occupancy(self.cfg.voxel_size), motion, self._city.ground_z)
         self._pose = motion.end
         self._done = int(action_id) == C.ACTION_STOP
-        return Observation(rgb=_NO_FRAME, pose=self._pose, boxes={}), StepInfo(
+        return Observation(rgb=NO_FRAME, pose=self._pose, boxes={}), StepInfo(
             action=int(action_id), collided=bool(collided), done=self._done
         )
 

@@ -13,14 +13,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
-import numpy as np
-
 from openfly_agent import constants as C
-from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
+from openfly_agent.sim.base import NO_FRAME, EpisodeSpec, Observation, StepInfo
 from openfly_agent.sim.dynamics import apply_action
 from openfly_agent.utils.geometry import Pose
-
-_NO_FRAME = np.zeros((1, 1, 3), dtype=np.uint8)
 
 # (scene_id, pose, pitch_deg) -> the observation at that pose, e.g. `EmbeddedSimulator.render`
 RenderFn = Callable[[str, Pose, float], Observation]
@@ -57,7 +53,7 @@ class FreeFlightSimulator:
     def _observe(self) -> Observation:
         self._visited += 1
         if self.render is None or (self.render_steps is not None and self._visited > self.render_steps):
-            return Observation(rgb=_NO_FRAME, pose=self._pose, boxes={})
+            return Observation(rgb=NO_FRAME, pose=self._pose, boxes={})
         obs = self.render(self._episode.scene_id, self._pose, self._episode.pitch_deg)
         return replace(obs, pose=self._pose)
 
