@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import DaggerRoundConfig
-from openfly_agent.training.config import HORIZONS
+from openfly_agent.training.config import HORIZONS, TrainConfig
 
 
 def _check(condition: bool, message: str) -> None:
@@ -107,6 +107,9 @@ class RecipeConfig:
     # train.py --optim.horizon of every stage: `steps` decays the lr over the stage's steps (the same schedule on
     # any machine); `time` over its minutes when they end first (how runs before issue 39 were budgeted)
     lr_horizon: str = "steps"
+    # the training seed of every stage (train.py --seed: model init, data order and augmentation); run the
+    # recipe with 3 seeds to see how far its table moves with training alone (docs/RESULTS.md, "The main job")
+    seed: int = TrainConfig.seed
     grounding: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=8.0))
     navigation: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=10.0))
     dagger: DaggerSettings = field(default_factory=DaggerSettings)

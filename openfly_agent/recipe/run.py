@@ -85,6 +85,7 @@ def _train_step(
         f"--steps={budget.steps}",
         f"--time_limit_minutes={budget.minutes}",
         f"--optim.horizon={cfg.lr_horizon}",
+        f"--seed={cfg.seed}",
         *args,
         *budget.args,
     ]  # fmt: skip

@@ -64,6 +64,19 @@ def test_the_stages_chain_each_from_the_previous_checkpoint(tmp_path):
     assert {_flag(s.command, "optim.horizon") for s in steps if s.kind == KIND_TRAIN} == {"steps"}
 
 
+def test_the_recipe_seed_reaches_every_training_stage_and_defaults_to_train_pys(tmp_path):
+    seeded = RecipeConfig(output_dir=str(tmp_path / "r"), seed=11, dagger=DaggerSettings(rounds=1))
+    train_steps = [s for s in recipe_steps(seeded) if s.kind == KIND_TRAIN]
+    assert [s.name for s in train_steps] == ["grounding", "navigation", "dagger-r1-train"]
+    assert {_flag(s.command, "seed") for s in train_steps} == {"11"}
+    # the default is train.py's own seed (7), so a recipe run without --seed trains what it trained before
+    default = RecipeConfig(output_dir=str(tmp_path / "d"))
+    assert {_flag(s.command, "seed") for s in recipe_steps(default) if s.kind == KIND_TRAIN} == {"7"}
+    # the DAgger rollouts keep their per-round seed whatever the training seed
+    rollouts = next(s for s in recipe_steps(seeded) if s.name == "dagger-r1-rollouts")
+    assert _flag(rollouts.command, "seed") == "1"
+
+
 def test_extra_datasets_are_generated_and_join_navigation_and_dagger_training(tmp_path):
     cfg = RecipeConfig(
         output_dir=str(tmp_path),
