@@ -8,6 +8,7 @@ from fractions import Fraction
 from pathlib import Path
 
 import pytest
+from eval_helpers import policy_folder, success_record
 
 from openfly_agent.eval.paired_stats import (
     PairedCounts,
@@ -16,12 +17,9 @@ from openfly_agent.eval.paired_stats import (
     paired_bootstrap_interval,
     wilson_interval,
 )
-from openfly_agent.eval.run import RUN_IDENTITY_NAME
-from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.utils.processes import run_group
 
 REPO = Path(__file__).resolve().parents[2]
-GOAL = [100.0, 0.0, 10.0]
 
 
 def _binomial_tail(k: int, n: int) -> Fraction:
@@ -76,55 +74,13 @@ def test_paired_bootstrap_interval():
 
 
 # -- the command ------------------------------------------------------------------------------------------
-def _record(episode_id: str, success: bool, split: str = "test_seen", goal=GOAL) -> EpisodeRecord:
-    """One forward move and STOP: at the goal (success under both profiles) or 90 m short of it."""
-    end = 100.0 if success else 10.0
-    return EpisodeRecord(
-        split=split,
-        episode_id=episode_id,
-        scene_id="s",
-        policy="agent",
-        instruction="fly to the tower",
-        goal=list(goal),
-        reference_path=[[0.0, 0.0, 10.0], [100.0, 0.0, 10.0]],
-        actions=[1, 0],
-        poses=[[0.0, 0.0, 10.0, 0.0], [end, 0.0, 10.0, 0.0], [end, 0.0, 10.0, 0.0]],
-        stopped=True,
-        end_reason="stop",
-    )
-
-
-IDENTITY = {
-    "policy": "agent",
-    "dataset_root": "outputs/datasets/x",
-    "reader": ["trim", "first"],
-    "max_steps": 100,
-    "sim_type": "embedded",
-    "sim_width": None,
-    "sim_height": None,
-    "sim_occupancy": None,
-    "checkpoint": "ckpt",
-    "unnorm_key": None,
-    "decode_rule": None,
-}
-
-
-def _policy_folder(root: Path, successes: dict[str, bool], **identity) -> Path:
-    folder = root / "agent"
-    folder.mkdir(parents=True)
-    (folder / RUN_IDENTITY_NAME).write_text(json.dumps({**IDENTITY, **identity}))
-    lines = [_record(eid, ok).to_json() for eid, ok in successes.items()]
-    (folder / "episodes.jsonl").write_text("\n".join(lines) + "\n")
-    return folder
-
-
 def _compare(*args: str):
     return run_group([sys.executable, "-m", "openfly_agent.eval.compare", *args], timeout=120, cwd=REPO)
 
 
 def test_compare_command_pairs_two_runs(tmp_path):
-    a = _policy_folder(tmp_path / "a", {"e0": True, "e1": True, "e2": False, "e3": False})
-    b = _policy_folder(
+    a = policy_folder(tmp_path / "a", {"e0": True, "e1": True, "e2": False, "e3": False})
+    b = policy_folder(
         tmp_path / "b",
         {"e0": True, "e1": False, "e2": True, "e3": True},
         memory_probe="empty",
@@ -150,8 +106,8 @@ def test_compare_command_pairs_two_runs(tmp_path):
 
 
 def test_compare_refuses_other_episodes_in_one_line(tmp_path):
-    a = _policy_folder(tmp_path / "a", {"e0": True, "e1": True, "e2": False, "e3": False})
-    b = _policy_folder(tmp_path / "b", {"e0": True, "e1": False, "e2": True, "e9": True})
+    a = policy_folder(tmp_path / "a", {"e0": True, "e1": True, "e2": False, "e3": False})
+    b = policy_folder(tmp_path / "b", {"e0": True, "e1": False, "e2": True, "e9": True})
     done = _compare(str(a), str(b))
     assert done.returncode == 2 and done.stdout == ""
     assert len(done.stderr.strip().splitlines()) == 1
@@ -159,14 +115,14 @@ def test_compare_refuses_other_episodes_in_one_line(tmp_path):
 
 
 def test_compare_refuses_other_settings_and_other_episode_content(tmp_path):
-    a = _policy_folder(tmp_path / "a", {"e0": True, "e1": False})
-    b = _policy_folder(tmp_path / "b", {"e0": True, "e1": False}, max_steps=50)
+    a = policy_folder(tmp_path / "a", {"e0": True, "e1": False})
+    b = policy_folder(tmp_path / "b", {"e0": True, "e1": False}, max_steps=50)
     done = _compare(str(a), str(b))
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
     assert "max_steps: 100 vs 50" in done.stderr
-    c = _policy_folder(tmp_path / "c", {"e0": True, "e1": False})
+    c = policy_folder(tmp_path / "c", {"e0": True, "e1": False})
     lines = (c / "episodes.jsonl").read_text().splitlines()
-    moved = _record("e1", False, goal=[90.0, 0.0, 10.0])  # the same id, another goal: another dataset
+    moved = success_record("e1", False, goal=[90.0, 0.0, 10.0])  # the same id, another goal: another dataset
     (c / "episodes.jsonl").write_text("\n".join([lines[0], moved.to_json()]) + "\n")
     done = _compare(str(a), str(c))
     assert done.returncode == 2 and "episode test_seen/e1 has another goal" in done.stderr
@@ -177,6 +133,6 @@ def test_compare_refuses_other_settings_and_other_episode_content(tmp_path):
 def test_compare_help_and_bad_option(tmp_path):
     done = _compare("--help")
     assert done.returncode == 0 and "--resamples" in done.stdout and "compare A B" in done.stdout
-    a = _policy_folder(tmp_path / "a", {"e0": True})
+    a = policy_folder(tmp_path / "a", {"e0": True})
     done = _compare(str(a), str(a), "--resample=3")
     assert done.returncode == 2 and "did you mean --resamples?" in done.stderr
