@@ -34,6 +34,10 @@ from openfly_agent.eval.paired_stats import (
 from openfly_agent.eval.report import episode_rows
 from openfly_agent.eval.run import read_run_identity
 from openfly_agent.rollout.record import EpisodeRecord
+from openfly_agent.utils.cli_help import command_help, wants_help
+from openfly_agent.utils.cli_options import UnknownOptionError
+from openfly_agent.utils.config import parse_config
+from openfly_agent.utils.errors import RecordError, root_cause
 
 PROG = "python -m openfly_agent.eval.compare"
 EXIT_BAD_INPUT = 2
@@ -295,12 +299,7 @@ def command_args(argv: Sequence[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (0 done, 2 bad input, one line on stderr)."""
-    import draccus
-
-    from openfly_agent.utils.cli_help import command_help, wants_help
-    from openfly_agent.utils.cli_options import UnknownOptionError
-    from openfly_agent.utils.config import parse_config
-    from openfly_agent.utils.errors import RecordError, root_cause
+    import draccus  # lazy: --help stays fast
 
     args = command_args(sys.argv[1:] if argv is None else argv)
     if wants_help(args):
