@@ -105,6 +105,14 @@ OBS_BOXES = "boxes"  # dict landmark_id -> (cx, cy, w, h)
 OBS_DEPTH = "depth"  # (H, W) float metres
 OBS_INSTRUCTION = "instruction"
 
+# --- Memory probe (eval.py --agent.memory_probe) ----------------------------------------------------
+# What the agent's memory read returns at inference: `none` its memory (the model as trained), `empty` no memory
+# token at any step (the episode still remembers its keyframes: only the read is emptied), so a paired comparison
+# of the two runs says whether the memory changes what the agent does (docs/EVAL.md, "Memory probe").
+MEMORY_PROBE_NONE = "none"
+MEMORY_PROBE_EMPTY = "empty"
+MEMORY_PROBES = (MEMORY_PROBE_NONE, MEMORY_PROBE_EMPTY)
+
 # --- File names -------------------------------------------------------------------------------------
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"

@@ -6,7 +6,8 @@
 #      only the navigation stage share the recipe's grounding stage (--grounding_from; about 1 h 23 min each),
 #      `with_dagger` also starts from the recipe's navigation stage (copied in, so its rounds are the one change),
 #      and the two arms without a grounding stage train their navigation stage from random weights;
-#   3. the table of every finished run (bench/ablation_table.py) into $ROOT/table.md and $ROOT/table.json.
+#   3. the table of every finished run (bench/ablation_table.py) into $ROOT/table.md and $ROOT/table.json, each arm
+#      with its agent's paired SR difference from the recipe's on the same episodes (the reference arm, first row).
 # All arms: about 10 hours on 2 idle cores (run nothing else meanwhile: the stages are time budgets). Every recipe
 # resumes where it stopped, so re-running the script after an interruption finishes the table.
 # Knobs (environment): ROOT (default outputs/ablations), ARMS (a subset, e.g. "current_frame no_grounding_loss"),

@@ -8,6 +8,7 @@ frames sees different frames at different poses). The end-to-end tests use the e
 from __future__ import annotations
 
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ import numpy as np
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.model.config import BinsActionHeadConfig, CellGroundingConfig, TinyVitVisionConfig
+from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
 from openfly_agent.sim.dynamics import rollout_array, step_motion
 from openfly_agent.sim.occupancy import OccupancyGrid
@@ -193,3 +195,51 @@ def eval_main():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module.main
+
+
+def success_record(
+    episode_id: str, success: bool, split: str = "test_seen", goal=(100.0, 0.0, 10.0)
+) -> EpisodeRecord:
+    """One forward move and STOP: at the goal (success under both profiles) or 90 m short of it."""
+    end = 100.0 if success else 10.0
+    return EpisodeRecord(
+        split=split,
+        episode_id=episode_id,
+        scene_id="s",
+        policy="agent",
+        instruction="fly to the tower",
+        goal=list(goal),
+        reference_path=[[0.0, 0.0, 10.0], [100.0, 0.0, 10.0]],
+        actions=[1, 0],
+        poses=[[0.0, 0.0, 10.0, 0.0], [end, 0.0, 10.0, 0.0], [end, 0.0, 10.0, 0.0]],
+        stopped=True,
+        end_reason="stop",
+    )
+
+
+PAIRED_IDENTITY = {
+    "policy": "agent",
+    "dataset_root": "outputs/datasets/x",
+    "reader": ["trim", "first"],
+    "max_steps": 100,
+    "sim_type": "embedded",
+    "sim_width": None,
+    "sim_height": None,
+    "sim_occupancy": None,
+    "checkpoint": "ckpt",
+    "unnorm_key": None,
+    "decode_rule": None,
+}
+
+
+def policy_folder(root: Path, successes: dict[str, bool], **identity) -> Path:
+    """`root/agent`, an eval policy folder: run_identity.json (`identity` overrides) and one `success_record` per
+    episode id (True: a success under both profiles)."""
+    from openfly_agent.eval.run import RUN_IDENTITY_NAME
+
+    folder = root / "agent"
+    folder.mkdir(parents=True)
+    (folder / RUN_IDENTITY_NAME).write_text(json.dumps({**PAIRED_IDENTITY, **identity}))
+    lines = [success_record(eid, ok).to_json() for eid, ok in successes.items()]
+    (folder / "episodes.jsonl").write_text("\n".join(lines) + "\n")
+    return folder

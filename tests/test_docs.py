@@ -45,7 +45,7 @@ EXECUTABLE = {
     "hub:release",
     "hub:release-dataset",
 }
-EXECUTABLE |= {"sim:render", "sim:export", "sim:landmarks", "toolchain:grounding"}
+EXECUTABLE |= {"sim:render", "sim:export", "sim:landmarks", "toolchain:grounding", "compare:None"}
 # Small-data budgets appended to an executed command (later options win).
 BUDGET = {
     "train": [
@@ -54,6 +54,7 @@ BUDGET = {
         "--time_limit_minutes=10",
     ],
     "eval": ["--max_episodes=1", "--max_steps=3", "--plots=0", "--progress=false", "--batch_size=2", "--torch_threads=1"],
+    "compare:None": ["--resamples=200"],
     "toolchain:generate": [
         "--workers=0", "--plots=false", "--scenes.train_seeds=[0]", "--scenes.unseen_seeds=[1]",
         "--scenes.trajectories_per_scene=3", "--scenes.test_seen_fraction=0.5", "--scenes.city_size_m=300",
@@ -160,6 +161,10 @@ def check_command(command: DocCommand) -> None:
             check_options(HUB_COMMANDS[command.sub][0], command.args)
     elif command.kind == "recipe":
         check_options(RecipeConfig, command.args)
+    elif command.kind == "compare":
+        from openfly_agent.eval.compare import CompareConfig, command_args
+
+        check_options(CompareConfig, command_args(command.args))
     elif command.kind == "sim":
         from openfly_agent.sim.cli import COMMANDS as SIM_COMMANDS
 
@@ -356,8 +361,9 @@ def _argv(command: DocCommand) -> list[str]:
             "toolchain": "openfly_agent.toolchain",
             "hub": "openfly_agent.hub",
             "sim": "openfly_agent.sim.cli",
+            "compare": "openfly_agent.eval.compare",
         }
-        target, head = ["-m", module[command.kind], command.sub], python
+        target, head = ["-m", module[command.kind], *([command.sub] if command.sub else [])], python
     return [*head, *target, *command.args, *BUDGET.get(key, [])]
 
 

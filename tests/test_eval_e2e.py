@@ -84,6 +84,23 @@ def test_oracle_and_stop_at_start_on_a_generated_split(dataset, tmp_path):
         )
 
 
+def test_compare_pairs_two_policies_of_real_eval_outputs(dataset, tmp_path):
+    from openfly_agent.eval.compare import PairingError, compare_folders
+
+    outcome = run(_cfg(dataset, tmp_path / "full", policy="oracle", baselines=["stop"], plots=0))
+    pair = compare_folders(tmp_path / "full" / "stop", tmp_path / "full" / "oracle", resamples=200)
+    for split in SPLITS:
+        stop = outcome["results"]["stop"]["splits"][split]["standard"]["overall"]
+        row = pair["splits"][split]["standard"]
+        # the oracle succeeds everywhere: each episode is "both" where STOP at the start succeeds, else "only B"
+        both = round(stop["sr_pct"] * stop["episodes"] / 100)
+        assert row["counts"] == {"both": both, "only_a": 0, "only_b": stop["episodes"] - both, "neither": 0}
+        assert row["sr_diff_pp"] == pytest.approx(100.0 - stop["sr_pct"])
+    run(_cfg(dataset, tmp_path / "subset", policy="stop", max_episodes=2, plots=0))
+    with pytest.raises(PairingError, match="flew other episodes"):
+        compare_folders(tmp_path / "full" / "stop", tmp_path / "subset" / "stop")
+
+
 @pytest.mark.parametrize("name", ["forward", "random"])
 def test_blind_baselines_equal_the_rendering_simulator(dataset, name):
     cfg = _cfg(dataset, "unused", policy=name, max_steps=40)

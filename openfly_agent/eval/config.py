@@ -155,8 +155,14 @@ class AgentSettings:
     dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on CUDA) | float32 | bfloat16 | float16
     # released (OpenVLA-format) folders: the ModelConfig YAML to build; None = the 7B compat preset
     model_config: str | None = None
+    # a diagnostic: `empty` gives the agent no memory token at any step (its memory still records the frames),
+    # so a paired comparison with a `none` run (python -m openfly_agent.eval.compare) says whether the memory
+    # changes what the agent does; `none` = the model as trained
+    memory_probe: str = C.MEMORY_PROBE_NONE
 
     def __post_init__(self) -> None:
+        if self.memory_probe not in C.MEMORY_PROBES:
+            raise ValueError(f"agent.memory_probe={self.memory_probe!r}: choose one of {C.MEMORY_PROBES}")
         if self.decode_rule is not None and self.decode_rule not in DECODE_RULES:
             raise ValueError(
                 f"agent.decode_rule={self.decode_rule!r}: choose one of {DECODE_RULES} (or null)"
@@ -265,6 +271,8 @@ class EvalConfig:
                 unnorm_key=self.agent.unnorm_key,
                 decode_rule=self.agent.decode_rule,
             )
+            if self.agent.memory_probe != C.MEMORY_PROBE_NONE:  # absent: the model as trained (older folders)
+                identity["memory_probe"] = self.agent.memory_probe
         if policy == "random":
             identity["seed"] = self.seed
         if policy == "oracle":

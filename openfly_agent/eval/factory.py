@@ -209,4 +209,5 @@ def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: Proce
         settings.unnorm_key,
         settings.model_config,
     )
-    return AgentPolicy(agent.new_session(), name, true_boxes=name == AGENT_TRUE_BOX)
+    session = agent.new_session(settings.memory_probe)
+    return AgentPolicy(session, name, true_boxes=name == AGENT_TRUE_BOX)

@@ -53,6 +53,7 @@ def run_meta(cfg: EvalConfig, policy: str, split_sizes: dict[str, int] | None = 
         "batch_size": cfg.batch_size,
         "seed": cfg.seed,
         "unnorm_key": cfg.agent.unnorm_key if policy in AGENT_POLICIES else None,
+        "memory_probe": cfg.agent.memory_probe if policy in AGENT_POLICIES else None,
         "max_episodes": cfg.max_episodes,
         "split_episodes": dict(split_sizes or {}),
     }

@@ -54,7 +54,9 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
     path = folder / RUN_IDENTITY_NAME
     stored = read_run_identity(folder)
     if stored is not None and not overwrite:
-        changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
+        # both sides' keys: a setting recorded only when it is not its default (agent.memory_probe) counts too
+        keys = list(identity) + [k for k in stored if k not in identity]
+        changed = {k: (stored.get(k), identity.get(k)) for k in keys if stored.get(k) != identity.get(k)}
         if changed:
             details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
             raise EvalInputError(

@@ -27,6 +27,7 @@ from openfly_agent.constants import (
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
+    MEMORY_PROBE_NONE,
     MODEL_TYPE,
     TARGET_ATTRIBUTES,
 )
@@ -282,9 +283,10 @@ class OpenFlyAgent(PreTrainedModel):
             )
         return loss, accuracy
 
-    def new_session(self) -> AgentSession:
-        """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`."""
-        return AgentSession(self)
+    def new_session(self, memory_probe: str = MEMORY_PROBE_NONE) -> AgentSession:
+        """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`;
+        `memory_probe="empty"` reads no memory at any step (an evaluation diagnostic)."""
+        return AgentSession(self, memory_probe)
 
     # --- persistence ------------------------------------------------------------------------------
     def save_pretrained(self, save_directory, *args, **kwargs) -> None:

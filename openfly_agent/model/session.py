@@ -11,7 +11,14 @@ from typing import Any, Protocol
 
 import torch
 
-from openfly_agent.constants import EPISODE_ID, OBS_INSTRUCTION, OBS_RGB
+from openfly_agent.constants import (
+    EPISODE_ID,
+    MEMORY_PROBE_EMPTY,
+    MEMORY_PROBE_NONE,
+    MEMORY_PROBES,
+    OBS_INSTRUCTION,
+    OBS_RGB,
+)
 from openfly_agent.model.config import HEAD_DISCRETE
 from openfly_agent.model.episode import Box, EpisodeState, StepResult, check_observations
 from openfly_agent.model.grounding.box_token import given_boxes
@@ -35,10 +42,15 @@ class AgentSession:
 
     Args:
         agent: the `OpenFlyAgent` that acts (its processor is needed once an episode starts).
+        memory_probe: `none` (the model as trained) or `empty`: every step reads no memory token, while each
+            episode's memory still records its frames (`constants.MEMORY_PROBES`; an evaluation diagnostic).
     """
 
-    def __init__(self, agent: SessionAgent) -> None:
+    def __init__(self, agent: SessionAgent, memory_probe: str = MEMORY_PROBE_NONE) -> None:
+        if memory_probe not in MEMORY_PROBES:
+            raise ValueError(f"memory_probe={memory_probe!r}: choose one of {MEMORY_PROBES}")
         self.agent = agent
+        self.memory_probe = memory_probe
         self.episodes: dict[str, EpisodeState] = {}
 
     def select_action(self, observations: list[dict[str, Any]]) -> list[int]:
@@ -80,6 +92,8 @@ class AgentSession:
         pixels = torch.stack([processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
         frames = network.encode_step(pixels)
         memories = network.read_memory(states, frames)  # (M_i, D) per episode
+        if self.memory_probe == MEMORY_PROBE_EMPTY:
+            memories = [memory[:0] for memory in memories]  # (0, D) per episode
         sequences = []
         for row, state in enumerate(states):
             prompt = network.embed_text(torch.tensor(state.prompt_ids, device=device))  # (L, D)

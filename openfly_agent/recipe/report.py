@@ -4,7 +4,9 @@ Read from what the recipe wrote and finished (a folder with the recipe's complet
 recomputed: the navigation stage's `logs/metrics.jsonl` (its last step), the evaluated agent's (the last DAgger
 round's training the recipe finished, else the navigation stage's: its last test-split evaluation),
 `eval/summary.json` (the agent on the main test splits) and each `eval-<cities>/summary.json` (the agent on the
-test_unseen split of more unseen cities). A folder without the marker, e.g. an earlier round's agent evaluated
+test_unseen split of more unseen cities). `read_runs` also pairs each run's agent with the first run's (the
+reference arm) episode by episode on the main test splits (eval/compare.py), so every row carries its SR difference
+from the reference with a 95 % interval and an exact McNemar p. A folder without the marker, e.g. an earlier round's agent evaluated
 by hand into the run folder or a round trained by hand, is not the recipe's and is left out; a main evaluation
 without it is refused, as is an evaluation with failed episodes: a failure is never a result.
 """
@@ -17,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from openfly_agent import constants as C
+from openfly_agent.eval.compare import compare_folders, interval, p_value, signed
 from openfly_agent.eval.outputs import SUMMARY_JSON
 from openfly_agent.recipe.run import DONE_MARKER, step_finished
 from openfly_agent.training.accelerator import LOGS_DIR
@@ -43,6 +46,9 @@ class RunFigures:
     more_cities: dict[str, tuple[float, int]] = field(default_factory=dict)
     all_unseen_sr: float | None = None  # SR over every test_unseen episode (main split + more cities)
     all_unseen_episodes: int = 0
+    # the agent against the reference run's on the same episodes (standard profile), per main test split:
+    # {"reference", "sr_diff_pp", "sr_diff_ci_pp", "mcnemar_p", "counts"}; empty for the reference itself
+    vs_reference: dict[str, dict] = field(default_factory=dict)
 
 
 def _read_json(path: Path) -> dict:
@@ -151,6 +157,37 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     return figures
 
 
+def paired_with_reference(run_dir: str | Path, reference_dir: str | Path, reference: str) -> dict[str, dict]:
+    """The agent of `run_dir` against the agent of `reference_dir` on the same episodes, per split (standard
+    profile): B - A with B this run; a `PairingError` (a ValueError) when they did not fly the same episodes."""
+    comparison = compare_folders(
+        Path(reference_dir) / "eval" / AGENT, Path(run_dir) / "eval" / AGENT, profiles=[PROFILE_STANDARD]
+    )
+    keys = ("sr_diff_pp", "sr_diff_ci_pp", "mcnemar_p", "counts")
+    return {
+        split: {"reference": reference, **{key: by_profile[PROFILE_STANDARD][key] for key in keys}}
+        for split, by_profile in comparison["splits"].items()
+    }
+
+
+def read_runs(named_folders: list[tuple[str, str | Path]]) -> list[RunFigures]:
+    """`read_run` of each (name, folder), the first being the reference arm: every other run carries its paired
+    SR difference from it (`RunFigures.vs_reference`)."""
+    runs = [read_run(folder, name) for name, folder in named_folders]
+    if runs:
+        reference_name, reference_dir = named_folders[0]
+        for run, (_, folder) in zip(runs[1:], named_folders[1:]):
+            run.vs_reference = paired_with_reference(folder, reference_dir, reference_name)
+    return runs
+
+
+def _paired(run: RunFigures, split: str) -> str:
+    row = run.vs_reference.get(split)
+    if row is None:
+        return "-"
+    return f"{signed(row['sr_diff_pp'])} {interval(row['sr_diff_ci_pp'])}, p {p_value(row['mcnemar_p'])}"
+
+
 def _pct(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
@@ -160,11 +197,15 @@ def _fraction(value: float | None) -> str:
 
 
 def markdown_table(runs: list[RunFigures]) -> str:
-    """One row per run: steps, offline figures, SR per split, more cities, all unseen, openfly SR, behaviour."""
+    """One row per run: steps, offline figures, SR per split, more cities, all unseen, openfly SR, behaviour, and
+    (runs of `read_runs`) the paired SR difference from the reference run."""
     more_names = sorted({name for run in runs for name in run.more_cities})
+    reference = next((row["reference"] for run in runs for row in run.vs_reference.values()), None)
     header = ["run", "nav. steps", "offline acc. / IoU (evaluated agent)", "SR seen / unseen (standard)"]
     header += [f"SR {name}" for name in more_names]
     header += ["SR all unseen", "`openfly` seen / unseen", "collisions unseen", "stopped unseen"]
+    if reference is not None:
+        header.append(f"SR - {reference}, seen / unseen (pp, 95 % CI, McNemar p)")
     lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
     for run in runs:
         seen, unseen = C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN
@@ -183,5 +224,9 @@ def markdown_table(runs: list[RunFigures]) -> str:
             f"{_pct(run.collisions_unseen)} %",
             f"{_pct(run.stopped_unseen)} %",
         ]
+        if reference is not None:
+            cells.append(
+                f"{_paired(run, seen)} / {_paired(run, unseen)}" if run.vs_reference else "(reference)"
+            )
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

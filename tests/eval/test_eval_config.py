@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from openfly_agent.eval.config import AirSimSimSettings, EvalConfig
+from openfly_agent.eval.config import AgentSettings, AirSimSimSettings, EvalConfig
 from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
 
@@ -197,3 +197,27 @@ def test_help_shows_the_chosen_sims_fields_only(capsys):
     assert main(["--help"]) == 0
     text = capsys.readouterr().out
     assert "--sim.width" in text and "--sim.airsim." not in text and "--sim.occupancy_pcd" not in text
+
+
+def test_memory_probe_is_recorded_and_never_resumes_another_probe(tmp_path):
+    from openfly_agent.eval.distributed import ProcessInfo
+    from openfly_agent.eval.outputs import run_meta
+    from openfly_agent.eval.run import prepare_output
+
+    trained = parse_config(EvalConfig, ["--checkpoint=c"])
+    probe = parse_config(EvalConfig, ["--checkpoint=c", "--agent.memory_probe=empty"])
+    assert trained.agent.memory_probe == "none"
+    # older run_identity.json files have no such key: the default adds none, so they still resume
+    assert "memory_probe" not in trained.result_identity("agent")
+    assert probe.result_identity("agent")["memory_probe"] == "empty"
+    assert "memory_probe" not in probe.result_identity("random")  # baselines have no memory
+    assert (
+        run_meta(probe, "agent")["memory_probe"] == "empty"
+        and run_meta(probe, "random")["memory_probe"] is None
+    )
+    folder = tmp_path / "agent"
+    prepare_output(folder, probe.result_identity("agent"), False, ProcessInfo())
+    with pytest.raises(ValueError, match="memory_probe: 'empty' -> None"):  # a key only the folder has
+        prepare_output(folder, trained.result_identity("agent"), False, ProcessInfo())
+    with pytest.raises(ValueError, match="agent.memory_probe='swap': choose one of"):
+        EvalConfig(checkpoint="c", agent=AgentSettings(memory_probe="swap"))

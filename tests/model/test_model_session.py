@@ -243,3 +243,51 @@ def test_true_boxes_replace_the_grounding_heads_prediction(make_agent):
     assert (elsewhere.action_logits - visible.action_logits).abs().max() > 1e-4
     with pytest.raises(ValueError, match="true boxes for"):
         session.predict_step([_obs(0, frames[0, 1])], true_boxes=[box, box])
+
+
+def _prefill_lengths(agent, session, frames) -> list[list[int]]:
+    """Per step, the real (unpadded) positions of each episode's prefill: what the LLM sees at that step."""
+    network, seen = agent.network, []
+    run_llm = network.run_llm
+
+    def spy(embeds, attention_mask, **kwargs):
+        if embeds.shape[1] > 1:  # the prefill (the cached decoding feeds one position at a time)
+            seen.append(attention_mask.sum(dim=1).tolist())
+        return run_llm(embeds, attention_mask, **kwargs)
+
+    network.run_llm = spy
+    try:
+        results = [
+            session.predict_step([_obs(e, frames[e, t]) for e in range(len(frames))])
+            for t in range(frames.shape[1])
+        ]
+    finally:
+        del network.run_llm
+    return seen, results
+
+
+def test_memory_probe_empty_gives_the_llm_no_memory_token(make_agent):
+    agent = memory_agent(make_agent)
+    frames = _frames(2, 10, size=agent.model_cfg.vision.image_size)
+    lengths, _ = _prefill_lengths(agent, agent.new_session(), frames)
+    # the model as trained: once a keyframe set is in memory, its tokens lengthen the sequence
+    assert any(step[e] > lengths[0][e] for step in lengths for e in range(2))
+    probe = agent.new_session(memory_probe="empty")
+    empty_lengths, results = _prefill_lengths(agent, probe, frames)
+    # BOS + the current frame + the prompt at every step: the same length as at step 0, which has no memory
+    assert all(step == empty_lengths[0] for step in empty_lengths) and empty_lengths[0] == lengths[0]
+    # only the read is emptied: the episodes still remember their keyframe sets
+    assert any(result.memory_sets for step in results for result in step)
+    with pytest.raises(ValueError, match="memory_probe='swap'"):
+        agent.new_session(memory_probe="swap")
+
+
+def test_memory_probe_none_is_the_default_session(make_agent):
+    agent = memory_agent(make_agent)
+    frames = _frames(2, 8, size=agent.model_cfg.vision.image_size)
+    _, default = _prefill_lengths(agent, agent.new_session(), frames)
+    _, named = _prefill_lengths(agent, agent.new_session(memory_probe="none"), frames)
+    for a, b in zip(default, named):
+        for x, y in zip(a, b):
+            assert x.action == y.action and x.memory_sets == y.memory_sets and x.box == y.box
+            assert torch.equal(x.action_logits, y.action_logits)

@@ -149,3 +149,33 @@ def test_the_script_prints_the_table_and_writes_json(tmp_path):
         [sys.executable, script, "--run", str(tmp_path / "none")], capture_output=True, text=True
     )
     assert failed.returncode != 0 and "ablation_table:" in failed.stderr and "missing" in failed.stderr
+
+
+def test_every_arm_carries_its_paired_difference_from_the_reference(tmp_path):
+    from eval_helpers import policy_folder
+
+    from openfly_agent.recipe.report import read_runs
+
+    reference, arm = _make_run(tmp_path / "ref"), _make_run(tmp_path / "arm")
+    # test_seen: the reference succeeds on e0 and e1, the arm on e0, e2 and e3 (both 1, only ref 1, only arm 2)
+    policy_folder(reference / "eval", {"e0": True, "e1": True, "e2": False, "e3": False})
+    policy_folder(arm / "eval", {"e0": True, "e1": False, "e2": True, "e3": True}, checkpoint="other")
+    runs = read_runs([("recipe", reference), ("arm", arm)])
+    assert runs[0].vs_reference == {}
+    paired = runs[1].vs_reference["test_seen"]
+    assert paired["reference"] == "recipe" and paired["sr_diff_pp"] == 25.0
+    assert paired["counts"] == {"both": 1, "only_a": 1, "only_b": 2, "neither": 0}
+    assert paired["mcnemar_p"] == 1.0  # 2 * P(X <= 1 | 3, 1/2) = 2 * 4/8, capped at 1
+    # Newcombe's method 10 for this table, worked by hand in tests/eval/test_eval_compare.py
+    assert paired["sr_diff_ci_pp"] == pytest.approx([-46.1326, 74.6849], abs=1e-3)
+    lines = markdown_table(runs).splitlines()
+    assert lines[0].endswith("| SR - recipe, seen / unseen (pp, 95 % CI, McNemar p) |")
+    assert lines[2].endswith("| (reference) |")
+    assert lines[3].endswith(
+        "| +25.0 [-46.1, +74.7], p 1.000 / - |"
+    )  # these logs hold no test_unseen episode
+    # an arm flown on other episodes is refused, naming both folders
+    other = _make_run(tmp_path / "other")
+    policy_folder(other / "eval", {"e0": True, "e7": False})
+    with pytest.raises(ValueError, match="flew other episodes"):
+        read_runs([("recipe", reference), ("other", other)])
