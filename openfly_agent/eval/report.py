@@ -12,9 +12,15 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from openfly_agent.data.records import parse_episode_id
-from openfly_agent.eval.metrics import INTERVAL_KEYS, EpisodeTrajectory, aggregate, episode_metrics
+from openfly_agent.eval.metrics import (
+    EARLY_STOP_STEPS,
+    INTERVAL_KEYS,
+    EpisodeTrajectory,
+    aggregate,
+    episode_metrics,
+)
 from openfly_agent.eval.profiles import get_profile
-from openfly_agent.eval.stats import format_interval
+from openfly_agent.eval.stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, format_interval
 from openfly_agent.rollout.record import EpisodeRecord
 
 RESULTS_VERSION = 2  # 2 added the counts, the 95 % intervals and the breakdowns
@@ -63,8 +69,8 @@ BREAKDOWNS = {
 }
 INTERVAL_NOTE = (
     "Numbers in brackets are 95 % intervals: Wilson score intervals for SR and OSR, a percentile bootstrap over "
-    "the episodes (10,000 resamples, seed 0) for SPL and NE (docs/METRICS.md). Early STOP: a failed STOP among "
-    "the first 3 actions."
+    f"the episodes ({BOOTSTRAP_RESAMPLES:,} resamples, seed {BOOTSTRAP_SEED}) for SPL and NE (docs/METRICS.md). "
+    f"Early STOP: a failed STOP among the first {EARLY_STOP_STEPS} actions."
 )
 # What `scored` keeps of each profile's `episode_metrics` in the record (EpisodeRecord.metrics).
 RECORD_METRIC_KEYS = ("success", "ne", "oracle_success", "spl", "outcome")
