@@ -66,7 +66,9 @@ def test_oracle_and_stop_at_start_on_a_generated_split(dataset, tmp_path):
             assert stop["episodes"] == len(episodes)
             assert stop["sr_pct"] == pytest.approx(100.0 * np.mean([d < 20.0 for d in distances]))
             assert stop["ne_m"] == pytest.approx(np.mean(distances))
-            assert stop["stopped_far_pct"] == pytest.approx(100.0 - stop["sr_pct"])  # never moved
+            # STOP as action 0: every failure is an early STOP, not a miss after flying
+            assert stop["early_stop_pct"] == pytest.approx(100.0 - stop["sr_pct"])
+            assert stop["stopped_far_pct"] == 0.0
             assert oracle["step_limit_pct"] == stop["step_limit_pct"] == 0.0
     summary = (tmp_path / "summary.md").read_text()
     assert "| oracle | " in summary and "| stop | " in summary

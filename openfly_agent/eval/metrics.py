@@ -14,6 +14,7 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.eval.profiles import DEFAULT_PROFILE_NAMES, MetricProfile, get_profile
+from openfly_agent.eval.stats import bootstrap_mean_interval, wilson_interval
 from openfly_agent.sim.dynamics import rollout_array
 from openfly_agent.utils.geometry import Pose, path_length
 
@@ -30,13 +31,22 @@ _MEAN_KEYS = {
     "stopped": ("stop_rate_pct", 100.0),
     "collided": ("collision_rate_pct", 100.0),
     "num_collisions": ("collisions_per_episode", 1.0),
+    "early_stop": ("early_stop_pct", 100.0),
     "stopped_far": ("stopped_far_pct", 100.0),
     "stopped_after_passing": ("stopped_after_passing_pct", 100.0),
     "ended_by_collision": ("collision_end_pct", 100.0),
     "step_limit": ("step_limit_pct", 100.0),
 }
 # How an episode ends; exactly one per episode, so their rates sum to 100 % (with SR as "success").
-OUTCOMES = ("success", "stopped_far", "stopped_after_passing", "collision_end", "step_limit")
+OUTCOMES = ("success", "early_stop", "stopped_far", "stopped_after_passing", "collision_end", "step_limit")
+EARLY_STOP_STEPS = 3  # a failed STOP among the first this many actions is an "early_stop"
+# 95 % intervals of each summary: rate key -> (its interval key, the per-episode flag counted);
+# mean key -> (its interval key, the per-episode value, scale). eval/stats.py, docs/METRICS.md.
+_RATE_INTERVALS = {"sr_pct": ("sr_ci95", "success"), "osr_pct": ("osr_ci95", "oracle_success")}
+_MEAN_INTERVALS = {"spl_pct": ("spl_ci95", "spl", 100.0), "ne_m": ("ne_ci95", "ne", 1.0)}
+INTERVAL_KEYS = {
+    key: spec[0] for key, spec in (_RATE_INTERVALS | _MEAN_INTERVALS).items()
+}  # summary key -> its interval
 
 
 def _points(value, name: str, episode_id: str, min_rows: int = 1) -> np.ndarray:
@@ -210,8 +220,8 @@ def episode_metrics(traj: EpisodeTrajectory, profile: MetricProfile | str) -> di
     Returns:
         A JSON-friendly dict: episode_id, scene_id, profile, ne (m), success, oracle_success, spl,
         ndtw, sdtw, path_length (m), steps (actions evaluated, STOP included), stopped, collided,
-        num_collisions, ended_by_collision, outcome (`episode_outcome`) and its flags stopped_far,
-        stopped_after_passing, step_limit.
+        num_collisions, ended_by_collision, outcome (`episode_outcome`) and its flags early_stop,
+        stopped_far, stopped_after_passing, step_limit.
     """
     profile = get_profile(profile)
     positions, stopped, collisions, ended_by_collision = _evaluated_part(traj, profile)
@@ -237,7 +247,8 @@ def episode_metrics(traj: EpisodeTrajectory, profile: MetricProfile | str) -> di
         spl = 1.0  # nothing to travel and nothing travelled: perfectly efficient by convention
 
     ndtw_value = ndtw(positions[:, :dims], traj.reference_path[:, :dims], profile.success_radius)
-    outcome = episode_outcome(success, stopped, oracle_success, ended_by_collision)
+    stop_step = traj.stop_step if stopped else None
+    outcome = episode_outcome(success, stopped, oracle_success, ended_by_collision, stop_step)
     return {
         "episode_id": traj.episode_id,
         "scene_id": traj.scene_id,
@@ -255,16 +266,24 @@ def episode_metrics(traj: EpisodeTrajectory, profile: MetricProfile | str) -> di
         "num_collisions": len(collisions),
         "ended_by_collision": ended_by_collision,
         "outcome": outcome,
+        "early_stop": outcome == "early_stop",
         "stopped_far": outcome == "stopped_far",
         "stopped_after_passing": outcome == "stopped_after_passing",
         "step_limit": outcome == "step_limit",
     }
 
 
-def episode_outcome(success: bool, stopped: bool, oracle_success: bool, ended_by_collision: bool) -> str:
+def episode_outcome(
+    success: bool,
+    stopped: bool,
+    oracle_success: bool,
+    ended_by_collision: bool,
+    stop_step: int | None = None,
+) -> str:
     """Where a failed episode went wrong, one of `OUTCOMES`.
 
-    "stopped_far": a STOP that never came within the success radius (the agent went somewhere else);
+    "early_stop": a STOP among the first `EARLY_STOP_STEPS` actions (`stop_step` < 3: the agent gave up
+    before flying; None: unknown, never early); "stopped_far": a STOP that never came within the success radius (the agent went somewhere else);
     "stopped_after_passing": a STOP outside the radius after the path was within it (it flew past or
     stopped short on the way back); "collision_end": a collision ended it (`end_fail` profiles);
     "step_limit": it never stopped (the step budget ran out, or a profile that needs no STOP).
@@ -274,15 +293,27 @@ def episode_outcome(success: bool, stopped: bool, oracle_success: bool, ended_by
     if ended_by_collision:
         return "collision_end"
     if stopped:
+        if stop_step is not None and stop_step < EARLY_STOP_STEPS:
+            return "early_stop"
         return "stopped_after_passing" if oracle_success else "stopped_far"
     return "step_limit"
 
 
 def _summarise(rows: Sequence[dict]) -> dict:
-    """Means of the per-episode metrics; rates and SPL / nDTW in percent (keys say the unit)."""
+    """Means of the per-episode metrics; rates and SPL / nDTW in percent (keys say the unit); the counts of
+    successes and oracle successes; 95 % intervals of SR / OSR (Wilson) and SPL / NE (bootstrap), in the
+    unit of their mean, as [low, high]."""
     summary: dict = {"episodes": len(rows)}
     for key, (name, scale) in _MEAN_KEYS.items():
         summary[name] = scale * float(np.mean([float(row[key]) for row in rows]))
+    summary["successes"] = sum(bool(row["success"]) for row in rows)
+    summary["oracle_successes"] = sum(bool(row["oracle_success"]) for row in rows)
+    for interval_key, flag in _RATE_INTERVALS.values():
+        low, high = wilson_interval(sum(bool(row[flag]) for row in rows), len(rows))
+        summary[interval_key] = [100.0 * low, 100.0 * high]
+    for interval_key, value_key, scale in _MEAN_INTERVALS.values():
+        low, high = bootstrap_mean_interval([float(row[value_key]) for row in rows])
+        summary[interval_key] = [scale * low, scale * high]
     return summary
 
 
@@ -296,10 +327,12 @@ def aggregate(per_episode: Sequence[dict], by: str | None = "scene") -> dict:
     Returns:
         {"profile", "overall": {...}, "per_<by>": {group: {...}}, "<by>_mean": {...}} where each
         summary holds `episodes`, `ne_m`, `sr_pct`, `osr_pct`, `spl_pct`, `ndtw_pct`, `sdtw_pct`,
-        `path_length_m`, `steps`, `stop_rate_pct`, `collision_rate_pct`, `collisions_per_episode` and
-        the outcome rates `stopped_far_pct`, `stopped_after_passing_pct`, `collision_end_pct`,
-        `step_limit_pct` (with `sr_pct` they sum to 100);
-        `<by>_mean` is the unweighted mean over groups (how the OpenFly README averages scenes).
+        `path_length_m`, `steps`, `stop_rate_pct`, `collision_rate_pct`, `collisions_per_episode`,
+        the outcome rates `early_stop_pct`, `stopped_far_pct`, `stopped_after_passing_pct`,
+        `collision_end_pct`, `step_limit_pct` (with `sr_pct` they sum to 100), the counts `successes`
+        and `oracle_successes`, and the 95 % intervals `sr_ci95`, `osr_ci95`, `spl_ci95`, `ne_ci95`;
+        `<by>_mean` is the unweighted mean over groups (how the OpenFly README averages scenes), without
+        counts or intervals.
     """
     rows = list(per_episode)
     if not rows:

@@ -19,6 +19,7 @@ from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig
 from openfly_agent.eval.metrics import episode_metrics
 from openfly_agent.eval.plots import plot_topdown, safe_name
 from openfly_agent.eval.report import (
+    INTERVAL_NOTE,
     comparison_markdown,
     outcomes_markdown,
     policy_results,
@@ -129,7 +130,7 @@ def write_policy_outputs(
 
 def write_summary(cfg: EvalConfig, all_results: list[dict], root: Path) -> str:
     """summary.md / summary.json comparing every policy of the run; returns the Markdown."""
-    text = "## Closed-loop evaluation (overall, per split and metric profile)\n\n"
+    text = "## Closed-loop evaluation (overall, per split and metric profile)\n\n" + INTERVAL_NOTE + "\n\n"
     text += comparison_markdown(all_results, cfg.profiles)
     text += "\n" + outcomes_markdown(all_results, cfg.profiles)
     text += f"\nPer-scene tables: {root}/<policy>/results.md; plots: {root}/<policy>/plots/\n"

@@ -7,7 +7,7 @@
 - `paired_bootstrap_interval(a, b)`: the percentile interval of mean(b - a) over episodes resampled with
   replacement (the same episodes for both policies in each resample), with a fixed seed.
 
-No scipy: the normal quantile of a 95 % interval is a constant, the binomial tail a sum of `math.comb`.
+No scipy: the binomial tail is a sum of `math.comb`; the Wilson limits and the bootstrap are eval/stats.py's.
 docs/METRICS.md ("Paired comparison") states what each number means.
 """
 
@@ -19,9 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-Z_95 = 1.959963984540054  # standard normal quantile at 0.975: two-sided 95 %
-BOOTSTRAP_RESAMPLES = 10_000
-BOOTSTRAP_SEED = 0
+from openfly_agent.eval.stats import (
+    BOOTSTRAP_RESAMPLES,
+    BOOTSTRAP_SEED,
+    Z_95,
+    bootstrap_mean_interval,
+    wilson_interval,
+)
 
 
 @dataclass(frozen=True)
@@ -63,17 +67,6 @@ def mcnemar_exact_p(b: int, c: int) -> float:
     return min(1.0, 2 * tail / 2**n)
 
 
-def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
-    """Wilson score interval of a proportion `successes / n` (n >= 1)."""
-    if n < 1 or not 0 <= successes <= n:
-        raise ValueError(f"wilson_interval needs 0 <= successes <= n and n >= 1, got {successes} of {n}")
-    p = successes / n
-    denominator = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denominator
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denominator
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
 def newcombe_paired_interval(counts: PairedCounts, z: float = Z_95) -> tuple[float, float, float]:
     """(difference, lower, upper) of p_B - p_A, Newcombe's method 10 (no continuity correction), as fractions.
 
@@ -109,20 +102,11 @@ def paired_bootstrap_interval(
     seed: int = BOOTSTRAP_SEED,
     level: float = 0.95,
 ) -> tuple[float, float, float]:
-    """(mean(b - a), lower, upper): the percentile interval of the mean paired difference over `resamples`
-    resamples of the episodes with replacement (numpy's default generator seeded with `seed`)."""
+    """(mean(b - a), lower, upper): the percentile bootstrap interval of the mean paired difference, the episodes
+    resampled with replacement (the same episodes for both policies in each resample: `stats.bootstrap_mean_interval`
+    of the per-episode differences)."""
     diffs = np.asarray(b, dtype=np.float64) - np.asarray(a, dtype=np.float64)  # (N,)
     if diffs.ndim != 1 or len(diffs) == 0:
         raise ValueError(f"paired_bootstrap_interval needs two aligned, non-empty lists, got {diffs.shape}")
-    if resamples < 1:
-        raise ValueError(f"resamples must be >= 1, got {resamples}")
-    rng = np.random.default_rng(seed)
-    means = np.empty(resamples)
-    chunk = max(1, 2_000_000 // len(diffs))  # rows of indices drawn at once (bounded memory)
-    for start in range(0, resamples, chunk):
-        rows = min(chunk, resamples - start)
-        index = rng.integers(0, len(diffs), size=(rows, len(diffs)))  # (rows, N)
-        means[start : start + rows] = diffs[index].mean(axis=1)
-    tail = (1 - level) / 2 * 100
-    lower, upper = np.percentile(means, [tail, 100 - tail])
-    return float(diffs.mean()), float(lower), float(upper)
+    lower, upper = bootstrap_mean_interval(diffs, resamples, seed, level)
+    return float(diffs.mean()), lower, upper

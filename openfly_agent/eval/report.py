@@ -7,17 +7,28 @@ run and one recomputed later from the log are the same.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
-from openfly_agent.eval.metrics import EpisodeTrajectory, aggregate, episode_metrics
+import numpy as np
+
+from openfly_agent.data.records import parse_episode_id
+from openfly_agent.eval.metrics import (
+    EARLY_STOP_STEPS,
+    INTERVAL_KEYS,
+    EpisodeTrajectory,
+    aggregate,
+    episode_metrics,
+)
 from openfly_agent.eval.profiles import get_profile
+from openfly_agent.eval.stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, format_interval
 from openfly_agent.rollout.record import EpisodeRecord
 
-RESULTS_VERSION = 1
-# (summary key, column title, decimals)
+RESULTS_VERSION = 2  # 2 added the counts, the 95 % intervals and the breakdowns
+# (summary key, column title, decimals); "successes" prints "k of n", a key of `INTERVAL_KEYS` its interval
 COLUMNS = (
     ("episodes", "Episodes", 0),
     ("errors", "Errors", 0),
+    ("successes", "Successes", 0),
     ("ne_m", "NE (m)", 1),
     ("sr_pct", "SR (%)", 1),
     ("osr_pct", "OSR (%)", 1),
@@ -26,15 +37,43 @@ COLUMNS = (
     ("collision_rate_pct", "Coll. (%)", 1),
     ("stop_rate_pct", "Stop (%)", 1),
 )
+BREAKDOWN_COLUMNS = tuple(
+    c for c in COLUMNS if c[0] in ("episodes", "successes", "ne_m", "sr_pct", "osr_pct", "spl_pct")
+)
 # Where the episodes end (`eval.metrics.OUTCOMES`; the rates of a row sum to 100).
 OUTCOME_COLUMNS = (
     ("episodes", "Episodes", 0),
     ("sr_pct", "Success (%)", 1),
+    ("early_stop_pct", "Early STOP (%)", 1),
     ("stopped_far_pct", "STOP, never within radius (%)", 1),
     ("stopped_after_passing_pct", "STOP after passing within (%)", 1),
     ("collision_end_pct", "Collision end (%)", 1),
     ("step_limit_pct", "Step limit (%)", 1),
 )
+# Breakdowns of every split and profile: row key -> (title, its groups in table order). The route length and
+# flight height come from the category in the episode id (`<scene>/astar_data/<height>_<length>[_updown]/...`,
+# docs/TOOLCHAIN.md "Categories"; "unknown" for other ids), the start distance is the straight 3-D start-goal one.
+START_DISTANCE_BINS_M = (50, 100, 150, 200)
+UNKNOWN = "unknown"
+BREAKDOWNS = {
+    "route_length": ("Route length", ("short", "average", "long", UNKNOWN)),
+    "flight_height": ("Flight height", ("low", "medium", "high", UNKNOWN)),
+    "start_distance": (
+        "Start-goal distance",
+        (
+            f"< {START_DISTANCE_BINS_M[0]} m",
+            *(f"{a}-{b} m" for a, b in zip(START_DISTANCE_BINS_M, START_DISTANCE_BINS_M[1:])),
+            f">= {START_DISTANCE_BINS_M[-1]} m",
+        ),
+    ),
+}
+INTERVAL_NOTE = (
+    "Numbers in brackets are 95 % intervals: Wilson score intervals for SR and OSR, a percentile bootstrap over "
+    f"the episodes ({BOOTSTRAP_RESAMPLES:,} resamples, seed {BOOTSTRAP_SEED}) for SPL and NE (docs/METRICS.md). "
+    f"Early STOP: a failed STOP among the first {EARLY_STOP_STEPS} actions."
+)
+# What `scored` keeps of each profile's `episode_metrics` in the record (EpisodeRecord.metrics).
+RECORD_METRIC_KEYS = ("success", "ne", "oracle_success", "spl", "outcome")
 
 
 def trajectory_of(record: EpisodeRecord) -> EpisodeTrajectory:
@@ -51,12 +90,44 @@ def trajectory_of(record: EpisodeRecord) -> EpisodeTrajectory:
     )
 
 
+def scored(record: EpisodeRecord, profiles: Sequence[str]) -> EpisodeRecord:
+    """A copy of `record` with its `metrics` filled: `RECORD_METRIC_KEYS` of `episode_metrics` per profile (an
+    engine error is not scored: unchanged)."""
+    if record.errored:
+        return record
+    trajectory = trajectory_of(record)
+    metrics = {}
+    for profile in profiles:
+        row = episode_metrics(trajectory, profile)
+        metrics[profile] = {key: row[key] for key in RECORD_METRIC_KEYS}
+    return replace(record, metrics=metrics)
+
+
+def route_class(episode_id: str) -> tuple[str, str]:
+    """(route length, flight height) of an episode from the category in its id (`UNKNOWN` where it has none)."""
+    _, category = parse_episode_id(episode_id)
+    parts = category.split("_")
+    length_names, height_names = BREAKDOWNS["route_length"][1], BREAKDOWNS["flight_height"][1]
+    height = parts[0] if parts[0] in height_names else UNKNOWN
+    length = parts[1] if len(parts) > 1 and parts[1] in length_names else UNKNOWN
+    return length, height
+
+
+def start_distance_bin(record: EpisodeRecord) -> str:
+    """The `START_DISTANCE_BINS_M` bin of the straight 3-D distance from the start to the goal."""
+    distance = float(np.linalg.norm(record.positions()[0] - np.asarray(record.goal, dtype=np.float64)))
+    index = int(np.searchsorted(START_DISTANCE_BINS_M, distance, side="right"))
+    return BREAKDOWNS["start_distance"][1][index]
+
+
 def episode_rows(records: Sequence[EpisodeRecord], profile: str) -> list[dict]:
-    """`episode_metrics` of every record under `profile`, with the split added."""
+    """`episode_metrics` of every record under `profile`, with the split and the `BREAKDOWNS` keys added."""
     rows = []
     for record in records:
         row = episode_metrics(trajectory_of(record), profile)
         row["split"] = record.split
+        row["route_length"], row["flight_height"] = route_class(record.episode_id)
+        row["start_distance"] = start_distance_bin(record)
         rows.append(row)
     return rows
 
@@ -76,11 +147,16 @@ def split_tables(records: Sequence[EpisodeRecord], profiles: Sequence[str]) -> d
 
 
 def _profile_table(records: Sequence[EpisodeRecord], profile: str) -> dict:
-    scored = [r for r in records if not r.errored]
-    if scored:
-        table = aggregate(episode_rows(scored, profile), by="scene")
+    finished = [r for r in records if not r.errored]
+    if finished:
+        rows = episode_rows(finished, profile)
+        table = aggregate(rows, by="scene")
+        table["breakdowns"] = {}
+        for by, (_, order) in BREAKDOWNS.items():
+            groups = aggregate(rows, by=by)[f"per_{by}"]
+            table["breakdowns"][by] = {name: groups[name] for name in order if name in groups}
     else:  # every episode failed: nothing to average
-        table = {"profile": profile, "overall": {"episodes": 0}, "per_scene": {}}
+        table = {"profile": profile, "overall": {"episodes": 0}, "per_scene": {}, "breakdowns": {}}
     errors_by_scene: dict[str, int] = {}
     for record in records:
         if record.errored:
@@ -98,9 +174,10 @@ def policy_results(
     """The `results.json` of one policy.
 
     Shape: {"version", "policy", "meta": {...}, "profiles": {name: profile fields},
-    "splits": {split: {profile: {"profile", "overall", "per_scene", "scene_mean"}}}, "errors": {split: n}}
-    with the summary keys of `eval.metrics.aggregate` (`ne_m`, `sr_pct`, `osr_pct`, `spl_pct`, ...) plus
-    `errors`, the episodes that ended in an engine error and are left out of every metric.
+    "splits": {split: {profile: {"profile", "overall", "per_scene", "scene_mean", "breakdowns"}}},
+    "errors": {split: n}} with the summary keys of `eval.metrics.aggregate` (`ne_m`, `sr_pct`, `osr_pct`,
+    `spl_pct`, ..., `successes`, `sr_ci95`, ...) plus `errors`, the episodes that ended in an engine error and
+    are left out of every metric; `breakdowns` holds {by: {group: summary}} for each of `BREAKDOWNS`.
     """
     return {
         "version": RESULTS_VERSION,
@@ -115,12 +192,19 @@ def policy_results(
     }
 
 
-def _fmt(value: float, decimals: int) -> str:
-    return f"{value:.{decimals}f}" if decimals else str(int(round(value)))
+def _cell(summary: dict, key: str, decimals: int) -> str:
+    """One table cell: "k of n" for the successes, a number with its 95 % interval where the summary holds one."""
+    if key not in summary:
+        return ""
+    if key == "successes":
+        return f"{summary[key]} of {summary['episodes']}"
+    if not decimals:
+        return str(int(round(summary[key])))
+    return format_interval(summary[key], summary.get(INTERVAL_KEYS.get(key, "")), decimals)
 
 
 def _row(name: str, summary: dict, columns: Sequence[tuple] = COLUMNS) -> str:
-    cells = [_fmt(summary[key], d) if key in summary else "" for key, _, d in columns]
+    cells = [_cell(summary, key, d) for key, _, d in columns]
     return "| " + " | ".join([name, *cells]) + " |"
 
 
@@ -131,18 +215,41 @@ def _header(first: str, columns: Sequence[tuple] = COLUMNS) -> list[str]:
 
 def results_markdown(results: dict) -> str:
     """Per-scene and overall Markdown tables of one policy's results, one per split and profile."""
-    lines = [f"# Closed-loop results: {results['policy']}", ""]
+    lines = [f"# Closed-loop results: {results['policy']}", "", INTERVAL_NOTE, ""]
     outcomes = ["## Where the episodes end", "", *_header("Split / profile", OUTCOME_COLUMNS)]
     for split, by_profile in results["splits"].items():
         for profile, table in by_profile.items():
-            lines += [f"## {split} - profile `{profile}`", "", *_header("Scene")]
+            lines += [f"## {split} - profile `{profile}`", ""]
+            note = subsample_note(results, split)
+            lines += [note, ""] if note else []
+            lines += _header("Scene")
             lines += [_row(scene, summary) for scene, summary in table.get("per_scene", {}).items()]
             if "scene_mean" in table:
                 scene_mean = dict(table["scene_mean"], episodes=table["overall"]["episodes"])
                 lines.append(_row("**scene mean**", scene_mean))
             lines += [_row("**overall**", table["overall"]), ""]
+            for by, groups in table.get("breakdowns", {}).items():
+                title = BREAKDOWNS[by][0] if by in BREAKDOWNS else by
+                lines += [
+                    f"### {split} - `{profile}` by {title.lower()}",
+                    "",
+                    *_header(title, BREAKDOWN_COLUMNS),
+                ]
+                lines += [_row(group, summary, BREAKDOWN_COLUMNS) for group, summary in groups.items()]
+                lines.append("")
             outcomes.append(_row(f"{split} / `{profile}`", table["overall"], OUTCOME_COLUMNS))
     return "\n".join(lines + outcomes + [""])
+
+
+def subsample_note(results: dict, split: str) -> str | None:
+    """`Evaluated 20 of the split's 260 episodes (max_episodes).` when the run covered only part of `split`."""
+    total = (results.get("meta") or {}).get("split_episodes", {}).get(split)
+    counts = [
+        t["overall"]["episodes"] + t["overall"].get("errors", 0) for t in results["splits"][split].values()
+    ]
+    if total is None or not counts or counts[0] >= total:
+        return None
+    return f"Evaluated {counts[0]} of the split's {total} episodes (`max_episodes`)."
 
 
 def _splits_of(all_results: Sequence[dict]) -> list[str]:
@@ -170,7 +277,10 @@ def comparison_markdown(all_results: Sequence[dict], profiles: Sequence[str]) ->
     lines = []
     for split in _splits_of(all_results):
         for profile in profiles:
-            lines += [f"### {split} - profile `{profile}`", "", *_header("Policy")]
+            lines += [f"### {split} - profile `{profile}`", ""]
+            notes = {subsample_note(r, split) for r in all_results if split in r["splits"]} - {None}
+            lines += [*sorted(notes), ""] if notes else []
+            lines += _header("Policy")
             for results in all_results:
                 table = results["splits"].get(split, {}).get(profile)
                 if table is not None:

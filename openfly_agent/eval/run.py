@@ -33,6 +33,7 @@ from openfly_agent.eval.factory import (
 from openfly_agent.eval.outputs import write_policy_outputs, write_summary
 from openfly_agent.eval.plots import safe_name, write_gif
 from openfly_agent.eval.records import EpisodeLog
+from openfly_agent.eval.report import scored
 from openfly_agent.eval.rollout import FrameLog, FrameRecorder, teleport_record
 from openfly_agent.model.persistence.checkpoint_path import UnreadableWeightsError, check_weights_readable
 from openfly_agent.rollout.checkpoints import CheckpointError, checkpoint_fingerprint, checkpoint_folder
@@ -151,12 +152,12 @@ def evaluate_policy(
         )
         if isinstance(policy, OraclePolicy):  # episodes whose actions do not replay follow the recorded poses
             for episode in [e for e in todo if not policy.replays(e.episode_id)]:
-                log.append(teleport_record(episode, split, policy.name, cfg.max_steps))
+                log.append(scored(teleport_record(episode, split, policy.name, cfg.max_steps), cfg.profiles))
             mine = [e for e in mine if policy.replays(e.episode_id)]
 
         def unfinished(record: EpisodeRecord, split: str = split) -> None:
             if (split, record.episode_id) not in done:  # an already logged companion recomputed identically
-                log.append(record)
+                log.append(scored(record, cfg.profiles))
 
         # Resume by whole lockstep groups: a group that lost episodes to a kill runs again with the same
         # companions, so its records are bit-identical to an uninterrupted run's (docs/EVAL.md).

@@ -8,6 +8,7 @@ from typing import Any
 
 import yaml
 
+from openfly_agent.eval.stats import format_interval
 from openfly_agent.hub.config import CardConfig
 from openfly_agent.hub.results import AGENT_POLICY, EvalResults, ResultRow
 from openfly_agent.model.config import (
@@ -257,8 +258,26 @@ def table_rows(results: EvalResults, baselines: list[EvalResults]) -> list[dict[
             for other, rows_of in zip(baselines, by_key)
             if (row.split, row.profile) in rows_of
         ]:
-            rows.append({"policy": policy, "row": policy_row, "episodes": _episodes_cell(policy_row)})
+            rows.append(
+                {
+                    "policy": policy,
+                    "row": policy_row,
+                    "episodes": _episodes_cell(policy_row),
+                    "successes": _successes_cell(policy_row),
+                    "cells": {
+                        name: format_interval(value, policy_row.intervals.get(name))
+                        for name, value in policy_row.metrics.items()
+                    },
+                }
+            )
     return rows
+
+
+def _successes_cell(row: ResultRow) -> str:
+    """`4 of 17`: the episodes that succeeded under the row's profile."""
+    if row.successes is None or row.num_episodes is None:
+        return "-"
+    return f"{row.successes} of {row.num_episodes}"
 
 
 def _episodes_cell(row: ResultRow) -> str:

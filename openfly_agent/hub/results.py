@@ -9,12 +9,15 @@ from pathlib import Path
 from typing import Any
 
 from openfly_agent.constants import RESULTS_JSON, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
+from openfly_agent.eval.metrics import INTERVAL_KEYS
+from openfly_agent.eval.stats import wilson_interval
 
 PROFILES = ("openfly", "standard")
 RELEASE_SPLITS = (SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)
 AGENT_POLICY = "agent"
 # card metric -> key of eval's overall summary (units in the key: metres, percent)
 METRIC_KEYS = {"NE": "ne_m", "SR": "sr_pct", "OSR": "osr_pct", "SPL": "spl_pct"}
+RATE_METRICS = ("SR", "OSR")  # an interval of these can be recomputed from the rate and the episodes
 
 
 class ResultsError(ValueError):
@@ -31,6 +34,10 @@ class ResultRow:
     num_episodes: int | None = None
     # the split's episodes when `num_episodes` is a subsample (max_episodes)
     split_episodes: int | None = None
+    # card metric -> its 95 % interval (eval's `<metric>_ci95`; for SR / OSR of results written before eval
+    # recorded intervals, the Wilson interval of round(rate * episodes / 100) of the episodes)
+    intervals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    successes: int | None = None  # episodes that succeeded (None: unknown)
 
 
 @dataclass(frozen=True)
@@ -111,8 +118,36 @@ def parse_results(data: dict[str, Any], source: str = "<results>", policy: str =
             count = int(count) if count is not None else None
             total = split_sizes.get(split)
             part = total if count is not None and total is not None and count < total else None
-            rows.append(ResultRow(split, profile, metrics, count, part))
+            intervals = _intervals(overall, metrics, count, source, f"{where}.overall")
+            successes = overall.get("successes")
+            if successes is None and count:
+                successes = round(metrics["SR"] * count / 100.0)
+            rows.append(ResultRow(split, profile, metrics, count, part, intervals, successes))
     return EvalResults(rows, dict(data.get("profiles") or {}), meta, source, policy)
+
+
+def _intervals(
+    overall: dict, metrics: dict[str, float], count: int | None, source: str, where: str
+) -> dict[str, tuple[float, float]]:
+    """The 95 % interval of each card metric that has one (`ResultRow.intervals`)."""
+    intervals = {}
+    for name, key in METRIC_KEYS.items():
+        interval_key = INTERVAL_KEYS[key]
+        if interval_key in overall:
+            value = overall[interval_key]
+            finite = all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in (value if isinstance(value, list) else [])
+            )
+            if not (isinstance(value, list) and len(value) == 2 and finite):
+                raise ResultsError(
+                    f"{source}: '{where}.{interval_key}' = {value!r} is not a [low, high] pair"
+                )
+            intervals[name] = (float(value[0]), float(value[1]))
+        elif name in RATE_METRICS and count:
+            low, high = wilson_interval(min(count, max(0, round(metrics[name] * count / 100.0))), count)
+            intervals[name] = (100.0 * low, 100.0 * high)
+    return intervals
 
 
 def _child(node: Any, key: str, source: str, where: str) -> Any:

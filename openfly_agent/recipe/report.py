@@ -21,6 +21,7 @@ from pathlib import Path
 from openfly_agent import constants as C
 from openfly_agent.eval.compare import compare_folders, interval, p_value, signed
 from openfly_agent.eval.outputs import SUMMARY_JSON
+from openfly_agent.eval.stats import format_interval, wilson_interval
 from openfly_agent.recipe.run import DONE_MARKER, step_finished
 from openfly_agent.training.accelerator import LOGS_DIR
 from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
@@ -46,6 +47,7 @@ class RunFigures:
     more_cities: dict[str, tuple[float, int]] = field(default_factory=dict)
     all_unseen_sr: float | None = None  # SR over every test_unseen episode (main split + more cities)
     all_unseen_episodes: int = 0
+    episodes: dict[str, int] = field(default_factory=dict)  # split -> scored episodes (the SR's n)
     # the agent against the reference run's on the same episodes (standard profile), per main test split:
     # {"reference", "sr_diff_pp", "sr_diff_ci_pp", "mcnemar_p", "counts"}; empty for the reference itself
     vs_reference: dict[str, dict] = field(default_factory=dict)
@@ -142,6 +144,7 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
         sr_openfly={s: f["sr_pct"] for s, f in openfly.items()},
         collisions_unseen=unseen["collision_rate_pct"] if unseen else None,
         stopped_unseen=unseen["stop_rate_pct"] if unseen else None,
+        episodes={s: int(f["episodes"]) for s, f in standard.items()},
     )
     successes, episodes = 0.0, 0
     if unseen:
@@ -192,13 +195,24 @@ def _pct(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
 
+def _rate(value: float | None, episodes: int | None) -> str:
+    """A success rate with the Wilson 95 % interval of its count (round(rate * n / 100) of n), `29.2 (20.9-39.1)`."""
+    if value is None or not episodes:
+        return _pct(value)
+    low, high = wilson_interval(round(value * episodes / 100.0), episodes)
+    return format_interval(value, (100.0 * low, 100.0 * high))
+
+
 def _fraction(value: float | None) -> str:
     return "-" if value is None else f"{value:.3f}"
 
 
 def markdown_table(runs: list[RunFigures]) -> str:
     """One row per run: steps, offline figures, SR per split, more cities, all unseen, openfly SR, behaviour, and
-    (runs of `read_runs`) the paired SR difference from the reference run."""
+    (runs of `read_runs`) the paired SR difference from the reference run.
+
+    Every SR carries its Wilson 95 % interval; "SR all unseen" pools the successes of the main and the more cities'
+    test_unseen episodes and says how many of how many succeeded."""
     more_names = sorted({name for run in runs for name in run.more_cities})
     reference = next((row["reference"] for run in runs for row in run.vs_reference.values()), None)
     header = ["run", "nav. steps", "offline acc. / IoU (evaluated agent)", "SR seen / unseen (standard)"]
@@ -209,18 +223,20 @@ def markdown_table(runs: list[RunFigures]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
     for run in runs:
         seen, unseen = C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN
-        more = [_pct(run.more_cities[n][0]) if n in run.more_cities else "-" for n in more_names]
-        all_unseen = (
-            f"{_pct(run.all_unseen_sr)} ({run.all_unseen_episodes})" if run.all_unseen_episodes else "-"
-        )
+        more = [_rate(*run.more_cities[n]) if n in run.more_cities else "-" for n in more_names]
+        all_unseen = "-"
+        if run.all_unseen_episodes:
+            successes = round(run.all_unseen_sr * run.all_unseen_episodes / 100.0)
+            all_unseen = f"{_rate(run.all_unseen_sr, run.all_unseen_episodes)}, {successes} of {run.all_unseen_episodes}"
+        n_seen, n_unseen = run.episodes.get(seen), run.episodes.get(unseen)
         cells = [
             run.name,
             f"{run.navigation_steps:,}",
             f"{_fraction(run.offline_accuracy)} / {_fraction(run.offline_box_iou)}",
-            f"{_pct(run.sr.get(seen))} / {_pct(run.sr.get(unseen))}",
+            f"{_rate(run.sr.get(seen), n_seen)} / {_rate(run.sr.get(unseen), n_unseen)}",
             *more,
             all_unseen,
-            f"{_pct(run.sr_openfly.get(seen))} / {_pct(run.sr_openfly.get(unseen))}",
+            f"{_rate(run.sr_openfly.get(seen), n_seen)} / {_rate(run.sr_openfly.get(unseen), n_unseen)}",
             f"{_pct(run.collisions_unseen)} %",
             f"{_pct(run.stopped_unseen)} %",
         ]

@@ -11,7 +11,7 @@ import numpy as np
 from openfly_agent.utils.errors import RecordError
 
 END_REASONS = ("stop", "max_steps", "collision", "error", "teleport")
-RECORD_VERSION = 1
+RECORD_VERSION = 2  # 2 added `metrics`; rows of version 1 read with it empty
 
 
 @dataclass
@@ -22,6 +22,9 @@ class EpisodeRecord:
     STOP leaves the pose unchanged. `collision_steps` are the steps whose motion hit occupied space.
     `boxes[k]` is the landmark box the policy predicted at step k (None: predicted invisible, or a policy
     without boxes); `keyframes[k]` the frame indices of the keyframe sets in its memory after step k.
+    `metrics` is what the evaluation scored as it wrote the record, per metric profile: {profile: {"success",
+    "ne", "oracle_success", "spl", "outcome"}} (empty: not scored, e.g. an engine error or an older log); for
+    reading the log only, every table is recomputed from the trajectory.
     """
 
     split: str
@@ -39,6 +42,7 @@ class EpisodeRecord:
     boxes: list[list[float] | None] = field(default_factory=list)  # (cx, cy, w, h) per step or None
     keyframes: list[list[list[int]] | None] = field(default_factory=list)
     error: str | None = None
+    metrics: dict[str, dict] = field(default_factory=dict)  # profile -> per-episode scores (eval/report.py)
     version: int = RECORD_VERSION
 
     @property

@@ -200,6 +200,58 @@ def test_killed_run_resumes_to_the_same_tables(tmp_path, monkeypatch):
     assert written["splits"] == policy_results("random", read_all_logs(killed), cfg.profiles)["splits"]
 
 
+def _stop_distances():
+    """Start-goal distances of `_episodes()` sorted by id (test_stop_at_start_scores_what_the_definitions_give)."""
+    t03 = np.sqrt((9 + 9 * np.cos(np.pi / 6)) ** 2 + (9 * np.sin(np.pi / 6)) ** 2 + 36.0)
+    return [9.0, 15.0, 108.0, 36.0, t03, 3.0]
+
+
+def _evaluate_stop(folder, episodes):
+    cfg = EvalConfig(policy="stop", batch_size=2, plots=0, progress=False)
+    prepare_output(folder, cfg.result_identity("stop"), False, ProcessInfo())
+    env = VectorSimulator(sims=[PoseSimulator() for _ in range(2)])
+    evaluate_policy(cfg, ConstantPolicy("stop", C.ACTION_STOP), episodes, env, folder, ProcessInfo())
+    return cfg
+
+
+def test_episode_log_carries_each_profiles_scores(tmp_path):
+    _evaluate_stop(tmp_path, {SPLIT: _episodes()})
+    rows = [json.loads(line) for line in (tmp_path / "episodes.jsonl").read_text().splitlines()]
+    rows.sort(key=lambda row: row["episode_id"])
+    for row, distance in zip(rows, _stop_distances(), strict=True):
+        assert set(row["metrics"]) == {"openfly", "standard"}
+        for profile, scores in row["metrics"].items():
+            success = distance < 20.0
+            assert scores["ne"] == pytest.approx(distance), (row["episode_id"], profile)
+            assert scores["success"] == scores["oracle_success"] == success
+            # STOP as action 0: a failure there is an early STOP, not a miss after flying.
+            assert scores["outcome"] == ("success" if success else "early_stop")
+        assert row["metrics"]["standard"]["spl"] == (1.0 if distance < 20.0 else 0.0)
+
+
+def test_old_log_rows_without_scores_give_the_same_tables(tmp_path):
+    episodes = {SPLIT: _episodes()}
+    cfg = _evaluate_stop(tmp_path / "new", episodes)
+    new = write_policy_outputs(cfg, "stop", read_all_logs(tmp_path / "new"), tmp_path / "new", episodes)
+    # The same log as version 1 wrote it (no `metrics`) for half the episodes, then resumed: nothing to run.
+    lines = (tmp_path / "new" / "episodes.jsonl").read_text().splitlines()
+    old = []
+    for index, line in enumerate(lines):
+        row = json.loads(line)
+        if index % 2:
+            del row["metrics"]
+            row["version"] = 1
+        old.append(json.dumps(row))
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "episodes.jsonl").write_text("\n".join(old) + "\n")
+    _evaluate_stop(tmp_path / "old", episodes)
+    assert len((tmp_path / "old" / "episodes.jsonl").read_text().splitlines()) == len(lines)
+    records = read_all_logs(tmp_path / "old")
+    assert sum(not r.metrics for r in records) == len(lines) // 2
+    resumed = write_policy_outputs(cfg, "stop", records, tmp_path / "old", episodes)
+    assert resumed["splits"] == new["splits"]
+
+
 def test_resume_refuses_other_settings(tmp_path):
     cfg = EvalConfig(policy="random", progress=False)
     prepare_output(tmp_path / "random", cfg.result_identity("random"), False, ProcessInfo())

@@ -197,6 +197,16 @@ def test_aggregate_per_scene_overall_and_scene_mean():
     assert overall["ne_m"] == pytest.approx((18 + 27 + 12) / 3)
     assert overall["spl_pct"] == pytest.approx(100 / 3)
     assert overall["collision_rate_pct"] == pytest.approx(100 / 3)
+    # Counts and 95 % intervals. Wilson, 1 of 3: z^2/n = 1.280486, centre = (0.333333 + 0.640243) / 2.280486
+    # = 0.426916, half = 1.959964 * sqrt(0.074074 + 0.106707) / 2.280486 = 0.365424 -> 6.15 .. 79.23 %;
+    # 2 of 3 (OSR: the collision path came within 12 m) mirrors it.
+    assert (overall["successes"], overall["oracle_successes"]) == (1, 2)
+    assert overall["sr_ci95"] == pytest.approx([6.1492, 79.2340], abs=1e-3)
+    assert overall["osr_ci95"] == pytest.approx([20.7660, 93.8508], abs=1e-3)
+    # Bootstrap of 3 values: a resample repeats one value with probability 1/27 = 3.7 % > 2.5 %, so the
+    # interval runs from the smallest value to the largest: NE 12 .. 27 m, SPL 0 .. 100 %.
+    assert overall["ne_ci95"] == [12.0, 27.0] and overall["spl_ci95"] == [0.0, 100.0]
+    assert "sr_ci95" not in aggregate(rows)["scene_mean"]  # a mean of scenes has no interval
     assert result["per_scene"]["a"]["sr_pct"] == pytest.approx(50.0)
     assert result["per_scene"]["b"]["episodes"] == 1 and result["per_scene"]["b"]["sr_pct"] == 0.0
     assert result["scene_mean"]["sr_pct"] == pytest.approx(25.0)  # unweighted over scenes
@@ -210,8 +220,10 @@ def test_aggregate_per_scene_overall_and_scene_mean():
 @pytest.mark.parametrize(
     ("actions", "collisions", "standard", "openfly"),
     [
-        ([9, 1, 0], (), "success", "success"),  # x = 12, NE 18, STOP
-        ([1, 0], (), "stopped_far", "stopped_far"),  # x = 3, NE 27: never within 20 m
+        ([9, 1, 0], (), "success", "success"),  # x = 12, NE 18, STOP as action 2: a success is never early
+        ([0], (), "early_stop", "early_stop"),  # STOP as action 0 at the start, NE 30
+        ([1, 0], (), "early_stop", "early_stop"),  # x = 3, NE 27, STOP as action 1
+        ([1, 1, 1, 0], (), "stopped_far", "stopped_far"),  # x = 9, NE 21: never within 20 m, STOP as action 3
         ([9] * 6 + [0], (), "stopped_after_passing", "stopped_after_passing"),  # x = 27 (NE 3) ... 54 (NE 24)
         ([9, 9, 1, 0], (2,), "collision_end", "success"),  # openfly ignores the collision
         ([9], (), "step_limit", "step_limit"),  # x = 9, NE 21, no STOP
@@ -224,31 +236,54 @@ def test_episode_outcome_of_hand_built_flights(actions, collisions, standard, op
         row = episode_metrics(traj, profile)
         assert row["outcome"] == expected, profile.name
         assert row["success"] == (expected == "success")
-        assert [row[flag] for flag in ("stopped_far", "stopped_after_passing", "step_limit")] == [
-            expected == flag for flag in ("stopped_far", "stopped_after_passing", "step_limit")
-        ]
+        flags = ("early_stop", "stopped_far", "stopped_after_passing", "step_limit")
+        assert [row[flag] for flag in flags] == [expected == flag for flag in flags]
 
 
 def test_outcome_rates_sum_to_one_hundred_with_sr():
     rows = [
         episode_metrics(_traj(actions, collision_steps=c), STANDARD)
-        for actions, c in (([9, 1, 0], ()), ([1, 0], ()), ([1, 0], ()), ([9, 9, 1, 0], (2,)), ([9], ()))
+        for actions, c in (
+            ([9, 1, 0], ()),
+            ([1, 0], ()),
+            ([1, 1, 1, 0], ()),
+            ([1, 1, 1, 0], ()),
+            ([9, 9, 1, 0], (2,)),
+            ([9], ()),
+        )
     ]
     overall = aggregate(rows)["overall"]
-    assert overall["sr_pct"] == pytest.approx(20.0) and overall["stopped_far_pct"] == pytest.approx(40.0)
-    assert overall["collision_end_pct"] == pytest.approx(20.0) and overall["step_limit_pct"] == pytest.approx(
-        20.0
+    assert overall["sr_pct"] == pytest.approx(100 / 6) and overall["stopped_far_pct"] == pytest.approx(
+        200 / 6
     )
+    assert overall["early_stop_pct"] == pytest.approx(100 / 6)
+    assert overall["collision_end_pct"] == pytest.approx(100 / 6)
+    assert overall["step_limit_pct"] == pytest.approx(100 / 6)
     assert overall["stopped_after_passing_pct"] == 0.0
-    rates = ("sr_pct", "stopped_far_pct", "stopped_after_passing_pct", "collision_end_pct", "step_limit_pct")
+    rates = (
+        "sr_pct",
+        "early_stop_pct",
+        "stopped_far_pct",
+        "stopped_after_passing_pct",
+        "collision_end_pct",
+        "step_limit_pct",
+    )
     assert len(rates) == len(OUTCOMES) and sum(overall[k] for k in rates) == pytest.approx(100.0)
 
 
-@given(success=st.booleans(), stopped=st.booleans(), oracle=st.booleans(), collision_end=st.booleans())
-def test_every_flag_combination_has_exactly_one_outcome(success, stopped, oracle, collision_end):
-    outcome = episode_outcome(success, stopped, oracle, collision_end)
+@given(
+    success=st.booleans(),
+    stopped=st.booleans(),
+    oracle=st.booleans(),
+    collision_end=st.booleans(),
+    stop_step=st.one_of(st.none(), st.integers(0, 10)),
+)
+def test_every_flag_combination_has_exactly_one_outcome(success, stopped, oracle, collision_end, stop_step):
+    outcome = episode_outcome(success, stopped, oracle, collision_end, stop_step)
     assert outcome in OUTCOMES
     assert (outcome == "success") == success
+    early = stopped and not success and not collision_end and stop_step is not None and stop_step < 3
+    assert (outcome == "early_stop") == early
 
 
 def test_bad_trajectories_name_the_episode_and_field():

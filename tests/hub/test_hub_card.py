@@ -83,9 +83,34 @@ def test_model_index_matches_eval_json(results_path):
         seen.add((split, profile))
     assert seen == {(s, p) for s in ("test_seen", "test_unseen") for p in ("openfly", "standard")}
     # the body's table states the profile of every number, and the profiles' recorded settings
-    assert "| test_unseen | `standard` | **agent** | 17 | 41.25 | 23.50 | 51.00 | 22.06 |" in body
+    # Results without intervals (written before eval recorded them): SR and OSR get the Wilson interval of
+    # round(rate * episodes / 100) of the episodes. SR 23.5 % of 17 -> 4 of 17: p = 0.235294, z^2/n = 0.225968,
+    # centre = 0.348278 / 1.225968 = 0.284084, half = 1.959964 * sqrt(0.0105842 + 0.0033231) / 1.225968
+    # = 0.188535 -> 9.6 .. 47.3 %. OSR 51 % -> 9 of 17: centre = 0.642396 / 1.225968 = 0.523991, half
+    # = 1.959964 * sqrt(0.0146550 + 0.0033231) / 1.225968 = 0.214357 -> 31.0 .. 73.8 %. NE and SPL have none.
+    assert (
+        "| test_unseen | `standard` | **agent** | 17 | 4 of 17 | 41.2 | 23.5 (9.6-47.3) | 51.0 (31.0-73.8) | 22.1 |"
+        in body
+    )
     assert "Settings used: stop_required=False." in body
     assert "run settings `sim=embedded`" in body  # eval's run meta that changes the numbers
+
+
+def test_card_shows_the_recorded_intervals_and_counts(tmp_path):
+    data = json.loads(json.dumps(RESULTS))
+    overall = data["splits"]["test_seen"]["openfly"]["overall"]
+    overall.update(
+        successes=2, sr_ci95=[3.5, 36.0], osr_ci95=[20.04, 61.96], spl_ci95=[1.0, 20.0], ne_ci95=[20.0, 41.0]
+    )
+    body = split_front_matter(render_model_card(CardConfig(), "me/tiny", parse_results(data), FACTS))[1]
+    assert (
+        "| test_seen | `openfly` | **agent** | 16 | 2 of 16 | 30.2 (20.0-41.0) | 12.5 (3.5-36.0) | 40.0 (20.0-62.0) | 11.1 (1.0-20.0) |"
+        in body
+    )
+    bad = json.loads(json.dumps(RESULTS))
+    bad["splits"]["test_seen"]["openfly"]["overall"]["sr_ci95"] = [3.5]
+    with pytest.raises(ResultsError, match=r"splits.test_seen.openfly.overall.sr_ci95' = \[3.5\]"):
+        parse_results(bad)
 
 
 def test_huggingface_hub_reads_the_card(results_path):

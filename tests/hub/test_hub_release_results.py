@@ -13,6 +13,7 @@ import pytest
 from eval_helpers import eval_main, generate_tiny_dataset
 
 from openfly_agent import constants as C
+from openfly_agent.eval.stats import format_interval
 from openfly_agent.hub.cli import main as hub_main
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.training.checkpoint import CheckpointManager
@@ -123,8 +124,13 @@ def test_card_puts_the_baselines_beside_the_agent(card, evaluated):
         shown = "**agent**" if name == "agent" else f"`{name}`"
         row = f"| {C.SPLIT_TEST_UNSEEN} | `standard` | {shown} | 2 of "
         [line] = [line for line in body.splitlines() if line.startswith(row)]
-        assert line.endswith(f"| {overall['ne_m']:.2f} | {overall['sr_pct']:.2f} | {overall['osr_pct']:.2f} | "
-                             f"{overall['spl_pct']:.2f} |")  # fmt: skip
+        cells = [
+            format_interval(overall[k], overall[f"{k.split('_')[0]}_ci95"])
+            for k in ("ne_m", "sr_pct", "osr_pct", "spl_pct")
+        ]
+        assert line.endswith(
+            f"| {overall['successes']} of {overall['episodes']} | " + " | ".join(cells) + " |"
+        )
     assert "- `random`: uniformly random actions" in body
     assert "- `agent_true_box`: this model fed the simulator's true target box" in body
 

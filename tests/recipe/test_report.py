@@ -106,8 +106,21 @@ def test_the_table_has_one_row_per_run_and_a_dash_where_a_figure_is_missing(tmp_
     ]
     lines = markdown_table(runs).splitlines()
     assert len(lines) == 4 and lines[0].startswith("| run | nav. steps |") and "SR more" in lines[0]
-    assert lines[2].startswith("| with grounding | 310 | 0.625 / 0.500 | 50.0 / 50.0 | 25.0 | 37.5 (8) |")
-    assert "| 0.625 / - | 50.0 / 25.0 | 25.0 | 25.0 (8) |" in lines[3]  # no box IoU; (1 + 1) of 8
+    # Every SR with its Wilson 95 % interval (z^2 = 3.841459). 2 of 4: centre 0.5, half = 1.959964
+    # * sqrt(0.0625 + 0.060023) / 1.960365 = 0.349962 -> 15.0 .. 85.0. 1 of 4: centre = 0.730182 / 1.960365
+    # = 0.372473, half = 1.959964 * sqrt(0.046875 + 0.060023) / 1.960365 = 0.326886 -> 4.6 .. 69.9.
+    # 3 of 8: centre = 0.615091 / 1.480182 = 0.415551, half = 1.959964 * sqrt(0.029297 + 0.015006)
+    # / 1.480182 = 0.278708 -> 13.7 .. 69.4. 2 of 8: centre = 0.490091 / 1.480182 = 0.331101, half
+    # = 1.959964 * sqrt(0.023438 + 0.015006) / 1.480182 = 0.259623 -> 7.1 .. 59.1.
+    assert lines[2].startswith(
+        "| with grounding | 310 | 0.625 / 0.500 | 50.0 (15.0-85.0) / 50.0 (15.0-85.0) | 25.0 (4.6-69.9) "
+        "| 37.5 (13.7-69.4), 3 of 8 |"
+    )
+    # no box IoU; (1 + 1) of 8
+    assert (
+        "| 0.625 / - | 50.0 (15.0-85.0) / 25.0 (4.6-69.9) | 25.0 (4.6-69.9) | 25.0 (7.1-59.1), 2 of 8 |"
+        in lines[3]
+    )
 
 
 # NaN as the metrics file writes it; a 0.0 logged by a head-less run before the agent logged NaN
