@@ -33,8 +33,9 @@ def parse_config(
 
     Raises:
         CommandLineError: an option that names no field (`UnknownOptionError`, with the closest field: "did you
-            mean"), a registered choice that names no variant, a list without brackets, a config file that is
-            missing or not YAML; one line each.
+            mean"), a registered choice that names no variant, a list without brackets, a `--config_path` that
+            is missing, a config file that is not YAML; one line each.
+        FileNotFoundError: a `config_path` argument that is missing.
         draccus.utils.ParsingError: a value that does not parse or that the config refuses.
     """
     import argparse
@@ -49,9 +50,10 @@ def parse_config(
     args = [_resolved_config_arg(arg, args[i - 1] if i else None) for i, arg in enumerate(args)]
     if config_path is not None:
         config_path = resolve_config_path(config_path)
-    yaml_file = config_path_of(args) or config_path
-    if yaml_file is not None and not Path(yaml_file).is_file():
-        raise CommandLineError(f"--config_path {yaml_file}: no such file")
+    typed = config_path_of(args)  # the YAML the command line names
+    if typed is not None and not Path(typed).is_file():
+        raise CommandLineError(f"--config_path {typed}: no such file")
+    yaml_file = f"--config_path {typed}" if typed is not None else str(config_path)
     try:  # exit_on_error=False: an argparse error is raised here, not printed with draccus' usage dump
         return draccus.parse(
             config_class=config_class, config_path=config_path, args=args, exit_on_error=False
@@ -61,7 +63,7 @@ def parse_config(
     except draccus.utils.ParsingError as err:
         if isinstance(err.__cause__, yaml.YAMLError):
             problem = " ".join(str(err.__cause__).split())
-            raise CommandLineError(f"--config_path {yaml_file}: not valid YAML ({problem})") from err
+            raise CommandLineError(f"{yaml_file}: not valid YAML ({problem})") from err
         choice = _choice_in_file(config_class, err)
         if choice:
             raise CommandLineError(choice) from err
