@@ -15,7 +15,7 @@ from openfly_agent.data.schema import SchemaError
 from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.run import run as evaluate
 from openfly_agent.utils.cli_help import command_help, wants_help
-from openfly_agent.utils.cli_options import UnknownOptionError
+from openfly_agent.utils.cli_options import CommandLineError
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import RecordError, root_cause
@@ -72,7 +72,7 @@ def run(argv: list[str]) -> int:
         FileNotFoundError,
         SchemaError,
         RecordError,
-        UnknownOptionError,
+        CommandLineError,
     ) as err:
         print(f"eval.py: {root_cause(err) if isinstance(err, ParsingError) else err}", file=sys.stderr)
         return EXIT_BAD_INPUT

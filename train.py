@@ -30,10 +30,10 @@ from openfly_agent.training.cli import (  # noqa: F401  (parse_args, with_defaul
     with_default_config,
 )
 from openfly_agent.utils.cli_help import wants_help
-from openfly_agent.utils.cli_options import UnknownOptionError
+from openfly_agent.utils.cli_options import CommandLineError
 from openfly_agent.utils.distributed import close_process_group
 from openfly_agent.utils.errors import root_cause
-from openfly_agent.utils.files import remove_empty_dirs
+from openfly_agent.utils.files import first_missing_dir, remove_created_dirs, remove_empty_dirs
 from openfly_agent.utils.logging_utils import setup_logging
 
 EXIT_BAD_INPUT = 2
@@ -88,10 +88,12 @@ def run(argv: list[str], state: dict) -> int:
     try:
         cfg = parse_args(argv)
         state["output_dir"] = cfg.output_dir
+        state["created"] = first_missing_dir(cfg.output_dir)  # e.g. outputs/: a failed start removes it again
         result = train(cfg)
-    except (ParsingError, PreflightError, UnknownOptionError) as err:
+    except (ParsingError, PreflightError, CommandLineError) as err:
         if "output_dir" in state:  # a failed start leaves no empty run folder (every process: no race)
             remove_empty_dirs(state["output_dir"], RUN_SUBFOLDERS)
+            remove_created_dirs(state["output_dir"], state["created"])
         say_error(root_cause(err))
         return EXIT_BAD_INPUT
     except Exception as err:  # data that fails to read, before or during training (also in a loader worker)

@@ -51,6 +51,7 @@ SPLIT_TEST_UNSEEN = "test_unseen"
 SPLITS = (SPLIT_TRAIN, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)
 # The released OpenFly annotation files per split.
 ANNOTATION_FILES = {SPLIT_TRAIN: "train.json", SPLIT_TEST_SEEN: "seen.json", SPLIT_TEST_UNSEEN: "unseen.json"}
+RELEASED_DATA_CARD = "data_cards/openfly_released.md"  # how to download the released OpenFly data
 
 # --- Training batch keys (the contract between data/ collator and model/ agent) -------------------
 # Pixel tensors are uint8 RGB at the model's input size; the model normalises them itself.

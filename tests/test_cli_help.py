@@ -125,7 +125,7 @@ def test_toolchain_help_exits_0_on_stdout():
         assert f"  {command} " in done.stdout
     assert ends_with_example(done.stdout, "openfly_agent.toolchain")
     bare = run_group([sys.executable, "-m", "openfly_agent.toolchain"], timeout=120, cwd=REPO)
-    assert bare.returncode == 2 and "usage" in bare.stderr
+    assert bare.returncode == 2 and bare.stderr.count("\n") == 1 and "no command given" in bare.stderr
 
 
 def test_toolchain_subcommand_helps(capsys):
@@ -200,4 +200,6 @@ def test_the_usage_of_a_command_line_with_sub_commands():
         "  prog a --x=1\n"
         "  prog bb\n"
     )
-    assert commands_usage("p", "s", {"c": "t"}, [], options="[options]").startswith("usage: p {c} [options]   (")
+    assert commands_usage("p", "s", {"c": "t"}, [], options="[options]").startswith(
+        "usage: p {c} [options]   ("
+    )

@@ -325,6 +325,7 @@ TESTS = Path(__file__).resolve().parent
 REPOSITORY_WIDE_TESTS = {
     "test_config_defaults.py",
     "test_cli_help.py",
+    "test_entry_point_errors.py",
     "test_docs.py",
     "test_eval_e2e.py",
     "test_layering.py",

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from openfly_agent import constants as C
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.generation_settings import generation_settings
 from openfly_agent.data.openfly_reader import load_openfly_dataset
@@ -71,15 +72,18 @@ def load_full_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
     Raises:
         FileNotFoundError: the dataset root or a split's annotation is missing, with the path and a hint.
     """
+    routes = (  # the two ways to a dataset, as train.py names them
+        f"generate it (python -m openfly_agent.toolchain generate --output_dir={cfg.dataset_root}), or download "
+        f"the released OpenFly data as {C.RELEASED_DATA_CARD} says and pass its folder as --dataset_root"
+    )
+    if not Path(cfg.dataset_root).is_dir():
+        raise FileNotFoundError(f"dataset root {cfg.dataset_root} does not exist: {routes}")
     out = {}
     for split in cfg.split:
         try:
             episodes = load_openfly_dataset(cfg.dataset_root, split, cfg.reader)
         except FileNotFoundError as err:
-            raise FileNotFoundError(
-                f"{err}. Generate a dataset first (python -m openfly_agent.toolchain generate "
-                "--config_path configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
-            ) from err
+            raise FileNotFoundError(f"{err}: {routes}") from err
         episodes = sorted(episodes, key=lambda e: e.episode_id)
         if not episodes:
             raise EvalInputError(f"{cfg.dataset_root}: split {split!r} has no episodes")

@@ -17,7 +17,7 @@ from openfly_agent.recipe.config import RecipeConfig
 from openfly_agent.recipe.progress import recipe_report
 from openfly_agent.recipe.run import run_recipe
 from openfly_agent.utils.cli_help import command_help, wants_help
-from openfly_agent.utils.cli_options import UnknownOptionError
+from openfly_agent.utils.cli_options import CommandLineError
 from openfly_agent.utils.config import parse_config
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         cfg = parse_config(RecipeConfig, args)
-    except (UnknownOptionError, ValueError, draccus.utils.ParsingError) as err:
+    except (CommandLineError, ValueError, draccus.utils.ParsingError) as err:
         sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
         return 2
     setup_logging()

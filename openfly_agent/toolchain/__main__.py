@@ -16,7 +16,7 @@ from pathlib import Path
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.rollout.agent import AgentPolicy
 from openfly_agent.rollout.checkpoints import CheckpointError, load_agent
-from openfly_agent.toolchain.config import DaggerRoundConfig, GenerateConfig, GroundingDataConfig
+from openfly_agent.toolchain.config import DaggerRoundConfig, GenerateConfig, GroundingDataConfig, parse_shard
 from openfly_agent.toolchain.dagger_rounds import run_dagger_round
 from openfly_agent.toolchain.generate import generate
 from openfly_agent.toolchain.grounding import generate_grounding
@@ -24,9 +24,9 @@ from openfly_agent.toolchain.landmarks import write_landmark_list
 from openfly_agent.toolchain.pipeline import KIND_DAGGER_POLICY, prepare_scene
 from openfly_agent.toolchain.scenes import generate_config_for_real_scene, real_scene
 from openfly_agent.toolchain.settings import GenerateSettingsError
-from openfly_agent.toolchain.summary import write_summary
-from openfly_agent.utils.cli_help import command_help, commands_usage, wants_help
-from openfly_agent.utils.cli_options import UnknownOptionError
+from openfly_agent.toolchain.summary import empty_splits_message, write_summary
+from openfly_agent.utils.cli_help import choose_command, command_help, commands_usage, wants_help
+from openfly_agent.utils.cli_options import CommandLineError
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import root_cause
 from openfly_agent.utils.logging_utils import setup_logging
@@ -43,7 +43,7 @@ COMMANDS = {
 }
 EXAMPLES = {
     "generate": (
-        f"{PROG} generate --config_path configs/toolchain/embedded-small.yaml        # ~4 min on 2 cores",
+        f"{PROG} generate --config_path configs/toolchain/embedded-small.yaml        # < 1 min on 2 cores",
         f"{PROG} generate --config_path configs/toolchain/embedded-100k.yaml --shard 3/16",
         f"{PROG} generate --config_path configs/toolchain/embedded-small.yaml --render.width=96 "
         "--render.height=96 --output_dir=outputs/datasets/small-96",
@@ -115,6 +115,10 @@ def cmd_generate(args: list[str]) -> None:
     except GenerateSettingsError as err:
         raise InputError(str(err)) from None
     print(json.dumps({k: summary[k] for k in ("trajectories", "per_split", "rejected", "vocabulary_size")}))
+    empty = empty_splits_message(summary)
+    if empty:  # eval and training stop on an empty split: said here, not when they do
+        shard = f" (shard {cfg.shard})" if parse_shard(cfg.shard)[1] > 1 else ""
+        print(f"{PROG} generate: warning{shard}: {empty}", file=sys.stderr)
 
 
 @dataclass
@@ -173,9 +177,9 @@ DAGGER_OPTIONS = [
 
 
 def cmd_dagger(args: list[str]) -> None:
-    parser = argparse.ArgumentParser(prog=f"{PROG} dagger", add_help=False)
+    parser = argparse.ArgumentParser(prog=f"{PROG} dagger", add_help=False, exit_on_error=False)
     parser.add_argument("--checkpoint")
-    ns, rest = parser.parse_known_args(args)
+    ns, rest = _own_options(parser, args)
     if wants_help(args):
         print(_generate_help("dagger", rest, DAGGER_OPTIONS), end="")
         return
@@ -189,6 +193,15 @@ def cmd_dagger(args: list[str]) -> None:
     except GenerateSettingsError as err:
         raise InputError(str(err)) from None
     print(json.dumps({k: summary[k] for k in ("trajectories", "dagger_episodes", "rejected")}))
+
+
+def _own_options(parser: argparse.ArgumentParser, args: list[str]) -> tuple[argparse.Namespace, list[str]]:
+    """The options a command reads itself (`--checkpoint`), and the rest (its config's); a bad value is an
+    InputError, not argparse's usage dump."""
+    try:
+        return parser.parse_known_args(args)
+    except argparse.ArgumentError as err:
+        raise InputError(str(err)) from None
 
 
 def cmd_segment(args: list[str]) -> None:
@@ -212,7 +225,7 @@ def _parse_command_config(config_class, args: list[str], command: str):
 
     try:
         return parse_config(config_class, args)
-    except UnknownOptionError as err:
+    except CommandLineError as err:
         raise InputError(str(err)) from None
     except draccus.utils.ParsingError as err:
         raise InputError(f"bad {command} config: {root_cause(err)}") from None
@@ -236,10 +249,10 @@ def cmd_grounding(args: list[str]) -> None:
 
 
 def cmd_dagger_round(args: list[str]) -> None:
-    parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False)
+    parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False, exit_on_error=False)
     parser.add_argument("--checkpoint")
     parser.add_argument("--torch_threads", type=int, default=0)
-    ns, rest = parser.parse_known_args(args)
+    ns, rest = _own_options(parser, args)
     if wants_help(args):
         text = command_help(
             DaggerRoundConfig, rest, f"{PROG} dagger-round --checkpoint DIR", COMMANDS["dagger-round"],
@@ -270,21 +283,17 @@ HANDLERS = {
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("-h", "--help"):
-        print(_usage(), end="")
-        return 0
-    if not argv or argv[0] not in COMMANDS:
-        what = f"unknown command {argv[0]!r}" if argv else "no command given"
-        print(f"{PROG}: {what}\n{_usage()}", end="", file=sys.stderr)
-        return EXIT_BAD_INPUT
+    chosen = choose_command(list(sys.argv[1:] if argv is None else argv), list(COMMANDS), PROG, _usage())
+    if isinstance(chosen, int):
+        return chosen
+    command, args = chosen
     try:
-        HANDLERS[argv[0]](argv[1:])
+        HANDLERS[command](args)
     except InputError as err:
-        print(f"{PROG} {argv[0]}: {err}", file=sys.stderr)
+        print(f"{PROG} {command}: {err}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        print(f"{PROG} {argv[0]}: interrupted; run the same command again to resume", file=sys.stderr)
+        print(f"{PROG} {command}: interrupted; run the same command again to resume", file=sys.stderr)
         return EXIT_INTERRUPTED
     return 0
 

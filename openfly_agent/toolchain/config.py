@@ -143,6 +143,7 @@ class RenderConfig:
 
     def __post_init__(self) -> None:
         _check(self.width >= 16 and self.height >= 16, "render.width / height must be >= 16 pixels")
+        _check(self.min_box_pixels >= 0, f"render.min_box_pixels must be >= 0, got {self.min_box_pixels}")
 
 
 @dataclass
@@ -235,13 +236,23 @@ class SceneConfig:
     point_spacing_m: float = 2.0  # point cloud sampling of the embedded city
 
     def __post_init__(self) -> None:
+        for name in ("train_seeds", "unseen_seeds"):
+            for seed in getattr(self, name):
+                _check(seed >= 0, f"scenes.{name}: a city seed is an integer >= 0, got {seed}")
         overlap = set(self.train_seeds) & set(self.unseen_seeds)
         _check(
             not overlap, f"scenes: unseen_seeds must not be used in train_seeds (both hold {sorted(overlap)})"
         )
         _check(len(set(self.train_seeds)) == len(self.train_seeds), "scenes.train_seeds has duplicates")
         _check(0.0 <= self.test_seen_fraction < 1.0, "scenes.test_seen_fraction must be in [0, 1)")
+        _check(len(set(self.unseen_seeds)) == len(self.unseen_seeds), "scenes.unseen_seeds has duplicates")
         _check(self.trajectories_per_scene >= 1, "scenes.trajectories_per_scene must be >= 1")
+        _check(self.city_size_m > 0, f"scenes.city_size_m must be > 0, got {self.city_size_m}")
+        _check(
+            self.city_buildings is None or self.city_buildings >= 1,
+            f"scenes.city_buildings must be >= 1 (or null: the generator's default), got {self.city_buildings}",
+        )
+        _check(self.point_spacing_m > 0, f"scenes.point_spacing_m must be > 0, got {self.point_spacing_m}")
 
 
 @dataclass
@@ -271,6 +282,7 @@ class GenerateConfig:
     overwrite: bool = False
 
     def __post_init__(self) -> None:
+        _check(self.seed >= 0, f"seed must be >= 0 (the base of every per-unit seed), got {self.seed}")
         _check(self.workers >= 0, "workers must be >= 0")
         parse_shard(self.shard)
         _check(self.instruction_batch >= 1, "instruction_batch must be >= 1")

@@ -29,7 +29,7 @@ from openfly_agent.toolchain.config import GenerateConfig, parse_shard
 from openfly_agent.toolchain.instructions import make_instruction_backend
 from openfly_agent.toolchain.ledger import STATUS_OK, STATUS_REJECTED, UnitLedger
 from openfly_agent.toolchain.pipeline import KIND_ASTAR, KIND_DAGGER, KIND_DAGGER_POLICY, UnitResult, WorkUnit
-from openfly_agent.toolchain.settings import prepare_output
+from openfly_agent.toolchain.settings import prepare_output, record_kept_on_success
 from openfly_agent.toolchain.summary import write_summary
 from openfly_agent.toolchain.worker import SceneWorker, default_simulator
 
@@ -237,6 +237,11 @@ def generate(
         policy: a `dagger.Policy` for `dagger_policy` units; runs in this process (one model copy).
         kinds: which unit kinds to generate (A* routes, noisy-expert and / or policy DAgger episodes).
     """
+    with record_kept_on_success(Path(cfg.output_dir)):
+        return _generate(cfg, sim_factory, progress, policy, kinds)
+
+
+def _generate(cfg: GenerateConfig, sim_factory, progress: bool, policy, kinds: tuple[str, ...]) -> dict:
     root = Path(cfg.output_dir)
     root.mkdir(parents=True, exist_ok=True)
     # The policy DAgger command adds episodes to a dataset with DAgger settings of its own.

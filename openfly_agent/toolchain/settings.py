@@ -9,14 +9,17 @@ shard, plots, the VLM client's transport) may change between runs.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.utils.config import changed_settings, config_to_dict, describe_changes, save_config
+from openfly_agent.utils.files import first_missing_dir, remove_created_dirs, remove_empty_tree
 
 logger = logging.getLogger(__name__)
 
@@ -76,3 +79,27 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
     if record or not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
         save_config(cfg, path)
+
+
+@contextlib.contextmanager
+def record_kept_on_success(root: Path) -> Iterator[None]:
+    """Around a first `generate` into `root` (no settings record there yet): when it fails before it has written
+    anything but the record, the record goes again, with the empty folders the run made, so the corrected command
+    is not refused as "a dataset generated with other settings". A run that wrote episodes keeps its record (the
+    same command resumes it); files that were there before are never touched."""
+    record = root / C.TOOLCHAIN_CONFIG_JSON
+    first_run, created = not record.exists(), first_missing_dir(root)
+    before = _files_under(root) if first_run else set()
+    try:
+        yield
+    except BaseException:
+        if first_run and _files_under(root) - before == {record}:
+            record.unlink()
+            for name in DATASET_PARTS:
+                remove_empty_tree(root / name)
+            remove_created_dirs(root, created)
+        raise
+
+
+def _files_under(root: Path) -> set[Path]:
+    return {path for path in root.rglob("*") if not path.is_dir()} if root.is_dir() else set()

@@ -68,6 +68,21 @@ def summarize_records(records: list[dict], height_bin_m: float = 10.0) -> dict:
     }
 
 
+def empty_splits_message(summary: dict) -> str | None:
+    """One line naming the splits of a summary that hold no trajectory (eval stops on them), with the settings
+    that fill each; None when every split has some."""
+    hints = {  # what puts trajectories in each split
+        C.SPLIT_TRAIN: "--scenes.train_seeds",
+        C.SPLIT_TEST_SEEN: "--scenes.test_seen_fraction or --scenes.trajectories_per_scene",
+        C.SPLIT_TEST_UNSEEN: "--scenes.unseen_seeds",
+    }
+    empty = [split for split in C.SPLITS if not summary["per_split"].get(split)]
+    if not empty:
+        return None
+    fixes = ", ".join(f"{split} with {hints[split]}" for split in empty)
+    return f"split(s) {', '.join(empty)} came out empty (0 trajectories), and eval stops on an empty split: fill {fixes}"
+
+
 def plot_summary(summary: dict, records: list[dict], path: Path) -> None:
     """Six panels: actions, path length, instruction length, flight height, categories, splits."""
     import matplotlib

@@ -12,6 +12,7 @@ import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
+from openfly_agent import constants as C
 from openfly_agent.data.config import DataConfig
 from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
 from openfly_agent.data.schema import SchemaError
@@ -24,8 +25,6 @@ from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import BatchConfig, BatchSizeError
 
 logger = logging.getLogger(__name__)
-
-RELEASED_DATA_CARD = "data_cards/openfly_released.md"  # how to download the released OpenFly data
 
 
 class PreflightError(RuntimeError):
@@ -77,7 +76,7 @@ def check_dataset_root(data: DataConfig) -> None:
     if not root.is_dir():
         raise PreflightError(
             f"dataset root {root} does not exist: generate it (python -m openfly_agent.toolchain generate "
-            f"--output_dir={root}), or download the released OpenFly data as {RELEASED_DATA_CARD} says and "
+            f"--output_dir={root}), or download the released OpenFly data as {C.RELEASED_DATA_CARD} says and "
             "pass its folder as --data.root"
         )
     for split in dict.fromkeys((data.train_split, data.val_split, data.test_split)):

@@ -4,8 +4,9 @@ entry point: draccus' dotted options).
     check_options(TrainConfig, ["--optim.lrr=1"])   # UnknownOptionError: ... did you mean --optim.lr?
 
 Each option takes one value (`--a.b=c` or `--a.b c`), a list is written in brackets (`--split=[a,b]`), a section
-takes only a YAML file, and a yes/no option alone means true (`bare_flags_as_true`). A command line that breaks
-these rules is one `UnknownOptionError` line naming the option, never draccus' usage dump.
+takes only a YAML file, a registered choice (`--sim.type`) one of its variants, and a yes/no option alone means
+true (`bare_flags_as_true`). A command line that breaks these rules is one `CommandLineError` line naming the
+option, never draccus' usage dump.
 """
 
 from __future__ import annotations
@@ -19,7 +20,12 @@ from typing import Any
 CONFIG_FLAG = "config_path"
 
 
-class UnknownOptionError(ValueError):
+class CommandLineError(ValueError):
+    """A command line that cannot run as written (an option, a value or a file it names); the message is the one
+    line an entry point prints before it exits with code 2."""
+
+
+class UnknownOptionError(CommandLineError):
     """A command-line option that names no config field; the message suggests the closest one."""
 
 
@@ -78,6 +84,20 @@ def _option_hint(cls: type, name: str) -> Any:
     return type_hints(owner).get(last) if owner is not None else None
 
 
+def _is_list(hint: Any) -> bool:
+    """Whether a field typed `hint` holds a list (`list[str]`, `list[int] | None`)."""
+    return any(typing.get_origin(h) in (list, tuple) for h in (hint, *typing.get_args(hint)))
+
+
+def section_of(cls: type, name: str) -> type | None:
+    """The section class a dotted option names (`sim` -> SimSettings, the registry of eval's simulators), else
+    None."""
+    section: Any = cls
+    for part in name.split("."):
+        section = nested_class(type_hints(section).get(part)) if section is not None else None
+    return section
+
+
 def _is_flag(cls: type, name: str) -> bool:
     hint = _option_hint(cls, name)
     return hint is bool or (typing.get_args(hint) and set(typing.get_args(hint)) <= {bool, type(None)})
@@ -102,9 +122,25 @@ def option_names(args: Sequence[str]) -> list[str]:
     return [arg[2:].split("=", 1)[0] for arg in args if arg.startswith("--") and len(arg) > 2]
 
 
+def option_values(args: Sequence[str]) -> list[tuple[str, str | None]]:
+    """(name, value) of each option of a command line (`--a.b=1` and `--a.b 1` -> ("a.b", "1")); the value is
+    None for an option written alone."""
+    out = []
+    for index, arg in enumerate(args):
+        if not arg.startswith("--") or len(arg) <= 2:
+            continue
+        name, has_value, value = arg[2:].partition("=")
+        if not has_value:
+            following = args[index + 1] if index + 1 < len(args) else None
+            value = following if following is not None and not following.startswith("--") else None
+        out.append((name, value))
+    return out
+
+
 def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG_FLAG,)) -> None:
     """Raise `UnknownOptionError` for the first option that names no field (with the closest one), or for a
-    second value after an option (each option takes one value: a list is written `--split=[a,b]`).
+    second value after an option (each option takes one value: a list is written `--split=[a,b]`);
+    `CommandLineError` for a registered choice that names no variant or a list written without brackets.
 
     Args:
         cls: the config dataclass the command line is parsed into.
@@ -142,13 +178,40 @@ def check_options(cls: type, args: Sequence[str], extra: Iterable[str] = (CONFIG
         name = arg[2:]
         if arg.startswith("--") and _without_value(args, index) and not _is_flag(cls, name) and name in known:
             raise UnknownOptionError(f"--{name} needs a value: --{name}=VALUE (--help lists every option)")
+    for name, value in option_values(args):
+        if value is not None:
+            _check_value(cls, name, value)
+
+
+NULL_VALUES = ("null", "None", "~")  # YAML's none, which an optional list takes as is
+
+
+def unknown_choice(cls: type, section_name: str, value: str) -> str | None:
+    """The one-line message for a registered-choice section of `cls` (`sim`) set to `value`, a variant it does not
+    have; None when `value` is one of its variants or the section is no registered choice."""
+    section = section_of(cls, section_name)
+    variants = choices_of(section) if section is not None else {}
+    if not variants or value in variants:
+        return None
+    return (
+        f"--{section_name}.type: unknown choice {value!r}; choose one of {', '.join(variants)} "
+        "(--help lists every option)"
+    )
+
+
+def _check_value(cls: type, name: str, value: str) -> None:
+    """A registered choice names one of its variants; a list is written in brackets (`--split=[a]`)."""
+    section_name, _, last = name.rpartition(".")
+    problem = unknown_choice(cls, section_name, value) if last == "type" and section_name else None
+    if problem:
+        raise CommandLineError(problem)
+    if _is_list(_option_hint(cls, name)) and not value.startswith("[") and value not in NULL_VALUES:
+        raise CommandLineError(f"--{name} takes a list, written in brackets: --{name}=[{value}]")
 
 
 def _check_section_value(cls: type, name: str, option: str, args: Sequence[str]) -> None:
     """A section (`--sim`) takes a YAML file only: `--sim embedded` names the field to set instead."""
-    section: Any = cls
-    for part in name.split("."):
-        section = nested_class(type_hints(section).get(part)) if section is not None else None
+    section = section_of(cls, name)
     if section is None:
         return
     value = option.split("=", 1)[1] if "=" in option else None

@@ -9,10 +9,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 from typing import Any, TypeVar
 
-from openfly_agent.utils.cli_options import bare_flags_as_true, check_options
+from openfly_agent.utils.cli_options import (
+    CommandLineError,
+    bare_flags_as_true,
+    check_options,
+    config_path_of,
+    unknown_choice,
+)
 from openfly_agent.utils.errors import root_cause
 
 T = TypeVar("T")
@@ -25,12 +32,17 @@ def parse_config(
     given alone (`--push`) means `--push=true`.
 
     Raises:
-        UnknownOptionError: an option that names no field, with the closest field ("did you mean").
+        CommandLineError: an option that names no field (`UnknownOptionError`, with the closest field: "did you
+            mean"), a registered choice that names no variant, a list without brackets, a `--config_path` that
+            is missing, a config file that is not YAML; one line each.
+        FileNotFoundError: a `config_path` argument that is missing.
         draccus.utils.ParsingError: a value that does not parse or that the config refuses.
     """
+    import argparse
     import sys
 
     import draccus
+    import yaml
 
     args = list(sys.argv[1:] if args is None else args)
     check_options(config_class, args)
@@ -38,7 +50,38 @@ def parse_config(
     args = [_resolved_config_arg(arg, args[i - 1] if i else None) for i, arg in enumerate(args)]
     if config_path is not None:
         config_path = resolve_config_path(config_path)
-    return draccus.parse(config_class=config_class, config_path=config_path, args=args)
+    typed = config_path_of(args)  # the YAML the command line names
+    if typed is not None and not Path(typed).is_file():
+        raise CommandLineError(f"--config_path {typed}: no such file")
+    yaml_file = f"--config_path {typed}" if typed is not None else str(config_path)
+    try:  # exit_on_error=False: an argparse error is raised here, not printed with draccus' usage dump
+        return draccus.parse(
+            config_class=config_class, config_path=config_path, args=args, exit_on_error=False
+        )
+    except argparse.ArgumentError as err:
+        raise CommandLineError(str(err)) from err
+    except draccus.utils.ParsingError as err:
+        if isinstance(err.__cause__, yaml.YAMLError):
+            problem = " ".join(str(err.__cause__).split())
+            raise CommandLineError(f"{yaml_file}: not valid YAML ({problem})") from err
+        choice = _choice_in_file(config_class, err)
+        if choice:
+            raise CommandLineError(choice) from err
+        raise
+
+
+CHOICE_MISSING = re.compile(r"Couldn't find a choice class for '(.*)' in")  # draccus' decoding message
+
+
+def _choice_in_file(config_class: type, err: BaseException) -> str | None:
+    """The one line of a registered choice that a YAML file sets to no variant (`sim: {type: habitat}`), naming
+    the variants; None for any other error."""
+    while err is not None:
+        found = CHOICE_MISSING.search(str(getattr(err, "message", "")))
+        if found and getattr(err, "key_path", None):
+            return unknown_choice(config_class, ".".join(err.key_path), found.group(1))
+        err = err.__cause__
+    return None
 
 
 REPO_ROOT = Path(__file__).resolve().parents[2]  # a source checkout: configs/ sits next to the package

@@ -16,11 +16,46 @@ def remove_empty_dirs(root: str | Path, children: tuple[str, ...]) -> None:
     """
     root = Path(root)
     for child in children:
-        if not (root / child).is_dir():
-            continue
-        walk = sorted(os.walk(root / child), key=lambda entry: -len(Path(entry[0]).parts))  # deepest first
-        for folder, _, _ in walk:
-            with contextlib.suppress(OSError):  # only an empty folder goes
-                Path(folder).rmdir()
+        remove_empty_tree(root / child)
     with contextlib.suppress(OSError):
         root.rmdir()
+
+
+def remove_empty_tree(folder: str | Path) -> None:
+    """Delete the folders under `folder` (and `folder` itself) that hold no file, deepest first."""
+    if not Path(folder).is_dir():
+        return
+    walk = sorted(os.walk(folder), key=lambda entry: -len(Path(entry[0]).parts))  # deepest first
+    for path, _, _ in walk:
+        with contextlib.suppress(OSError):  # only an empty folder goes
+            Path(path).rmdir()
+
+
+def first_missing_dir(path: str | Path) -> Path | None:
+    """The topmost folder of `path` (`path` or one of its parents) that does not exist yet, the first one that
+    creating `path` creates; None when `path` exists.
+
+        first_missing_dir("outputs/train/tiny")   # Path("outputs") in a fresh working directory
+    """
+    path = Path(path)
+    return next((folder for folder in reversed((path, *path.parents)) if not folder.exists()), None)
+
+
+def remove_created_dirs(path: str | Path, created: str | Path | None) -> None:
+    """Delete `path` and its parents up to `created` (the folder `first_missing_dir` gave before they were made)
+    while they are empty: a command that fails leaves none of the empty folders it created. A folder that holds
+    anything stays, and so do its parents."""
+    if created is None:
+        return
+    path, created = Path(path), Path(created)
+    if created != path and created not in path.parents:
+        return
+    for folder in (path, *path.parents):
+        try:
+            folder.rmdir()
+        except FileNotFoundError:
+            pass
+        except OSError:  # it holds something
+            return
+        if folder == created:
+            return

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from openfly_agent.eval.config import AgentSettings, AirSimSimSettings, EvalConfig
-from openfly_agent.utils.cli_options import UnknownOptionError
+from openfly_agent.utils.cli_options import CommandLineError, UnknownOptionError
 from openfly_agent.utils.config import parse_config
 
 
@@ -64,6 +64,24 @@ def test_a_second_value_or_a_value_of_a_section_is_one_line_naming_the_option(ar
     with pytest.raises(UnknownOptionError) as err:
         parse_config(EvalConfig, ["--policy=oracle", *argv] if argv[0].startswith("--") else argv)
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        (
+            "sim:\n  type: habitat\n",
+            "--sim.type: unknown choice 'habitat'; choose one of embedded, unrealcv, airsim, gs_http",
+        ),
+        ("sim: [\n", "--config_path {path}: not valid YAML (while parsing a flow node"),
+    ],
+)
+def test_a_config_file_with_no_such_choice_or_broken_yaml_is_one_line(yaml_text, message, tmp_path):
+    path = tmp_path / "eval.yaml"
+    path.write_text(yaml_text)
+    with pytest.raises(CommandLineError) as err:
+        parse_config(EvalConfig, ["--policy=oracle", "--config_path", str(path)])
+    assert message.format(path=path) in str(err.value) and "\n" not in str(err.value)
 
 
 @pytest.mark.parametrize(

@@ -277,3 +277,23 @@ def test_max_episodes_subsample_is_evenly_spaced():
     episodes = [make_episode(f"s/a/b/t{i}", [1, 0]) for i in range(10)]
     assert [e.episode_id for e in subsample(episodes, 3)] == ["s/a/b/t0", "s/a/b/t4", "s/a/b/t9"]
     assert subsample(episodes, None) == episodes and subsample(episodes, 50) == episodes
+
+
+@pytest.mark.parametrize("root_exists", [False, True])
+def test_a_missing_dataset_names_both_routes_to_one(root_exists, tmp_path):
+    """Like train.py's missing root: generate it, or download the released data and pass its folder."""
+    from openfly_agent.eval.factory import load_full_splits
+
+    root = tmp_path / "data"
+    if root_exists:
+        root.mkdir()  # a folder without annotations: the reader's line names the file it looked for
+    cfg = EvalConfig(policy="oracle", dataset_root=str(root), split=[C.SPLIT_TEST_SEEN])
+    with pytest.raises(FileNotFoundError) as err:
+        load_full_splits(cfg)
+    message = str(err.value)
+    first = "seen.json does not exist" if root_exists else f"dataset root {root} does not exist: "
+    assert first in message and "\n" not in message
+    assert message.endswith(
+        f"generate it (python -m openfly_agent.toolchain generate --output_dir={root}), or download the released "
+        "OpenFly data as data_cards/openfly_released.md says and pass its folder as --dataset_root"
+    )

@@ -235,6 +235,24 @@ def test_a_lora_only_checkpoint_says_what_loads_it(make_agent, tmp_path):
         OpenFlyAgent.from_pretrained(tmp_path)
 
 
+def test_a_lora_run_folder_names_its_merged_model(make_agent, tmp_path):
+    """eval and the release load `<run>/merged`; from_pretrained(<run>) says to load exactly that folder."""
+    from openfly_agent.training.export import write_lora_folder
+
+    agent = make_agent()
+    attach_lora(agent, LoraSettings(rank=2, alpha=4))
+    run = tmp_path / "run"
+    write_lora_folder(agent, agent.state_dict(), run / "checkpoints" / "step-000002")
+    (run / "checkpoints" / "last").write_text("step-000002\n")
+    make_agent().save_pretrained(run / "merged")
+    for path in (run, run / "checkpoints" / "last"):
+        with pytest.raises(ValueError) as raised:
+            OpenFlyAgent.from_pretrained(path)
+        message = str(raised.value)
+        assert f"{path} is a LoRA training run" in message and f"load {run / 'merged'}" in message, message
+        assert "\n" not in message
+
+
 def test_decoding_overrides_go_through_the_config(make_agent, tmp_path):
     """eval's decode_rule / unnorm_key reach the config, `config.action_tokenizer`, the action tokenizer and the
     processor together (none can go stale)."""

@@ -76,10 +76,11 @@ def test_bad_config_values_name_the_field(capsys):
     assert "route.chain_prob must be a probability" in capsys.readouterr().err
 
 
-def test_unknown_command_prints_usage(capsys):
+def test_unknown_command_is_one_line_naming_the_commands(capsys):
     assert main(["train"]) == 2
     err = capsys.readouterr().err
-    assert "unknown command 'train'" in err and "usage" in err
+    assert "unknown command 'train'" in err and "choose one of generate, summarize" in err
+    assert err.count("\n") == 1
 
 
 @pytest.mark.parametrize("command", ["dagger-round", "dagger"])

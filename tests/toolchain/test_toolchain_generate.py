@@ -337,3 +337,60 @@ def test_a_rerun_with_other_settings_is_refused_unless_overwrite(dataset, tmp_pa
     assert episodes and len(episodes) < summary["trajectories"]
     assert all(FrameStore(copy).frame(e, 0).shape == (96, 96, 3) for e in episodes)
     assert json.loads((copy / C.TOOLCHAIN_CONFIG_JSON).read_text())["render"]["width"] == 96
+
+
+def _failing_simulator(cfg):
+    raise RuntimeError("no renderer on this machine")
+
+
+def test_a_first_run_that_fails_leaves_no_settings_record(tmp_path):
+    """The failed run's generate_config.json would make the corrected command refuse the folder as "a dataset
+    generated with other settings": it goes, with the folders the run made; files that were there stay."""
+    cfg = small_config(tmp_path / "outputs" / "data", trajectories_per_scene=1)
+    with pytest.raises(RuntimeError, match="no renderer"):
+        generate(cfg, sim_factory=_failing_simulator, progress=False)
+    assert list(tmp_path.iterdir()) == []
+    kept = tmp_path / "mine"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine\n")
+    with pytest.raises(RuntimeError, match="no renderer"):
+        generate(
+            dataclasses.replace(cfg, output_dir=str(kept)), sim_factory=_failing_simulator, progress=False
+        )
+    assert [path.name for path in kept.rglob("*")] == ["notes.txt"]
+
+
+def test_a_run_that_wrote_episodes_keeps_its_record_to_resume(tmp_path):
+    from openfly_agent.toolchain.settings import record_kept_on_success
+
+    root = tmp_path / "data"
+    with pytest.raises(KeyboardInterrupt), record_kept_on_success(root):
+        (root / C.TOOLCHAIN_CONFIG_JSON).parent.mkdir(parents=True)
+        (root / C.TOOLCHAIN_CONFIG_JSON).write_text("{}\n")
+        (root / C.DATASET_TRAJ_DIR).mkdir()
+        (root / C.DATASET_TRAJ_DIR / "episode.parquet").write_bytes(b"written")
+        raise KeyboardInterrupt  # Ctrl-C after the first episode: the same command resumes
+    assert (root / C.TOOLCHAIN_CONFIG_JSON).read_text() == "{}\n"
+
+
+def test_empty_splits_are_named_with_the_settings_that_fill_them():
+    from openfly_agent.toolchain.summary import empty_splits_message
+
+    assert empty_splits_message({"per_split": {"train": 5, "test_seen": 1, "test_unseen": 2}}) is None
+    message = empty_splits_message({"per_split": {"train": 5, "test_unseen": 2}})
+    assert message.startswith("split(s) test_seen came out empty (0 trajectories)")
+    assert "--scenes.test_seen_fraction" in message and "unseen_seeds" not in message
+
+
+def test_cli_generate_warns_after_its_summary_when_a_split_came_out_empty(monkeypatch, tmp_path, capsys):
+    from openfly_agent.toolchain import __main__ as cli
+
+    summary = {"trajectories": 3, "per_split": {"train": 3}, "rejected": {}, "vocabulary_size": 9}
+    monkeypatch.setattr(cli, "generate", lambda cfg: summary)
+    assert cli.main(["generate", f"--output_dir={tmp_path / 'data'}"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out) == summary
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "python -m openfly_agent.toolchain generate: warning: split(s) test_seen, test_unseen came out empty"
+    )

@@ -62,6 +62,18 @@ def test_bad_input_is_one_line_and_leaves_no_folder(
     assert not output_dir.exists()
 
 
+def test_a_failed_start_removes_the_parent_folders_it_made(tmp_path, capsys):
+    """A missing data root in a fresh working directory: neither the run folder nor the `outputs/train/` made for
+    it stays; a parent that was there before the run stays too."""
+    args = ["--data.root", str(tmp_path / "no-dataset"), "--logging.tracker=none"]
+    assert train_main([*args, f"--output_dir={tmp_path / 'outputs' / 'train' / 'run'}"]) == 2
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "outputs").mkdir()
+    assert train_main([*args, f"--output_dir={tmp_path / 'outputs' / 'train' / 'run'}"]) == 2
+    assert [path.name for path in tmp_path.rglob("*")] == ["outputs"]
+    assert len(capsys.readouterr().err.strip().splitlines()) == 2  # one line per run
+
+
 def test_a_preflight_error_under_a_launcher_is_printed_once(tmp_path):
     args = [
         "--data.root", str(tmp_path / "no-dataset"),

@@ -46,7 +46,7 @@ def loadable_checkpoint(name: str) -> str:
     folder = resolve_checkpoint_folder(name)
     if folder is None:
         return name
-    check_not_adapter_only(folder)
+    check_not_adapter_only(folder, given=name)
     check_weights_readable(folder)  # a truncated file: one line naming it
     return str(folder)
 

@@ -18,6 +18,7 @@ from openfly_agent.constants import (
     CHECKPOINTS_DIR,
     CONFIG_NAME,
     LAST_POINTER_NAME,
+    MERGED_DIR_NAME,
     STAGE_GROUNDING,
     STAGE_NAVIGATION,
     TRAIN_CONFIG_NAME,
@@ -105,15 +106,38 @@ def check_navigation_stage(folder: Path) -> None:
     )
 
 
-def check_not_adapter_only(folder: Path) -> None:
-    """A LoRA training checkpoint holds the adapter only (no base weights): say what loads it."""
+def check_not_adapter_only(folder: Path, given: str | Path | None = None) -> None:
+    """A LoRA training checkpoint holds the adapter only (no base weights): say what loads it instead, the run's
+    merged model (`<run>/merged`, what eval.py and the release load) by its path.
+
+    Args:
+        folder: the checkpoint folder `given` resolved to.
+        given: what the user passed (a run folder or its `last` pointer), named in the message; default `folder`.
+
+    Raises:
+        ValueError: one line naming `given`, the merged model to load and the adapter loader.
+    """
     has_weights = (folder / WEIGHTS_NAME).is_file() or (folder / WEIGHTS_INDEX_NAME).is_file()
-    if not has_weights and (folder / ADAPTER_DIR_NAME).is_dir():
-        raise ValueError(
-            f"{folder} is a LoRA checkpoint (adapter only, no base weights): load it with "
-            "openfly_agent.model.persistence.lora_checkpoint.load_lora_agent(checkpoint, base=<the init checkpoint>), or load "
-            "<output_dir>/merged, the full model a LoRA run writes at the end (lora.merge_at_end)"
-        )
+    if has_weights or not (folder / ADAPTER_DIR_NAME).is_dir():
+        return
+    given = Path(given) if given is not None else folder
+    what = (
+        f"{folder} is a LoRA checkpoint (adapter only, no base weights)"
+        if given == folder
+        else f"{given} is a LoRA training run: its checkpoint {folder} holds the adapter only (no base weights)"
+    )
+    run = folder.parent.parent if folder.parent.name == CHECKPOINTS_DIR else None
+    merged = run / MERGED_DIR_NAME if run is not None else Path("<output_dir>") / MERGED_DIR_NAME
+    written = (merged / CONFIG_NAME).is_file()
+    merged_text = (
+        f"load {merged}, the full model the run merged at the end"
+        if written
+        else f"load {merged}, the full model a LoRA run writes at the end (lora.merge_at_end), once it is there"
+    )
+    raise ValueError(
+        f"{what}: {merged_text}; or load the adapter on its base with "
+        "openfly_agent.model.persistence.lora_checkpoint.load_lora_agent(checkpoint, base=<the init checkpoint>)"
+    )
 
 
 def checkpoint_files(folder: Path) -> list[Path]:
