@@ -35,7 +35,12 @@ from openfly_agent.eval.plots import safe_name, write_gif
 from openfly_agent.eval.records import EpisodeLog
 from openfly_agent.eval.rollout import FrameLog, FrameRecorder, teleport_record
 from openfly_agent.model.persistence.checkpoint_path import UnreadableWeightsError, check_weights_readable
-from openfly_agent.rollout.checkpoints import CheckpointError, checkpoint_fingerprint, checkpoint_folder
+from openfly_agent.rollout.checkpoints import (
+    CheckpointError,
+    checkpoint_fingerprint,
+    checkpoint_folder,
+    describe_weights_change,
+)
 from openfly_agent.rollout.policy import Policy
 from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.rollout.runner import LockstepRunner, RolloutStats, groups
@@ -56,7 +61,7 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
     if stored is not None and not overwrite:
         changed = {k: (stored.get(k), v) for k, v in identity.items() if stored.get(k) != v}
         if changed:
-            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+            details = ", ".join(_describe_change(k, old, new) for k, (old, new) in changed.items())
             raise EvalInputError(
                 f"{folder} holds results of other settings ({details}); pass another --output_dir "
                 "or --overwrite=true to discard them"
@@ -69,6 +74,13 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
         if not path.is_file():
             path.write_text(json.dumps(identity, indent=2, sort_keys=True) + "\n")
     info.wait()
+
+
+def _describe_change(key: str, old, new) -> str:
+    """`max_steps: 100 -> 50`; for the agent's weights, which file changed and when (not raw fingerprints)."""
+    if key == "weights" and isinstance(old, dict) and isinstance(new, dict):
+        return f"weights: {describe_weights_change(old, new)}"
+    return f"{key}: {old!r} -> {new!r}"
 
 
 def read_run_identity(folder: Path) -> dict | None:
