@@ -121,6 +121,7 @@ WEIGHTS_INDEX_NAME = "model.safetensors.index.json"
 ACTION_TOKENIZER_NAME = "action_tokenizer.json"
 NORM_STATS_NAME = "dataset_statistics.json"
 TRAIN_CONFIG_NAME = "train_config.json"
+TRAINER_STATE_NAME = "trainer_state.json"  # a checkpoint's step counters (training/state.py)
 # Training stages (train_config.json `stage`): the grounding stage trains no action head, so only a navigation
 # stage's checkpoint is an agent.
 STAGE_GROUNDING, STAGE_NAVIGATION = "grounding", "navigation"

@@ -36,7 +36,12 @@ from openfly_agent.eval.records import EpisodeLog
 from openfly_agent.eval.report import scored
 from openfly_agent.eval.rollout import FrameLog, FrameRecorder, teleport_record
 from openfly_agent.model.persistence.checkpoint_path import UnreadableWeightsError, check_weights_readable
-from openfly_agent.rollout.checkpoints import CheckpointError, checkpoint_fingerprint, checkpoint_folder
+from openfly_agent.rollout.checkpoints import (
+    CheckpointError,
+    checkpoint_fingerprint,
+    checkpoint_folder,
+    describe_weights_change,
+)
 from openfly_agent.rollout.policy import Policy
 from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.rollout.runner import LockstepRunner, RolloutStats, groups
@@ -59,7 +64,7 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
         keys = list(identity) + [k for k in stored if k not in identity]
         changed = {k: (stored.get(k), identity.get(k)) for k in keys if stored.get(k) != identity.get(k)}
         if changed:
-            details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changed.items())
+            details = ", ".join(_describe_change(k, old, new) for k, (old, new) in changed.items())
             raise EvalInputError(
                 f"{folder} holds results of other settings ({details}); pass another --output_dir "
                 "or --overwrite=true to discard them"
@@ -72,6 +77,13 @@ def prepare_output(folder: Path, identity: dict, overwrite: bool, info: ProcessI
         if not path.is_file():
             path.write_text(json.dumps(identity, indent=2, sort_keys=True) + "\n")
     info.wait()
+
+
+def _describe_change(key: str, old, new) -> str:
+    """`max_steps: 100 -> 50`; for the agent's weights, which file changed and when (not raw fingerprints)."""
+    if key == "weights" and isinstance(old, dict) and isinstance(new, dict):
+        return f"weights: {describe_weights_change(old, new)}"
+    return f"{key}: {old!r} -> {new!r}"
 
 
 def read_run_identity(folder: Path) -> dict | None:

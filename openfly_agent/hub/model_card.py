@@ -72,6 +72,7 @@ class ModelFacts:
         architecture: the network, from the checkpoint's model config (`describe_architecture`).
         training_progress: steps trained vs configured, from trainer_state.json and train_config.json
             (`describe_training_progress`); None when the checkpoint records neither.
+        lora_summary: what the LoRA fine-tune was (`describe_lora`); None for weights not trained as LoRA.
     """
 
     package_version: str
@@ -84,6 +85,7 @@ class ModelFacts:
     train_summary: str | None = None
     training_progress: str | None = None
     adapter_release: bool = False
+    lora_summary: str | None = None
 
 
 def describe_architecture(cfg: ModelConfig) -> str:
@@ -140,6 +142,31 @@ def describe_training_progress(
         return f"Trained for {done:,} optimizer steps, as configured."
     epochs = config.get("epochs")
     return f"Trained for {done:,} optimizer steps" + (f" ({epochs} epochs configured)." if epochs else ".")
+
+
+def describe_lora(
+    adapter_config: dict[str, Any],
+    base: str | None,
+    train_config: dict[str, Any] | None,
+    trainer_state: dict[str, Any] | None,
+    merged: bool,
+) -> str:
+    """`These weights are a LoRA fine-tune of ... (rank 32, alpha 16 on q_proj, v_proj ...), trained on ... for N
+    optimizer steps; ...`: the adapter from peft's adapter_config.json, the rest from the run's records."""
+    modules = adapter_config.get("target_modules") or []  # peft's resolved names: one per layer and module
+    modules = [modules] if isinstance(modules, str) else sorted({name.rsplit(".", 1)[-1] for name in modules})
+    data = ((train_config or {}).get("data") or {}).get("root")
+    steps = (trainer_state or {}).get("step")
+    text = (
+        f"These weights are a **LoRA fine-tune** of {f'`{base}`' if base else 'randomly initialised weights'}: "
+        f"adapters of rank {adapter_config.get('r')} and alpha {adapter_config.get('lora_alpha')} on the "
+        f"language model's {', '.join(f'`{m}`' for m in modules) or 'unrecorded'} layers, the projector and "
+        f"grounding head trained in full, trained on {f'`{data}`' if data else 'data the release does not record'}"
+        f" for {f'{int(steps):,}' if steps is not None else 'an unrecorded number of'} optimizer steps. "
+    )
+    if merged:
+        return text + "This release holds the adapter merged into those base weights (full weights, no peft)."
+    return text + "This release holds the adapter alone, to load on those base weights (see Usage)."
 
 
 # Dotted keys of train_config.json (training.config.TrainConfig) shown in the card's training table.

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import fnmatch
 import logging
+import re
 import shutil
 from pathlib import Path
 
@@ -16,6 +18,7 @@ from openfly_agent.constants import (
     NORM_STATS_NAME,
     PROCESSOR_CONFIG_NAME,
     TRAIN_CONFIG_NAME,
+    TRAINER_STATE_NAME,
     WEIGHTS_INDEX_NAME,
     WEIGHTS_NAME,
 )
@@ -24,6 +27,7 @@ from openfly_agent.hub.folder_utils import DEFAULT_RELEASE_ROOT, prepare_output_
 from openfly_agent.hub.model_card import (
     ModelFacts,
     describe_architecture,
+    describe_lora,
     describe_training_progress,
     render_model_card,
     summarize_train_config,
@@ -47,8 +51,13 @@ from openfly_agent.utils.file_modes import follow_umask
 logger = logging.getLogger(__name__)
 
 EVAL_RESULTS_NAME = "eval_results.json"
-# Files of a checkpoint the release carries over when the agent's own save did not write them.
-CARRIED_FILES = (TRAIN_CONFIG_NAME, NORM_STATS_NAME, ACTION_TOKENIZER_NAME)
+# Files of a checkpoint the release carries over when the agent's own save did not write them (a LoRA run's
+# merged model has no run records: they come from the checkpoint it merged).
+CARRIED_FILES = (TRAIN_CONFIG_NAME, TRAINER_STATE_NAME, NORM_STATS_NAME, ACTION_TOKENIZER_NAME)
+# A backticked name in the card that looks like a file or folder of the release (`check_card_files`) ...
+CARD_FILE_NAME = re.compile(r"`([\w.-]+(?:\.(?:json|jsonl|safetensors|py|md|txt)|/))`")
+# ... except the code repository's scripts the card tells readers to run.
+REPOSITORY_SCRIPTS = ("eval.py", "train.py")
 # Pickle-based formats never enter a release (security: weights are safetensors only).
 FORBIDDEN_SUFFIXES = (".bin", ".pt", ".pth", ".pkl", ".ckpt")
 
@@ -84,6 +93,7 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     results, README.md. Inputs are checked first.
     """
     checkpoint = resolve_checkpoint(cfg.checkpoint)
+    source = checkpoint  # the run's checkpoint; `checkpoint` becomes the folder whose weights are released
     check_weights_readable(checkpoint)  # a truncated copy: one line, before the release folder is made
     results = load_results(cfg.results) if cfg.results else None
     baselines = []
@@ -104,17 +114,26 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
         cfg.output_dir or DEFAULT_RELEASE_ROOT / cfg.repo_id.split("/", 1)[1], cfg.overwrite
     )
     logger.info("releasing %s -> %s", checkpoint, out)
-    agent, form = _write_weights(checkpoint, base, adapter_form, out, cfg.max_shard_size)
+    lora = is_lora_checkpoint(source)
+    agent, form = _write_weights(checkpoint, base, adapter_form, out, cfg.max_shard_size, lora)
     for file_name in CARRIED_FILES:
-        if (checkpoint / file_name).is_file() and not (out / file_name).exists():
-            shutil.copy2(checkpoint / file_name, out / file_name)
+        origin = next((f / file_name for f in (checkpoint, source) if (f / file_name).is_file()), None)
+        if origin is not None and not (out / file_name).exists():
+            shutil.copy2(origin, out / file_name)
     if results is not None:
         shutil.copy2(resolve_results_path(cfg.results), out / EVAL_RESULTS_NAME)
     facts = model_facts(agent, out, release_form=form, adapter_release=adapter_form)
     train_config = read_json(out / TRAIN_CONFIG_NAME) if (out / TRAIN_CONFIG_NAME).is_file() else None
+    trainer_state = read_json(out / TRAINER_STATE_NAME) if (out / TRAINER_STATE_NAME).is_file() else None
     if train_config is not None:
         facts.train_summary = summarize_train_config(train_config)
-    facts.training_progress = describe_training_progress(train_config, _trainer_state(checkpoint))
+    facts.training_progress = describe_training_progress(train_config, trainer_state)
+    if lora:
+        adapter_config = read_json(source / ADAPTER_DIR_NAME / "adapter_config.json")
+        init = ((train_config or {}).get("init") or {}).get("checkpoint")
+        facts.lora_summary = describe_lora(
+            adapter_config, base or init, train_config, trainer_state, not adapter_form
+        )
     card = render_model_card(cfg.card, cfg.repo_id, results, facts, baselines)
     (out / MODEL_CARD_NAME).write_text(card)
     check_release_folder(out, adapter_form)
@@ -123,8 +142,13 @@ def build_model_release(cfg: ModelReleaseConfig) -> Path:
     return out
 
 
-def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: Path, max_shard_size: str):
-    """Save the weights into `out` in the chosen form; returns (agent, description of the form)."""
+def _write_weights(
+    checkpoint: Path, base: str | None, adapter_form: bool, out: Path, max_shard_size: str, lora: bool
+):
+    """Save the weights into `out` in the chosen form; returns (agent, description of the form).
+
+    `lora`: the release is of a LoRA run, whose merged model (`checkpoint`, no `base`) is released as is.
+    """
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
     from openfly_agent.model.language.lora import merge_lora, save_lora_adapter  # lazy: torch
     from openfly_agent.training.export import write_model_metadata  # lazy: torch + accelerate
@@ -132,6 +156,8 @@ def _write_weights(checkpoint: Path, base: str | None, adapter_form: bool, out: 
     if base is None:
         agent = OpenFlyAgent.from_pretrained(str(checkpoint)).eval()
         agent.save_pretrained(out, max_shard_size=max_shard_size)
+        if lora:
+            return agent, "LoRA adapter merged into its base weights at the end of the run (full weights)"
         return agent, "full weights"
     agent = load_lora_agent(checkpoint, base)  # also proves the adapter fits its base
     if adapter_form:
@@ -161,14 +187,6 @@ def model_facts(agent, folder: Path, release_form: str, adapter_release: bool = 
     )
 
 
-def _trainer_state(checkpoint: Path) -> dict | None:
-    """The checkpoint's trainer_state.json (steps trained), None when it has none (e.g. a release folder)."""
-    from openfly_agent.training.state import TRAINER_STATE_NAME  # lazy: torch
-
-    path = checkpoint / TRAINER_STATE_NAME
-    return read_json(path) if path.is_file() else None
-
-
 def describe_files(folder: Path) -> dict[str, str]:
     """A one-line description of every file of the release (README.md included)."""
     known = {
@@ -178,6 +196,7 @@ def describe_files(folder: Path) -> dict[str, str]:
         ACTION_TOKENIZER_NAME: "action head settings: action ids <-> token ids / bins",
         NORM_STATS_NAME: "action normalisation statistics (OpenVLA `dataset_statistics` format)",
         TRAIN_CONFIG_NAME: "the training configuration used",
+        TRAINER_STATE_NAME: "the checkpoint's training counters (optimizer steps, epoch, samples seen)",
         EVAL_RESULTS_NAME: "the eval.py results the card's numbers come from",
         PROCESSOR_CONFIG_NAME: "input processor: image size, prompt template, text limit, action head, norm stats",
         CONFIGURATION_FILE: "`trust_remote_code` entry: imports the config class of `openfly-agent`",
@@ -201,12 +220,34 @@ def describe_files(folder: Path) -> dict[str, str]:
 
 
 def check_release_folder(folder: Path, adapter_form: bool = False) -> None:
-    """Fail if a pickle-based weight file slipped in, or a full release's config.json lacks `auto_map`."""
+    """Fail if a pickle-based weight file slipped in, a full release's config.json lacks `auto_map`, or the
+    card names a file the folder does not hold (`check_card_files`)."""
     bad = sorted(p.name for p in folder.rglob("*") if p.suffix in FORBIDDEN_SUFFIXES)
     if bad:
         raise ValueError(f"{folder}: pickle-based files must not be released (safetensors only): {bad}")
     if not adapter_form and "auto_map" not in read_json(folder / CONFIG_NAME):
         raise ValueError(f"{folder / CONFIG_NAME}: auto_map is missing")
+    check_card_files(folder)
+
+
+def check_card_files(folder: Path) -> None:
+    """Fail if the card (README.md) names, in backticks, a file or folder of the release that `folder` lacks.
+
+    A name looks like one of the release's when it is a bare file name with a suffix a release holds (`.json`,
+    `.safetensors`, `.py`, ...) or a folder name ending in `/`; the shard pattern `model-000NN-of-...` stands for
+    its shards; the repository's own scripts (`eval.py`) are commands, not files of the release.
+    """
+    card = (folder / MODEL_CARD_NAME).read_text()
+    missing = []
+    for name in sorted(set(CARD_FILE_NAME.findall(card)) - set(REPOSITORY_SCRIPTS)):
+        if name.endswith("/"):
+            found = (folder / name).is_dir()
+        else:
+            found = bool(fnmatch.filter((p.name for p in folder.iterdir()), name.replace("NN", "[0-9][0-9]")))
+        if not found:
+            missing.append(name)
+    if missing:
+        raise ValueError(f"{folder / MODEL_CARD_NAME} names files the release does not hold: {missing}")
 
 
 def _weights_summary(folder: Path) -> str:

@@ -80,7 +80,8 @@ def load_results(path: str | Path) -> EvalResults:
 
     Raises:
         ResultsError: not JSON, results of a baseline, episodes that ended in an engine error (not scored),
-            or a split / profile / metric missing or not finite.
+            results of one split only (a release reports both RELEASE_SPLITS), or a profile / metric missing or
+            not finite.
     """
     path = resolve_results_path(path)
     try:
@@ -103,6 +104,13 @@ def parse_results(data: dict[str, Any], source: str = "<results>", policy: str =
             f"({errored}); run the same eval.py command again to retry them before releasing"
         )
     splits = _child(data, "splits", source, "")
+    held = sorted(splits) if isinstance(splits, dict) else []
+    if any(split not in held for split in RELEASE_SPLITS):
+        raise ResultsError(
+            f"{source} holds results of {' and '.join(held) or 'no split'} only; a release needs both "
+            f"{' and '.join(RELEASE_SPLITS)}: evaluate with eval.py --split=[{','.join(RELEASE_SPLITS)}] "
+            "(into the same --output_dir, the episodes already done are kept)"
+        )
     meta = dict(data.get("meta") or {})
     split_sizes = meta.get("split_episodes") or {}
     rows = []

@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import json
 import logging
-from datetime import datetime, timezone
 from pathlib import Path
 
 from openfly_agent.eval.config import AGENT_POLICIES, POLICY_NAMES
 from openfly_agent.eval.run import RUN_IDENTITY_NAME, read_run_identity, same_weights
 from openfly_agent.hub.results import AGENT_POLICY, EvalResults, ResultsError, parse_results
-from openfly_agent.rollout.checkpoints import checkpoint_fingerprint
+from openfly_agent.rollout.checkpoints import (
+    checkpoint_fingerprint,
+    describe_fingerprint,
+    weight_file_changes,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -48,12 +51,20 @@ def check_results_weights(results_file: Path, checkpoint: Path) -> None:
             f"results evaluated are unknown: pass the eval output folder eval.py wrote for {checkpoint}"
         )
     current = checkpoint_fingerprint(str(checkpoint))
-    if not same_weights(recorded, current):
-        raise ResultsError(
-            f"--results {results_file} evaluated other weights than --checkpoint: its {RUN_IDENTITY_NAME} names "
-            f"{_describe(recorded)}, the checkpoint is {_describe(current)}; evaluate the checkpoint (eval.py "
-            f"--checkpoint {checkpoint} --output_dir <new folder>) and pass those results"
+    if same_weights(recorded, current):
+        return
+    if recorded.get("folder") == current.get("folder"):  # e.g. a resume that saved the same step again
+        what = (
+            f"{current.get('folder')} as it was then, and its weights changed since "
+            f"({weight_file_changes(recorded, current)})"
         )
+    else:
+        what = f"{describe_fingerprint(recorded)}, the checkpoint is {describe_fingerprint(current)}"
+    raise ResultsError(
+        f"--results {results_file} evaluated other weights than --checkpoint: its {RUN_IDENTITY_NAME} names "
+        f"{what}; evaluate the checkpoint (eval.py --checkpoint {checkpoint} --output_dir <new folder>) and pass "
+        "those results"
+    )
 
 
 def load_baselines(results_file: Path, agent: EvalResults) -> list[EvalResults]:
@@ -107,16 +118,3 @@ def _mismatch(identity: dict | None, agent_identity: dict, name: str) -> str | N
     ):
         return "other weights than the agent's"
     return None
-
-
-def _describe(fingerprint: dict) -> str:
-    """`<folder> (model.safetensors 7,779,564 B modified 2026-11-27 09:23:45 UTC)`."""
-    files = [
-        f"{name} {size:,} B modified {_utc(mtime_ns)}"
-        for name, (size, mtime_ns) in sorted(fingerprint.get("weights", {}).items())
-    ]
-    return f"{fingerprint.get('folder')} ({', '.join(files) or 'no weight files'})"
-
-
-def _utc(mtime_ns: int) -> str:
-    return datetime.fromtimestamp(mtime_ns / 1e9, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from datetime import datetime, timezone
 from pathlib import Path
 
 from openfly_agent import constants as C
@@ -80,6 +81,47 @@ def checkpoint_fingerprint(checkpoint: str) -> dict:
         "folder": str(folder.resolve()),
         "weights": {str(f.relative_to(folder)): [f.stat().st_size, f.stat().st_mtime_ns] for f in files},
     }
+
+
+def describe_fingerprint(fingerprint: dict) -> str:
+    """`<folder> (model.safetensors 7,779,564 B modified 2026-11-27 09:23:45 UTC)`."""
+    files = [
+        f"{name} {_describe_file(entry)}" for name, entry in sorted(fingerprint.get("weights", {}).items())
+    ]
+    return f"{fingerprint.get('folder')} ({', '.join(files) or 'no weight files'})"
+
+
+def describe_weights_change(recorded: dict, current: dict) -> str:
+    """What differs between two `checkpoint_fingerprint`s, in words: `<folder A> (...) -> <folder B> (...)` for
+    other folders, else `<folder>: ` and its `weight_file_changes`."""
+    if recorded.get("folder") != current.get("folder"):
+        return f"{describe_fingerprint(recorded)} -> {describe_fingerprint(current)}"
+    return f"{current.get('folder')}: {weight_file_changes(recorded, current)}"
+
+
+def weight_file_changes(recorded: dict, current: dict) -> str:
+    """Which weight files of two fingerprints of one folder changed and when: `model.safetensors was written
+    again: 7,779,564 B modified 2026-11-27 09:14:56 UTC then, 7,779,564 B modified 2026-11-27 10:02:11 UTC now`."""
+    before, after = recorded.get("weights") or {}, current.get("weights") or {}
+    changes = []
+    for name in sorted(set(before) | set(after)):
+        if name not in after:
+            changes.append(f"{name} is gone (it was {_describe_file(before[name])})")
+        elif name not in before:
+            changes.append(f"{name} is new ({_describe_file(after[name])})")
+        elif list(before[name]) != list(after[name]):
+            then, now = _describe_file(before[name]), _describe_file(after[name])
+            if then == now:  # within the same second: show the milliseconds
+                then, now = _describe_file(before[name], "%S.%f"), _describe_file(after[name], "%S.%f")
+            changes.append(f"{name} was written again: {then} then, {now} now")
+    return "; ".join(changes) or "no weight file changed"
+
+
+def _describe_file(entry: list, seconds: str = "%S") -> str:
+    """`7,779,564 B modified 2026-11-27 09:23:45 UTC` from a fingerprint's [size, mtime_ns]."""
+    size, mtime_ns = entry
+    when = datetime.fromtimestamp(mtime_ns / 1e9, tz=timezone.utc).strftime(f"%Y-%m-%d %H:%M:{seconds}")
+    return f"{size:,} B modified {when[:23] if seconds != '%S' else when} UTC"
 
 
 def checkpoint_kind(folder: Path) -> str:

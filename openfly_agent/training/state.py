@@ -14,9 +14,10 @@ from pathlib import Path
 
 from torch import nn
 
+from openfly_agent.constants import TRAINER_STATE_NAME
+
 logger = logging.getLogger(__name__)
 
-TRAINER_STATE_NAME = "trainer_state.json"
 ACCELERATE_STATE_DIR = "training_state"
 
 

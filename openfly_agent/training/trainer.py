@@ -17,6 +17,7 @@ from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
+from openfly_agent.model.persistence.lora_checkpoint import merged_model_of
 from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
@@ -111,8 +112,18 @@ def train(cfg: TrainConfig) -> TrainResult:
             test_set, cfg.validation.final_max_samples, eval_batch, accelerator, collate, cfg.data.num_workers
         )
     state = TrainerState(world_size=accelerator.num_processes)
+    last_checkpoint, saved_step = None, None
     if resume_from is not None:
         state = restore_checkpoint(accelerator, resume_from, ema)  # optimizer, schedule, RNG, weights
+        last_checkpoint, saved_step = resume_from, state.step  # that step is saved: not again at the end
+        if state.step >= total_steps:
+            logger.info(
+                "nothing left to train: %s is at step %d of the %d configured; no checkpoint is written and its "
+                "weights are left as they are",
+                resume_from,
+                state.step,
+                total_steps,
+            )
     accelerator.init_trackers(cfg.logging.project, config=flat_config(cfg))
     logger.info(
         "run: %d steps (%d per epoch), starting at step %d", total_steps, sampler.steps_per_epoch, state.step
@@ -124,7 +135,7 @@ def train(cfg: TrainConfig) -> TrainResult:
         total=total_steps, initial=state.step, disable=not accelerator.is_main_process, desc="train"
     )
     model.train()
-    last_checkpoint, saved_step, reason = None, None, None
+    reason = None
     stops = StopFlags(accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
     if clock is not None:
         clock.fraction = stops.used_fraction
@@ -185,7 +196,7 @@ def train(cfg: TrainConfig) -> TrainResult:
                 "stopped by a signal at step %d; `--resume` continues from %s", state.step, last_checkpoint
             )
             return _result(state, last_checkpoint, {}, True, accelerator, evaluated)
-        if cfg.use_lora and cfg.lora.merge_at_end:
+        if cfg.use_lora and cfg.lora.merge_at_end and not _merge_is_current(last_checkpoint):
             export_merged_lora(accelerator, evaluated, cfg.output_dir)  # full weights in <output_dir>/merged
         final: dict[str, float] = {}
         if test_loader is not None:
@@ -203,6 +214,12 @@ def train(cfg: TrainConfig) -> TrainResult:
                 final["majority_class_rate"] = majority_class_rate(train_set, test_set, test_indices)
             log_metrics(accelerator, "test", final, state.step)
         return _result(state, last_checkpoint, final, reason is not None, accelerator, evaluated)
+
+
+def _merge_is_current(checkpoint: Path | None) -> bool:
+    """Whether `<output_dir>/merged` already holds the merge of `checkpoint` (a resume with nothing left to
+    train after a finished run): then it is not written again."""
+    return checkpoint is not None and merged_model_of(checkpoint) is not None
 
 
 def progress_postfix(train_logs: dict[str, float]) -> dict[str, str]:

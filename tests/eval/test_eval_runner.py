@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from datetime import datetime, timezone
 
 import numpy as np
 import pytest
@@ -259,6 +260,30 @@ def test_resume_refuses_other_settings(tmp_path):
     with pytest.raises(ValueError, match="seed: 0 -> 9.*--overwrite"):
         prepare_output(tmp_path / "random", other.result_identity("random"), False, ProcessInfo())
     prepare_output(tmp_path / "random", other.result_identity("random"), True, ProcessInfo())
+
+
+def test_resume_after_the_weights_were_saved_again_names_the_file_and_both_times(tmp_path):
+    """eval.py's refusal names the rewritten weight file and both modification times in words (the run identity
+    stores nanoseconds)."""
+    identity = EvalConfig(policy="random", progress=False).result_identity("random")
+    then = int(datetime(2026, 11, 27, 9, 14, 56, tzinfo=timezone.utc).timestamp()) * 10**9
+    now = int(datetime(2026, 11, 27, 10, 2, 11, tzinfo=timezone.utc).timestamp()) * 10**9
+
+    def weights(mtime_ns: int) -> dict:
+        return {
+            "folder": "/runs/a/checkpoints/step-000004",
+            "weights": {"model.safetensors": [1234, mtime_ns]},
+        }
+
+    prepare_output(tmp_path / "agent", {**identity, "weights": weights(then)}, False, ProcessInfo())
+    with pytest.raises(ValueError) as err:
+        prepare_output(tmp_path / "agent", {**identity, "weights": weights(now)}, False, ProcessInfo())
+    message = str(err.value)
+    assert (
+        "(weights: /runs/a/checkpoints/step-000004: model.safetensors was written again: 1,234 B modified "
+        "2026-11-27 09:14:56 UTC then, 1,234 B modified 2026-11-27 10:02:11 UTC now); pass another --output_dir"
+    ) in message
+    assert str(then) not in message and str(now) not in message
 
 
 def test_policy_output_is_validated():

@@ -160,7 +160,11 @@ def test_odd_strings_stay_valid_yaml():
     ("mutate", "message"),
     [
         (lambda r: r.pop("splits"), r"missing key 'splits'"),
-        (lambda r: r["splits"].pop("test_unseen"), r"missing key 'splits.test_unseen'"),
+        (
+            lambda r: r["splits"].pop("test_seen"),
+            r"holds results of test_unseen only; a release needs both test_seen and test_unseen: evaluate with "
+            r"eval.py --split=\[test_seen,test_unseen\]",
+        ),
         (lambda r: r["splits"]["test_seen"].pop("standard"), r"missing key 'splits.test_seen.standard'"),
         (
             lambda r: r["splits"]["test_seen"]["openfly"]["overall"].update(spl_pct="n/a"),

@@ -15,8 +15,9 @@ from test_hub_release import INSTRUCTIONS, assert_same_behaviour, probe_namespac
 from openfly_agent.constants import ADAPTER_DIR_NAME, CONFIG_NAME, WEIGHTS_NAME
 from openfly_agent.hub.config import CardConfig, ModelReleaseConfig
 from openfly_agent.hub.model_card import split_front_matter
-from openfly_agent.hub.model_release import build_model_release
+from openfly_agent.hub.model_release import build_model_release, check_card_files
 from openfly_agent.model.persistence.lora_checkpoint import load_lora_agent
+from openfly_agent.training.state import TrainerState
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +43,14 @@ def lora_run(tmp_path_factory):
     agent.eval()
     checkpoint = root / "run" / "checkpoints" / "step-000010"
     write_lora_folder(agent, agent.state_dict(), checkpoint)
-    train_config = {"init": {"checkpoint": str(root / "base"), "format": "auto"}, "seed": 0}
+    train_config = {
+        "init": {"checkpoint": str(root / "base"), "format": "auto"},
+        "data": {"root": "datasets/tiny"},
+        "steps": 10,
+        "seed": 0,
+    }
     (checkpoint / "train_config.json").write_text(json.dumps(train_config))
+    TrainerState(step=10, samples_seen=40).save(checkpoint)
     return SimpleNamespace(root=root, checkpoint=checkpoint, behaviour=probe_namespace()["rollout"](agent))
 
 
@@ -195,3 +202,52 @@ def test_a_merge_older_than_the_newest_checkpoint_or_an_older_step_is_not_taken(
     weights = checkpoint_weights(step)
     assert (weights.folder, weights.base) == (step, str(lora_run.root / "base"))
     assert checkpoint_weights(lora_run_folder / "merged").folder == lora_run_folder / "merged"  # full weights
+
+
+def _training_section(folder: Path) -> str:
+    _, body = split_front_matter((folder / "README.md").read_text())
+    return body.split("## Training", 1)[1].split("## Limitations", 1)[0]
+
+
+@pytest.mark.parametrize("form", ["run_merged", "rebuilt", "adapter"])
+def test_a_lora_release_carries_the_run_records_and_says_what_the_fine_tune_was(
+    lora_run, lora_run_folder, form
+):
+    """The run's merged/ holds neither train_config.json nor trainer_state.json: the release takes them from the
+    checkpoint it merged, and the card says LoRA (rank, alpha, modules), the base, the data and the steps."""
+    step = lora_run_folder / "checkpoints" / "step-000010"
+    assert not (lora_run_folder / "merged" / "train_config.json").exists()
+    changes = {
+        "run_merged": {},
+        "rebuilt": {"base_checkpoint": str(lora_run.root / "base")},  # the adapter merged into its base here
+        "adapter": {"lora": "adapter", "card": CardConfig(base_model="me/openfly-tiny-base")},
+    }[form]
+    cfg = ModelReleaseConfig(
+        checkpoint=str(lora_run_folder),
+        repo_id="me/x",
+        output_dir=str(lora_run_folder.parent / form),
+        **changes,
+    )
+    folder = build_model_release(cfg)
+    for name in ("train_config.json", "trainer_state.json"):
+        assert (folder / name).read_bytes() == (step / name).read_bytes(), name
+    training = _training_section(folder)
+    # peft resolved all-linear to every Linear of the LLM's layers; the card names each kind once
+    modules = "`down_proj`, `gate_proj`, `k_proj`, `o_proj`, `q_proj`, `up_proj`, `v_proj` layers"
+    assert f"on the language model's {modules}, the projector and grounding head trained in full" in training
+    assert f"a **LoRA fine-tune** of `{lora_run.root / 'base'}`" in training
+    assert "rank 4 and alpha 8" in training  # the fixture's LoraSettings(rank=4, alpha=8)
+    assert "trained on `datasets/tiny` for 10 optimizer steps" in training
+    assert "Trained for 10 optimizer steps, as configured." in training
+    _, body = split_front_matter((folder / "README.md").read_text())
+    [release_form] = [line for line in body.splitlines() if line.startswith("| Release form |")]
+    assert release_form.startswith("| Release form | LoRA adapter"), release_form  # not "full weights"
+    check_card_files(folder)  # every release file the card names is in the folder
+
+
+def test_a_card_naming_a_file_the_release_lacks_is_refused(lora_run, tmp_path):
+    folder = release(lora_run, "merged")
+    check_card_files(folder)
+    (folder / "train_config.json").unlink()
+    with pytest.raises(ValueError, match=r"names files the release does not hold: \['train_config.json'\]"):
+        check_card_files(folder)

@@ -5,7 +5,9 @@ users type)."""
 from __future__ import annotations
 
 import json
+import os
 import re
+from datetime import datetime, timezone
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -16,6 +18,9 @@ from openfly_agent import constants as C
 from openfly_agent.eval.stats import format_interval
 from openfly_agent.hub.cli import main as hub_main
 from openfly_agent.hub.model_card import split_front_matter
+from openfly_agent.hub.model_release import check_card_files
+from openfly_agent.hub.results import ResultsError
+from openfly_agent.hub.results_source import check_results_weights
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import TrainerState
 
@@ -94,6 +99,49 @@ def test_results_without_a_run_identity_are_refused(evaluated, tmp_path, capsys)
     assert "run_identity.json is missing" in capsys.readouterr().err
 
 
+def test_results_of_one_split_say_that_a_release_needs_both(evaluated, tmp_path, capsys):
+    data = json.loads((evaluated.eval / "agent" / C.RESULTS_JSON).read_text())
+    del data["splits"][C.SPLIT_TEST_SEEN]  # as `eval.py --split=test_unseen` writes it
+    (tmp_path / "eval" / "agent").mkdir(parents=True)
+    (tmp_path / "eval" / "agent" / C.RESULTS_JSON).write_text(json.dumps(data))
+    assert _release(evaluated.run, tmp_path / "eval", tmp_path / "release") == 2
+    [line] = capsys.readouterr().err.strip().splitlines()
+    assert line.endswith(
+        "holds results of test_unseen only; a release needs both test_seen and test_unseen: evaluate with "
+        "eval.py --split=[test_seen,test_unseen] (into the same --output_dir, the episodes already done are kept)"
+    ), line
+    assert not (tmp_path / "release").exists()
+
+
+def _ns(moment: datetime) -> int:
+    return int(moment.timestamp()) * 10**9
+
+
+def test_results_of_a_checkpoint_saved_again_name_the_file_and_both_times(tmp_path):
+    """Same folder, same size, a later write (a resume that saved the step again): the refusal says which file
+    changed and when, in words, not the raw nanosecond modification times of run_identity.json."""
+    step = tmp_path / "run" / "checkpoints" / "step-000004"
+    step.mkdir(parents=True)
+    (step / C.CONFIG_NAME).write_text(json.dumps({"model_type": C.MODEL_TYPE}))
+    (step / C.WEIGHTS_NAME).write_bytes(b"w" * 1234)
+    then = _ns(datetime(2026, 11, 27, 9, 14, 56, tzinfo=timezone.utc))
+    now = _ns(datetime(2026, 11, 27, 10, 2, 11, tzinfo=timezone.utc))
+    agent = tmp_path / "eval" / "agent"
+    agent.mkdir(parents=True)
+    weights = {"folder": str(step.resolve()), "weights": {C.WEIGHTS_NAME: [1234, then]}}
+    (agent / "run_identity.json").write_text(json.dumps({"policy": "agent", "weights": weights}))
+    os.utime(step / C.WEIGHTS_NAME, ns=(now, now))
+    with pytest.raises(ResultsError) as err:
+        check_results_weights(agent / C.RESULTS_JSON, step)
+    message = str(err.value)
+    assert (
+        f"its run_identity.json names {step.resolve()} as it was then, and its weights changed since "
+        "(model.safetensors was written again: 1,234 B modified 2026-11-27 09:14:56 UTC then, 1,234 B modified "
+        "2026-11-27 10:02:11 UTC now); evaluate the checkpoint"
+    ) in message
+    assert str(then) not in message and str(now) not in message
+
+
 @pytest.fixture(scope="module")
 def card(evaluated):
     out = evaluated.root / "release"
@@ -143,3 +191,11 @@ def test_card_is_written_from_the_checkpoint(card):
     assert "pip install openfly-agent==" not in body and 'pip install "openfly-agent==' not in body
     assert "pip install -e <clone>" in body and "not published on PyPI" in body
     assert "reads the text tokenizer from local folders only" not in body  # contradicted docs/RELEASE.md
+
+
+def test_release_carries_the_trainer_state_and_names_only_its_files(card, evaluated):
+    release = evaluated.root / "release"
+    step = evaluated.run / "checkpoints" / "step-001682"
+    assert (release / C.TRAINER_STATE_NAME).read_bytes() == (step / C.TRAINER_STATE_NAME).read_bytes()
+    assert "| `trainer_state.json` |" in card[1]
+    check_card_files(release)

@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import pytest
 
-from openfly_agent.rollout.checkpoints import checkpoint_fingerprint, checkpoint_folder, checkpoint_kind
+from openfly_agent.rollout.checkpoints import (
+    checkpoint_fingerprint,
+    checkpoint_folder,
+    checkpoint_kind,
+    describe_weights_change,
+)
 
 
 def test_training_run_paths_resolve_to_the_newest_checkpoint(tmp_path):
@@ -34,3 +39,23 @@ def test_fingerprint_follows_the_newest_weights(tmp_path):
     assert before["folder"].endswith("step-000010") and list(before["weights"]) == ["model.safetensors"]
     (checkpoints / "last").write_text("step-000020")  # the run trained on: same --checkpoint, new weights
     assert checkpoint_fingerprint(str(tmp_path / "run")) != before
+
+
+def test_weights_change_is_said_in_words():
+    second = 1_795_770_896 * 10**9  # 2026-11-27 09:14:56 UTC
+    old = {"folder": "/r/step-4", "weights": {"model.safetensors": [1234, second]}}
+    resaved = {"folder": "/r/step-4", "weights": {"model.safetensors": [1234, second + 250_000_000]}}
+    # within one second: the milliseconds tell the two writes apart
+    assert describe_weights_change(old, resaved) == (
+        "/r/step-4: model.safetensors was written again: 1,234 B modified 2026-11-27 09:14:56.000 UTC then, "
+        "1,234 B modified 2026-11-27 09:14:56.250 UTC now"
+    )
+    other = {"folder": "/r/step-8", "weights": {"model.safetensors": [99, second]}}
+    assert describe_weights_change(old, other) == (
+        "/r/step-4 (model.safetensors 1,234 B modified 2026-11-27 09:14:56 UTC) -> "
+        "/r/step-8 (model.safetensors 99 B modified 2026-11-27 09:14:56 UTC)"
+    )
+    gone = {"folder": "/r/step-4", "weights": {}}
+    assert describe_weights_change(old, gone) == (
+        "/r/step-4: model.safetensors is gone (it was 1,234 B modified 2026-11-27 09:14:56 UTC)"
+    )

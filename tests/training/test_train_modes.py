@@ -2,23 +2,36 @@
 
 from __future__ import annotations
 
+import json
+import logging
+import shutil
+from pathlib import Path
+
 import pytest
 import torch
-from conftest import built_agent, make_config, split_batch, train_in_process
+from conftest import built_agent, make_config, split_batch, train_args, train_in_process, train_main
 
 from openfly_agent import constants as C
 from openfly_agent.training.preflight import PreflightError
+from openfly_agent.training.resume_settings import CONFIG_CHANGES_NAME
+
+LORA_RUN = {"steps": 2, "freeze_stage": "lora", "lora__rank": 4, "lora__alpha": 8, "optim__lr": 1e-2,
+            "validation__final_eval": "false"}  # fmt: skip
 
 
-def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_path):
+@pytest.fixture(scope="module")
+def lora_run(generated_dataset, tmp_path_factory):
+    """A finished 2-step LoRA run (a checkpoint at step 2, merged/ at the end): (output_dir, cfg, TrainResult)."""
+    out = tmp_path_factory.mktemp("lora_run")
+    cfg = make_config(generated_dataset, out, **LORA_RUN)
+    return out, cfg, train_in_process(cfg)
+
+
+def test_lora_run_saves_the_adapter_and_merges_on_rank0(lora_run):
     from openfly_agent.model.agent import OpenFlyAgent
     from openfly_agent.model.language.lora import TRAINABLES_NAME
 
-    cfg = make_config(
-        generated_dataset, tmp_path, steps=2, freeze_stage="lora", lora__rank=4,
-        lora__alpha=8, optim__lr=1e-2, validation__final_eval="false",
-    )  # fmt: skip
-    result = train_in_process(cfg)
+    tmp_path, cfg, result = lora_run
     adapter = result.checkpoint / C.ADAPTER_DIR_NAME
     assert (adapter / "adapter_config.json").is_file() and (adapter / TRAINABLES_NAME).is_file()
     assert not (result.checkpoint / C.WEIGHTS_NAME).exists()  # base weights are not copied into checkpoints
@@ -35,6 +48,38 @@ def test_lora_run_saves_the_adapter_and_merges_on_rank0(generated_dataset, tmp_p
     torch.testing.assert_close(found, expected, rtol=1e-4, atol=1e-5)
     b = lora_agent.language_model.base_model.model.model.layers[0].self_attn.q_proj.lora_B["default"].weight
     assert b.abs().max() > 0  # the adapter trained, so the merge really changed the weights
+
+
+def _run_files(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file of a run folder (links as themselves) but its logs and setting changes: path -> (size, mtime_ns)."""
+    files = [p for p in sorted(folder.rglob("*")) if p.is_file() or p.is_symlink()]
+    return {
+        str(p.relative_to(folder)): (p.lstat().st_size, p.lstat().st_mtime_ns)
+        for p in files
+        if p.relative_to(folder).parts[0] not in ("logs", CONFIG_CHANGES_NAME)
+    }
+
+
+def test_a_resume_with_nothing_left_to_train_writes_nothing(lora_run, generated_dataset, tmp_path, caplog):
+    """The run's last checkpoint and merged model stay as they were (eval.py and the release identify weights by
+    their files' sizes and modification times), the log says why, and the command succeeds."""
+    done, _, _ = lora_run
+    run = tmp_path / "run"
+    shutil.copytree(done, run, symlinks=True)  # copy2: the modification times come along
+    before = _run_files(run)
+    assert "merged/model.safetensors" in before and "checkpoints/step-000002/trainer_state.json" in before
+    args = train_args(generated_dataset, run, resume="true", **LORA_RUN)
+    with caplog.at_level(logging.INFO, logger="openfly_agent.training.trainer"):
+        assert train_main(args) == 0
+    # the copy's resume records that the run moved (output_dir), as any resume records what it changed
+    [moved] = (run / CONFIG_CHANGES_NAME).read_text().splitlines()
+    assert list(json.loads(moved)["changes"]) == ["output_dir"]
+    assert _run_files(run) == before
+    step = run / "checkpoints" / "step-000002"
+    assert (
+        f"nothing left to train: {step} is at step 2 of the 2 configured; no checkpoint is written and its "
+        "weights are left as they are"
+    ) in caplog.text
 
 
 def test_gradient_checkpointing_gives_the_same_loss_and_gradients(generated_dataset, tmp_path):
