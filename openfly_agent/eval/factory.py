@@ -10,8 +10,8 @@ import numpy as np
 
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.generation_settings import generation_settings
-from openfly_agent.data.openfly_reader import load_openfly_dataset
-from openfly_agent.data.schema import Episode
+from openfly_agent.data.openfly_reader import load_openfly_dataset, non_strict_hint
+from openfly_agent.data.schema import Episode, SchemaError
 from openfly_agent.eval.baselines import make_baseline
 from openfly_agent.eval.config import (
     AGENT_POLICIES,
@@ -88,6 +88,11 @@ def load_full_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
                 f"{err}. Generate a dataset first (python -m openfly_agent.toolchain generate "
                 "--config_path configs/toolchain/embedded-small.yaml) or point --dataset_root at one"
             ) from err
+        except SchemaError as err:
+            hint = non_strict_hint(err, "--reader.strict") if cfg.reader.strict else ""
+            if not hint:
+                raise
+            raise SchemaError(err.file, err.record, err.field_name, err.problem + hint) from err
         episodes = sorted(episodes, key=lambda e: e.episode_id)
         if not episodes:
             raise EvalInputError(f"{cfg.dataset_root}: split {split!r} has no episodes")

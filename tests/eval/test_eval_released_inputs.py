@@ -1,9 +1,11 @@
-"""`eval.py` on episodes of scenes its simulator cannot fly: one line, exit 2, before a model loads."""
+"""`eval.py` on released-format data: scenes its simulator cannot fly and malformed records, each one line and
+exit 2 before a model loads."""
 
 from __future__ import annotations
 
 import json
 
+import pytest
 from data_factories import make_episode, make_frames
 
 from openfly_agent import constants as C
@@ -46,3 +48,22 @@ def test_embedded_simulator_refuses_a_released_scene_before_loading_the_model(tm
         "(this one: --sim.type=airsim)"
     ), line
     assert not out.exists()
+
+
+def test_a_strict_read_names_the_option_that_skips_malformed_records(tmp_path, openfly_fixtures):
+    from openfly_agent.data.config import ReaderOptions
+    from openfly_agent.data.schema import SchemaError
+    from openfly_agent.eval.config import EvalConfig
+    from openfly_agent.eval.factory import load_full_splits
+
+    records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
+    records[1]["action"].append(-2)  # one entry too long: the action list is named, not index_list
+    (tmp_path / C.DATASET_ANNOTATION_DIR).mkdir()
+    (tmp_path / C.DATASET_ANNOTATION_DIR / "seen.json").write_text(json.dumps(records))
+    cfg = EvalConfig(policy="stop", dataset_root=str(tmp_path), split=[C.SPLIT_TEST_SEEN])
+    with pytest.raises(SchemaError) as info:
+        load_full_splits(cfg)
+    assert (info.value.record, info.value.field_name) == (1, "action")
+    assert str(info.value).endswith("--reader.strict=false skips each one, logged and counted)")
+    cfg.reader = ReaderOptions(strict=False)
+    assert len(load_full_splits(cfg)[C.SPLIT_TEST_SEEN]) == 2
