@@ -13,9 +13,10 @@ head), so `--size full` holds the released openvla-7b's 7,541,237,184 parameters
 N(0, 0.02), norm weights 1, LayerScale 1e-5, biases 0 (the rule of model/persistence/random_init.py).
 
 `--size full` is configs/model/openfly-7b.yaml as shipped; `--size reduced` is the same model with
-`REDUCED_WIDTH` (below), the width the CPU tests train the 7B configs at: the same module classes (timm
-DINOv2-with-registers and SigLIP ViTs, a Llama decoder, the fused projector) at small width. Train a 7B config
-at that width by adding `reduced_width_args()` to train.py's arguments. Prints one JSON line.
+configs/model/reduced-width.yaml laid over it (`REDUCED_WIDTH`), the width the CPU tests train the 7B configs at:
+the same module classes (timm DINOv2-with-registers and SigLIP ViTs, a Llama decoder, the fused projector) at
+small width. Train a 7B config at that width by adding `--model=configs/model/reduced-width.yaml` to train.py's
+arguments (`reduced_width_args()`). Prints one JSON line.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import time
 from pathlib import Path
 
 import torch
+import yaml
 
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import ModelConfig
@@ -37,22 +39,14 @@ from openfly_agent.model.persistence.openvla_loader import (
 )
 from openfly_agent.model.persistence.random_init import INIT_STD, LAYER_SCALE_INIT
 from openfly_agent.model.vision.backbone import build_featurizers
-from openfly_agent.utils.config import load_yaml_config
+from openfly_agent.utils.config import flat_settings, load_yaml_config
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 MODEL_CONFIG = REPO_ROOT / "configs" / "model" / "openfly-7b.yaml"
 SIZES = ("full", "reduced")
-# The 7B model at reduced width: the two timm ViTs of the `tiny` vision preset (DINOv2-with-registers and SigLIP
-# structure, width 96 / 128, 3 blocks) at 56 px with 14 px patches (a 4 x 4 grid, so memory.grid = 4 pools each
-# keyframe set to 1 token as g = 16 does on the 16 x 16 grid), and the `tiny` Llama (width 128, 2 layers). Every
-# other model setting (vocabulary 32064, grounding head, action head, keyframes, merging) stays as shipped.
-REDUCED_WIDTH = {
-    "vision.type": "tiny",
-    "vision.image_size": "56",
-    "vision.patch_size": "14",
-    "memory.grid": "4",
-    "llm.preset": "tiny",
-}
+# The 7B model at reduced width (the file says what it changes): laid over a train config's model section with
+# `--model=configs/model/reduced-width.yaml`, the one copy of these settings.
+REDUCED_WIDTH = REPO_ROOT / "configs" / "model" / "reduced-width.yaml"
 TOKENIZER_VOCAB = 1024
 NORM_STATS = {  # one profile in OpenVLA's layout (`openvla_bins` heads un-normalise with it)
     "vlnv1": {"action": {"q01": [0.0] * 8, "q99": [1.0, 9.0, 15.0, 15.0, 2.0, 2.0, 5.0, 5.0]}}
@@ -67,16 +61,16 @@ CORPUS = [
 
 
 def reduced_width_args() -> list[str]:
-    """train.py's arguments that shrink a 7B train config to `REDUCED_WIDTH` (`--model.<field>=<value>`)."""
-    return [f"--model.{key}={value}" for key, value in REDUCED_WIDTH.items()]
+    """train.py's argument that shrinks a 7B train config to `REDUCED_WIDTH`."""
+    return [f"--model={REDUCED_WIDTH.relative_to(REPO_ROOT).as_posix()}"]
 
 
 def model_config(size: str) -> ModelConfig:
-    """configs/model/openfly-7b.yaml at `size` ("full" as shipped, or "reduced": `REDUCED_WIDTH`)."""
+    """configs/model/openfly-7b.yaml at `size` ("full" as shipped, or "reduced": `REDUCED_WIDTH` laid over it)."""
     if size not in SIZES:
         raise ValueError(f"size={size!r}: choose one of {SIZES}")
-    overrides = [f"--{key}={value}" for key, value in REDUCED_WIDTH.items()] if size == "reduced" else []
-    return load_yaml_config(ModelConfig, MODEL_CONFIG, overrides)
+    reduced = flat_settings(yaml.safe_load(REDUCED_WIDTH.read_text())) if size == "reduced" else {}
+    return load_yaml_config(ModelConfig, MODEL_CONFIG, [f"--{key}={value}" for key, value in reduced.items()])
 
 
 def openvla_shapes(cfg: ModelConfig, tokenizer) -> dict[str, torch.Size]:

@@ -16,7 +16,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from openfly_agent import constants as C
-from openfly_agent.data.parquet_io import FRAME_KEY_COLUMNS, row_frame_keys
+from openfly_agent.data.parquet_io import FRAME_KEY_COLUMNS, exact_frame_key, row_frame_keys
 from openfly_agent.data.schema import Episode, SchemaError
 
 logger = logging.getLogger(__name__)
@@ -74,8 +74,9 @@ class FrameStore:
     else a parquet in `<root>/traj/<episode_id's folder>/` whose `env_id`/`traj_id` columns name the
     episode (released file names need not equal `image_path`); else image files
     `<root>/{images,image}/<episode_id>/<frame_id>.{png,jpg,jpeg}`. Parquet rows are matched to
-    `frame_ids` by the image path stem, `<image_id>_<frame_index>` or `image_id` (parquet_io.row_frame_keys),
-    so files holding every raw frame work too.
+    `frame_ids` by `<image_id>_<frame_index>` first, else the image path stem or `image_id`
+    (`match_frame_rows`), so files holding every raw frame work too; a trajectory whose rows share a frame's
+    key is logged once.
 
     Args:
         root: the dataset root.
@@ -86,6 +87,7 @@ class FrameStore:
     def __init__(self, root: str | Path, cache_episodes: int = 8, cache_frames: int = 256):
         self.root = Path(root)
         self.cache_episodes, self.cache_frames = cache_episodes, cache_frames
+        self._reported: set[str] = set()  # episodes whose frame-key collisions were logged
         self._reset_caches()
 
     def _reset_caches(self) -> None:
@@ -143,20 +145,18 @@ class FrameStore:
             self._dir_index[folder] = _index_parquet_folder(folder)
         return self._dir_index[folder].get(episode_id)
 
-    @staticmethod
-    def _read_parquet_frames(path: Path, episode: Episode) -> tuple[list[bytes], list[int]]:
+    def _read_parquet_frames(self, path: Path, episode: Episode) -> tuple[list[bytes], list[int]]:
         rows = read_parquet_rows(path, episode.episode_id)
-        by_key = {}
-        for r, row in enumerate(rows):
-            for key in row_frame_keys(row):
-                by_key.setdefault(key, r)
-        blobs, row_ids = [], []
-        for t, frame_id in enumerate(episode.frame_ids):
-            r = by_key.get(frame_id)
-            if r is None:
-                raise SchemaError(str(path), frame_id, "image", f"no row holds frame {t} ({frame_id!r})")
-            blobs.append((rows[r].get("image") or {}).get("bytes"))
-            row_ids.append(r)
+        row_ids, shared = match_frame_rows(rows, episode.frame_ids, path)
+        if shared and episode.episode_id not in self._reported:  # once per trajectory, not per cache miss
+            self._reported.add(episode.episode_id)
+            frame_id, named, taken = shared[0]
+            logger.warning(
+                "%s: %d of %d kept frames are named by more than one row (rows sharing an image path); each took "
+                "the row whose <image_id>_<frame_index> is its id first, e.g. %r: rows %s, took row %d",
+                path, len(shared), len(row_ids), frame_id, named, taken,
+            )  # fmt: skip
+        blobs = [(rows[r].get("image") or {}).get("bytes") for r in row_ids]
         return blobs, row_ids
 
     def _read_image_folder(self, episode: Episode) -> tuple[Path, list[bytes], list[None]]:
@@ -168,6 +168,43 @@ class FrameStore:
             f"no frames for episode {episode.episode_id!r} under {self.root}: expected "
             f"{C.DATASET_TRAJ_DIR}/{episode.episode_id}.parquet or images/{episode.episode_id}/<frame>.png"
         )
+
+
+def match_frame_rows(
+    rows: list[dict], frame_ids: list[str], path: Path
+) -> tuple[list[int], list[tuple[str, list[int], int]]]:
+    """The parquet row of each of `frame_ids`: the row whose `<image_id>_<frame_index>` is the id, else the first
+    row whose image path stem (or `image_id`) is.
+
+    Rows of one trajectory may share an image path (the raw rows of a merged forward move in the release): the
+    path then names several rows, up to 6 m apart, and only the exact key names the frame's own.
+
+    Returns:
+        The row of each frame, and `(frame id, the rows its id names, the row taken)` for every frame whose id
+        more than one row names.
+
+    Raises:
+        SchemaError: a frame that no row holds.
+    """
+    exact: dict[str, int] = {}
+    loose: dict[str, int] = {}
+    named_by: dict[str, list[int]] = {}  # every key -> the rows it names
+    for r, row in enumerate(rows):
+        key = exact_frame_key(row)
+        if key is not None:
+            exact.setdefault(key, r)
+        for name in dict.fromkeys(row_frame_keys(row)):
+            named_by.setdefault(name, []).append(r)
+            loose.setdefault(name, r)
+    row_ids, shared = [], []
+    for t, frame_id in enumerate(frame_ids):
+        r = exact.get(frame_id, loose.get(frame_id))
+        if r is None:
+            raise SchemaError(str(path), frame_id, "image", f"no row holds frame {t} ({frame_id!r})")
+        row_ids.append(r)
+        if len(named_by[frame_id]) > 1:
+            shared.append((frame_id, named_by[frame_id], r))
+    return row_ids, shared
 
 
 def read_parquet_rows(path: Path, record: str) -> list[dict]:

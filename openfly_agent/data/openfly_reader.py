@@ -23,22 +23,27 @@ from openfly_agent.data.labels import (
     check_action_sequence,
     move_merged_forward_to_start,
 )
-from openfly_agent.data.records import episode_from_record
+from openfly_agent.data.records import episode_from_record, four_number_positions
 from openfly_agent.data.schema import Episode, SchemaError
 
 logger = logging.getLogger(__name__)
 
+WHOLE_FILE = "<file>"  # the record of a SchemaError about the whole annotation file
 SPLIT_OF_FILE = {name: split for split, name in C.ANNOTATION_FILES.items()}  # "seen.json" -> "test_seen"
 
 
 @dataclass
 class ReadReport:
-    """What a read saw: records, episodes kept, one `SchemaError` per skipped record (non-strict), and how
-    many forward labels `merged_forward_position="start"` changed or left unresolved."""
+    """What a read saw and changed: records, episodes kept, one `SchemaError` per skipped record (non-strict),
+    the take-off / landing frames trimmed or labels mapped (`takeoff_landing`), the `pos` entries cut from 4
+    numbers to 3, and how many forward labels `merged_forward_position="start"` changed or left unresolved."""
 
     records: int = 0
     episodes: int = 0
     errors: list[SchemaError] = field(default_factory=list)
+    takeoff_landing_trimmed: int = 0
+    takeoff_landing_mapped: int = 0
+    positions_cut: int = 0
     forward_relabelled: int = 0
     forward_unresolved: int = 0
 
@@ -46,16 +51,42 @@ class ReadReport:
         self.errors.append(error)
         logger.warning("skipping a bad record: %s", error)
 
+    def changes(self) -> dict[str, int]:
+        """{what the reader did: how often}, every kind of repair (zeros included)."""
+        return {
+            "malformed records skipped": len(self.errors),
+            "take-off/landing frames trimmed": self.takeoff_landing_trimmed,
+            "take-off/landing labels mapped to ascend/descend": self.takeoff_landing_mapped,
+            "four-number positions cut to three": self.positions_cut,
+            "forward labels moved to where their motion starts": self.forward_relabelled,
+            "forward labels left as released (not a pure move)": self.forward_unresolved,
+        }
+
+
+def describe_changes(before: dict[str, int], after: dict[str, int]) -> str:
+    """`164 take-off/landing frames trimmed, 22 four-number positions cut to three` (what changed between two
+    `ReadReport.changes()`), or `nothing`."""
+    done = [f"{after[kind] - before[kind]} {kind}" for kind in after if after[kind] != before[kind]]
+    return ", ".join(done) or "nothing"
+
+
+def non_strict_hint(error: SchemaError, flag: str) -> str:
+    """What a command adds to a strict read's error about one record: its option (`flag`) that skips such
+    records instead; "" for an error about the whole file (not JSON, not a list)."""
+    if error.record == WHOLE_FILE:
+        return ""
+    return f" (a strict read stops at the first malformed record: {flag}=false skips each one, logged and counted)"
+
 
 def _load_json_list(path: Path) -> list:
     try:
         with path.open("r", encoding="utf-8") as f:
             data = json.load(f)
     except json.JSONDecodeError as err:
-        raise SchemaError(str(path), "<file>", "<json>", f"not valid JSON: {err}") from err
+        raise SchemaError(str(path), WHOLE_FILE, "<json>", f"not valid JSON: {err}") from err
     if not isinstance(data, list):
         raise SchemaError(
-            str(path), "<file>", "<json>", f"expected a list of records, got {type(data).__name__}"
+            str(path), WHOLE_FILE, "<json>", f"expected a list of records, got {type(data).__name__}"
         )
     return data
 
@@ -85,6 +116,7 @@ def read_annotation_file(
     split = split if split is not None else SPLIT_OF_FILE.get(path.name)
     episodes, seen_ids = [], {}
     records = _load_json_list(path)
+    before = report.changes()
     for index, record in enumerate(tqdm(records, desc=path.name, leave=False, disable=len(records) < 10_000)):
         report.records += 1
         try:
@@ -94,6 +126,7 @@ def read_annotation_file(
                     str(path), index, "image_path", f"duplicate of record {seen_ids[episode.episode_id]}"
                 )
             check_action_sequence(episode.actions, str(path), index)
+            phases = int((episode.actions < 0).sum())  # -1 take-off and -2 landing labels
             episode = apply_takeoff_landing(episode, options.takeoff_landing)
             if options.merged_forward_position == "start":
                 episode, changed, unresolved = move_merged_forward_to_start(episode)
@@ -104,14 +137,18 @@ def read_annotation_file(
                 raise
             report.add(err)
             continue
+        report.positions_cut += four_number_positions(record)
+        if options.takeoff_landing == "trim":
+            report.takeoff_landing_trimmed += phases
+        elif options.takeoff_landing == "map":
+            report.takeoff_landing_mapped += phases
         seen_ids[episode.episode_id] = index
         episodes.append(episode)
     report.episodes += len(episodes)
-    if options.merged_forward_position == "start":
-        logger.info(
-            "%s: %d forward labels moved to where their motion starts, %d left as released (not a pure move)",
-            path, report.forward_relabelled, report.forward_unresolved,
-        )  # fmt: skip
+    logger.info(
+        "%s: %d of %d records read; the reader changed %s",
+        path, len(episodes), len(records), describe_changes(before, report.changes()),
+    )  # fmt: skip
     if report.errors:
         logger.warning(
             "%s: kept %d of %d records (%d bad)", path, len(episodes), report.records, len(report.errors)

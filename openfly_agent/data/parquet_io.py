@@ -174,6 +174,14 @@ def _row_pose(row: dict, path: str, r: int) -> tuple[list[float], float]:
     return list(pos[:3]), float(yaw)
 
 
+def exact_frame_key(row: dict) -> str | None:
+    """`<image_id>_<frame_index>`: the key that names one row alone (the release gives the raw rows of a merged
+    forward move one shared image path, never one shared frame index); None without those columns."""
+    if row.get("image_id") is None or row.get("frame_index") is None:
+        return None
+    return f"{row['image_id']}_{int(row['frame_index'])}"
+
+
 def row_frame_keys(row: dict) -> list[str]:
     """Names under which a parquet row may appear in `index_list`, most specific first.
 
@@ -184,8 +192,8 @@ def row_frame_keys(row: dict) -> list[str]:
     image = row.get("image") or {}
     if image.get("path"):
         keys.append(Path(str(image["path"]).replace("\\", "/")).stem)
-    if row.get("image_id") is not None and row.get("frame_index") is not None:
-        keys.append(f"{row['image_id']}_{int(row['frame_index'])}")
+    if exact_frame_key(row) is not None:
+        keys.append(exact_frame_key(row))
     if row.get("image_id") is not None:
         keys.append(str(row["image_id"]))
     return keys

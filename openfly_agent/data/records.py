@@ -8,6 +8,7 @@ Release fields (docs/OFFICIAL_OPENFLY.md 1.2): `image_path`, `gpt_instruction`, 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Sequence
 from numbers import Real
 
@@ -17,6 +18,7 @@ from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode, SchemaError
 
 RELEASE_FIELDS = ("image_path", "gpt_instruction", "action", "index_list", "pos", "yaw")
+PER_FRAME_FIELDS = ("action", "index_list", "pos", "yaw")  # one entry per kept frame each
 YAW_MATCH_TOL_RAD = 1e-6  # a 4th `pos` number must equal `yaw` (mod 2 pi) within this
 
 
@@ -65,12 +67,32 @@ def _parse_actions(record: dict, file: str, index: int) -> np.ndarray:
     return np.asarray(values, dtype=np.int64)
 
 
+def _frame_count(record: dict, file: str, index: int) -> int:
+    """The number of kept frames: the length most per-frame lists share (the action list's on a tie).
+
+    Raises:
+        SchemaError: naming the list whose length differs (an `action` one entry too long is `action`'s error,
+            not `index_list`'s).
+    """
+    lengths = {name: len(_list_field(record, name, file, index)) for name in PER_FRAME_FIELDS}
+    shared = Counter(lengths.values())
+    n = max(shared, key=lambda length: (shared[length], length == lengths["action"]))
+    for name, length in lengths.items():
+        if length != n:
+            agree = ", ".join(other for other, other_length in lengths.items() if other_length == n)
+            raise SchemaError(file, index, name, f"length {length} != {n} frames ({agree}: {n} entries)")
+    return n
+
+
+def four_number_positions(record: dict) -> int:
+    """How many `pos` entries of a (valid) record carry a 4th number, the yaw the reader drops."""
+    return sum(isinstance(p, list) and len(p) == 4 for p in record.get("pos") or [])
+
+
 def _parse_poses(record: dict, n: int, file: str, index: int) -> tuple[np.ndarray, np.ndarray]:
-    """(T, 3) positions and (T,) yaws; a 4th `pos` number is checked against `yaw` and dropped."""
-    pos, yaw = _list_field(record, "pos", file, index), _list_field(record, "yaw", file, index)
-    for name, value in (("pos", pos), ("yaw", yaw)):
-        if len(value) != n:
-            raise SchemaError(file, index, name, f"length {len(value)} != {n} actions")
+    """(T, 3) positions and (T,) yaws of a record whose lists hold `n` entries each; a 4th `pos` number is
+    checked against `yaw` and dropped."""
+    pos, yaw = record["pos"], record["yaw"]
     for t, y in enumerate(yaw):
         if not _is_number(y):
             raise SchemaError(file, index, "yaw", f"entry {t} is {y!r}, expected a finite number")
@@ -146,12 +168,13 @@ def episode_from_record(record: dict, file: str = "", index: int = 0, split: str
         raise SchemaError(file, index, "scene_id", f"{record['scene_id']!r} != first part of {episode_id!r}")
     instruction = _string_field(record, "gpt_instruction", file, index)
     actions = _parse_actions(record, file, index)
-    n = len(actions)
-    frame_ids = _list_field(record, "index_list", file, index)
-    if len(frame_ids) != n or not all(isinstance(f, str) and f for f in frame_ids):
-        raise SchemaError(
-            file, index, "index_list", f"expected {n} non-empty strings, got {len(frame_ids)} entries"
-        )
+    n = _frame_count(record, file, index)
+    frame_ids = record["index_list"]
+    for t, frame_id in enumerate(frame_ids):
+        if not isinstance(frame_id, str) or not frame_id:
+            raise SchemaError(
+                file, index, "index_list", f"entry {t} is {frame_id!r}, expected a non-empty string"
+            )
     positions, yaws = _parse_poses(record, n, file, index)
     boxes, visible = _parse_boxes(record, n, file, index)
     landmark_ids = record.get("landmark_ids", [])

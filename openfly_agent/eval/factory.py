@@ -11,16 +11,18 @@ import numpy as np
 from openfly_agent import constants as C
 from openfly_agent.data.frames import FrameStore
 from openfly_agent.data.generation_settings import generation_settings
-from openfly_agent.data.openfly_reader import load_openfly_dataset
-from openfly_agent.data.schema import Episode
+from openfly_agent.data.openfly_reader import load_openfly_dataset, non_strict_hint
+from openfly_agent.data.schema import Episode, SchemaError
 from openfly_agent.eval.baselines import make_baseline
 from openfly_agent.eval.config import (
     AGENT_POLICIES,
     AGENT_TRUE_BOX,
+    SIM_EMBEDDED,
     BridgeSimSettings,
     EngineUnreachableError,
     EvalConfig,
     EvalInputError,
+    SimSettings,
 )
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.rollout.agent import AgentPolicy
@@ -31,15 +33,21 @@ from openfly_agent.sim.bridges.base import BridgeError
 from openfly_agent.sim.bridges.gs_http import GSHttpBridge
 from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
 from openfly_agent.sim.embedded import EmbeddedSimConfig
-from openfly_agent.sim.embedded_scenes import city_config
+from openfly_agent.sim.embedded_scenes import EMBEDDED_SCENE_FORM, city_config, is_embedded_scene
 from openfly_agent.sim.occupancy import OccupancyGrid
 from openfly_agent.sim.pointcloud import read_points
+from openfly_agent.sim.real_scene import ENGINE_AIRSIM, ENGINE_GS, ENGINE_UE, engine_of
 from openfly_agent.sim.scene import SceneBounds
 from openfly_agent.sim.vector import VectorSimulator
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_FRAME_SIZE = 224
+BRIDGE_OF_ENGINE = {
+    ENGINE_UE: "unrealcv",
+    ENGINE_AIRSIM: "airsim",
+    ENGINE_GS: "gs_http",
+}  # --sim.type per engine
 
 
 def subsample(episodes: list[Episode], count: int | None) -> list[Episode]:
@@ -84,12 +92,43 @@ def load_full_splits(cfg: EvalConfig) -> dict[str, list[Episode]]:
             episodes = load_openfly_dataset(cfg.dataset_root, split, cfg.reader)
         except FileNotFoundError as err:
             raise FileNotFoundError(f"{err}: {routes}") from err
+        except SchemaError as err:
+            hint = non_strict_hint(err, "--reader.strict") if cfg.reader.strict else ""
+            if not hint:
+                raise
+            raise SchemaError(err.file, err.record, err.field_name, err.problem + hint) from err
         episodes = sorted(episodes, key=lambda e: e.episode_id)
         if not episodes:
             raise EvalInputError(f"{cfg.dataset_root}: split {split!r} has no episodes")
         out[split] = episodes
         logger.info("%s: %d episodes from %s", split, len(episodes), cfg.dataset_root)
     return out
+
+
+def check_simulator_scenes(cfg: EvalConfig, episodes: list[Episode]) -> None:
+    """The embedded simulator flies only the embedded cities: refuse any other scene before a model loads or an
+    output is written, naming the bridge that flies it.
+
+    Raises:
+        EvalInputError: one line naming the first scene that is not embedded, how many episodes are in such
+            scenes, and the `--sim.type` choices that fly them.
+    """
+    if cfg.sim.type != SIM_EMBEDDED:
+        return
+    foreign = [e for e in episodes if not is_embedded_scene(e.scene_id)]
+    if not foreign:
+        return
+    scene = foreign[0].scene_id
+    try:
+        hint = f" (this one: --sim.type={BRIDGE_OF_ENGINE[engine_of(scene)]})"
+    except ValueError:
+        hint = ""
+    bridges = "|".join(name for name in SimSettings.get_known_choices() if name != SIM_EMBEDDED)
+    raise EvalInputError(
+        f"--sim.type={SIM_EMBEDDED} flies only the embedded cities (scene ids {EMBEDDED_SCENE_FORM}); episode "
+        f"scene {scene!r} ({len(foreign)} of {len(episodes)} episodes are not embedded) needs a bridge: "
+        f"--sim.type={bridges}{hint}, see configs/eval/released-*.yaml and docs/BRIDGES.md"
+    )
 
 
 def dataset_frame_size(root: str, episodes: list[Episode]) -> tuple[int, int] | None:

@@ -24,6 +24,7 @@ from openfly_agent.eval.distributed import (
     shard,
 )
 from openfly_agent.eval.factory import (
+    check_simulator_scenes,
     embedded_sim_config,
     load_full_splits,
     make_env,
@@ -202,6 +203,7 @@ def run(cfg: EvalConfig) -> dict:
     episodes_by_split = subsample_splits(full_splits, cfg.max_episodes)
     split_sizes = {split: len(episodes) for split, episodes in full_splits.items()}  # before max_episodes
     all_episodes = [e for eps in episodes_by_split.values() for e in eps]
+    check_simulator_scenes(cfg, all_episodes)  # before a model loads or an output folder is made
     envs: dict[bool, VectorSimulator] = {}  # rendering or blind (baselines never look at frames)
     if cfg.sim.type != "embedded":  # connect now: an engine that cannot be reached fails before any output
         envs[True] = envs[False] = make_env(cfg, info, all_episodes)

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from openfly_agent.sim.city import City, CityConfig, generate_city, parse_scene_id
+from openfly_agent.sim.city import SCENE_PREFIX, City, CityConfig, generate_city, parse_scene_id
 from openfly_agent.sim.scene import Landmark
 
 
@@ -22,6 +22,18 @@ def city_config(settings: dict) -> CityConfig:
     if settings.get("city_buildings") is None:
         return CityConfig(size_m=size_m)
     return CityConfig(size_m=size_m, n_buildings=int(settings["city_buildings"]))
+
+
+EMBEDDED_SCENE_FORM = f"{SCENE_PREFIX}<seed>"  # how an embedded scene id reads, for messages
+
+
+def is_embedded_scene(scene_id: str) -> bool:
+    """Whether `scene_id` names an embedded city (`embedded-<seed>`), the only scenes the embedded simulator flies."""
+    try:
+        parse_scene_id(scene_id)
+    except ValueError:
+        return False
+    return True
 
 
 def embedded_city(scene_id: str, config: CityConfig | None = None) -> City | None:

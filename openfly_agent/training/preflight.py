@@ -14,7 +14,12 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import DataConfig
-from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
+from openfly_agent.data.openfly_reader import (
+    annotation_path,
+    load_openfly_dataset,
+    non_strict_hint,
+    part_files,
+)
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.model.persistence.checkpoint_path import (
     UnreadableWeightsError,
@@ -92,7 +97,9 @@ def load_split(data: DataConfig, split: str) -> list:
     try:
         episodes = load_openfly_dataset(data.root, split, options=data.reader)
     except (SchemaError, FileNotFoundError, json.JSONDecodeError) as err:
-        raise PreflightError(f"dataset {data.root}, split {split!r}: {err}") from err
+        strict = isinstance(err, SchemaError) and data.reader.strict
+        hint = non_strict_hint(err, "--data.reader.strict") if strict else ""
+        raise PreflightError(f"dataset {data.root}, split {split!r}: {err}{hint}") from err
     if not episodes:
         raise PreflightError(f"dataset {data.root}, split {split!r} has no episodes")
     return episodes

@@ -18,6 +18,8 @@ from openfly_agent.utils.cli_options import (
     bare_flags_as_true,
     check_options,
     config_path_of,
+    nested_class,
+    type_hints,
     unknown_choice,
 )
 from openfly_agent.utils.errors import root_cause
@@ -29,7 +31,8 @@ def parse_config(
     config_class: type[T], args: list[str] | None = None, config_path: str | Path | None = None
 ) -> T:
     """Parse `config_class` from an optional YAML file and `--a.b=c` overrides (draccus); a yes/no option
-    given alone (`--push`) means `--push=true`.
+    given alone (`--push`) means `--push=true`; a section given a YAML file (`--model=<file>.yaml`) takes that
+    file's keys over its own (`section_files_first`).
 
     Raises:
         CommandLineError: an option that names no field (`UnknownOptionError`, with the closest field: "did you
@@ -48,6 +51,7 @@ def parse_config(
     check_options(config_class, args)
     args = bare_flags_as_true(config_class, args)
     args = [_resolved_config_arg(arg, args[i - 1] if i else None) for i, arg in enumerate(args)]
+    args = section_files_first(config_class, args)
     if config_path is not None:
         config_path = resolve_config_path(config_path)
     typed = config_path_of(args)  # the YAML the command line names
@@ -115,6 +119,41 @@ def _resolved_config_arg(arg: str, previous: str | None) -> str:
     if previous == "--config_path" and not arg.startswith("--"):
         return str(resolve_config_path(arg))
     return arg
+
+
+SECTION_FILE_SUFFIXES = (".yaml", ".yml", ".json")
+
+
+def section_files_first(config_class: type, args: list[str]) -> list[str]:
+    """`args` with each section given a file (`--model=configs/model/reduced-width.yaml` or `--model <file>`) as
+    draccus' `--model=include <file>`, which lays the file's keys over that section of the config file (a
+    partial section: the keys it does not name keep their values), moved in front of the other options so
+    that a dotted option (`--model.memory.grid=2`) still wins over the file, wherever it stands."""
+    files, rest, index = [], [], 0
+    while index < len(args):
+        arg = args[index]
+        name, has_value, value = arg[2:].partition("=") if arg.startswith("--") else ("", "", "")
+        if (
+            arg.startswith("--")
+            and not has_value
+            and index + 1 < len(args)
+            and not args[index + 1].startswith("--")
+        ):
+            value, index = args[index + 1], index + 1
+        if name and value.endswith(SECTION_FILE_SUFFIXES) and _section_of(config_class, name) is not None:
+            files.append(f"--{name}=include {resolve_config_path(value)}")
+        else:
+            rest += [arg, value] if value and not has_value else [arg]
+        index += 1
+    return files + rest
+
+
+def _section_of(config_class: type, name: str) -> type | None:
+    """The dataclass of the section a dotted option names (`model.vision`), else None (a plain field)."""
+    section: type | None = config_class
+    for part in name.split("."):
+        section = nested_class(type_hints(section).get(part)) if section is not None else None
+    return section
 
 
 def load_yaml_config(config_class: type[T], path: str | Path, overrides: list[str] | None = None) -> T:

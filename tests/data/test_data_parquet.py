@@ -40,14 +40,20 @@ def _png(rgb: np.ndarray) -> bytes:
 
 
 def write_release_parquet(
-    path: Path, frames: list[np.ndarray], corrupt_row: int | None = None, stem_in_image_id: bool = False
+    path: Path,
+    frames: list[np.ndarray],
+    corrupt_row: int | None = None,
+    stem_in_image_id: bool = False,
+    path_of_row: dict[int, int] | None = None,
 ) -> None:
     """Columns and types as in the released files (docs/OFFICIAL_OPENFLY.md 1.3); no extra columns.
 
     `stem_in_image_id`: no image path, and `image_id` already holds the whole `<stamp>_<k>` stem.
+    `path_of_row`: row -> the raw index its image path names instead of its own (rows sharing a path).
     """
     stamp = "20250119_070457"
-    image = [{"bytes": _png(f), "path": f"{stamp}_{k}.png"} for k, f in enumerate(frames)]
+    named = {k: (path_of_row or {}).get(k, k) for k in range(len(frames))}
+    image = [{"bytes": _png(f), "path": f"{stamp}_{named[k]}.png"} for k, f in enumerate(frames)]
     if stem_in_image_id:
         image = [{"bytes": i["bytes"], "path": None} for i in image]
     if corrupt_row is not None:
@@ -99,6 +105,29 @@ def test_release_parquet_frames_are_pixel_exact(tmp_path, file_name, stem_in_ima
         assert rgb.dtype == np.uint8 and rgb.shape == (10, 14, 3)
         np.testing.assert_array_equal(rgb, frames[k])
     np.testing.assert_array_equal(store.frame(episode, 3), frames[4])
+
+
+def test_rows_sharing_an_image_path_give_each_kept_frame_its_own_row(tmp_path, caplog):
+    """Raw rows 2, 3, 4 (the merged move) all name `..._4.png`: kept frame `20250119_070457_4` is row 4's
+    (`image_id` + `frame_index` 4), not row 2's, 6 m behind; one warning per trajectory, with the counts."""
+    frames = make_frames(len(RAW_ROWS), seed=5)
+    folder = tmp_path / "traj" / "env_airsim_18/astar_data/low_short_updown"
+    write_release_parquet(folder / f"{TRAJ_ID}.parquet", frames, path_of_row={2: 4, 3: 4})
+    _annotation(tmp_path)
+    episode = load_openfly_dataset(tmp_path, "train", ReaderOptions(takeoff_landing="keep"))[0]
+    store = FrameStore(tmp_path, cache_episodes=1, cache_frames=1)
+    with caplog.at_level("WARNING", logger="openfly_agent.data.frames"):
+        got = store.frames(episode)
+        store._reset_caches()  # a cache miss reads the file again: no second warning
+        store.frame(episode, 3)
+    for rgb, k in zip(got, KEPT):
+        np.testing.assert_array_equal(rgb, frames[k])
+    # `..._4` is the path stem of rows 2, 3, 4 and the exact key of row 4; `..._2` is row 2's exact key only
+    [warning] = [r.getMessage() for r in caplog.records]
+    assert warning.startswith(
+        f"{folder / TRAJ_ID}.parquet: 1 of 6 kept frames are named by more than one row"
+    )
+    assert warning.endswith("'20250119_070457_4': rows [2, 3, 4], took row 4")
 
 
 def test_release_parquet_episode_fields(tmp_path):

@@ -127,6 +127,8 @@ def _break(record: dict, how: str) -> dict:
         record["yaw"][0] = float("nan")
     elif how == "index_list_long":
         record["index_list"] = record["index_list"] + ["x"]
+    elif how == "action_long":
+        record["action"] = record["action"] + [-2]
     elif how == "no_instruction":
         del record["gpt_instruction"]
     elif how == "absolute_path":
@@ -147,6 +149,7 @@ def _break(record: dict, how: str) -> dict:
         ("float_action", "action"),
         ("yaw_nan", "yaw"),
         ("index_list_long", "index_list"),
+        ("action_long", "action"),  # the other three lists agree: the action list is the one too long
         ("no_instruction", "gpt_instruction"),
         ("absolute_path", "image_path"),
     ],
@@ -178,6 +181,22 @@ def test_non_strict_skips_and_reports_bad_records(tmp_path, eval_test, caplog):
     assert [(e.record, e.field_name) for e in report.errors] == [(0, "action"), (3, "pos"), (4, "image_path")]
     assert (report.records, report.episodes) == (5, 2)
     assert sum("skipping a bad record" in r.message for r in caplog.records) == 3
+
+
+def test_the_reader_says_what_it_changed_in_one_line(eval_test, caplog):
+    """eval_test.json read with `trim`: 366 take-off and 368 landing frames dropped, 92 `pos` entries that carry
+    the yaw as a 4th number (docs/OFFICIAL_OPENFLY.md 1.2, data_cards/openfly_released.md section 4)."""
+    path = eval_test[0]
+    with caplog.at_level(logging.INFO, logger="openfly_agent.data.openfly_reader"):
+        read_annotation_file(path, ReaderOptions(takeoff_landing="trim"))
+        read_annotation_file(path, ReaderOptions(takeoff_landing="map", merged_forward_position="start"))
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{path}: 240 of 240 records read; the reader changed 734 take-off/landing frames trimmed, "
+        "92 four-number positions cut to three",
+        f"{path}: 240 of 240 records read; the reader changed 734 take-off/landing labels mapped to "
+        "ascend/descend, 92 four-number positions cut to three, 724 forward labels moved to where their motion "
+        "starts, 21 forward labels left as released (not a pure move)",
+    ]
 
 
 def test_invalid_json_file_is_a_schema_error(tmp_path):

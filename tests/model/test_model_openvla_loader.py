@@ -126,16 +126,18 @@ def test_loader_fails_loudly(make_agent):
     agent = make_agent()
     state = {k: v for k, v in _openvla_state_dict(agent).items() if not k.startswith("_")}
     with pytest.raises(
-        ValueError, match=r"1 unexpected key\(s\): \['vision_backbone.featurizer.head.weight'\]"
+        ValueError, match=r"config: 1 unexpected key: vision_backbone.featurizer.head.weight;"
     ):
         load_openvla_weights(agent, {**state, "vision_backbone.featurizer.head.weight": torch.zeros(3)})
     without = dict(state)
     del without["projector.fc1.bias"]
-    with pytest.raises(ValueError, match=r"1 missing key\(s\): \['projector.fc1.bias'\]"):
+    with pytest.raises(ValueError, match=r"config: 1 missing key: projector.fc1.bias;"):
         load_openvla_weights(agent, without)
     resized = dict(state)
     resized["language_model.model.embed_tokens.weight"] = torch.zeros(10, 64)
-    with pytest.raises(ValueError, match="wrong shape.*embed_tokens"):
+    with pytest.raises(
+        ValueError, match=r"1 tensor of another shape \(checkpoint vs config\): .*embed_tokens"
+    ):
         load_openvla_weights(agent, resized)
 
 

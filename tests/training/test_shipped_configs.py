@@ -1,7 +1,8 @@
 """Every shipped train config runs through train.py, as users launch it; the 7B ones at reduced width.
 
-Reduced width is `bench/synthetic_openvla.py`'s `REDUCED_WIDTH` (`reduced_width_args()`): the 7B model's classes
-(timm DINOv2-with-registers and SigLIP ViTs, a Llama decoder, the fused projector) at small width, every other
+Reduced width is configs/model/reduced-width.yaml laid over the model (`--model=<file>`, bench/synthetic_openvla.py's
+`reduced_width_args()`): the 7B model's classes (timm DINOv2-with-registers and SigLIP ViTs, a Llama decoder, the
+fused projector) at small width, every other
 model setting as shipped (the regression grounding head, the discrete head, keyframes + merging, LoRA on every
 linear layer, gradient checkpointing). The 7B runs start from an OpenVLA-layout folder written by that module
 (sharded safetensors + index, config.json, tokenizer files). Each run is also shortened by `RUN_LENGTH` (steps,

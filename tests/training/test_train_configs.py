@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 from accelerate.commands.config.config_args import load_config_from_file
 
+from openfly_agent.data.config import DataConfig
 from openfly_agent.training.accelerator import flat_config
 from openfly_agent.training.config import BatchConfig, BatchSizeError, OptimConfig, TrainConfig
 from openfly_agent.utils.config import config_from_dict, config_to_dict, parse_config
@@ -54,6 +55,35 @@ def test_paper_recipe_values():
     lora = parse_config(TrainConfig, [], config_path=CONFIGS / "train" / "openfly-7b-lora.yaml")
     assert lora.use_lora and lora.freeze_stage == "lora" and lora.lora.rank == 32
     assert not cfg.use_lora
+
+
+@pytest.mark.parametrize("name", ["openfly-7b-lora.yaml", "openfly-7b-full.yaml"])
+def test_the_7b_configs_read_the_released_data_as_its_config_says(name):
+    """The README's 7B commands read the release non-strictly (it has a few malformed records), with the data
+    section of configs/data/openfly_released.yaml itself, not a copy of it."""
+    cfg = parse_config(TrainConfig, [], config_path=CONFIGS / "train" / name)
+    released = parse_config(DataConfig, [], config_path=CONFIGS / "data" / "openfly_released.yaml")
+    assert cfg.data == released
+    assert cfg.data.reader.strict is False
+
+
+def test_a_section_file_lays_its_keys_over_the_config_and_options_still_win():
+    """`--model=configs/model/reduced-width.yaml`: the file's keys replace those of the 7B model section, the keys
+    it does not name keep the 7B values, and a dotted option wins wherever it stands; it is bench's reduced width."""
+    import importlib
+
+    lora = str(CONFIGS / "train" / "openfly-7b-lora.yaml")
+    file = "configs/model/reduced-width.yaml"
+    for argv in (
+        [f"--model={file}", "--model.memory.grid=2"],
+        ["--model.memory.grid=2", "--model", file],
+    ):
+        model = parse_config(TrainConfig, ["--config_path", lora, *argv]).model
+        assert (model.vision.type, model.vision.image_size, model.vision.patch_size) == ("tiny", 56, 14)
+        assert (model.llm.preset, model.memory.grid) == ("tiny", 2)
+        assert (model.llm.vocab_size, model.llm.pad_token_id, model.grounding.type) == (32064, 32000, "box")
+    reduced = parse_config(TrainConfig, ["--config_path", lora, f"--model={file}"]).model
+    assert reduced == importlib.import_module("bench.synthetic_openvla").model_config("reduced")
 
 
 def test_command_line_overrides_the_yaml():

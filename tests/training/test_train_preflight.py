@@ -9,7 +9,7 @@ import torch
 from safetensors.torch import save_file
 
 from openfly_agent import constants as C
-from openfly_agent.data.config import DataConfig
+from openfly_agent.data.config import DataConfig, ReaderOptions
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import BatchConfig, BatchSizeError
 from openfly_agent.training.preflight import (
@@ -84,6 +84,10 @@ def test_malformed_record_names_file_record_and_field(tmp_path, openfly_fixtures
         load_split(DataConfig(root=str(tmp_path)), C.SPLIT_TRAIN)
     message = str(err.value)
     assert "train.json" in message and "yaw" in message and "2" in message
+    # strict (the default) names the option that skips such records; non-strict skips it
+    assert message.endswith("--data.reader.strict=false skips each one, logged and counted)")
+    data = DataConfig(root=str(tmp_path), reader=ReaderOptions(strict=False))
+    assert len(load_split(data, C.SPLIT_TRAIN)) == 2
 
 
 def test_checkpoint_shapes_from_headers_and_mismatch_report(tmp_path):

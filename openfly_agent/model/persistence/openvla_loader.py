@@ -3,7 +3,9 @@
 Every checkpoint key is accounted for: loaded into the agent, or one of the keys of the ViT parts the
 agent prunes (the last block, the final norm, SigLIP's attention-pool head; OpenVLA never uses them).
 Agent keys missing from the checkpoint may only belong to the new modules (`grounding_head.*`). Anything
-else (unexpected, missing or wrong shape) raises, naming the keys. LayerScale is `ls1.scale_factor` in
+else (unexpected, missing or wrong shape) raises one line: the model sizes that differ (LLM width, ViT width, ...)
+and a few keys of each kind with their shapes (`mismatch_message`); a folder is checked from its headers before
+any weight is allocated. LayerScale is `ls1.scale_factor` in
 OpenVLA files and `ls1.gamma` in timm (and here); both directions are mapped.
 """
 
@@ -73,11 +75,26 @@ def pruned_vision_keys(agent: nn.Module) -> set[str]:
     return keys
 
 
-def _iter_checkpoint(source) -> Iterator[tuple[str, torch.Tensor]]:
-    if isinstance(source, dict):
-        yield from source.items()
-        return
-    path = Path(source)
+# Named sizes of the model, read off one tensor each: (name, agent key, dimension); a mismatch names these first.
+DIMENSIONS = (
+    ("llm hidden size", "language_model.model.embed_tokens.weight", 1),
+    ("llm vocabulary", "language_model.model.embed_tokens.weight", 0),
+    ("vision width", "vision_backbone.featurizer.patch_embed.proj.weight", 0),
+    ("fused vision width", "vision_backbone.fused_featurizer.patch_embed.proj.weight", 0),
+    ("vision patch size", "vision_backbone.featurizer.patch_embed.proj.weight", 2),
+    ("vision positions", "vision_backbone.featurizer.pos_embed", 1),
+    ("projector width", "projector.fc1.weight", 0),
+)
+# Repeated blocks, counted by index: (name, key prefix before the index).
+DEPTHS = (
+    ("llm layers", "language_model.model.layers."),
+    ("vision blocks", "vision_backbone.featurizer.blocks."),
+)
+REDUCED_WIDTH_HINT = "did you forget --model=configs/model/reduced-width.yaml?"
+
+
+def _checkpoint_files(path: Path) -> list[Path]:
+    """The safetensors files of a file or folder (sharded with an index, or `*.safetensors`)."""
     if path.is_dir():
         index = path / "model.safetensors.index.json"
         if index.is_file():
@@ -89,10 +106,95 @@ def _iter_checkpoint(source) -> Iterator[tuple[str, torch.Tensor]]:
         paths = [path]
     if not paths or not all(p.is_file() for p in paths):
         raise FileNotFoundError(f"no safetensors weights found at {path}")
-    for file in paths:
+    return paths
+
+
+def _iter_checkpoint(source) -> Iterator[tuple[str, torch.Tensor]]:
+    if isinstance(source, dict):
+        yield from source.items()
+        return
+    for file in _checkpoint_files(Path(source)):
         with open_safetensors(file) as handle:  # a truncated file: UnreadableWeightsError naming it
             for key in handle.keys():  # noqa: SIM118 (safe_open is not a mapping)
                 yield key, handle.get_tensor(key)
+
+
+def checkpoint_shapes(path: str | Path) -> dict[str, tuple[int, ...]]:
+    """{checkpoint key: shape} from the safetensors headers alone (no tensor is read)."""
+    shapes = {}
+    for file in _checkpoint_files(Path(path)):
+        with open_safetensors(file) as handle:
+            for key in handle.keys():  # noqa: SIM118 (safe_open is not a mapping)
+                shapes[key] = tuple(handle.get_slice(key).get_shape())
+    return shapes
+
+
+def _named_sizes(shapes: dict[str, tuple[int, ...]]) -> dict[str, int]:
+    """The DIMENSIONS and DEPTHS of a model from its agent-style {key: shape}."""
+    sizes = {}
+    for name, key, dim in DIMENSIONS:
+        if key in shapes and len(shapes[key]) > dim:
+            sizes[name] = shapes[key][dim]
+    for name, prefix in DEPTHS:
+        indices = {k[len(prefix) :].split(".", 1)[0] for k in shapes if k.startswith(prefix)}
+        if indices:
+            sizes[name] = len(indices)
+    return sizes
+
+
+def mismatch_message(
+    source,
+    found: dict[str, tuple[int, ...]],
+    expected: dict[str, tuple[int, ...]],
+    unexpected: list[str],
+    missing: list[str],
+) -> str:
+    """One line on a checkpoint that does not fit the configured model: the named sizes that differ
+    ("checkpoint llm hidden size 128, config 4096"), then how many keys are unexpected, missing or of another
+    shape, with a few of each (shapes given). `found` / `expected`: agent-style {key: shape} of each side (the
+    checkpoint's without the ViT parts the agent prunes)."""
+    have, want = _named_sizes(found), _named_sizes(expected)
+    sizes = [
+        f"checkpoint {name} {have[name]}, config {want[name]}"
+        for name in want
+        if have.get(name, want[name]) != want[name]
+    ]
+    wrong = [k for k in found if k in expected and tuple(found[k]) != tuple(expected[k])]
+    parts = ["; ".join(sizes)] if sizes else []
+    if wrong:
+        shown = [f"{k} {tuple(found[k])} vs {tuple(expected[k])}" for k in wrong]
+        parts.append(_some(shown, "tensor", "of another shape (checkpoint vs config)"))
+    for title, keys in (("unexpected", unexpected), ("missing", missing)):
+        if keys:
+            parts.append(_some(keys, f"{title} key"))
+    hint = "use the model config the checkpoint was made for"
+    if have.get("llm hidden size", 0) < want.get("llm hidden size", 0):
+        hint = REDUCED_WIDTH_HINT + " (or " + hint + ")"
+    return f"OpenVLA checkpoint {source} does not match the model config: {'; '.join(parts)}; {hint}"
+
+
+def _some(items: list[str], noun: str, after: str = "", shown: int = 3) -> str:
+    """`25 tensors of another shape, e.g. a, b, c` / `1 missing key: a`."""
+    head = f"{len(items)} {noun}{'s' if len(items) != 1 else ''}{' ' + after if after else ''}"
+    return f"{head}{', e.g. ' if len(items) > shown else ': '}{', '.join(items[:shown])}"
+
+
+def check_openvla_shapes(agent: nn.Module, folder: str | Path) -> None:
+    """Compare an OpenVLA folder's tensor shapes (headers only) with `agent`'s (which may be on the meta device)
+    before any weight is read or allocated.
+
+    Raises:
+        ValueError: one line, `mismatch_message`.
+    """
+    targets = {name: tuple(t.shape) for name, t in agent.state_dict().items()}
+    prunable = pruned_vision_keys(agent)
+    found = {openvla_to_agent_key(k): shape for k, shape in checkpoint_shapes(folder).items()}
+    found = {k: shape for k, shape in found.items() if k not in prunable}  # the ViT parts the agent drops
+    unexpected = sorted(k for k in found if k not in targets and k not in prunable)
+    missing = sorted(k for k in targets if k not in found and not k.startswith(NEW_MODULE_PREFIXES))
+    wrong = any(k in targets and shape != targets[k] for k, shape in found.items())
+    if unexpected or missing or wrong:
+        raise ValueError(mismatch_message(folder, found, targets, unexpected, missing))
 
 
 def load_openvla_weights(agent: nn.Module, path_or_state_dict) -> LoadReport:
@@ -113,14 +215,13 @@ def load_openvla_weights(agent: nn.Module, path_or_state_dict) -> LoadReport:
         raise ValueError("load OpenVLA weights before attaching LoRA")
     targets = agent.state_dict()
     prunable = pruned_vision_keys(agent)
-    report, unexpected, wrong_shape = LoadReport(), [], []
+    report, unexpected, found = LoadReport(), [], {}
     for key, tensor in _iter_checkpoint(path_or_state_dict):
         name = openvla_to_agent_key(key)
+        if name not in prunable:
+            found[name] = tuple(tensor.shape)
         if name in targets:
             if tuple(tensor.shape) != tuple(targets[name].shape):
-                wrong_shape.append(
-                    f"{key}: checkpoint {tuple(tensor.shape)} vs agent {tuple(targets[name].shape)}"
-                )
                 continue
             with torch.no_grad():
                 targets[name].copy_(tensor.to(targets[name].dtype))
@@ -131,14 +232,12 @@ def load_openvla_weights(agent: nn.Module, path_or_state_dict) -> LoadReport:
             unexpected.append(key)
     missing = sorted(set(targets) - set(report.loaded))
     report.missing_new = [k for k in missing if k.startswith(NEW_MODULE_PREFIXES)]
-    missing_old = [k for k in missing if not k.startswith(NEW_MODULE_PREFIXES)]
-    problems = []
-    for title, keys in (("unexpected", unexpected), ("missing", missing_old), ("wrong shape", wrong_shape)):
-        if keys:
-            problems.append(f"{len(keys)} {title} key(s): {keys[:20]}{' ...' if len(keys) > 20 else ''}")
-    if problems:
+    missing_old = [k for k in missing if not k.startswith(NEW_MODULE_PREFIXES) and k not in found]
+    expected = {name: tuple(t.shape) for name, t in targets.items()}
+    wrong_shape = any(name in expected and shape != expected[name] for name, shape in found.items())
+    if unexpected or missing_old or wrong_shape:
         source = path_or_state_dict if not isinstance(path_or_state_dict, dict) else "state dict"
-        raise ValueError(f"OpenVLA checkpoint {source} does not match the agent: " + "; ".join(problems))
+        raise ValueError(mismatch_message(source, found, expected, unexpected, missing_old))
     logger.info("OpenVLA weights: %s", report.summary())
     return report
 
@@ -168,6 +267,7 @@ def agent_from_openvla_checkpoint(folder: str | Path, cfg, tokenizer=None, devic
         agent = OpenFlyAgent.from_model_config(
             cfg, tokenizer=tokenizer, norm_stats=read_openvla_norm_stats(folder)
         )
+    check_openvla_shapes(agent, folder)  # from the headers: a mismatch fails before 7B weights are allocated
     agent.to_empty(device=device)
     if dtype is not None:
         agent.to(dtype)
