@@ -99,7 +99,7 @@ class TensorBoardTracker(GeneralTracker):
         self.writer = None
 
     def start(self) -> None:
-        from torch.utils.tensorboard import SummaryWriter
+        from torch.utils.tensorboard import SummaryWriter  # lazy: only the runs that use TensorBoard
 
         purge = None if self.resumed_at is None else self.resumed_at + 1
         self.writer = SummaryWriter(str(self.run_dir), purge_step=purge)
@@ -109,7 +109,7 @@ class TensorBoardTracker(GeneralTracker):
         return self.writer
 
     def store_init_configuration(self, values: dict) -> None:
-        from torch.utils.tensorboard.summary import hparams
+        from torch.utils.tensorboard.summary import hparams  # lazy: as in `start`
 
         for summary in hparams(values, metric_dict={}):  # experiment, session start and end
             self.writer.file_writer.add_summary(summary)
