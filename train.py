@@ -17,6 +17,7 @@ help, the did-you-mean and the one-line messages come from `training/cli.py`.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 import time
@@ -44,21 +45,25 @@ RUN_SUBFOLDERS = ("logs", "checkpoints", "tokenizer")  # what a run creates in i
 logger = logging.getLogger("train")
 
 
+NO_BOXES = "n/a (no boxes in this data)"  # the box IoU of samples without a visible target box
+
+
 def report(result, cfg) -> None:
     """The final figures, on stdout of the main process."""
     final = result.final_metrics
     print(f"finished at step {result.state.step}; last checkpoint: {result.checkpoint}")
-    if final and "action_accuracy" in final:
+    if not final:
+        return
+    iou = final["box_iou"]
+    iou_text = NO_BOXES if math.isnan(iou) else f"{iou:.4f}"
+    if "action_accuracy" in final:
         majority = final.get("majority_class_rate", float("nan"))
         print(
             f"offline action accuracy on {cfg.data.test_split} ({int(final['samples'])} samples): "
-            f"{final['action_accuracy']:.4f}; majority-class rate: {majority:.4f}; "
-            f"box IoU: {final['box_iou']:.4f}"
+            f"{final['action_accuracy']:.4f}; majority-class rate: {majority:.4f}; box IoU: {iou_text}"
         )
-    elif final:  # the grounding stage: no actions
-        print(
-            f"target box IoU on {cfg.data.test_split} ({int(final['samples'])} samples): {final['box_iou']:.4f}"
-        )
+    else:  # the grounding stage: no actions
+        print(f"target box IoU on {cfg.data.test_split} ({int(final['samples'])} samples): {iou_text}")
 
 
 def say_error(message: str) -> None:

@@ -122,8 +122,8 @@ class FakeUnrealCV(FakeTcpServer):
         conn.sendall(struct.pack("<I", UNREALCV_MAGIC) + struct.pack("<I", len(payload)) + payload)
 
     def handle(self, conn: socket.socket, index: int) -> None:
-        if self.silent:
-            time.sleep(0.5)
+        if self.silent:  # never greets: holds the connection until the client gives up and closes it
+            conn.recv(1)
             return
         self._send(conn, b"connected to FakeCity")
         served = 0

@@ -8,12 +8,12 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from eval_helpers import generate_tiny_dataset, save_small_agent
+from hold_probe import HOLDING
 from PIL import Image
 
 from openfly_agent import constants as C
@@ -209,6 +209,12 @@ def test_agent_resumed_after_a_kill_equals_an_uninterrupted_run_bit_for_bit(data
     assert read_all_logs(killed) == clean  # boxes compared exactly, not to a tolerance
 
 
+def _held_eval_cmd(hold: str, dataset, out) -> list[str]:
+    """`_eval_cmd` under tests/hold_probe.py, held at `hold` until a signal."""
+    command = _eval_cmd(dataset, out)
+    return [command[0], str(REPO / "tests" / "hold_probe.py"), hold, *command[1:]]
+
+
 def _eval_cmd(dataset, out, *extra):
     return [
         sys.executable, str(REPO / "eval.py"), "--policy", "random", "--baselines=[forward]",
@@ -234,22 +240,29 @@ def _same_results(a: Path, b: Path) -> None:
         )
 
 
+def _held(proc: subprocess.Popen) -> str:
+    """`proc`'s stderr up to tests/hold_probe.py's line saying it holds (asserts that it does)."""
+    seen = []
+    for line in proc.stderr:
+        seen.append(line)
+        if HOLDING in line:
+            return "".join(seen)
+    raise AssertionError(f"eval.py ended before the hold: {''.join(seen)[-3000:]}")
+
+
 def test_sigkilled_run_resumes_to_the_same_table(dataset, reference, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     total = len((reference / "random" / C.EPISODES_JSONL).read_text().splitlines())
+    assert total > 2
     log = tmp_path / "random" / C.EPISODES_JSONL
-    # Frames are rendered for the GIF episode, which slows the run enough to kill it half way.
-    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id
-    with running(_eval_cmd(dataset, tmp_path, f"--gif_episodes=[{gif}]"), env=env) as proc:
-        deadline = time.monotonic() + 240
-        while time.monotonic() < deadline and proc.poll() is None:
-            if log.is_file() and len(log.read_bytes().splitlines()) >= 2:
-                break
-            time.sleep(0.005)
+    # held once 2 episodes are written (tests/hold_probe.py): the kill lands half way however slow the machine
+    with running(
+        _held_eval_cmd("episodes:2", dataset, tmp_path), env=env, stderr=subprocess.PIPE, text=True
+    ) as proc:
+        _held(proc)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=30)
-    done = len(log.read_bytes().splitlines())
-    assert 2 <= done < total
+    assert len(log.read_bytes().splitlines()) == 2
     resumed = run_group(_eval_cmd(dataset, tmp_path), timeout=300, env=env)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert "| random |" in resumed.stdout
@@ -258,21 +271,16 @@ def test_sigkilled_run_resumes_to_the_same_table(dataset, reference, tmp_path):
 
 def test_ctrl_c_ends_with_one_line_and_130_then_the_same_command_resumes(dataset, reference, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    log = tmp_path / "random" / C.EPISODES_JSONL
-    gif = load_openfly_dataset(dataset, C.SPLIT_TEST_SEEN)[0].episode_id  # slows the run down (frames)
     pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     # SIGINT back to its default in the child: a shell starts background jobs (`pytest ... &`) with it ignored
     default_sigint = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
-    with running(
-        _eval_cmd(dataset, tmp_path, f"--gif_episodes=[{gif}]"), env=env, preexec_fn=default_sigint, **pipes
-    ) as proc:
-        deadline = time.monotonic() + 240
-        while (
-            time.monotonic() < deadline and proc.poll() is None and not (log.is_file() and log.read_bytes())
-        ):
-            time.sleep(0.01)
+    # held once an episode is written (tests/hold_probe.py): Ctrl-C lands mid-run however slow the machine
+    command = _held_eval_cmd("episodes:1", dataset, tmp_path)
+    with running(command, env=env, preexec_fn=default_sigint, **pipes) as proc:
+        before = _held(proc)
         proc.send_signal(signal.SIGINT)  # what Ctrl-C sends to the foreground process
-        _, err = communicate_group(proc, timeout=60)
+        _, rest = communicate_group(proc, timeout=60)
+    err = before + rest
     assert proc.returncode == 130, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
     assert err.strip().splitlines()[-1] == "eval.py: interrupted; run the same command again to resume"

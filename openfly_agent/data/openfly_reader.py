@@ -14,8 +14,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tqdm.auto import tqdm
-
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
 from openfly_agent.data.labels import (
@@ -25,6 +23,7 @@ from openfly_agent.data.labels import (
 )
 from openfly_agent.data.records import episode_from_record, four_number_positions
 from openfly_agent.data.schema import Episode, SchemaError
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -117,7 +116,9 @@ def read_annotation_file(
     episodes, seen_ids = [], {}
     records = _load_json_list(path)
     before = report.changes()
-    for index, record in enumerate(tqdm(records, desc=path.name, leave=False, disable=len(records) < 10_000)):
+    for index, record in enumerate(
+        progress_bar(records, desc=path.name, leave=False, disable=len(records) < 10_000)
+    ):
         report.records += 1
         try:
             episode = episode_from_record(record, str(path), index, split)

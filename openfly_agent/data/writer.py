@@ -18,7 +18,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.data.frames import encode_image
@@ -27,6 +26,7 @@ from openfly_agent.data.parquet_io import TRAJECTORY_SCHEMA, trajectory_table, w
 from openfly_agent.data.records import episode_from_record, parse_episode_id, record_from_episode
 from openfly_agent.data.schema import Episode, SchemaError
 from openfly_agent.data.stats import action_histogram, compute_action_statistics
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -224,7 +224,7 @@ class OpenFlyDatasetWriter:
         owner: dict[str, Path] = {}
         merged, missing = [], []
         parts = sorted((self.root / C.DATASET_PARTS_DIR / split).glob("*.json"))
-        for part in tqdm(parts, desc=f"finalize {split}", leave=False, disable=len(parts) < 50):
+        for part in progress_bar(parts, desc=f"finalize {split}", leave=False, disable=len(parts) < 50):
             for i, record in enumerate(_read_records(part)):
                 episode_id = record.get("image_path") if isinstance(record, dict) else None
                 if not isinstance(episode_id, str):

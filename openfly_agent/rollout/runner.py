@@ -21,7 +21,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
@@ -37,6 +36,7 @@ from openfly_agent.rollout.policy import (
 from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.sim.base import NO_FRAME, Observation
 from openfly_agent.sim.vector import ENGINE_ERRORS, ERROR_KEY, VectorSimulator
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -170,7 +170,7 @@ class LockstepRunner:
         stats = RolloutStats()
         queue = deque(episodes)
         slots: list[RunningEpisode | None] = [None] * self.env.num_envs
-        bar = tqdm(
+        bar = progress_bar(
             total=len(episodes),
             desc=f"{self.policy.name}/{split}",
             disable=not self.show_progress,

@@ -19,7 +19,6 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.data.writer import OpenFlyDatasetWriter
@@ -32,6 +31,7 @@ from openfly_agent.toolchain.pipeline import KIND_ASTAR, KIND_DAGGER, KIND_DAGGE
 from openfly_agent.toolchain.settings import prepare_output, record_kept_on_success
 from openfly_agent.toolchain.summary import write_summary
 from openfly_agent.toolchain.worker import SceneWorker, default_simulator
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 _SPLIT_STREAM = 7  # seed stream of the test-seen draw, apart from the route seeds
@@ -258,7 +258,7 @@ def _generate(cfg: GenerateConfig, sim_factory, progress: bool, policy, kinds: t
             stream = _results_in_process(cfg, sim_factory, todo, policy)
         sink = _Sink(cfg, writer, ledger)
         try:
-            with tqdm(total=total, desc="trajectories", unit="traj", disable=not progress) as bar:
+            with progress_bar(total=total, desc="trajectories", unit="traj", disable=not progress) as bar:
                 for result in stream:
                     sink.add(result)
                     bar.update(1)

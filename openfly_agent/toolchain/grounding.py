@@ -20,7 +20,6 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
@@ -34,6 +33,7 @@ from openfly_agent.toolchain.config import GroundingDataConfig
 from openfly_agent.toolchain.expressions import frame_expressions
 from openfly_agent.utils.config import save_config
 from openfly_agent.utils.geometry import Pose
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -127,7 +127,7 @@ def generate_grounding(cfg: GroundingDataConfig, progress: bool = True) -> dict:
     if todo:
         sim = EmbeddedSimulator(EmbeddedSimConfig(width=width, height=height, city=city, max_cached_scenes=1))
         try:
-            for scene in tqdm(todo, desc="grounding scenes", disable=not progress):
+            for scene in progress_bar(todo, desc="grounding scenes", disable=not progress):
                 episodes = sorted(by_scene[scene], key=lambda e: e.episode_id)
                 write_scene(root, scene, scene_rows(sim, episodes, cfg, cfg.seed), cfg.frames_per_part)
         finally:

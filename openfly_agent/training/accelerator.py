@@ -48,7 +48,7 @@ def make_accelerator(cfg: TrainConfig) -> Accelerator:
         cpu=use_cpu(cfg.cpu),
         mixed_precision=cfg.precision,
         gradient_accumulation_steps=accumulation,
-        log_with=make_trackers(cfg.logging.tracker, run_name, output_dir / LOGS_DIR),
+        log_with=make_trackers(cfg.logging.tracker, run_name, output_dir / LOGS_DIR, cfg.logging.project),
         project_config=ProjectConfiguration(
             project_dir=str(output_dir), logging_dir=str(output_dir / LOGS_DIR)
         ),

@@ -10,9 +10,9 @@ import torch
 from accelerate import Accelerator
 from accelerate.utils import send_to_device
 from torch.utils.data import DataLoader, Dataset
-from tqdm.auto import tqdm
 
 from openfly_agent import constants as C
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -110,7 +110,7 @@ def evaluate(
     """
     was_training = model.training
     model.eval()
-    bar = tqdm(total=len(loader), desc=desc, disable=desc is None or not accelerator.is_main_process)
+    bar = progress_bar(total=len(loader), desc=desc, disable=desc is None or not accelerator.is_main_process)
     with bar:
         sums, has_actions, stopped = _accumulate(model, loader, accelerator, bar, stop)
     model.train(was_training)

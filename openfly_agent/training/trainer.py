@@ -13,8 +13,6 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm.auto import tqdm
-
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.persistence.lora_checkpoint import merged_model_of
@@ -35,6 +33,8 @@ from openfly_agent.training.saving import register_state_hooks, restore_checkpoi
 from openfly_agent.training.stages import stage_data
 from openfly_agent.training.state import TrainerState
 from openfly_agent.training.stops import StopFlags
+from openfly_agent.training.trackers import start_trackers
+from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
 
@@ -124,14 +124,17 @@ def train(cfg: TrainConfig) -> TrainResult:
                 state.step,
                 total_steps,
             )
-    accelerator.init_trackers(cfg.logging.project, config=flat_config(cfg))
+    # a resume first drops what was logged after its checkpoint: those steps are logged again (trackers.py)
+    start_trackers(
+        accelerator, cfg.logging.project, flat_config(cfg), None if resume_from is None else state.step
+    )
     logger.info(
         "run: %d steps (%d per epoch), starting at step %d", total_steps, sampler.steps_per_epoch, state.step
     )
 
     # 4. The loop: one optimizer step = one global batch = `accumulation` micro-batches on each process.
     means, meter = RunningMeans(), ThroughputMeter()
-    progress = tqdm(
+    progress = progress_bar(
         total=total_steps, initial=state.step, disable=not accelerator.is_main_process, desc="train"
     )
     model.train()

@@ -43,10 +43,11 @@ def test_eval_refuses_a_grounding_stage_checkpoint_naming_the_navigation_stage(t
 def test_a_truncated_checkpoint_is_one_line_and_writes_nothing(tmp_path):
     """eval.py on a model.safetensors cut in half: one line naming the file, exit 2, no output folder."""
     import os
-    import subprocess
     import sys
 
     from eval_helpers import save_small_agent
+
+    from openfly_agent.utils.processes import run_group
 
     folder = tmp_path / "ckpt"
     save_small_agent(folder, ["fly to the red tower"])
@@ -57,7 +58,7 @@ def test_a_truncated_checkpoint_is_one_line_and_writes_nothing(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(repo), "HF_HUB_OFFLINE": "1", "TOKENIZERS_PARALLELISM": "false"}
     command = [sys.executable, str(repo / "eval.py"), "--checkpoint", str(folder)]
     command += ["--dataset_root", str(tmp_path / "data"), "--output_dir", str(tmp_path / "out")]
-    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    done = run_group(command, timeout=300, env=env)
     assert done.returncode == 2, done.stderr[-3000:]
     assert done.stderr.strip().splitlines() == [
         f"eval.py: {weights} is not a readable safetensors file (Error while deserializing header: incomplete "

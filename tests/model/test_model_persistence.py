@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -130,6 +131,18 @@ def test_freeze_errors(make_agent):
         agent.freeze("everything")
     with pytest.raises(ValueError, match="needs LoRA adapters"):
         agent.freeze("lora")
+
+
+def test_attaching_and_loading_lora_raise_no_future_warning(make_agent, tmp_path):
+    """peft's FutureWarning about transformers' deprecated `is_gradient_checkpointing`, which it reads when it
+    wraps a model, is not shown on every LoRA run (issue 48)."""
+    agent = make_agent()
+    agent.save_pretrained(tmp_path / "base")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        attach_lora(agent, LoraSettings(rank=4, alpha=8))
+        save_lora_adapter(agent, tmp_path / "run")
+        load_lora_adapter(OpenFlyAgent.from_pretrained(tmp_path / "base").eval(), tmp_path / "run")
 
 
 def test_lora_merge_equals_unmerged_and_adapter_round_trip(make_agent, make_batch, tmp_path):

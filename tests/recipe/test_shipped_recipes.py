@@ -9,7 +9,6 @@ one representative (they change the train config only). Minutes each: marked slo
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import yaml
 
 from openfly_agent.recipe.config import RecipeConfig
 from openfly_agent.utils.config import REPO_ROOT, load_yaml_config
+from openfly_agent.utils.processes import run_group
 
 RECIPES = ["main_job.yaml", "tiny-recipe.yaml", "ablations/uniform_history.yaml"]
 TINY_DATASET_YAML = REPO_ROOT / "tests" / "training" / "tiny_dataset.yaml"
@@ -83,7 +83,7 @@ def test_a_shipped_recipe_runs_every_stage(config, tmp_path):
         "HF_HUB_OFFLINE": "1",
         "TOKENIZERS_PARALLELISM": "false",
     }
-    result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=1800)
+    result = run_group(command, timeout=1800, cwd=tmp_path, env=env)  # on timeout its runs are killed too
     assert result.returncode == 0, (result.stdout + result.stderr)[-3000:]
     assert (tmp_path / "recipe" / "eval").is_dir()
     assert (tmp_path / "recipe" / "navigation" / "checkpoints" / "last").resolve().name.startswith("step-")

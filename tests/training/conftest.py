@@ -16,6 +16,7 @@ from openfly_agent.utils.processes import run_group, running
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TINY_DATASET_YAML = Path(__file__).with_name("tiny_dataset.yaml")
+HOLD_PROBE = REPO_ROOT / "tests" / "hold_probe.py"
 STEPS = 4  # optimizer steps of the reference run (global batch 4 = 2 micro-batches of 2)
 
 
@@ -138,10 +139,12 @@ def default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def start_script(args: list[str], **popen_kwargs):
+def start_script(args: list[str], hold: str | None = None, **popen_kwargs):
     """`with start_script(args) as process:` train.py in a subprocess (output discarded unless redirected),
-    stopped with everything it started when the block ends."""
-    command = [sys.executable, str(REPO_ROOT / "train.py"), *args]
+    stopped with everything it started when the block ends. `hold`: run it under tests/hold_probe.py, held
+    there (e.g. "final-eval") until a signal."""
+    probe = [] if hold is None else [str(HOLD_PROBE), hold]
+    command = [sys.executable, *probe, str(REPO_ROOT / "train.py"), *args]
     popen_kwargs.setdefault("stdout", subprocess.DEVNULL)
     popen_kwargs.setdefault("stderr", subprocess.DEVNULL)
     popen_kwargs.setdefault("preexec_fn", default_sigint)

@@ -23,6 +23,8 @@ import pytest
 import torch
 from conftest import REPO_ROOT, _script_env, run_script
 
+from openfly_agent.utils.processes import run_group
+
 CONFIGS = REPO_ROOT / "configs" / "train"
 RUN_LENGTH = [
     "--steps=2",
@@ -69,14 +71,7 @@ def _ok(result) -> str:
 
 
 def _run_module(args: list[str], timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, *args],
-        cwd=REPO_ROOT,
-        env=_script_env(),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_group([sys.executable, *args], timeout=timeout, cwd=REPO_ROOT, env=_script_env())
 
 
 def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
@@ -168,9 +163,7 @@ def test_a_missing_released_dataset_points_to_its_data_card(tmp_path):
         f"--output_dir={tmp_path / 'run'}",
     ]
     # one line, from rank 0 (the other ranks of a launch leave it to rank 0: test_train_one_line_errors.py)
-    result = subprocess.run(
-        command, cwd=REPO_ROOT, env=_script_env(), capture_output=True, text=True, timeout=120
-    )
+    result = run_group(command, timeout=120, cwd=REPO_ROOT, env=_script_env())
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1, result.stderr
     assert "data_cards/openfly_released.md" in result.stderr

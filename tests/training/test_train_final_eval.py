@@ -2,32 +2,35 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import signal
 import subprocess
-import time
+from types import SimpleNamespace
 
-from conftest import make_config, start_script, train_args, train_in_process
+from conftest import REPO_ROOT, make_config, start_script, train_args, train_in_process
+from hold_probe import HOLDING
 
 from openfly_agent.utils.processes import communicate_group
 
-STARTED = "checkpoint committed: "  # the last one: the final evaluation comes next
-
 
 def test_a_signal_during_the_final_evaluation_stops_it_and_resume_runs_it(generated_dataset, tmp_path):
-    # one step, then every test_unseen sample one at a time: the evaluation outlasts the signal's delivery
+    # every test_unseen sample one at a time; tests/hold_probe.py holds the evaluation before its first batch
+    # until the signal is received, so the signal lands during it however slow the machine (sending it on the
+    # last "checkpoint committed" line raced the evaluation's start under load)
     args = train_args(
         generated_dataset, tmp_path, steps=1, checkpoint__save_interval=0,
         validation__final_max_samples="null", validation__per_device_batch_size=1,
     )  # fmt: skip
-    with start_script(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
-        seen, deadline = [], time.monotonic() + 240
-        for line in process.stderr:  # the log, line by line, until the evaluation is about to start
+    with start_script(
+        args, hold="final-eval", stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    ) as process:
+        seen = []
+        for line in process.stderr:  # the log, line by line, until the final evaluation is held
             seen.append(line)
-            if STARTED in line:
+            if HOLDING in line:
                 break
-            assert time.monotonic() < deadline, "no final evaluation within 240 s"
-        assert any(STARTED in line for line in seen), "".join(seen)[-3000:]
+        assert any(HOLDING in line for line in seen), "".join(seen)[-3000:]  # else train.py ended first
         process.send_signal(signal.SIGTERM)
         out, rest = communicate_group(process, timeout=120)
     err = "".join(seen) + rest
@@ -46,3 +49,32 @@ def test_a_signal_during_the_final_evaluation_stops_it_and_resume_runs_it(genera
         make_config(generated_dataset, tmp_path, steps=1, resume="true", validation__final_max_samples=8)
     )
     assert resumed.state.step == 1 and resumed.final_metrics["samples"] == 8
+
+
+def _train_entry_point():
+    spec = importlib.util.spec_from_file_location("train_entry_point", REPO_ROOT / "train.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_final_figures_say_n_a_for_the_box_iou_of_data_without_boxes(capsys):
+    report = _train_entry_point().report
+    cfg = SimpleNamespace(data=SimpleNamespace(test_split="test_unseen"))
+    navigation = {
+        "samples": 8.0,
+        "action_accuracy": 0.25,
+        "majority_class_rate": 0.5,
+        "box_iou": float("nan"),
+    }
+    report(SimpleNamespace(state=SimpleNamespace(step=3), checkpoint="ckpt", final_metrics=navigation), cfg)
+    grounding = {"samples": 4.0, "box_iou": float("nan")}
+    report(SimpleNamespace(state=SimpleNamespace(step=3), checkpoint="ckpt", final_metrics=grounding), cfg)
+    assert capsys.readouterr().out.splitlines()[1::2] == [
+        "offline action accuracy on test_unseen (8 samples): 0.2500; majority-class rate: 0.5000; "
+        "box IoU: n/a (no boxes in this data)",
+        "target box IoU on test_unseen (4 samples): n/a (no boxes in this data)",
+    ]
+    with_boxes = {**navigation, "box_iou": 0.125}
+    report(SimpleNamespace(state=SimpleNamespace(step=3), checkpoint="ckpt", final_metrics=with_boxes), cfg)
+    assert capsys.readouterr().out.splitlines()[-1].endswith("; box IoU: 0.1250")

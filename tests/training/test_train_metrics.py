@@ -6,6 +6,8 @@ import math
 
 import pytest
 import torch
+import yaml
+from conftest import make_config, train_in_process
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -13,7 +15,7 @@ from openfly_agent import constants as C
 from openfly_agent.model.config import tiny_config
 from openfly_agent.training.evaluate import eval_indices, shard_eval_batches
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens
-from openfly_agent.training.trackers import JsonlTracker, make_trackers, read_metrics
+from openfly_agent.training.trackers import JsonlTracker, TensorBoardTracker, make_trackers, read_metrics
 
 
 def test_running_means_weight_box_iou_by_visible_boxes():
@@ -92,8 +94,8 @@ def test_jsonl_tracker_round_trip(tmp_path):
     tracker.store_init_configuration({"optim.lr": 0.1})
     tracker.log({"train/loss": 1.5, "train/box_iou": float("nan")}, step=3)
     assert read_metrics(tmp_path) == [{"step": 3, "train/loss": 1.5, "train/box_iou": "nan"}]
-    kinds = make_trackers("tensorboard", "run", tmp_path)
-    assert isinstance(kinds[0], JsonlTracker) and kinds[1] == "tensorboard"
+    kinds = make_trackers("tensorboard", "run", tmp_path, "project")
+    assert isinstance(kinds[0], JsonlTracker) and isinstance(kinds[1], TensorBoardTracker)
 
 
 def test_a_corrupt_metrics_line_is_reported_with_its_file_and_line(tmp_path):
@@ -102,4 +104,21 @@ def test_a_corrupt_metrics_line_is_reported_with_its_file_and_line(tmp_path):
         f.write("{truncated\n")
     with pytest.raises(ValueError, match=r"metrics.jsonl, line 2: not valid JSON"):
         read_metrics(tmp_path)
-    assert len(make_trackers("none", "run", tmp_path)) == 1
+    assert len(make_trackers("none", "run", tmp_path, "project")) == 1
+
+
+def test_a_resumed_run_logs_each_step_once_in_one_tensorboard_run(generated_dataset, tmp_path):
+    """Stopped after step 3 (checkpoint at 2), resumed: step 3 is logged again, and kept once (issue 48)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    settings = {"steps": 4, "checkpoint__save_interval": 2, "logging__tracker": "tensorboard"}
+    train_in_process(make_config(generated_dataset, tmp_path, stop_after_steps=3, **settings))
+    train_in_process(make_config(generated_dataset, tmp_path, resume="true", **settings))
+    logged = [r["step"] for r in read_metrics(tmp_path / "logs") if "train/loss" in r]
+    assert logged == [1, 2, 3, 4]
+    board = tmp_path / "logs" / "openfly-agent"
+    assert [p.name for p in board.iterdir() if p.is_dir()] == []  # no hparams-only "runs" beside the run
+    events = EventAccumulator(str(board))
+    events.Reload()
+    assert [event.step for event in events.Scalars("train/loss")] == [1, 2, 3, 4]
+    assert "optim.lr" in yaml.safe_load((board / "hparams.yml").read_text())

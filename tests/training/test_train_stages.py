@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ from openfly_agent.toolchain.config import GroundingDataConfig
 from openfly_agent.toolchain.grounding import generate_grounding
 from openfly_agent.training.init_matching import load_matching_weights
 from openfly_agent.training.preflight import PreflightError
+from openfly_agent.utils.processes import run_group
 
 
 @pytest.fixture(scope="module")
@@ -108,10 +108,10 @@ def test_grounding_errors_of_a_run_match_its_own_test_iou(grounding_run, tmp_pat
     out, result = grounding_run
     report = tmp_path / "errors.json"
     script = Path(__file__).resolve().parents[2] / "bench" / "grounding_errors.py"
-    done = subprocess.run(
+    done = run_group(
         [sys.executable, str(script), "--run", str(out), "--max_samples", "8", "--batch_size", "3",
          "--threads", "1", "--json", str(report)],
-        capture_output=True, text=True, timeout=300,
+        timeout=300,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     errors = json.loads(report.read_text())

@@ -7,6 +7,9 @@ grounding head, which the `lora` freeze stage also trains.
 from __future__ import annotations
 
 import logging
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from torch import nn
@@ -16,9 +19,20 @@ from openfly_agent.model.config import LoraSettings
 from openfly_agent.model.freeze import STAGE_LORA, freeze
 
 logger = logging.getLogger(__name__)
+# peft (0.21) reads transformers 5's deprecated `is_gradient_checkpointing` when it wraps a model: a FutureWarning
+# on every LoRA run that is no call of ours and that nothing here can act on
+PEFT_CHECKPOINTING_WARNING = "`is_gradient_checkpointing` is deprecated"
 
 TRAINABLES_NAME = "trainables.safetensors"
 TRAINABLE_PARTS = ("projector", "grounding_head")
+
+
+@contextmanager
+def _without_peft_checkpointing_warning() -> Iterator[None]:
+    """peft wrapping a model, without its FutureWarning about transformers' `is_gradient_checkpointing`."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=PEFT_CHECKPOINTING_WARNING, category=FutureWarning)
+        yield
 
 
 def has_lora(agent: nn.Module) -> bool:
@@ -42,7 +56,8 @@ def attach_lora(agent: nn.Module, settings: LoraSettings | None = None) -> nn.Mo
         init_lora_weights=True if settings.init == "default" else settings.init,
         bias="none",
     )
-    agent.language_model = get_peft_model(agent.language_model, config)
+    with _without_peft_checkpointing_warning():
+        agent.language_model = get_peft_model(agent.language_model, config)
     freeze(agent, STAGE_LORA)
     return agent
 
@@ -80,7 +95,8 @@ def load_lora_adapter(agent: nn.Module, folder: str | Path) -> nn.Module:
         raise ValueError("LoRA is already attached to this agent")
     if not (folder / "adapter_config.json").is_file():
         raise FileNotFoundError(f"{folder} holds no adapter_config.json (write it with save_lora_adapter)")
-    agent.language_model = PeftModel.from_pretrained(agent.language_model, str(folder), is_trainable=True)
+    with _without_peft_checkpointing_warning():
+        agent.language_model = PeftModel.from_pretrained(agent.language_model, str(folder), is_trainable=True)
     trainables = load_file(str(folder / TRAINABLES_NAME))
     result = agent.load_state_dict(trainables, strict=False)
     if result.unexpected_keys:
