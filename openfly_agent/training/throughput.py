@@ -81,11 +81,12 @@ def llm_row_tokens(batch: dict, model_cfg) -> torch.Tensor:
     return text + visual
 
 
-def encoded_frames(batch: dict) -> torch.Tensor:
-    """0-d count of the frames a training batch runs through the vision backbone (current + real memory)."""
-    frames = torch.tensor(batch[C.PIXEL_VALUES].shape[0], device=batch[C.ATTENTION_MASK].device)
+def encoded_frames(batch: dict) -> int | torch.Tensor:
+    """The frames a training batch runs through the vision backbone (current + real memory): an int, or a 0-d
+    tensor on the batch's device (no copy to or from the host)."""
+    frames = batch[C.PIXEL_VALUES].shape[0]
     if C.MEMORY_FRAME_MASK in batch:
-        frames = frames + batch[C.MEMORY_FRAME_MASK].sum().to(frames.device)
+        return batch[C.MEMORY_FRAME_MASK].sum() + frames
     return frames
 
 

@@ -94,8 +94,7 @@ def train(cfg: TrainConfig) -> TrainResult:
     optim = cfg.optim
     fused = optim.fused_adamw and accelerator.device.type == "cuda"  # the fused kernel: CUDA only
     optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps, fused=fused)
-    # the time split, model FLOPs and MFU of the log (counted on the unwrapped agent, as it trains)
-    timer = StepTimer(accelerator.device, StepFlops.from_agent(agent), device_peak_flops(accelerator.device))
+    step_flops = StepFlops.from_agent(agent)  # the log's model FLOPs: the unwrapped agent, as it trains
     clock = ScheduleClock() if optim.horizon == "time" else None  # the used part of the time budget
     scheduler = make_scheduler(
         optimizer, optim.schedule, optim.warmup_steps, total_steps, optim.min_lr_ratio, clock
@@ -125,6 +124,7 @@ def train(cfg: TrainConfig) -> TrainResult:
 
     # 4. The loop: one optimizer step = one global batch = `accumulation` micro-batches on each process.
     means, meter = RunningMeans(), ThroughputMeter()
+    timer = StepTimer(accelerator.device, step_flops, device_peak_flops(accelerator.device))  # the time split
     progress = tqdm(
         total=total_steps, initial=state.step, disable=not accelerator.is_main_process, desc="train"
     )
