@@ -3,6 +3,7 @@
     bash scripts/gpu_check.sh                          # the same as: python bench/gpu_check.py
     python bench/gpu_check.py --plan                   # the commands it would run; nothing runs, no CUDA needed
     python bench/gpu_check.py --table <workdir>/gpu_check.json   # the table of a recorded run
+    python bench/gpu_check.py --suite levers           # the speed levers, one at a time (issue 49)
 
 In order, each as the command a user types, each with its own time limit (about 8.5 minutes in all on one H200, measured):
 the synthetic OpenVLA-layout 7B folder (random weights, real key names and shapes, tokenizer files); a small
@@ -16,6 +17,12 @@ batches). A check whose input failed is skipped. It prints one table and writes 
 (and each command's output to `<workdir>/logs/`). Without CUDA it exits at once with one line (exit 2); with a
 failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
 (printed with the table; a missing one fails the `wheels` check).
+
+`--suite levers` (planned for at most 8 minutes on one H100; not yet run) measures where the 7B LoRA step's
+time goes and each speed lever alone: the synthetic folder and the dataset, then `train.py` (the LoRA recipe, 12
+steps, no merge, no final evaluation) with its time split, TFLOP/s and MFU from metrics.jsonl,
+`bench/train_throughput.py --levers none fused_adamw` and, in its own check, `--levers compile_layers`
+(samples/s, MFU and peak memory of each), and `bench/step_latency.py` at batch 1 and 16 with its peak memory.
 """
 
 from __future__ import annotations
@@ -44,6 +51,19 @@ FULL_FT_BUDGET = [  # the full fine-tune through its first optimizer step only (
     "--steps=1", "--stop_after_steps=1", "--batch.global_batch_size=2", "--batch.per_device_batch_size=2",
     "--validation.interval=0", "--validation.final_eval=false", "--logging.tracker=none", "--data.num_workers=2",
 ]  # fmt: skip
+
+
+STEP_PHASES = ("data", "forward", "backward", "optimizer", "other")  # training/step_timer.py's PHASES
+SUITES = {
+    "full": (
+        "openvla folder", "dataset", "LoRA 12 steps + merge", "eval 4 episodes", "full FT on 1 GPU refused",
+        "FSDP offload, 1st step", "select_action latency", "LoRA synthetic step",
+    ),
+    "levers": (
+        "openvla folder", "dataset", "LoRA 12 steps, time split", "select_action latency", "LoRA step, levers",
+        "LoRA step, compiled layers",
+    ),
+}  # fmt: skip
 
 
 @dataclass
@@ -95,12 +115,12 @@ def json_lines(output: str) -> list[dict]:
     return rows
 
 
-def run_metrics(run: Path) -> dict:
-    """The last value of each train/ figure in a run's logs/metrics.jsonl."""
+def run_metrics(run: Path, prefixes: tuple[str, ...] = ("train/",)) -> dict:
+    """The last value of each figure of a run's logs/metrics.jsonl whose name starts with one of `prefixes`."""
     last: dict = {}
     path = run / "logs" / "metrics.jsonl"
     for line in path.read_text().splitlines() if path.is_file() else []:
-        last.update({k: v for k, v in json.loads(line).items() if k.startswith("train/")})
+        last.update({k: v for k, v in json.loads(line).items() if k.startswith(prefixes)})
     return last
 
 
@@ -113,17 +133,36 @@ def lora_figures(workdir: Path, output: str) -> dict:
     }
 
 
+def time_split_figures(workdir: Path, output: str) -> dict:
+    """train.py's last logged interval: seconds per step and its split, tokens/s, MFU, peak memory."""
+    metrics = run_metrics(workdir / "lora-time", ("train/", "time/", "throughput/"))
+    figures = {"s/step": metrics.get("time/step_s")}
+    figures.update({phase: metrics.get(f"time/{phase}_s") for phase in STEP_PHASES})
+    figures.update(
+        {
+            "samples/s": metrics.get("train/samples_per_s"),
+            "tokens/s": metrics.get("train/tokens_per_s"),
+            "MFU": metrics.get("throughput/mfu"),
+            "peak GiB": metrics.get("train/memory_allocated_gib"),
+        }
+    )
+    return figures
+
+
 def fsdp_figures(workdir: Path, output: str) -> dict:
     metrics = run_metrics(workdir / "full-offload")
     return {"loss": metrics.get("train/loss"), "peak GiB": metrics.get("train/memory_allocated_gib")}
 
 
 def latency_figures(workdir: Path, output: str) -> dict:
-    return {
-        f"{row['history']} b{row['batch']} ms": row.get("ms_per_step")
-        for row in json_lines(output)
-        if row.get("preset") == "openfly-7b"
-    }
+    figures = {}
+    for row in json_lines(output):
+        if row.get("preset") != "openfly-7b":
+            continue
+        figures[f"{row['history']} b{row['batch']} ms"] = row.get("ms_per_step")
+        if row.get("max_memory_gib") is not None:
+            figures[f"{row['history']} b{row['batch']} GiB"] = row["max_memory_gib"]
+    return figures
 
 
 def throughput_figures(workdir: Path, output: str) -> dict:
@@ -138,14 +177,39 @@ def throughput_figures(workdir: Path, output: str) -> dict:
     }
 
 
+def lever_figures(workdir: Path, output: str) -> dict:
+    """samples/s, MFU and peak memory of each lever row of bench/train_throughput.py (or why it failed)."""
+    figures: dict = {}
+    for row in json_lines(output):
+        if row.get("config") != "7b-lora-bf16" or "lever" not in row:
+            continue
+        lever = row["lever"]
+        if "failed" in row:
+            figures[f"{lever} failed"] = row["failed"][:80]
+            continue
+        figures.update(
+            {
+                f"{lever} samples/s": row.get("samples_per_s"),
+                f"{lever} MFU": row.get("mfu"),
+                f"{lever} peak GiB": row.get("max_memory_gib"),
+            }
+        )
+    return figures
+
+
 def eval_figures(workdir: Path, output: str) -> dict:
     episodes = list((workdir / "eval").rglob("episodes.jsonl"))
     count = sum(len(path.read_text().splitlines()) for path in episodes)
     return {"episodes": count}
 
 
-def plan(workdir: Path) -> list[Check]:
-    """The checks, in order, with their commands (paths under `workdir`)."""
+def plan(workdir: Path, suite: str = "full") -> list[Check]:
+    """The checks of `suite` (`SUITES`), in order, with their commands (paths under `workdir`)."""
+    return [check for check in all_checks(workdir) if check.name in SUITES[suite]]
+
+
+def all_checks(workdir: Path) -> list[Check]:
+    """Every check of every suite, in the order they run."""
     w = str(workdir)
     openvla, data = f"{w}/openvla-7b", f"{w}/data"
     init = [f"--init.checkpoint={openvla}", f"--model.llm.tokenizer_path={openvla}", f"--data.root={data}"]
@@ -192,6 +256,31 @@ def plan(workdir: Path) -> list[Check]:
             300,
             needs=("openvla folder", "dataset"),
             figures=lora_figures,
+        ),  # fmt: skip
+        Check(
+            "LoRA 12 steps, time split",
+            [
+                *TRAIN,
+                "configs/accelerate/single_gpu.yaml",
+                "train.py",
+                "--config_path",
+                "configs/train/openfly-7b-lora.yaml",
+                *init,
+                f"--output_dir={w}/lora-time",
+                "--steps=12",
+                "--batch.global_batch_size=8",
+                "--batch.per_device_batch_size=8",
+                "--validation.interval=0",
+                "--validation.final_eval=false",
+                "--checkpoint.save_interval=0",
+                "--lora.merge_at_end=false",
+                "--logging.tracker=none",
+                "--logging.log_interval=4",
+                "--data.num_workers=4",
+            ],
+            240,
+            needs=("openvla folder", "dataset"),
+            figures=time_split_figures,
         ),  # fmt: skip
         Check(
             "eval 4 episodes",
@@ -257,6 +346,41 @@ def plan(workdir: Path) -> list[Check]:
             150,
             figures=throughput_figures,
         ),
+        Check(
+            "LoRA step, levers",
+            [
+                PY,
+                "bench/train_throughput.py",
+                "--configs",
+                "7b-lora-bf16",
+                "--batch",
+                "8",
+                "--steps",
+                "5",
+                "--levers",
+                "none",
+                "fused_adamw",
+            ],
+            150,
+            figures=lever_figures,
+        ),  # fmt: skip
+        Check(  # its own check: a compilation that fails or runs long costs the other levers nothing
+            "LoRA step, compiled layers",
+            [
+                PY,
+                "bench/train_throughput.py",
+                "--configs",
+                "7b-lora-bf16",
+                "--batch",
+                "8",
+                "--steps",
+                "5",
+                "--levers",
+                "compile_layers",
+            ],
+            180,
+            figures=lever_figures,
+        ),  # fmt: skip
     ]
 
 
@@ -344,15 +468,15 @@ def render_table(results: list[CheckResult], device: str) -> str:
     return "\n".join(lines)
 
 
-def run_all(workdir: Path, skip: tuple[str, ...] = ()) -> tuple[list[CheckResult], str]:
-    """Every check of `plan` in order but those named in `skip` (left out of the table)."""
+def run_all(workdir: Path, skip: tuple[str, ...] = (), suite: str = "full") -> tuple[list[CheckResult], str]:
+    """Every check of the suite's `plan` in order but those named in `skip` (left out of the table)."""
     import torch
 
     device = f"{torch.cuda.get_device_name(0)} ({torch.cuda.mem_get_info(0)[1] / 2**30:.0f} GiB), torch {torch.__version__}"
     missing = missing_wheels()
     results = [CheckResult("wheels", not missing, note=f"missing: {', '.join(missing)}" if missing else "")]
     passed: dict[str, bool] = {}
-    for check in plan(workdir):
+    for check in plan(workdir, suite):
         if check.name in skip:
             continue
         result = run_check(check, workdir, passed)
@@ -367,6 +491,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workdir", default="outputs/gpu_check", help="where folders, logs and results go")
     parser.add_argument("--plan", action="store_true", help="print the commands, one a line; run nothing")
+    parser.add_argument(
+        "--suite", default="full", choices=sorted(SUITES),
+        help="full: the whole check (default); levers: the time split and each speed lever alone",
+    )  # fmt: skip
     parser.add_argument("--table", metavar="JSON", help="print the table of a recorded gpu_check.json")
     parser.add_argument(
         "--skip", nargs="+", default=[], metavar="CHECK",
@@ -374,11 +502,12 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     args = parser.parse_args(argv)
     workdir = Path(args.workdir).resolve()
-    unknown = sorted(set(args.skip) - {check.name for check in plan(workdir)})
+    checks = plan(workdir, args.suite)
+    unknown = sorted(set(args.skip) - {check.name for check in checks})
     if unknown:
-        parser.error(f"unknown check(s) {unknown}; the checks: {[check.name for check in plan(workdir)]}")
+        parser.error(f"unknown check(s) {unknown}; the checks: {[check.name for check in checks]}")
     if args.plan:
-        for check in plan(workdir):
+        for check in checks:
             print(shlex.join(check.command))
         return EXIT_OK
     if args.table:
@@ -393,7 +522,7 @@ def main(argv: list[str] | None = None) -> int:
               "CUDA GPU, or pass --plan to list its commands", file=sys.stderr)  # fmt: skip
         return EXIT_NO_CUDA
     workdir.mkdir(parents=True, exist_ok=True)
-    results, device = run_all(workdir, tuple(args.skip))
+    results, device = run_all(workdir, tuple(args.skip), args.suite)
     record = {"device": device, "results": [asdict(r) for r in results]}
     (workdir / "gpu_check.json").write_text(json.dumps(record, indent=1))
     print(render_table(results, device))

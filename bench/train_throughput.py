@@ -2,6 +2,8 @@
 
     python bench/train_throughput.py                  # tiny on CPU; 7B + LoRA + bf16 on CUDA when present
     python bench/train_throughput.py --configs tiny-cpu --batch 8 --steps 10
+    python bench/train_throughput.py --configs 7b-lora-bf16 --levers none fused_adamw compile_layers
+    python bench/train_throughput.py --configs tiny-cpu --profile outputs/profile.txt   # + torch.profiler table
 
 Configurations (one JSON line each):
 - `tiny-cpu`: the tiny preset (the `tiny-cnn` ResNet backbone), full fine-tune, fp32, on the CPU (the embedded
@@ -11,10 +13,14 @@ Configurations (one JSON line each):
   vision backbone frozen, bf16 autocast, gradient checkpointing (configs/train/openfly-7b-lora.yaml, 1 GPU).
 Batches are synthetic but shaped like training: random 128 px frames resized by the agent's transform,
 ~90-token instructions, and every memory slot filled (K sets of S frames), the most expensive case.
-FLOPs are counted by `torch.utils.flop_counter` over forward + backward (matmuls and attention). MFU divides
-them by the step time and the device peak: a measured fp32 matmul rate on the CPU (so CPU MFU is relative to
-what this machine achieves, not a datasheet), the bf16 dense datasheet peak on known GPUs (--peak_tflops to
-override). Wall-clock figures depend on other load: `load_avg_1m` is reported with each CPU line.
+FLOPs are model FLOPs as `train.py` logs them (`openfly_agent/training/throughput.py`: 2 N per token forward,
+the backward that the trained parts need, attention, the vision backbone per encoded frame; activations that
+gradient checkpointing recomputes are not counted). MFU divides them by the step time and the device's bf16
+dense datasheet peak (`--peak_tflops` to override); on the CPU there is no peak, so `mfu` is null there.
+`--levers` times the step once per speed lever, each alone on the same agent and batch: `none` (today's
+defaults), `fused_adamw` (`optim.fused_adamw`, CUDA), `compile_layers` (`compile_layers`: torch.compile of each
+decoder layer, compiled during the warm-up; timed last, it stays on). `--profile` writes torch.profiler's table
+of a few more steps. Wall-clock figures depend on other load: `load_avg_1m` is reported with each CPU line.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import os
 import platform
 import time
 from contextlib import nullcontext
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -38,8 +45,10 @@ from openfly_agent.model.language.lora import attach_lora
 from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
 from openfly_agent.model.persistence.random_init import materialize_random_
 from openfly_agent.training.metrics import count_llm_tokens
-from openfly_agent.training.modes import enable_gradient_checkpointing
+from openfly_agent.training.modes import compile_decoder_layers, enable_gradient_checkpointing
 from openfly_agent.training.optim import make_optimizer
+from openfly_agent.training.throughput import StepFlops, device_peak_flops, mfu
+from openfly_agent.utils.profiling import write_profile
 
 WORDS = [
     "fly",
@@ -81,14 +90,7 @@ WORDS = [
     "the",
     "spire",
 ]
-GPU_BF16_PEAK_TFLOPS = {
-    "H100": 989.0,
-    "H200": 989.0,
-    "A100": 312.0,
-    "L40S": 362.0,
-    "A10": 125.0,
-    "4090": 165.0,
-}
+LEVERS = ("none", "fused_adamw", "compile_layers")  # in the order they are timed (compiling is not undone)
 
 
 def instructions(count: int, words: int = 70, seed: int = 0) -> list[str]:
@@ -142,67 +144,49 @@ def synthetic_batch(agent, batch: int, frame_px: int = 128, seed: int = 0) -> di
     return collate(samples)
 
 
-def step_flops(agent, batch: dict, autocast) -> float:
-    """FLOPs of one forward + backward, counted by PyTorch's FLOP counter."""
-    from torch.utils.flop_counter import FlopCounterMode
-
-    counter = FlopCounterMode(display=False)
-    with counter, autocast():
-        loss, _ = agent(batch)
-    with counter:
-        loss.backward()
-    agent.zero_grad(set_to_none=True)
-    return float(counter.get_total_flops())
-
-
-def cpu_peak_flops(size: int = 1024, repeats: int = 5) -> float:
-    """The best fp32 matmul rate of this CPU (all threads), FLOP/s."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
-    best = 0.0
-    for _ in range(repeats):
-        start = time.perf_counter()
-        a @ b
-        best = max(best, 2 * size**3 / (time.perf_counter() - start))
-    return best
-
-
-def gpu_peak_flops(override_tflops: float | None) -> float | None:
-    """The bf16 dense datasheet peak of the current GPU (None when unknown and not given)."""
-    if override_tflops:
-        return override_tflops * 1e12
-    name = torch.cuda.get_device_name(0)
-    for key, tflops in GPU_BF16_PEAK_TFLOPS.items():
-        if key in name:
-            return tflops * 1e12
-    return None
-
-
-def time_steps(agent, batch: dict, steps: int, warmup: int, autocast, device: str) -> float:
-    """Median seconds per optimizer step (forward, backward, clip, AdamW)."""
-    optimizer = make_optimizer(agent, lr=1e-4, weight_decay=0.0, betas=(0.9, 0.95))
+def time_steps(
+    agent, batch: dict, steps: int, warmup: int, autocast, device: str, fused: bool = False, profile=None
+) -> float:
+    """Median seconds per optimizer step (forward, backward, clip, AdamW); `fused`: the fused AdamW kernel;
+    `profile`: a path that gets torch.profiler's table of `steps` more steps."""
+    optimizer = make_optimizer(agent, lr=1e-4, weight_decay=0.0, betas=(0.9, 0.95), fused=fused)
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
-    times = []
-    for i in range(warmup + steps):
-        sync()
-        start = time.perf_counter()
+
+    def step() -> None:
         with autocast():
             loss, _ = agent(batch)
         loss.backward()
         torch.nn.utils.clip_grad_norm_([p for p in agent.parameters() if p.requires_grad], 1.0)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
+
+    times = []
+    for i in range(warmup + steps):
+        sync()
+        start = time.perf_counter()
+        step()
         sync()
         if i >= warmup:
             times.append(time.perf_counter() - start)
+    if profile is not None:
+        write_profile(step, profile, calls=steps, cuda=device == "cuda")
     return float(np.median(times))
 
 
-def measure(name: str, batch_size: int, steps: int, warmup: int, peak_tflops: float | None) -> dict:
-    """One configuration's JSON row (or the reason it was skipped)."""
+def measure(
+    name: str,
+    batch_size: int,
+    steps: int,
+    warmup: int,
+    peak_tflops: float | None,
+    levers: tuple[str, ...] = ("none",),
+    profile: str | None = None,
+) -> list[dict]:
+    """One configuration's JSON rows, one per lever (or one row saying why it was skipped)."""
     big = name.startswith("7b")
     row = {"config": name, "batch": batch_size}
     if big and not torch.cuda.is_available():
-        return {**row, "device": "cuda (absent)", "skipped": "needs CUDA (7B, bf16)"}
+        return [{**row, "device": "cuda (absent)", "skipped": "needs CUDA (7B, bf16)"}]
     device = "cuda" if big else "cpu"
     torch.manual_seed(0)
     agent = build_agent("openfly-7b" if big else "tiny", device, vit=name == "tiny-vit-cpu").train()
@@ -216,45 +200,91 @@ def measure(name: str, batch_size: int, steps: int, warmup: int, peak_tflops: fl
     batch = {
         k: v.to(device) if torch.is_tensor(v) else v for k, v in synthetic_batch(agent, batch_size).items()
     }
-    flops = step_flops(agent, batch, autocast)
-    seconds = time_steps(agent, batch, steps, warmup, autocast, device)
-    peak = gpu_peak_flops(peak_tflops) if big else cpu_peak_flops()
+    flops = float(StepFlops.from_agent(agent).batch_flops(batch))
+    tokens = count_llm_tokens(batch, agent.model_cfg)
+    peak = device_peak_flops(device, peak_tflops)
     row.update(
         device=device,
         machine=torch.cuda.get_device_name(0) if big else f"{platform.processor() or platform.machine()} CPU",
         threads=torch.get_num_threads(),
         trainable_params=sum(p.numel() for p in agent.parameters() if p.requires_grad),
         params=sum(p.numel() for p in agent.parameters()),
-        llm_tokens_per_sample=count_llm_tokens(batch, agent.model_cfg) / batch_size,
-        step_s=round(seconds, 4),
-        samples_per_s=round(batch_size / seconds, 2),
-        tokens_per_s=round(count_llm_tokens(batch, agent.model_cfg) / seconds, 1),
-        tflop_per_step=round(flops / 1e12, 4),
-        achieved_tflops=round(flops / seconds / 1e12, 4),
+        llm_tokens_per_sample=tokens / batch_size,
+        model_tflop_per_step=round(flops / 1e12, 4),
         peak_tflops=round(peak / 1e12, 3) if peak else None,
-        mfu=round(flops / seconds / peak, 4) if peak else None,
-        peak_source="measured fp32 matmul"
-        if not big
-        else ("--peak_tflops" if peak_tflops else "bf16 datasheet"),
+        peak_source=None if peak is None else ("--peak_tflops" if peak_tflops else "bf16 datasheet"),
     )
-    if big:
-        row["max_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
-    else:
-        row["load_avg_1m"] = round(os.getloadavg()[0], 2)
-    return row
+    rows = []
+    for lever in levers:
+        try:
+            if lever == "compile_layers":
+                compile_decoder_layers(agent)
+            if big:
+                torch.cuda.reset_peak_memory_stats()
+            seconds = time_steps(
+                agent,
+                batch,
+                steps,
+                warmup,
+                autocast,
+                device,
+                lever == "fused_adamw",
+                profile_path(profile, lever),
+            )
+        except Exception as err:  # a lever that fails on this machine is a row, not the end of the bench
+            rows.append({**row, "lever": lever, "failed": f"{type(err).__name__}: {err}"})
+            continue
+        utilisation = mfu(flops, seconds, peak)
+        result = {
+            **row,
+            "lever": lever,
+            "step_s": round(seconds, 4),
+            "samples_per_s": round(batch_size / seconds, 2),
+            "tokens_per_s": round(tokens / seconds, 1),
+            "model_tflops": round(flops / seconds / 1e12, 4),
+            "mfu": round(utilisation, 4) if utilisation is not None else None,
+        }
+        if big:
+            result["max_memory_gib"] = round(torch.cuda.max_memory_allocated() / 2**30, 2)
+        else:
+            result["load_avg_1m"] = round(os.getloadavg()[0], 2)
+        rows.append(result)
+    return rows
 
 
-def main() -> None:
+def profile_path(profile: str | None, lever: str) -> str | None:
+    """Where the profile of `lever` goes: `--profile` itself for `none`, else with the lever's name before the
+    suffix (`profile-fused_adamw.txt`)."""
+    if profile is None or lever == "none":
+        return profile
+    path = Path(profile)
+    return str(path.with_name(f"{path.stem}-{lever}{path.suffix}"))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line (tests/training/test_gpu_check.py parses the GPU check's commands with it)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--configs", nargs="+", default=["tiny-cpu", "tiny-vit-cpu", "7b-lora-bf16"])
     parser.add_argument("--batch", type=int, default=8, help="samples per optimizer step (one micro-batch)")
     parser.add_argument("--steps", type=int, default=5, help="timed steps; step_s is their median")
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--peak_tflops", type=float, default=None, help="GPU peak for MFU (bf16 dense)")
-    args = parser.parse_args()
+    parser.add_argument(
+        "--levers", nargs="+", default=["none"], choices=LEVERS, help="one row per lever, each alone"
+    )
+    parser.add_argument(
+        "--profile", default=None, help="write torch.profiler's table of --steps more steps here"
+    )
+    return parser
+
+
+def main() -> None:
+    args = build_parser().parse_args()
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    levers = tuple(lever for lever in LEVERS if lever in args.levers)  # compiling last: it is not undone
     for name in args.configs:
-        print(json.dumps(measure(name, args.batch, args.steps, args.warmup, args.peak_tflops)), flush=True)
+        for row in measure(name, args.batch, args.steps, args.warmup, args.peak_tflops, levers, args.profile):
+            print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

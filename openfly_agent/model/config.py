@@ -44,6 +44,10 @@ MODES = (MODE_OPENFLY, MODE_OPENVLA_COMPAT)
 LLM_LLAMA2_7B = "llama2-7b"
 LLM_TINY = "tiny"
 LLM_PRESETS = (LLM_LLAMA2_7B, LLM_TINY)
+# transformers' attention back-ends: sdpa (torch's scaled_dot_product_attention, the default), eager (the
+# explicit softmax), flash_attention_2 (needs the flash-attn wheel and a GPU); tests/model/test_model_attention.py
+# checks that eager and sdpa give the same actions
+ATTN_IMPLEMENTATIONS = ("sdpa", "eager", "flash_attention_2")
 # SentencePiece vocab of Llama-2; OpenVLA adds <PAD> = 32000 and pads the embedding rows to 32064.
 LLAMA2_TOKENIZER_VOCAB = 32000
 LLAMA2_PADDED_VOCAB = 32064
@@ -95,7 +99,7 @@ class LLMConfig:
     num_heads: int | None = None  # tiny only
     intermediate_size: int | None = None  # tiny only
     max_length: int = 2048
-    attn_implementation: str = "sdpa"  # sdpa | eager | flash_attention_2 (passed to transformers)
+    attn_implementation: str = "sdpa"  # one of ATTN_IMPLEMENTATIONS (passed to transformers)
     # training forward: the decoder stack runs on up to this many groups of rows of similar length, each cut to
     # its longest row (model/language/length_groups.py; same loss, fewer padded positions); 1 runs the padded batch in one
     # call (the 7B presets)
@@ -107,6 +111,7 @@ class LLMConfig:
 
     def __post_init__(self) -> None:
         check_choice("llm", "preset", self.preset, LLM_PRESETS)
+        check_choice("llm", "attn_implementation", self.attn_implementation, ATTN_IMPLEMENTATIONS)
         fill_tiny_fields("llm", self, self.preset == LLM_TINY, TINY_LLM)
         if self.vocab_size is not None and self.vocab_size <= NUM_ACTION_SLOTS:
             raise ValueError(

@@ -83,6 +83,9 @@ class OptimConfig:
     # an exponential moving average of the weights (training/ema.py): validation, the test evaluation and every
     # checkpoint's model folder use it; e.g. 0.999 (warmed up); None: the live weights
     ema_decay: float | None = None
+    # PyTorch's fused AdamW kernel on CUDA (ignored on the CPU); false: the default for-each kernel, whose
+    # numbers the fused one matches up to rounding
+    fused_adamw: bool = False
 
     def __post_init__(self) -> None:
         _require(self.lr > 0, f"optim.lr must be > 0, got {self.lr}")
@@ -209,6 +212,9 @@ class TrainConfig:
     stage: str = "navigation"
     precision: str = "no"  # no | bf16 | fp16 (autocast; overrides the accelerate config file's value)
     gradient_checkpointing: bool = False  # activation checkpointing inside the LLM and ViTs
+    compile_layers: bool = (
+        False  # torch.compile each LLM decoder layer (training/modes.py; compiles on first use)
+    )
     freeze_stage: str = "full"  # full | frozen_vision | heads_only | lora (LoRA adapters, the `lora` section)
     steps: int | None = None  # optimizer steps of the run (wins over `epochs` when both are set)
     epochs: float | None = 1.0  # passes over the train split, used when `steps` is null

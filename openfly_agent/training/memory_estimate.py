@@ -153,7 +153,10 @@ def model_sizes(cfg: TrainConfig) -> ModelSizes:
     model_cfg = dataclasses.replace(cfg.model, llm=llm)
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(model_cfg)
-        apply_training_mode(agent, dataclasses.replace(cfg, model=model_cfg, gradient_checkpointing=False))
+        apply_training_mode(
+            agent,
+            dataclasses.replace(cfg, model=model_cfg, gradient_checkpointing=False, compile_layers=False),
+        )
     blocks = [m for m in agent.modules() if isinstance(m, (LlamaDecoderLayer, Block))]
     block_sizes = [sum(p.numel() for p in b.parameters()) for b in blocks]
     params = sum(p.numel() for p in agent.parameters())

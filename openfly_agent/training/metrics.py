@@ -9,7 +9,7 @@ from collections import defaultdict
 
 import torch
 
-from openfly_agent import constants as C
+from openfly_agent.training.throughput import llm_row_tokens
 
 
 class ThroughputMeter:
@@ -91,15 +91,5 @@ class RunningMeans:
 
 
 def count_llm_tokens(batch: dict, model_cfg) -> int:
-    """LLM sequence positions of a batch: text tokens (attention mask) + visual tokens of each sample.
-
-    Visual tokens = the current frame's P patch tokens + `memory_tokens_per_set` for every memory set that
-    holds at least one real frame (an empty set contributes nothing).
-    """
-    text = int(batch[C.ATTENTION_MASK].sum())
-    batch_size = int(batch[C.INPUT_IDS].shape[0])
-    visual = batch_size * model_cfg.vision.num_patches
-    if C.MEMORY_FRAME_MASK in batch:
-        sets = int(batch[C.MEMORY_FRAME_MASK].any(dim=-1).sum())  # (B, K, S) -> sets with a real frame
-        visual += sets * model_cfg.memory_tokens_per_set
-    return text + visual
+    """LLM sequence positions of a batch, summed over its rows (`throughput.llm_row_tokens`)."""
+    return int(llm_row_tokens(batch, model_cfg).sum())

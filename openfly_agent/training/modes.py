@@ -1,4 +1,5 @@
-"""What trains and how: the freeze stage or LoRA adapters, and activation (gradient) checkpointing."""
+"""What trains and how: the freeze stage or LoRA adapters, activation (gradient) checkpointing, compiled decoder
+layers."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import logging
 from torch import nn
 
 from openfly_agent.model.freeze import freeze
+from openfly_agent.model.language.llm import unwrap_causal_lm
 from openfly_agent.model.language.lora import attach_lora
 from openfly_agent.training.config import TrainConfig
 
@@ -22,6 +24,18 @@ def apply_training_mode(agent: nn.Module, cfg: TrainConfig) -> None:
         freeze(agent, cfg.freeze_stage)
     if cfg.gradient_checkpointing:
         enable_gradient_checkpointing(agent)
+    if cfg.compile_layers:
+        compile_decoder_layers(agent)
+
+
+def compile_decoder_layers(agent: nn.Module, backend: str = "inductor") -> int:
+    """`torch.compile` each LLM decoder layer in place (`nn.Module.compile`: the parameter names, the state
+    dict and the checkpoints stay the same); compiled on the first call. Returns the number of layers."""
+    layers = unwrap_causal_lm(agent.language_model).model.layers
+    for layer in layers:
+        layer.compile(backend=backend)
+    logger.info("torch.compile (%s) on %d decoder layers", backend, len(layers))
+    return len(layers)
 
 
 def enable_gradient_checkpointing(agent: nn.Module) -> list[str]:

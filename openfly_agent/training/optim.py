@@ -64,21 +64,28 @@ def count_parameters(params: Iterable[torch.Tensor]) -> int:
 
 
 def make_optimizer(
-    model: nn.Module, lr: float, weight_decay: float, betas: tuple[float, float], eps: float = 1e-8
+    model: nn.Module,
+    lr: float,
+    weight_decay: float,
+    betas: tuple[float, float],
+    eps: float = 1e-8,
+    fused: bool = False,
 ) -> torch.optim.AdamW:
-    """AdamW over the trainable parameters of `model` (see `make_param_groups`)."""
+    """AdamW over the trainable parameters of `model` (see `make_param_groups`); `fused`: PyTorch's fused
+    kernel (one launch for every tensor) instead of the default for-each implementation."""
     groups = make_param_groups(model, weight_decay)
     trainable = count_parameters(p for g in groups for p in g["params"])
     total = count_parameters(model.parameters())
     logger.info(
-        "optimizer: AdamW lr=%g wd=%g over %d / %d parameters (%.2f%%)",
+        "optimizer: AdamW%s lr=%g wd=%g over %d / %d parameters (%.2f%%)",
+        " (fused)" if fused else "",
         lr,
         weight_decay,
         trainable,
         total,
         100.0 * trainable / max(total, 1),
     )
-    return torch.optim.AdamW(groups, lr=lr, betas=betas, eps=eps)
+    return torch.optim.AdamW(groups, lr=lr, betas=betas, eps=eps, **({"fused": True} if fused else {}))
 
 
 def lr_multiplier(

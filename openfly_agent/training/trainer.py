@@ -32,7 +32,9 @@ from openfly_agent.training.resume_settings import record_run_settings, resume_c
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
 from openfly_agent.training.state import TrainerState
+from openfly_agent.training.step_timer import StepTimer, log_line
 from openfly_agent.training.stops import StopFlags
+from openfly_agent.training.throughput import StepFlops, device_peak_flops
 from openfly_agent.training.trackers import start_trackers
 from openfly_agent.utils.progress import progress_bar
 
@@ -91,7 +93,9 @@ def train(cfg: TrainConfig) -> TrainResult:
     train_loader, sampler = make_train_loader(train_set, collate, cfg)
     total_steps = cfg.steps or max(1, math.ceil(cfg.epochs * sampler.steps_per_epoch))
     optim = cfg.optim
-    optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps)
+    fused = optim.fused_adamw and accelerator.device.type == "cuda"  # the fused kernel: CUDA only
+    optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps, fused=fused)
+    step_flops = StepFlops.from_agent(agent)  # the log's model FLOPs: the unwrapped agent, as it trains
     clock = ScheduleClock() if optim.horizon == "time" else None  # the used part of the time budget
     scheduler = make_scheduler(
         optimizer, optim.schedule, optim.warmup_steps, total_steps, optim.min_lr_ratio, clock
@@ -134,6 +138,7 @@ def train(cfg: TrainConfig) -> TrainResult:
 
     # 4. The loop: one optimizer step = one global batch = `accumulation` micro-batches on each process.
     means, meter = RunningMeans(), ThroughputMeter()
+    timer = StepTimer(accelerator.device, step_flops, device_peak_flops(accelerator.device))  # the time split
     progress = progress_bar(
         total=total_steps, initial=state.step, disable=not accelerator.is_main_process, desc="train"
     )
@@ -145,21 +150,26 @@ def train(cfg: TrainConfig) -> TrainResult:
     # The bar, the stop-signal handlers and the trackers are closed on every way out, an error included.
     with progress, stops, closing_trackers(accelerator):
         while state.step < total_steps and reason is None:
-            for batch in epoch_batches(train_loader, train_set, state, accelerator):
+            for batch in timer.batches(epoch_batches(train_loader, train_set, state, accelerator)):
                 with accelerator.accumulate(model):  # gradients sync on the last micro-batch of a step
                     loss, logs = model(batch)
+                    timer.end("forward")
                     accelerator.backward(loss)
+                    timer.end("backward")
                     if accelerator.sync_gradients and optim.max_grad_norm is not None:
                         grad_norm = accelerator.clip_grad_norm_(model.parameters(), optim.max_grad_norm)
                         if grad_norm is not None:  # DeepSpeed clips inside its engine and returns None
                             logs = {**logs, "grad_norm": float(grad_norm)}
                     optimizer.step()  # a no-op until the step's last micro-batch
                     optimizer.zero_grad(set_to_none=True)
+                    timer.end("optimizer")
+                timer.count(batch)
                 means.add(logs)
                 meter.update(int(batch[C.INPUT_IDS].shape[0]), count_llm_tokens(batch, cfg.model))
                 if not accelerator.sync_gradients:
                     continue
                 scheduler.step()
+                timer.step_done()
                 state.advance(cfg.batch.global_batch_size, sampler.steps_per_epoch, accelerator.num_processes)
                 if ema is not None:
                     update_ema(ema, accelerator, model, state.step)
@@ -168,7 +178,10 @@ def train(cfg: TrainConfig) -> TrainResult:
                     train_logs = {**means.pop(accelerator), **meter.report(accelerator)}
                     train_logs.update(memory_stats(accelerator.device), lr=float(scheduler.get_last_lr()[0]))
                     train_logs["epoch"] = state.epoch + state.step_in_epoch / sampler.steps_per_epoch
-                    log_metrics(accelerator, "train", train_logs, state.step)
+                    times = timer.report(accelerator)  # time/*, throughput/*: the log line below
+                    log_metrics(accelerator, "train", train_logs, state.step, times)
+                    if accelerator.is_main_process:
+                        logger.info(log_line(state.step, times, train_logs["tokens_per_s"]))
                     progress.set_postfix(progress_postfix(train_logs))
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
                     log_metrics(accelerator, "val", evaluate(evaluated, val_loader, accelerator), state.step)
@@ -236,9 +249,12 @@ def progress_postfix(train_logs: dict[str, float]) -> dict[str, str]:
     }
 
 
-def log_metrics(accelerator, prefix: str, metrics: dict[str, float], step: int) -> None:
-    """Send `prefix/<name>` values to the trackers; validation and test figures also go to the log."""
-    accelerator.log({f"{prefix}/{k}": v for k, v in metrics.items()}, step=step)
+def log_metrics(
+    accelerator, prefix: str, metrics: dict[str, float], step: int, named: dict[str, float] | None = None
+) -> None:
+    """Send `prefix/<name>` values (and the `named` ones under their own names, in the same record) to the
+    trackers; validation and test figures also go to the log."""
+    accelerator.log({**{f"{prefix}/{k}": v for k, v in metrics.items()}, **(named or {})}, step=step)
     if prefix != "train":
         logger.info(
             "step %d %s: %s", step, prefix, ", ".join(f"{k}={v:.4g}" for k, v in sorted(metrics.items()))

@@ -203,3 +203,65 @@ def test_skipped_checks_are_named_by_their_table_name():
     done = run_gpu_check("--skip", "no such check", script=(sys.executable, str(GPU_CHECK)))
     assert done.returncode == 2
     assert "unknown check(s) ['no such check']" in done.stderr and "'LoRA synthetic step'" in done.stderr
+
+
+def test_the_levers_suite_parses_against_its_scripts(tmp_path):
+    """`--suite levers`: each command's arguments are accepted by the parser of the script it runs (the benches'
+    `build_parser`, train.py's own), and the lever rows are the three levers, each alone."""
+    from accelerate.commands.launch import launch_command_parser
+
+    from openfly_agent.training.cli import parse_args
+
+    done = run_gpu_check("--plan", "--suite", "levers", "--workdir", str(tmp_path))
+    assert done.returncode == 0, done.stderr
+    commands = [shlex.split(line) for line in done.stdout.splitlines()]
+    assert len(commands) == 6
+    levers = []
+    for tokens in commands:
+        if tokens[1:3] == ["-m", "accelerate.commands.launch"]:
+            launch = launch_command_parser().parse_args(tokens[3:])
+            cfg = parse_args(launch.training_script_args)
+            assert cfg.use_lora and cfg.steps == 12 and not cfg.validation.final_eval
+            assert not cfg.lora.merge_at_end and cfg.logging.log_interval == 4
+        elif tokens[1] in ("bench/train_throughput.py", "bench/step_latency.py"):
+            sys.path.insert(0, str(REPO_ROOT / "bench"))
+            module = importlib.import_module(Path(tokens[1]).stem)
+            args = module.build_parser().parse_args(tokens[2:])  # exits 2 on an option it lacks
+            levers += getattr(args, "levers", [])
+    assert levers == ["none", "fused_adamw", "compile_layers"]
+
+
+def test_the_time_split_and_lever_rows_become_figures(tmp_path):
+    from openfly_agent.training.step_timer import PHASES
+
+    gpu_check = bench_module()
+    assert gpu_check.STEP_PHASES == PHASES  # the check reads the phases train.py logs
+    logs = tmp_path / "lora-time" / "logs"
+    logs.mkdir(parents=True)
+    record = {"step": 12, "train/samples_per_s": 7.5, "train/tokens_per_s": 2600.0, "time/step_s": 1.2}
+    record.update({f"time/{p}_s": 0.2 for p in gpu_check.STEP_PHASES})
+    (logs / "metrics.jsonl").write_text(
+        json.dumps({"step": 4, "time/step_s": 9.0}) + "\n" + json.dumps(record)
+    )
+    figures = gpu_check.time_split_figures(tmp_path, "")
+    assert figures["s/step"] == 1.2 and figures["backward"] == 0.2 and figures["samples/s"] == 7.5
+    assert figures["MFU"] is None  # not logged: the row says "-"
+    output = "\n".join(
+        json.dumps(row)
+        for row in (
+            {
+                "config": "7b-lora-bf16",
+                "lever": "none",
+                "samples_per_s": 14.0,
+                "mfu": 0.2,
+                "max_memory_gib": 50.0,
+            },
+            {"config": "7b-lora-bf16", "lever": "compile_layers", "failed": "BackendCompilerFailed: x"},
+        )
+    )
+    assert gpu_check.lever_figures(tmp_path, output) == {
+        "none samples/s": 14.0,
+        "none MFU": 0.2,
+        "none peak GiB": 50.0,
+        "compile_layers failed": "BackendCompilerFailed: x",
+    }

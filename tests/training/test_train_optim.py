@@ -136,3 +136,23 @@ def test_sampler_order_depends_only_on_seed_and_epoch():
 def test_sampler_rejects_dataset_smaller_than_a_global_batch():
     with pytest.raises(ValueError, match="fewer than one global batch"):
         EpochShuffleSampler(3, 4, seed=0)
+
+
+def test_fused_adamw_is_off_by_default_and_steps_as_the_default_kernel():
+    from openfly_agent.training.config import OptimConfig
+
+    assert OptimConfig().fused_adamw is False
+    torch.manual_seed(0)
+    nets = [_net(), _net()]
+    nets[1].load_state_dict(nets[0].state_dict())
+    default = make_optimizer(nets[0], lr=0.1, weight_decay=0.01, betas=(0.9, 0.95))
+    fused = make_optimizer(nets[1], lr=0.1, weight_decay=0.01, betas=(0.9, 0.95), fused=True)
+    assert not default.defaults["fused"] and fused.defaults["fused"] is True
+    x = torch.randn(3, 4)
+    for net, optimizer in zip(nets, (default, fused)):
+        for _ in range(3):
+            net(x).square().sum().backward()
+            optimizer.step()
+            optimizer.zero_grad()
+    for a, b in zip(nets[0].parameters(), nets[1].parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
