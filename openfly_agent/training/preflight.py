@@ -6,12 +6,14 @@ malformed dataset, and a checkpoint whose tensors do not match the configured ar
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import uuid
 from collections.abc import Mapping
 from pathlib import Path
 
+from openfly_agent import constants as C
 from openfly_agent.data.config import DataConfig
 from openfly_agent.data.openfly_reader import annotation_path, load_openfly_dataset, part_files
 from openfly_agent.data.schema import SchemaError
@@ -69,6 +71,37 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
         return batch.accumulation_steps(world_size)
     except BatchSizeError as err:
         raise PreflightError(str(err)) from err
+
+
+def resolve_val_split(data: DataConfig) -> DataConfig:
+    """`data` with the split validation reads: the default `val`, or `test_seen` on a dataset without a `val`
+    split (the released OpenFly data, a dataset generated before the split existed), with a warning.
+
+    A missing root is left to `check_dataset_root`, which names it.
+    """
+    root = Path(data.root)
+    if data.val_split != C.SPLIT_VAL or not root.is_dir() or _has_records(root, C.SPLIT_VAL):
+        return data
+    logger.warning(
+        "dataset %s has no %s split (released data, or generated before it existed): validating on %s; "
+        "choices made on it are made on a test split (regenerate the dataset with a shipped toolchain config "
+        "to add the val split, docs/TOOLCHAIN.md)",
+        root,
+        C.SPLIT_VAL,
+        C.SPLIT_TEST_SEEN,
+    )
+    return dataclasses.replace(data, val_split=C.SPLIT_TEST_SEEN)
+
+
+def _has_records(root: Path, split: str) -> bool:
+    """Whether `split` of the dataset at `root` holds a record (its annotation file, else its part files)."""
+    path = annotation_path(root, split)
+    if path.is_file():
+        try:
+            return bool(json.loads(path.read_text()))
+        except (OSError, json.JSONDecodeError):
+            return True  # unreadable: reading the split names the fault
+    return bool(part_files(root, split))
 
 
 def check_dataset_root(data: DataConfig) -> None:

@@ -1,13 +1,15 @@
 """`train(cfg)`: one OpenFly-Agent training run, from the input checks to the final offline evaluation.
 
 Readable top to bottom, as OpenVLA's `train(cfg)` and nanoGPT's loop: checks, data, agent and processor,
-optimizer and loaders through accelerate, then the loop (accumulation, clipping, logging, validation,
-checkpoints, stops), then the final checkpoint, the LoRA merge and the test-split evaluation. The helpers it
-calls each do one thing (training/builder.py, loaders.py, saving.py, evaluate.py, stops.py, ...).
+optimizer and loaders through accelerate, then the loop (accumulation, clipping, logging, validation on
+`data.val_split`, checkpoints and the best one, stops), then the final checkpoint, the LoRA merge and the
+test-split evaluation, the only time the test split is evaluated. The helpers it calls each do one thing
+(training/builder.py, loaders.py, saving.py, evaluate.py, stops.py, ...).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -18,6 +20,7 @@ from tqdm.auto import tqdm
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
+from openfly_agent.training.best import BestMetric
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import STAGE_NAVIGATION, TrainConfig
@@ -28,7 +31,7 @@ from openfly_agent.training.loaders import epoch_batches, make_train_loader
 from openfly_agent.training.memory_estimate import check_memory
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
 from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
-from openfly_agent.training.preflight import check_dataset_root, check_output_dir
+from openfly_agent.training.preflight import check_dataset_root, check_output_dir, resolve_val_split
 from openfly_agent.training.resume_settings import record_run_settings, resume_changes
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
@@ -67,6 +70,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     """
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
+    # the dataset's val split; test_seen (with a warning) on a dataset without one, as the run records it
+    cfg = dataclasses.replace(cfg, data=resolve_val_split(cfg.data))
     # a resume refuses settings other than its checkpoint's, except RESUMABLE_KEYS (training/resume_settings.py)
     setting_changes = resume_changes(cfg, resume_from)
     check_dataset_root(cfg.data)
@@ -113,6 +118,10 @@ def train(cfg: TrainConfig) -> TrainResult:
     state = TrainerState(world_size=accelerator.num_processes)
     if resume_from is not None:
         state = restore_checkpoint(accelerator, resume_from, ema)  # optimizer, schedule, RNG, weights
+    keep_best = (
+        cfg.checkpoint.keep_best
+    )  # None: off; else the best so far (from `checkpoints/best` on a resume)
+    best = BestMetric.resume(keep_best, checkpoints.best()) if keep_best else None
     accelerator.init_trackers(cfg.logging.project, config=flat_config(cfg))
     logger.info(
         "run: %d steps (%d per epoch), starting at step %d", total_steps, sampler.steps_per_epoch, state.step
@@ -156,11 +165,17 @@ def train(cfg: TrainConfig) -> TrainResult:
                     train_logs["epoch"] = state.epoch + state.step_in_epoch / sampler.steps_per_epoch
                     log_metrics(accelerator, "train", train_logs, state.step)
                     progress.set_postfix(progress_postfix(train_logs))
+                new_best = False  # this step's validation pass beats the best so far (checkpoint.keep_best)
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
-                    log_metrics(accelerator, "val", evaluate(evaluated, val_loader, accelerator), state.step)
-                if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
+                    val_figures = evaluate(evaluated, val_loader, accelerator)
+                    log_metrics(accelerator, "val", val_figures, state.step)
+                    new_best = best is not None and best.offer(val_figures, state.step)
+                periodic = cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0
+                if periodic or new_best:
                     state.train_seconds = int(stops.elapsed_s())
-                    last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg, ema)
+                    last_checkpoint = save_checkpoint(
+                        accelerator, model, state, checkpoints, cfg, ema, best if new_best else None
+                    )
                     saved_step = state.step
                 if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
                     logger.warning("stop_after_steps=%d reached: exiting without the final save", state.step)
