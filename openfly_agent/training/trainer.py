@@ -118,9 +118,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     state = TrainerState(world_size=accelerator.num_processes)
     if resume_from is not None:
         state = restore_checkpoint(accelerator, resume_from, ema)  # optimizer, schedule, RNG, weights
-    keep_best = (
-        cfg.checkpoint.keep_best
-    )  # None: off; else the best so far (from `checkpoints/best` on a resume)
+    # checkpoint.keep_best: the best validation figure so far (read back from `checkpoints/best` on a resume)
+    keep_best = cfg.checkpoint.keep_best
     best = BestMetric.resume(keep_best, checkpoints.best()) if keep_best else None
     accelerator.init_trackers(cfg.logging.project, config=flat_config(cfg))
     logger.info(
