@@ -73,24 +73,22 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
         raise PreflightError(str(err)) from err
 
 
-def resolve_val_split(data: DataConfig) -> DataConfig:
+def resolve_val_split(data: DataConfig) -> tuple[DataConfig, str | None]:
     """`data` with the split validation reads: the default `val`, or `test_seen` on a dataset without a `val`
-    split (the released OpenFly data, a dataset generated before the split existed), with a warning.
+    split (the released OpenFly data, a dataset generated before the split existed), and then the warning to log.
 
-    A missing root is left to `check_dataset_root`, which names it.
+    The warning (None when the split is used as set) is logged once the run's checks passed, so a run that fails
+    one still says one line. A missing root is left to `check_dataset_root`, which names it.
     """
     root = Path(data.root)
     if data.val_split != C.SPLIT_VAL or not root.is_dir() or _has_records(root, C.SPLIT_VAL):
-        return data
-    logger.warning(
-        "dataset %s has no %s split (released data, or generated before it existed): validating on %s; "
-        "choices made on it are made on a test split (regenerate the dataset with a shipped toolchain config "
-        "to add the val split, docs/TOOLCHAIN.md)",
-        root,
-        C.SPLIT_VAL,
-        C.SPLIT_TEST_SEEN,
+        return data, None
+    warning = (
+        f"dataset {root} has no {C.SPLIT_VAL} split (released data, or generated before it existed): validating "
+        f"on {C.SPLIT_TEST_SEEN}, so choices made on it are made on a test split (rerunning generate with a "
+        "shipped toolchain config adds the val split, docs/TOOLCHAIN.md)"
     )
-    return dataclasses.replace(data, val_split=C.SPLIT_TEST_SEEN)
+    return dataclasses.replace(data, val_split=C.SPLIT_TEST_SEEN), warning
 
 
 def _has_records(root: Path, split: str) -> bool:

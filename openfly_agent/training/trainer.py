@@ -71,7 +71,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     # the dataset's val split; test_seen (with a warning) on a dataset without one, as the run records it
-    cfg = dataclasses.replace(cfg, data=resolve_val_split(cfg.data))
+    data, val_warning = resolve_val_split(cfg.data)
+    cfg = dataclasses.replace(cfg, data=data)
     # a resume refuses settings other than its checkpoint's, except RESUMABLE_KEYS (training/resume_settings.py)
     setting_changes = resume_changes(cfg, resume_from)
     check_dataset_root(cfg.data)
@@ -82,6 +83,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     if accelerator.is_main_process:
         checkpoints.remove_stale_staging()
     splits = load_splits(cfg.data, cfg.model.grounding)
+    if val_warning:
+        logger.warning(val_warning)
 
     # 2. The agent, whose processor prepares every input, and the stage's samples of each split
     #    (navigation: per-step samples with history; grounding: expressions and instruction targets).

@@ -50,14 +50,20 @@ def test_keep_best_needs_a_known_figure_and_validation(generated_dataset, tmp_pa
         )
 
 
-def test_a_run_validating_every_step_keeps_the_checkpoint_of_its_best_pass(generated_dataset, tmp_path):
+def test_a_run_validating_every_step_keeps_the_checkpoint_of_its_best_pass(
+    generated_dataset, tmp_path, caplog
+):
     steps = 4
     cfg = make_config(
         generated_dataset, tmp_path, steps=steps, validation__interval=1, validation__max_samples=8,
         validation__final_eval="false", checkpoint__save_interval=0, checkpoint__keep_last=1,
         checkpoint__keep_best="val/action_accuracy",
     )  # fmt: skip
-    train_in_process(cfg)
+    with caplog.at_level("WARNING"):
+        train_in_process(cfg)
+    # the tiny dataset has no val split: validation falls back to test_seen, says so and records it
+    assert "has no val split" in caplog.text
+    assert json.loads((tmp_path / C.TRAIN_CONFIG_NAME).read_text())["data"]["val_split"] == C.SPLIT_TEST_SEEN
     logged = {}
     for line in (tmp_path / "logs" / "metrics.jsonl").read_text().splitlines():
         record = json.loads(line)

@@ -72,12 +72,10 @@ def test_missing_split_is_named(tmp_path, openfly_fixtures):
     records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
     (annotation / "train.json").write_text(json.dumps(records))
     with pytest.raises(PreflightError, match="no annotation for split 'test_seen'"):
-        check_dataset_root(resolve_val_split(DataConfig(root=str(tmp_path))))  # train()'s order
+        check_dataset_root(resolve_val_split(DataConfig(root=str(tmp_path)))[0])  # train()'s order
 
 
-def test_validation_falls_back_to_test_seen_only_on_a_dataset_without_a_val_split(
-    tmp_path, openfly_fixtures, caplog
-):
+def test_validation_falls_back_to_test_seen_only_on_a_dataset_without_a_val_split(tmp_path, openfly_fixtures):
     annotation = tmp_path / C.DATASET_ANNOTATION_DIR
     annotation.mkdir()
     records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
@@ -85,20 +83,17 @@ def test_validation_falls_back_to_test_seen_only_on_a_dataset_without_a_val_spli
         (annotation / name).write_text(json.dumps(records))
     data = DataConfig(root=str(tmp_path))
     assert data.val_split == C.SPLIT_VAL
-    with caplog.at_level("WARNING"):
-        assert resolve_val_split(data).val_split == C.SPLIT_TEST_SEEN
-    assert "has no val split" in caplog.text and "validating on test_seen" in caplog.text
+    resolved, warning = resolve_val_split(data)
+    assert resolved.val_split == C.SPLIT_TEST_SEEN
+    assert "has no val split" in warning and "validating on test_seen" in warning
     (annotation / "val.json").write_text("[]")  # a dataset generated without val units
-    assert resolve_val_split(data).val_split == C.SPLIT_TEST_SEEN
+    assert resolve_val_split(data)[0].val_split == C.SPLIT_TEST_SEEN
     (annotation / "val.json").write_text(json.dumps(records[:1]))
-    caplog.clear()
-    with caplog.at_level("WARNING"):
-        assert resolve_val_split(data) == data  # a val split: used, no warning
-        explicit = DataConfig(root=str(tmp_path), val_split=C.SPLIT_TRAIN)
-        assert resolve_val_split(explicit) == explicit  # an explicit choice is kept
-    assert not caplog.text
+    assert resolve_val_split(data) == (data, None)  # a val split: used, no warning
+    explicit = DataConfig(root=str(tmp_path), val_split=C.SPLIT_TRAIN)
+    assert resolve_val_split(explicit) == (explicit, None)  # an explicit choice is kept
     missing = DataConfig(root=str(tmp_path / "nowhere"))
-    assert resolve_val_split(missing) == missing  # check_dataset_root names the missing root
+    assert resolve_val_split(missing) == (missing, None)  # check_dataset_root names the missing root
 
 
 def test_malformed_record_names_file_record_and_field(tmp_path, openfly_fixtures):
