@@ -82,7 +82,7 @@ def test_a_second_value_or_a_value_of_a_section_is_one_line_naming_the_option(ar
         ),
         ({"policy": "greedy"}, "choose from"),
         ({"policy": "random", "baselines": ["random"]}, "must not repeat"),
-        ({"policy": "stop", "split": ["val"]}, "split 'val'"),
+        ({"policy": "stop", "split": ["validation"]}, "split 'validation'"),
         ({"policy": "stop", "profiles": ["habitat"]}, "profile 'habitat'"),
         ({"policy": "stop", "batch_size": 0}, "batch_size"),
         ({"policy": "stop", "oracle_mode": "fly"}, "oracle_mode"),
