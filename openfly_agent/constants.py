@@ -48,9 +48,17 @@ HIGH_CATEGORY_PITCH_DEG = -45.0  # camera pitch for trajectories of the `high_*`
 SPLIT_TRAIN = "train"
 SPLIT_TEST_SEEN = "test_seen"
 SPLIT_TEST_UNSEEN = "test_unseen"
-SPLITS = (SPLIT_TRAIN, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)
-# The released OpenFly annotation files per split.
-ANNOTATION_FILES = {SPLIT_TRAIN: "train.json", SPLIT_TEST_SEEN: "seen.json", SPLIT_TEST_UNSEEN: "unseen.json"}
+# Generated datasets only: routes of the train cities kept out of training plus a validation city of their own,
+# what choices are made on (the released OpenFly data has no such split; docs/TOOLCHAIN.md, "Splits")
+SPLIT_VAL = "val"
+SPLITS = (SPLIT_TRAIN, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN, SPLIT_VAL)
+# The annotation file of each split (the first three are the released OpenFly files).
+ANNOTATION_FILES = {
+    SPLIT_TRAIN: "train.json",
+    SPLIT_TEST_SEEN: "seen.json",
+    SPLIT_TEST_UNSEEN: "unseen.json",
+    SPLIT_VAL: "val.json",
+}
 RELEASED_DATA_CARD = "data_cards/openfly_released.md"  # how to download the released OpenFly data
 
 # --- Training batch keys (the contract between data/ collator and model/ agent) -------------------
@@ -131,6 +139,8 @@ PROCESSOR_CONFIG_NAME = "processor_config.json"  # OpenFlyProcessor's settings (
 # A training run: <output_dir>/checkpoints/step-NNNNNN/ folders and `last`, a relative symlink to the newest.
 CHECKPOINTS_DIR = "checkpoints"
 LAST_POINTER_NAME = "last"
+# `checkpoint.keep_best`: `best`, a relative symlink to the step folder of the best validation pass so far
+BEST_POINTER_NAME = "best"
 MERGED_DIR_NAME = "merged"  # <output_dir>/merged: a LoRA run's adapter merged into its base at the end
 
 EPISODES_JSONL = "episodes.jsonl"
@@ -140,7 +150,7 @@ DATASET_INFO_JSON = "meta/info.json"
 DATASET_STATS_JSON = "meta/stats.json"
 # Dataset root layout (mirrors the released OpenFly data; data/writer.py, data/openfly_reader.py)
 DATASET_TRAJ_DIR = "traj"  # traj/<scene>/astar_data/<category>/<folder>.parquet, one per trajectory
-DATASET_ANNOTATION_DIR = "Annotation"  # Annotation/{train,seen,unseen}.json
+DATASET_ANNOTATION_DIR = "Annotation"  # Annotation/{train,seen,unseen,val}.json
 DATASET_PARTS_DIR = "Annotation/parts"  # Annotation/parts/<split>/<scene>.json, merged by finalize()
 DATASET_SCHEMA_VERSION = 1
 # The toolchain's own records inside a generated dataset root (toolchain/ledger.py, toolchain/summary.py)

@@ -330,7 +330,10 @@ def _prepare(command: DocCommand, work: Path, small_agent: Path) -> None:
     results = _value(command.args, "--results")
     if results and not (work / results).exists():
         overall = {"episodes": 1, "ne_m": 40.0, "sr_pct": 0.0, "osr_pct": 0.0, "spl_pct": 0.0}
-        splits = {s: {p: {"overall": overall} for p in ("openfly", "standard")} for s in C.SPLITS[1:]}
+        splits = {
+            s: {p: {"overall": overall} for p in ("openfly", "standard")}
+            for s in (C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN)
+        }
         path = work / results / "agent" / C.RESULTS_JSON
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps({"version": 1, "policy": "agent", "splits": splits, "errors": {}}))

@@ -80,8 +80,10 @@ class DataConfig:
         root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated; relative to the
             working directory.
         train_split: the split training reads (one of constants.SPLITS).
-        val_split: periodic validation.
-        test_split: the final offline evaluation.
+        val_split: periodic validation and `checkpoint.keep_best` (what choices are made on). The default `val` is
+            the generated datasets' validation split; a dataset without one (the released OpenFly data, datasets
+            generated before it existed) validates on `test_seen` instead, with a warning in the run's log.
+        test_split: the final offline evaluation, read by nothing before it.
         reader: label handling (ReaderOptions).
         history: memory frames per sample (HistoryConfig).
         num_workers: DataLoader worker processes per training process.
@@ -98,7 +100,7 @@ class DataConfig:
     # dataset root (relative to the working directory); the toolchain writes embedded-small there
     root: str = "outputs/datasets/embedded-small"
     train_split: str = C.SPLIT_TRAIN
-    val_split: str = C.SPLIT_TEST_SEEN
+    val_split: str = C.SPLIT_VAL
     test_split: str = C.SPLIT_TEST_UNSEEN
     reader: ReaderOptions = field(default_factory=ReaderOptions)
     history: HistoryConfig = field(default_factory=HistoryConfig)

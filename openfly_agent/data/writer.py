@@ -4,7 +4,7 @@ Layout of a dataset root (the release's, so one reader serves both):
     traj/<scene>/astar_data/<category>/<folder>.parquet   one per trajectory, one row per kept frame
     Annotation/parts/<split>/<scene>[.part-<k>].json      records, rewritten as trajectories finish
                                                           (at most PART_MAX_RECORDS per file)
-    Annotation/{train,seen,unseen}.json                   merged from the parts by finalize()
+    Annotation/{train,seen,unseen,val}.json               merged from the parts by finalize()
     meta/info.json, meta/stats.json, meta/data_files.json counts and scenes; action statistics; file lists
 Parts make generation resumable (`has_episode`) and shardable (writers on several machines write
 different scenes; copy the folders together and call `finalize()`).
@@ -188,7 +188,7 @@ class OpenFlyDatasetWriter:
 
     # --- finalize ------------------------------------------------------------------------------------
     def finalize(self, strict: bool = True) -> dict:
-        """Merge the parts into `Annotation/{train,seen,unseen}.json` and write `meta/`.
+        """Merge the parts into `Annotation/{train,seen,unseen,val}.json` and write `meta/`.
 
         Args:
             strict: raise when a record has no parquet file (True), or leave it out with a warning.
@@ -269,7 +269,7 @@ class OpenFlyDatasetWriter:
             "features": {f.name: str(f.type) for f in TRAJECTORY_SCHEMA},
             "layout": {
                 "trajectories": f"{C.DATASET_TRAJ_DIR}/<scene>/astar_data/<category>/<folder>.parquet",
-                "annotations": f"{C.DATASET_ANNOTATION_DIR}/{{train,seen,unseen}}.json",
+                "annotations": f"{C.DATASET_ANNOTATION_DIR}/{{train,seen,unseen,val}}.json",
                 "parts": f"{C.DATASET_PARTS_DIR}/<split>/<scene>.json",
                 "data_files": DATA_FILES_JSON,
             },

@@ -32,10 +32,11 @@ _SIZE_CATEGORIES = ((1_000, "n<1K"), (10_000, "1K<n<10K"), (100_000, "10K<n<100K
 def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
     """Write the dataset release folder and return it.
 
-    Copies (hard-links when possible) `traj/**.parquet`, `Annotation/{train,seen,unseen}.json` and `meta/`,
-    and writes `README.md` from `cfg.card` with YAML `configs` so `datasets.load_dataset(<repo>)` gives the
-    frames of one split per annotation file. The annotation JSON files travel as they are, for the OpenFly
-    reader (`datasets` infers one file format per repository, so they get no config of their own).
+    Copies (hard-links when possible) `traj/**.parquet`, `Annotation/{train,seen,unseen,val}.json` (those with
+    trajectories) and `meta/`, and writes `README.md` from `cfg.card` with YAML `configs` so
+    `datasets.load_dataset(<repo>)` gives the frames of one split per annotation file. The annotation JSON files
+    travel as they are, for the OpenFly reader (`datasets` infers one file format per repository, so they get no
+    config of their own).
 
     Raises:
         FileNotFoundError: the root, its annotations or meta, a trajectory parquet or the card is missing.
@@ -63,7 +64,8 @@ def build_dataset_release(cfg: DatasetReleaseConfig) -> Path:
 
 
 def _split_trajectories(root: Path) -> dict[str, list[str]]:
-    """Map each split to its parquet paths (relative to root) via its annotation file (id = path in traj/)."""
+    """Map each split that holds trajectories to its parquet paths (relative to root) via its annotation file (id =
+    path in traj/)."""
     if not root.is_dir():
         raise FileNotFoundError(f"dataset root {root} does not exist")
     splits: dict[str, list[str]] = {}
@@ -83,10 +85,12 @@ def _split_trajectories(root: Path) -> dict[str, list[str]]:
                     f"{path}: record {index}: trajectory file {root / rel} does not exist"
                 )
             files.append(rel)
-        splits[split] = sorted(set(files))
+        if files:  # a split without trajectories (an empty val.json) is left out: the Hub's loader refuses it
+            splits[split] = sorted(set(files))
     if not splits:
         raise FileNotFoundError(
-            f"{root / DATASET_ANNOTATION_DIR}: no annotation file ({', '.join(ANNOTATION_FILES.values())})"
+            f"{root / DATASET_ANNOTATION_DIR}: no annotation file with trajectories "
+            f"({', '.join(ANNOTATION_FILES.values())})"
         )
     if not (root / DATASET_INFO_JSON).is_file():
         raise FileNotFoundError(

@@ -10,6 +10,10 @@ from dataclasses import dataclass, field
 
 from openfly_agent import constants as C
 
+# Work-unit index of a city's first validation route: its routes are units of their own (own seeds), after
+# and apart from the `trajectories_per_scene` units of the other splits.
+VAL_INDEX_BASE = 1_000_000
+
 
 def _check(condition: bool, message: str) -> None:
     if not condition:
@@ -225,12 +229,20 @@ class DaggerConfig:
 
 @dataclass
 class SceneConfig:
-    """Which scenes are generated and how they split (unseen seeds are never used in train)."""
+    """Which scenes are generated and how they split (unseen and validation seeds are never used in train).
+
+    The `val` split holds route attempts of the train cities beyond `trajectories_per_scene` (work units of
+    their own, numbered from `VAL_INDEX_BASE`, so the other splits do not change) and every route of the
+    validation cities `val_seeds`. Off by default; the shipped configs turn it on (docs/TOOLCHAIN.md, "Splits").
+    """
 
     train_seeds: list[int] = field(default_factory=lambda: [0, 1])
     unseen_seeds: list[int] = field(default_factory=lambda: [100])
     test_seen_fraction: float = 0.1  # of the trajectories of train scenes
     trajectories_per_scene: int = 100  # route attempts per scene (work units); rejected ones are counted
+    val_seen_per_scene: int = 0  # val: route attempts per train city, kept out of training
+    val_seeds: list[int] = field(default_factory=list)  # val: validation cities, used for no other split
+    val_unseen_per_scene: int = 0  # val: route attempts per validation city
     city_size_m: float = 1000.0  # embedded city size
     city_buildings: int | None = None  # None = the city generator's default
     point_spacing_m: float = 2.0  # point cloud sampling of the embedded city
@@ -244,9 +256,26 @@ class SceneConfig:
             not overlap, f"scenes: unseen_seeds must not be used in train_seeds (both hold {sorted(overlap)})"
         )
         _check(len(set(self.train_seeds)) == len(self.train_seeds), "scenes.train_seeds has duplicates")
+        reused = set(self.val_seeds) & (set(self.train_seeds) | set(self.unseen_seeds))
+        _check(
+            not reused,
+            f"scenes: val_seeds must not be used in train_seeds or unseen_seeds (both hold {sorted(reused)})",
+        )
+        _check(len(set(self.val_seeds)) == len(self.val_seeds), "scenes.val_seeds has duplicates")
         _check(0.0 <= self.test_seen_fraction < 1.0, "scenes.test_seen_fraction must be in [0, 1)")
         _check(len(set(self.unseen_seeds)) == len(self.unseen_seeds), "scenes.unseen_seeds has duplicates")
-        _check(self.trajectories_per_scene >= 1, "scenes.trajectories_per_scene must be >= 1")
+        _check(
+            1 <= self.trajectories_per_scene < VAL_INDEX_BASE,
+            f"scenes.trajectories_per_scene must be in [1, {VAL_INDEX_BASE})",
+        )
+        _check(
+            self.val_seen_per_scene >= 0 and self.val_unseen_per_scene >= 0,
+            "scenes.val_seen_per_scene and scenes.val_unseen_per_scene must be >= 0",
+        )
+        _check(
+            self.val_unseen_per_scene >= 1 or not self.val_seeds,
+            "scenes.val_seeds needs scenes.val_unseen_per_scene >= 1 (route attempts per validation city)",
+        )
         _check(self.city_size_m > 0, f"scenes.city_size_m must be > 0, got {self.city_size_m}")
         _check(
             self.city_buildings is None or self.city_buildings >= 1,

@@ -24,7 +24,7 @@ from openfly_agent import constants as C
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.sim.base import Simulator
 from openfly_agent.sim.city import scene_id_of
-from openfly_agent.toolchain.config import GenerateConfig, parse_shard
+from openfly_agent.toolchain.config import VAL_INDEX_BASE, GenerateConfig, parse_shard
 from openfly_agent.toolchain.instructions import make_instruction_backend
 from openfly_agent.toolchain.ledger import STATUS_OK, STATUS_REJECTED, UnitLedger
 from openfly_agent.toolchain.pipeline import KIND_ASTAR, KIND_DAGGER, KIND_DAGGER_POLICY, UnitResult, WorkUnit
@@ -38,31 +38,50 @@ _SPLIT_STREAM = 7  # seed stream of the test-seen draw, apart from the route see
 _RESULT_TIMEOUT_S = 5.0
 
 
-def shard_scenes(cfg: GenerateConfig) -> list[tuple[int, bool]]:
-    """(seed, unseen) of the scenes this shard generates, in config order (train seeds, then unseen)."""
+# What a scene is generated for: its A* units go to train / test_seen (and val), test_unseen, or val
+ROLE_TRAIN, ROLE_UNSEEN, ROLE_VAL = "train", "unseen", "val"
+
+
+def shard_scenes(cfg: GenerateConfig) -> list[tuple[int, str]]:
+    """(seed, role) of the scenes this shard generates, in config order (train, unseen, then validation seeds).
+
+    The validation cities come last, so adding them leaves the shard of every other scene as it was.
+    """
     index, count = parse_shard(cfg.shard)
-    scenes = [(s, False) for s in cfg.scenes.train_seeds] + [(s, True) for s in cfg.scenes.unseen_seeds]
+    scenes = (
+        [(s, ROLE_TRAIN) for s in cfg.scenes.train_seeds]
+        + [(s, ROLE_UNSEEN) for s in cfg.scenes.unseen_seeds]
+        + [(s, ROLE_VAL) for s in cfg.scenes.val_seeds]
+    )
     return [scene for position, scene in enumerate(scenes) if position % count == index]
 
 
 def scene_units(
-    seed: int, unseen: bool, cfg: GenerateConfig, kinds: tuple[str, ...] = (KIND_ASTAR, KIND_DAGGER)
+    seed: int, role: str, cfg: GenerateConfig, kinds: tuple[str, ...] = (KIND_ASTAR, KIND_DAGGER)
 ) -> list[WorkUnit]:
-    """The units of a scene; train-scene A* units go to test_seen with probability `test_seen_fraction`.
+    """The units of a scene of `role`; train-scene A* units go to test_seen with probability `test_seen_fraction`.
 
-    DAgger units (`dagger.episodes_per_scene` of each requested dagger kind) exist in train scenes only.
+    Validation units (train scenes: `val_seen_per_scene`, validation scenes: `val_unseen_per_scene`) are
+    numbered from `VAL_INDEX_BASE`: their seeds are a stream of their own, so the units of the other splits are
+    the same with or without them. DAgger units (`dagger.episodes_per_scene` of each requested dagger kind)
+    exist in train scenes only.
     """
     units = []
-    for index in range(cfg.scenes.trajectories_per_scene if KIND_ASTAR in kinds else 0):
-        if unseen:
-            split = C.SPLIT_TEST_UNSEEN
-        else:
-            draw = np.random.default_rng([cfg.seed, seed, index, _SPLIT_STREAM]).random()
-            split = C.SPLIT_TEST_SEEN if draw < cfg.scenes.test_seen_fraction else C.SPLIT_TRAIN
-        units.append(WorkUnit(seed, index, split, KIND_ASTAR))
+    scenes = cfg.scenes
+    if KIND_ASTAR in kinds and role != ROLE_VAL:
+        for index in range(scenes.trajectories_per_scene):
+            if role == ROLE_UNSEEN:
+                split = C.SPLIT_TEST_UNSEEN
+            else:
+                draw = np.random.default_rng([cfg.seed, seed, index, _SPLIT_STREAM]).random()
+                split = C.SPLIT_TEST_SEEN if draw < scenes.test_seen_fraction else C.SPLIT_TRAIN
+            units.append(WorkUnit(seed, index, split, KIND_ASTAR))
     for kind in (KIND_DAGGER, KIND_DAGGER_POLICY):
-        if kind in kinds and not unseen:
+        if kind in kinds and role == ROLE_TRAIN:
             units += [WorkUnit(seed, i, C.SPLIT_TRAIN, kind) for i in range(cfg.dagger.episodes_per_scene)]
+    if KIND_ASTAR in kinds and role != ROLE_UNSEEN:
+        count = scenes.val_unseen_per_scene if role == ROLE_VAL else scenes.val_seen_per_scene
+        units += [WorkUnit(seed, VAL_INDEX_BASE + i, C.SPLIT_VAL, KIND_ASTAR) for i in range(count)]
     return units
 
 
@@ -71,12 +90,12 @@ def pending_units(
 ) -> dict[int, list[WorkUnit]]:
     """Units per scene seed that are not finished yet (a ledger line, and the episode exists if it was ok)."""
     todo = {}
-    for seed, unseen in shard_scenes(cfg):
+    for seed, role in shard_scenes(cfg):
         done = set()
         for record in ledger.read(scene_id_of(seed)):
             if record["status"] == STATUS_REJECTED or writer.has_episode(record["episode_id"]):
                 done.add((record["index"], record["kind"]))
-        todo[seed] = [u for u in scene_units(seed, unseen, cfg, kinds) if (u.index, u.kind) not in done]
+        todo[seed] = [u for u in scene_units(seed, role, cfg, kinds) if (u.index, u.kind) not in done]
     return todo
 
 

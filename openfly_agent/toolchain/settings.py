@@ -4,7 +4,8 @@
 city parameters from it). A rerun with other data settings would leave trajectories of both kinds side by
 side and overwrite that record, so it is refused, naming the settings that differ, unless `--overwrite=true`
 discards the dataset first. Settings that do not change the data (where it goes, how many workers, which
-shard, plots, the VLM client's transport) may change between runs.
+shard, plots, the VLM client's transport) may change between runs. A dataset recorded before the `val` split's
+settings existed resumes with them: the rerun adds the `val` split and leaves the other splits as they are.
 """
 
 from __future__ import annotations
@@ -18,7 +19,13 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import GenerateConfig
-from openfly_agent.utils.config import changed_settings, config_to_dict, describe_changes, save_config
+from openfly_agent.utils.config import (
+    changed_settings,
+    config_to_dict,
+    describe_changes,
+    flat_settings,
+    save_config,
+)
 from openfly_agent.utils.files import first_missing_dir, remove_created_dirs, remove_empty_tree
 
 logger = logging.getLogger(__name__)
@@ -29,6 +36,9 @@ RUNTIME_KEYS = (
     "instructions.vlm.concurrency", "instructions.vlm.max_retries", "instructions.vlm.backoff_s",
     "instructions.vlm.timeout_s",
 )  # fmt: skip
+# Settings added after datasets were generated: a dataset whose record lacks them resumes with them, which
+# generates only what they add (the `val` split's units); the record is then rewritten with them.
+ADDED_KEYS = ("scenes.val_seen_per_scene", "scenes.val_seeds", "scenes.val_unseen_per_scene")
 DATASET_PARTS = (C.DATASET_ANNOTATION_DIR, C.DATASET_TRAJ_DIR, "meta")  # what generate writes under the root
 
 
@@ -70,7 +80,10 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
             raise GenerateSettingsError(
                 f"{path} is not readable ({err}): pass --overwrite=true to generate anew"
             ) from err
-        changes = describe_changes(changed_settings(stored, config_to_dict(cfg), RUNTIME_KEYS + ignore))
+        absent = tuple(key for key in ADDED_KEYS if key not in flat_settings(stored))
+        changes = describe_changes(
+            changed_settings(stored, config_to_dict(cfg), RUNTIME_KEYS + absent + ignore)
+        )
         if changes:
             raise GenerateSettingsError(
                 f"{root} holds a dataset generated with other settings ({changes}); run with the same "

@@ -70,13 +70,14 @@ def summarize_records(records: list[dict], height_bin_m: float = 10.0) -> dict:
 
 def empty_splits_message(summary: dict) -> str | None:
     """One line naming the splits of a summary that hold no trajectory (eval stops on them), with the settings
-    that fill each; None when every split has some."""
+    that fill each; None when every split has some. The `val` split is optional (training falls back to
+    test_seen without it), so it is not named."""
     hints = {  # what puts trajectories in each split
         C.SPLIT_TRAIN: "--scenes.train_seeds",
         C.SPLIT_TEST_SEEN: "--scenes.test_seen_fraction or --scenes.trajectories_per_scene",
         C.SPLIT_TEST_UNSEEN: "--scenes.unseen_seeds",
     }
-    empty = [split for split in C.SPLITS if not summary["per_split"].get(split)]
+    empty = [split for split in hints if not summary["per_split"].get(split)]
     if not empty:
         return None
     fixes = ", ".join(f"{split} with {hints[split]}" for split in empty)

@@ -1,7 +1,8 @@
 """Atomic checkpoint folders: write `.tmp-step-N/`, rename it to `step-N/`, then move the `last` pointer.
 
 `last` is a relative symlink to the newest `step-N/` (so Hugging Face loaders open it like any model folder),
-moved by creating the new link beside it and renaming it over the old one. Runs written before kept a one-line
+moved by creating the new link beside it and renaming it over the old one. With `checkpoint.keep_best`, `best` is
+a link of the same kind to the checkpoint of the best validation pass so far, kept whatever `keep_last` says. Runs written before kept a one-line
 pointer file; it is still read (model/persistence/checkpoint_path.py) and replaced by a symlink at the next commit.
 
 Weights are given the mode of the other files (the umask's) before the commit: safetensors writes them 0600.
@@ -18,7 +19,7 @@ import re
 import shutil
 from pathlib import Path
 
-from openfly_agent.constants import CHECKPOINTS_DIR, LAST_POINTER_NAME
+from openfly_agent.constants import BEST_POINTER_NAME, CHECKPOINTS_DIR, LAST_POINTER_NAME
 from openfly_agent.model.persistence.checkpoint_path import last_pointer_target
 from openfly_agent.utils.file_modes import follow_umask
 
@@ -106,11 +107,25 @@ class CheckpointManager:
         complete = self.complete_checkpoints()
         return complete[-1] if complete else None
 
+    def best(self) -> Path | None:
+        """The checkpoint `best` names (`checkpoint.keep_best`); None when there is no such link or folder."""
+        pointer = self.root / BEST_POINTER_NAME
+        if not pointer.is_symlink():
+            return None
+        target = self.root / os.readlink(pointer)
+        return target if _STEP_DIR.match(target.name) and target.is_dir() else None
+
+    def mark_best(self, step: int) -> None:
+        """Point `best` at the committed checkpoint of `step` (one rename), then prune what it kept."""
+        self._write_pointer(self.final_dir(step).name, BEST_POINTER_NAME)
+        logger.info("best checkpoint so far: %s", self.final_dir(step))
+        self.prune()
+
     def prune(self) -> list[Path]:
-        """Delete all but the newest `keep_last` checkpoints (never the one `last` names); return them."""
+        """Delete all but the newest `keep_last` checkpoints (never those `last` and `best` name); return them."""
         complete = self.complete_checkpoints()
-        protected = self.latest()
-        removed = [p for p in complete[: max(len(complete) - self.keep_last, 0)] if p != protected]
+        protected = {self.latest(), self.best()}
+        removed = [p for p in complete[: max(len(complete) - self.keep_last, 0)] if p not in protected]
         for path in removed:
             shutil.rmtree(path)
             logger.info("removed old checkpoint %s (keep_last=%d)", path, self.keep_last)
@@ -126,10 +141,11 @@ class CheckpointManager:
             shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
         return stale
 
-    def _write_pointer(self, name: str) -> None:
-        """Point `last` at the checkpoint folder `name` (a relative symlink, swapped in by one rename)."""
-        pointer = self.root / LAST_POINTER_NAME
-        tmp = self.root / f"{STAGING_PREFIX}{LAST_POINTER_NAME}"
+    def _write_pointer(self, name: str, pointer_name: str = LAST_POINTER_NAME) -> None:
+        """Point `last` (or `pointer_name`) at the checkpoint folder `name` (a relative symlink, swapped in by one
+        rename)."""
+        pointer = self.root / pointer_name
+        tmp = self.root / f"{STAGING_PREFIX}{pointer_name}"
         if tmp.is_symlink() or tmp.exists():
             tmp.unlink()
         os.symlink(name, tmp, target_is_directory=True)

@@ -18,6 +18,8 @@ SCHEDULES = ("constant", "cosine", "linear")
 HORIZONS = ("steps", "time")  # where the lr decay ends: the step budget, or whichever of steps and time first
 TRACKERS = ("tensorboard", "wandb", "none")
 INIT_FORMATS = ("auto", "openfly", "openvla")
+# what `checkpoint.keep_best` may follow: the validation figures (training/evaluate.py); a loss is best lowest
+KEEP_BEST_METRICS = ("val/loss", "val/action_accuracy", "val/box_iou")
 
 
 class BatchSizeError(ValueError):
@@ -186,10 +188,17 @@ class CheckpointConfig:
 
     save_interval: int = 500  # optimizer steps (0: only at the end)
     keep_last: int = 3
+    # a validation figure (KEEP_BEST_METRICS): each validation pass that beats the best so far (lower loss,
+    # higher accuracy / IoU) saves a checkpoint and points `checkpoints/best` at it; null: off
+    keep_best: str | None = None
 
     def __post_init__(self) -> None:
         _require(self.save_interval >= 0, f"checkpoint.save_interval must be >= 0, got {self.save_interval}")
         _require(self.keep_last >= 1, f"checkpoint.keep_last must be >= 1, got {self.keep_last}")
+        _require(
+            self.keep_best is None or self.keep_best in KEEP_BEST_METRICS,
+            f"checkpoint.keep_best={self.keep_best!r}: choose one of {KEEP_BEST_METRICS} (or null)",
+        )
 
 
 @dataclass
@@ -252,6 +261,10 @@ class TrainConfig:
         _require(
             self.optim.horizon != "time" or self.time_limit_minutes is not None,
             "optim.horizon=time decays the lr over the time budget: set --time_limit_minutes",
+        )
+        _require(
+            self.checkpoint.keep_best is None or self.validation.interval > 0,
+            f"checkpoint.keep_best={self.checkpoint.keep_best} follows validation: set --validation.interval > 0",
         )
 
     @property

@@ -6,6 +6,7 @@ malformed dataset, and a checkpoint whose tensors do not match the configured ar
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import uuid
@@ -73,6 +74,35 @@ def check_batch(batch: BatchConfig, world_size: int) -> int:
         return batch.accumulation_steps(world_size)
     except BatchSizeError as err:
         raise PreflightError(str(err)) from err
+
+
+def resolve_val_split(data: DataConfig) -> tuple[DataConfig, str | None]:
+    """`data` with the split validation reads: the default `val`, or `test_seen` on a dataset without a `val`
+    split (the released OpenFly data, a dataset generated before the split existed), and then the warning to log.
+
+    The warning (None when the split is used as set) is logged once the run's checks passed, so a run that fails
+    one still says one line. A missing root is left to `check_dataset_root`, which names it.
+    """
+    root = Path(data.root)
+    if data.val_split != C.SPLIT_VAL or not root.is_dir() or _has_records(root, C.SPLIT_VAL):
+        return data, None
+    warning = (
+        f"dataset {root} has no {C.SPLIT_VAL} split (released data, or generated before it existed): validating "
+        f"on {C.SPLIT_TEST_SEEN}, so choices made on it are made on a test split (rerunning generate with a "
+        "shipped toolchain config adds the val split, docs/TOOLCHAIN.md)"
+    )
+    return dataclasses.replace(data, val_split=C.SPLIT_TEST_SEEN), warning
+
+
+def _has_records(root: Path, split: str) -> bool:
+    """Whether `split` of the dataset at `root` holds a record (its annotation file, else its part files)."""
+    path = annotation_path(root, split)
+    if path.is_file():
+        try:
+            return bool(json.loads(path.read_text()))
+        except (OSError, json.JSONDecodeError):
+            return True  # unreadable: reading the split names the fault
+    return bool(part_files(root, split))
 
 
 def check_dataset_root(data: DataConfig) -> None:

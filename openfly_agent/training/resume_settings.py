@@ -4,8 +4,9 @@
 settings its own steps ran with. `--resume=true` compares the new settings with the checkpoint's: a change of
 anything that decides what is learned (data, model, optimizer, batch, seed, ...) is refused, naming each
 setting, so the record never mixes two recipes silently. The settings in `RESUMABLE_KEYS` (how long, how
-often to log / validate / save, where and with what resources) may change; each change is appended to
-`<output_dir>/config_changes.jsonl` with the step and time it took effect (docs/TRAINING.md, "Resuming").
+often to log / validate / save, on which split to validate, where and with what resources) may change; each
+change is appended to `<output_dir>/config_changes.jsonl` with the step and time it took effect
+(docs/TRAINING.md, "Resuming").
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ RESUMABLE_KEYS = (
     "steps", "epochs", "time_limit_minutes", "stop_after_steps", "resume", "output_dir", "cpu",
     "gradient_checkpointing", "compile_layers", "optim.fused_adamw", "batch.per_device_batch_size", "logging.",
     "validation.", "checkpoint.",
-    "data.num_workers", "data.cache_episodes", "data.cache_frames", "lora.merge_at_end",
+    "data.num_workers", "data.cache_episodes", "data.cache_frames", "data.val_split", "lora.merge_at_end",
 )  # fmt: skip
 
 

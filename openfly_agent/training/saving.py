@@ -2,11 +2,13 @@
 
 Order of a save: rank 0 creates `.tmp-step-N/`; every process writes its part of the accelerate state and
 joins the state-dict gather of the model export; rank 0 writes the counters, then renames the folder and moves
-the `last` pointer. A crash before the rename leaves the previous checkpoint as the newest.
+the `last` pointer (and `best`, for the best validation pass so far). A crash before the rename leaves the
+previous checkpoint as the newest.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -15,6 +17,7 @@ from accelerate.utils import DistributedType
 from timm.utils import ModelEmaV3
 from torch import nn
 
+from openfly_agent.training.best import BEST_RECORD_NAME, BestMetric
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.ema import load_ema, save_ema
@@ -48,11 +51,13 @@ def save_checkpoint(
     checkpoints: CheckpointManager,
     cfg: TrainConfig,
     ema: ModelEmaV3 | None = None,
+    best: BestMetric | None = None,
 ) -> Path:
     """Write the checkpoint of `state.step` atomically (call on every process); return its folder.
 
     With a weight average (`ema`), the model folder holds the average, and the training state holds it too
-    (`ema.safetensors`, for resuming) next to the live weights.
+    (`ema.safetensors`, for resuming) next to the live weights. With `best` (this step's validation pass is the
+    best so far), the checkpoint keeps its record and `checkpoints/best` names it once it is committed.
     """
     step = state.step
     if accelerator.is_main_process:
@@ -65,9 +70,13 @@ def save_checkpoint(
         state.save(staging)
         if ema is not None:
             save_ema(ema, staging / ACCELERATE_STATE_DIR)
+        if best is not None:
+            (staging / BEST_RECORD_NAME).write_text(json.dumps(best.record(), indent=2) + "\n")
     accelerator.wait_for_everyone()
     if accelerator.is_main_process:
         checkpoints.commit(step)
+        if best is not None:
+            checkpoints.mark_best(step)
     accelerator.wait_for_everyone()
     return checkpoints.final_dir(step)
 

@@ -1,13 +1,15 @@
 """`train(cfg)`: one OpenFly-Agent training run, from the input checks to the final offline evaluation.
 
 Readable top to bottom, as OpenVLA's `train(cfg)` and nanoGPT's loop: checks, data, agent and processor,
-optimizer and loaders through accelerate, then the loop (accumulation, clipping, logging, validation,
-checkpoints, stops), then the final checkpoint, the LoRA merge and the test-split evaluation. The helpers it
-calls each do one thing (training/builder.py, loaders.py, saving.py, evaluate.py, stops.py, ...).
+optimizer and loaders through accelerate, then the loop (accumulation, clipping, logging, validation on
+`data.val_split`, checkpoints and the best one, stops), then the final checkpoint, the LoRA merge and the
+test-split evaluation, the only time the test split is evaluated. The helpers it calls each do one thing
+(training/builder.py, loaders.py, saving.py, evaluate.py, stops.py, ...).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -17,6 +19,7 @@ from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.persistence.lora_checkpoint import merged_model_of
 from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
+from openfly_agent.training.best import BestMetric
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import STAGE_NAVIGATION, TrainConfig
@@ -27,7 +30,7 @@ from openfly_agent.training.loaders import epoch_batches, make_train_loader
 from openfly_agent.training.memory_estimate import check_memory
 from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_llm_tokens, memory_stats
 from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
-from openfly_agent.training.preflight import check_dataset_root, check_output_dir
+from openfly_agent.training.preflight import check_dataset_root, check_output_dir, resolve_val_split
 from openfly_agent.training.resume_settings import record_run_settings, resume_changes
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
@@ -70,6 +73,9 @@ def train(cfg: TrainConfig) -> TrainResult:
     """
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
+    # the dataset's val split; test_seen (with a warning) on a dataset without one, as the run records it
+    data, val_warning = resolve_val_split(cfg.data)
+    cfg = dataclasses.replace(cfg, data=data)
     # a resume refuses settings other than its checkpoint's, except RESUMABLE_KEYS (training/resume_settings.py)
     setting_changes = resume_changes(cfg, resume_from)
     check_dataset_root(cfg.data)
@@ -80,6 +86,8 @@ def train(cfg: TrainConfig) -> TrainResult:
     if accelerator.is_main_process:
         checkpoints.remove_stale_staging()
     splits = load_splits(cfg.data, cfg.model.grounding)
+    if val_warning:
+        logger.warning(val_warning)
 
     # 2. The agent, whose processor prepares every input, and the stage's samples of each split
     #    (navigation: per-step samples with history; grounding: expressions and instruction targets).
@@ -128,6 +136,9 @@ def train(cfg: TrainConfig) -> TrainResult:
                 state.step,
                 total_steps,
             )
+    # checkpoint.keep_best: the best validation figure so far (read back from `checkpoints/best` on a resume)
+    keep_best = cfg.checkpoint.keep_best
+    best = BestMetric.resume(keep_best, checkpoints.best()) if keep_best else None
     # a resume first drops what was logged after its checkpoint: those steps are logged again (trackers.py)
     start_trackers(
         accelerator, cfg.logging.project, flat_config(cfg), None if resume_from is None else state.step
@@ -183,11 +194,17 @@ def train(cfg: TrainConfig) -> TrainResult:
                     if accelerator.is_main_process:
                         logger.info(log_line(state.step, times, train_logs["tokens_per_s"]))
                     progress.set_postfix(progress_postfix(train_logs))
+                new_best = False  # this step's validation pass beats the best so far (checkpoint.keep_best)
                 if val_loader is not None and state.step % cfg.validation.interval == 0:
-                    log_metrics(accelerator, "val", evaluate(evaluated, val_loader, accelerator), state.step)
-                if cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0:
+                    val_figures = evaluate(evaluated, val_loader, accelerator)
+                    log_metrics(accelerator, "val", val_figures, state.step)
+                    new_best = best is not None and best.offer(val_figures, state.step)
+                periodic = cfg.checkpoint.save_interval and state.step % cfg.checkpoint.save_interval == 0
+                if periodic or new_best:
                     state.train_seconds = int(stops.elapsed_s())
-                    last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg, ema)
+                    last_checkpoint = save_checkpoint(
+                        accelerator, model, state, checkpoints, cfg, ema, best if new_best else None
+                    )
                     saved_step = state.step
                 if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
                     logger.warning("stop_after_steps=%d reached: exiting without the final save", state.step)

@@ -23,9 +23,14 @@ def test_yaml_configs_parse(name):
     assert cfg.history.mode == "uniform" and cfg.reader.strict is False and cfg.train_split == "train"
 
 
+def test_validation_reads_the_val_split_by_default_never_a_test_split():
+    cfg = DataConfig()
+    assert cfg.val_split == "val" and cfg.test_split == "test_unseen"
+
+
 def test_bad_values_say_what_to_change():
-    with pytest.raises(ValueError, match="data.test_split='val'"):
-        DataConfig(test_split="val")
+    with pytest.raises(ValueError, match="data.test_split='validation'"):
+        DataConfig(test_split="validation")
     with pytest.raises(ValueError, match="data.history.mode='latest'"):
         HistoryConfig(mode="latest")
     with pytest.raises(ValueError, match="num_workers=-1"):

@@ -49,6 +49,7 @@ def test_round_trip_episodes_frames_boxes(tmp_path):
         "train": 2,
         "test_seen": 1,
         "test_unseen": 1,
+        "val": 0,  # every split gets its annotation file, empty when it holds nothing
     }
     assert info["splits"]["train"]["scenes"] == ["embedded-1"] and info["episodes_with_boxes"] == 3
     assert info["action_counts"]["9"] == 4 and info["stats_split"] == "train"
@@ -173,7 +174,7 @@ def test_reading_parts_before_finalize(tmp_path, caplog):
 @pytest.mark.parametrize(
     ("change", "field"),
     [
-        (lambda e, f: setattr(e, "split", "val"), "split"),
+        (lambda e, f: setattr(e, "split", "validation"), "split"),
         (lambda e, f: f.pop(), "frames"),
         (lambda e, f: f.__setitem__(0, f[0][..., 0]), "frames"),
         (lambda e, f: e.boxes.__setitem__((0, 2), 1.5), "boxes"),

@@ -45,6 +45,18 @@ def test_the_second_unseen_split_uses_cities_no_other_config_trains_or_tests_on(
         assert (held_out.render, held_out.route, held_out.map) == (cfg.render, cfg.route, cfg.map), name
 
 
+def test_the_validation_city_is_a_city_of_no_other_split_of_any_shipped_dataset():
+    for name in ("embedded-small", "embedded-100k"):
+        cfg = load_yaml_config(GenerateConfig, CONFIGS / f"{name}.yaml")
+        assert (
+            cfg.scenes.val_seeds and cfg.scenes.val_seen_per_scene > 0 and cfg.scenes.val_unseen_per_scene > 0
+        )
+        for path in sorted(CONFIGS.glob("*.yaml")):
+            other = load_yaml_config(GenerateConfig, path)
+            used = set(other.scenes.train_seeds) | set(other.scenes.unseen_seeds)
+            assert not used & set(cfg.scenes.val_seeds), (name, path.name)
+
+
 def test_a_plain_generate_is_exactly_the_default_dataset_config(capsys):
     """No --config: the command resolves to configs/toolchain/embedded-small.yaml, the dataset train.py reads."""
     from openfly_agent.toolchain.__main__ import _parse_generate

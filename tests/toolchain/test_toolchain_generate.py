@@ -8,6 +8,7 @@ and resume / shards / summary behave.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import shutil
 from types import SimpleNamespace
@@ -212,6 +213,53 @@ def test_an_interrupted_run_resumes_to_the_same_dataset(dataset, tmp_path):
     assert a.keys() == b.keys()
     for key in a:
         assert a[key].instruction == b[key].instruction and np.array_equal(a[key].boxes, b[key].boxes)
+
+
+def _file_hashes(root) -> dict[str, str]:
+    return {
+        str(path.relative_to(root)): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(root.rglob("*"))
+        if path.is_file()
+    }
+
+
+def test_the_val_split_joins_a_dataset_without_one_and_leaves_its_other_splits_byte_for_byte(
+    dataset, tmp_path
+):
+    cfg, root, summary = dataset
+    copy = tmp_path / "older"
+    shutil.copytree(root, copy)
+    record = json.loads((copy / C.TOOLCHAIN_CONFIG_JSON).read_text())
+    for key in ("val_seen_per_scene", "val_seeds", "val_unseen_per_scene"):  # recorded before they existed
+        del record["scenes"][key]
+    (copy / C.TOOLCHAIN_CONFIG_JSON).write_text(json.dumps(record))
+    before = _file_hashes(copy)
+    val_scenes = {"val_seen_per_scene": 3, "val_seeds": [5], "val_unseen_per_scene": 4}
+    val_cfg = dataclasses.replace(small_config(copy, **val_scenes), dagger=cfg.dagger)
+    upgraded = generate(val_cfg, progress=False)
+
+    episodes = _episodes(copy)
+    val = episodes[C.SPLIT_VAL]
+    assert upgraded["attempts"] == summary["attempts"] + 3 + 4  # only the val units ran
+    assert upgraded["per_split"][C.SPLIT_VAL] == len(val) > 0
+    # routes of the train city and of the validation city, none of them in another split
+    assert {e.scene_id for e in val} == {"embedded-0", "embedded-5"}
+    others = [e for split in (C.SPLIT_TRAIN, C.SPLIT_TEST_SEEN, C.SPLIT_TEST_UNSEEN) for e in episodes[split]]
+    assert not {e.episode_id for e in others} & {e.episode_id for e in val}
+    assert "embedded-5" not in {e.scene_id for e in others}
+    # every file of the other splits is the same byte for byte; only the dataset's records and counts change
+    after = _file_hashes(copy)
+    changed = sorted(name for name, digest in before.items() if after[name] != digest)
+    assert changed == sorted(
+        [
+            "Annotation/val.json",  # was empty
+            "meta/data_files.json",
+            "meta/info.json",
+            "meta/toolchain/generate_config.json",
+            "meta/toolchain/summary.json",
+            "meta/toolchain/units/embedded-0.jsonl",  # the ledger: the val units' lines appended
+        ]
+    )
 
 
 class _StepOnlySimulator:

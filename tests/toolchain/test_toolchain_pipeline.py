@@ -19,12 +19,20 @@ from openfly_agent.sim.pointcloud import write_points
 from openfly_agent.sim.real_scene import read_landmark_list, read_scene_config
 from openfly_agent.sim.scene import SceneBounds
 from openfly_agent.toolchain.config import (
+    VAL_INDEX_BASE,
     CategoryConfig,
     GenerateConfig,
     RouteConfig,
     SceneConfig,
 )
-from openfly_agent.toolchain.generate import pending_units, scene_units, shard_scenes
+from openfly_agent.toolchain.generate import (
+    ROLE_TRAIN,
+    ROLE_UNSEEN,
+    ROLE_VAL,
+    pending_units,
+    scene_units,
+    shard_scenes,
+)
 from openfly_agent.toolchain.landmarks import write_landmark_list
 from openfly_agent.toolchain.ledger import UnitLedger
 from openfly_agent.toolchain.pipeline import (
@@ -120,13 +128,13 @@ def test_plans_are_deterministic_per_seed(prepared):
 
 def test_units_splits_and_shards_are_deterministic():
     cfg = tiny_config(scenes=SceneConfig(**{**TINY.__dict__, "test_seen_fraction": 0.3}))
-    units = scene_units(0, False, cfg)
-    assert units == scene_units(0, False, cfg)
+    units = scene_units(0, ROLE_TRAIN, cfg)
+    assert units == scene_units(0, ROLE_TRAIN, cfg)
     assert {u.split for u in units} <= {C.SPLIT_TRAIN, C.SPLIT_TEST_SEEN}
-    assert {u.split for u in scene_units(1, True, cfg)} == {C.SPLIT_TEST_UNSEEN}
-    assert shard_scenes(cfg) == [(0, False), (2, False), (1, True)]
+    assert {u.split for u in scene_units(1, ROLE_UNSEEN, cfg)} == {C.SPLIT_TEST_UNSEEN}
+    assert shard_scenes(cfg) == [(0, ROLE_TRAIN), (2, ROLE_TRAIN), (1, ROLE_UNSEEN)]
     shards = [shard_scenes(GenerateConfig(**{**cfg.__dict__, "shard": f"{i}/2"})) for i in range(2)]
-    assert shards == [[(0, False), (1, True)], [(2, False)]]
+    assert shards == [[(0, ROLE_TRAIN), (1, ROLE_UNSEEN)], [(2, ROLE_TRAIN)]]
     unit = WorkUnit(5, 7, C.SPLIT_TRAIN)
     assert unit.seed(0) == WorkUnit(5, 7, C.SPLIT_TEST_SEEN).seed(0) != WorkUnit(5, 8, C.SPLIT_TRAIN).seed(0)
     assert unit.traj_folder(0).count("_") == 2 and WorkUnit(5, 7, "train", KIND_DAGGER).traj_folder(
@@ -138,6 +146,37 @@ def test_units_splits_and_shards_are_deterministic():
         GenerateConfig(shard="2/2")
     with pytest.raises(ValueError, match="unseen_seeds must not be used"):
         SceneConfig(train_seeds=[1, 2], unseen_seeds=[2])
+
+
+VAL = SceneConfig(**{**TINY.__dict__, "val_seen_per_scene": 2, "val_seeds": [9], "val_unseen_per_scene": 3})
+
+
+def test_val_units_are_units_of_their_own_that_leave_every_other_unit_as_it_was():
+    with_val, without = tiny_config(scenes=VAL), tiny_config()
+    train_units = scene_units(0, ROLE_TRAIN, with_val)
+    before = scene_units(0, ROLE_TRAIN, without)  # 10 A* units + 0 DAgger units (dagger off)
+    assert train_units[: len(before)] == before  # the other splits' units, unchanged and in the same order
+    val_units = train_units[len(before) :]
+    assert [(u.index, u.split, u.kind) for u in val_units] == [
+        (VAL_INDEX_BASE, C.SPLIT_VAL, KIND_ASTAR),
+        (VAL_INDEX_BASE + 1, C.SPLIT_VAL, KIND_ASTAR),
+    ]
+    city = scene_units(9, ROLE_VAL, with_val)  # the validation city: val units only
+    assert [(u.index, u.split) for u in city] == [(VAL_INDEX_BASE + i, C.SPLIT_VAL) for i in range(3)]
+    assert scene_units(1, ROLE_UNSEEN, with_val) == scene_units(1, ROLE_UNSEEN, without)
+    seeds = {u.seed(0) for u in before} | {u.seed(0) for u in scene_units(1, ROLE_UNSEEN, without)}
+    assert not seeds & {u.seed(0) for u in val_units + city}  # seeds of their own
+    # the validation city comes last: every other scene keeps its shard
+    assert shard_scenes(with_val) == [(0, ROLE_TRAIN), (2, ROLE_TRAIN), (1, ROLE_UNSEEN), (9, ROLE_VAL)]
+    for shard in ("0/2", "1/2"):
+        others = [
+            scene for scene in shard_scenes(tiny_config(scenes=VAL, shard=shard)) if scene[1] != ROLE_VAL
+        ]
+        assert others == shard_scenes(tiny_config(shard=shard))
+    with pytest.raises(ValueError, match="val_seeds must not be used"):
+        SceneConfig(train_seeds=[1], unseen_seeds=[2], val_seeds=[2], val_unseen_per_scene=1)
+    with pytest.raises(ValueError, match="val_unseen_per_scene >= 1"):
+        SceneConfig(train_seeds=[1], unseen_seeds=[2], val_seeds=[3])
 
 
 def test_pending_units_skip_finished_and_rejected_units(tmp_path):

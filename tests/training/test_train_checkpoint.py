@@ -36,6 +36,21 @@ def test_commit_renames_and_points_last(tmp_path):
     assert not any(p.name.startswith(".tmp-") for p in (tmp_path / "checkpoints").iterdir())
 
 
+def test_best_is_a_link_kept_whatever_keep_last_until_mark_best_moves_it(tmp_path):
+    manager = CheckpointManager(tmp_path, keep_last=1)
+    assert manager.best() is None
+    _save(manager, 1)
+    manager.mark_best(1)
+    best = tmp_path / "checkpoints" / "best"
+    assert best.is_symlink() and os.readlink(best) == "step-000001" and manager.best() == manager.final_dir(1)
+    _save(manager, 2)
+    _save(manager, 3)
+    assert [p.name for p in manager.complete_checkpoints()] == ["step-000001", "step-000003"]
+    manager.mark_best(3)  # the old best is pruned now
+    assert [p.name for p in manager.complete_checkpoints()] == ["step-000003"]
+    assert manager.best() == manager.latest() == manager.final_dir(3)
+
+
 def test_keep_last_prunes_oldest(tmp_path):
     manager = CheckpointManager(tmp_path, keep_last=2)
     for step in (1, 2, 3, 4):

@@ -21,6 +21,7 @@ from openfly_agent.training.preflight import (
     compare_shapes,
     diff_configs,
     load_split,
+    resolve_val_split,
 )
 
 
@@ -71,7 +72,28 @@ def test_missing_split_is_named(tmp_path, openfly_fixtures):
     records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
     (annotation / "train.json").write_text(json.dumps(records))
     with pytest.raises(PreflightError, match="no annotation for split 'test_seen'"):
-        check_dataset_root(DataConfig(root=str(tmp_path)))
+        check_dataset_root(resolve_val_split(DataConfig(root=str(tmp_path)))[0])  # train()'s order
+
+
+def test_validation_falls_back_to_test_seen_only_on_a_dataset_without_a_val_split(tmp_path, openfly_fixtures):
+    annotation = tmp_path / C.DATASET_ANNOTATION_DIR
+    annotation.mkdir()
+    records = json.loads((openfly_fixtures / "eval_test.json").read_text())[:3]
+    for name in ("train.json", "seen.json", "unseen.json"):  # the released data's files
+        (annotation / name).write_text(json.dumps(records))
+    data = DataConfig(root=str(tmp_path))
+    assert data.val_split == C.SPLIT_VAL
+    resolved, warning = resolve_val_split(data)
+    assert resolved.val_split == C.SPLIT_TEST_SEEN
+    assert "has no val split" in warning and "validating on test_seen" in warning
+    (annotation / "val.json").write_text("[]")  # a dataset generated without val units
+    assert resolve_val_split(data)[0].val_split == C.SPLIT_TEST_SEEN
+    (annotation / "val.json").write_text(json.dumps(records[:1]))
+    assert resolve_val_split(data) == (data, None)  # a val split: used, no warning
+    explicit = DataConfig(root=str(tmp_path), val_split=C.SPLIT_TRAIN)
+    assert resolve_val_split(explicit) == (explicit, None)  # an explicit choice is kept
+    missing = DataConfig(root=str(tmp_path / "nowhere"))
+    assert resolve_val_split(missing) == (missing, None)  # check_dataset_root names the missing root
 
 
 def test_malformed_record_names_file_record_and_field(tmp_path, openfly_fixtures):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -83,6 +84,7 @@ def test_a_resume_with_more_steps_trains_on_and_appends_the_change(
 
 def test_a_setting_the_checkpoint_does_not_record_is_not_a_change(reference_run, generated_dataset, tmp_path):
     """A run recorded before a TrainConfig field existed still resumes after the upgrade."""
+    from openfly_agent.training.preflight import resolve_val_split
     from openfly_agent.training.resume_settings import resume_changes
 
     out, _ = reference_run
@@ -94,4 +96,5 @@ def test_a_setting_the_checkpoint_does_not_record_is_not_a_change(reference_run,
     del stored["optim"]["ema_decay"]  # as if written before optim.ema_decay was added
     (checkpoint / C.TRAIN_CONFIG_NAME).write_text(json.dumps(stored))
     cfg = make_config(generated_dataset, out, steps=STEPS + 1, resume="true")
+    cfg = dataclasses.replace(cfg, data=resolve_val_split(cfg.data)[0])  # as train() does first
     assert resume_changes(cfg, checkpoint) == {"steps": (STEPS, STEPS + 1)}
