@@ -4,7 +4,8 @@
 city parameters from it). A rerun with other data settings would leave trajectories of both kinds side by
 side and overwrite that record, so it is refused, naming the settings that differ, unless `--overwrite=true`
 discards the dataset first. Settings that do not change the data (where it goes, how many workers, which
-shard, plots, the VLM client's transport) may change between runs.
+shard, plots, the VLM client's transport) may change between runs. A setting added after the dataset was
+recorded counts as recorded at its default (defaults keep the data of earlier versions).
 """
 
 from __future__ import annotations
@@ -16,7 +17,13 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import GenerateConfig
-from openfly_agent.utils.config import changed_settings, config_to_dict, describe_changes, save_config
+from openfly_agent.utils.config import (
+    changed_settings,
+    config_to_dict,
+    describe_changes,
+    flat_settings,
+    save_config,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -67,6 +74,7 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
             raise GenerateSettingsError(
                 f"{path} is not readable ({err}): pass --overwrite=true to generate anew"
             ) from err
+        stored = {**flat_settings(config_to_dict(GenerateConfig())), **flat_settings(stored)}
         changes = describe_changes(changed_settings(stored, config_to_dict(cfg), RUNTIME_KEYS + ignore))
         if changes:
             raise GenerateSettingsError(
