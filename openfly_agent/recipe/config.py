@@ -68,6 +68,8 @@ class EvalSettings:
         default_factory=lambda: ["random", "stop", "forward", "oracle", "box_servo", "agent_true_box"]
     )
     max_episodes: int = 0  # per split, evenly spaced (0: the full splits)
+    # actions per episode at most, STOP included (eval.py --max_steps); long routes need more than the default
+    max_steps: int = C.MAX_EPISODE_STEPS
     # toolchain YAMLs of more unseen cities (e.g. configs/toolchain/embedded-small-unseen-more.yaml): each is
     # generated into its own output_dir and its test_unseen split evaluated with the same policies into
     # <output_dir>/eval-<config name>/, so the agent is also measured on cities no choice was made on
@@ -77,6 +79,7 @@ class EvalSettings:
 
     def __post_init__(self) -> None:
         _check(self.max_episodes >= 0, f"eval.max_episodes must be >= 0, got {self.max_episodes}")
+        _check(self.max_steps >= 1, f"eval.max_steps must be >= 1, got {self.max_steps}")
 
 
 @dataclass

@@ -189,6 +189,7 @@ def _eval_step(
         f"--split=[{','.join(splits)}]", f"--baselines=[{','.join(e.baselines)}]", f"--dataset_root={dataset_root}",
         f"--output_dir={folder}", f"--batch_size={e.batch_size}", f"--torch_threads={e.torch_threads}",
         *([f"--max_episodes={e.max_episodes}"] if e.max_episodes else []),
+        *([f"--max_steps={e.max_steps}"] if e.max_steps != C.MAX_EPISODE_STEPS else []),
     ]  # fmt: skip
     return RecipeStep(name, KIND_EVAL, command, folder, {"OMP_NUM_THREADS": str(e.torch_threads)})
 

@@ -79,8 +79,10 @@ class RouteConfig:
     max_landmark_tries: int = 200  # landmarks tried per route before giving up
     max_start_tries: int = 20  # start candidates on the ring per landmark (official: 20)
     with_turn_prob: float = 0.0  # with_turn: probability that a route must be blocked in a straight line
-    chain_prob: float = 0.0  # probability of a 2-landmark route (aimlandmark_nums = 2)
-    chain_bearing_deg: list[float] = field(default_factory=lambda: [30.0, 150.0])  # 2nd leg bearing change
+    chain_prob: float = 0.0  # probability of a chained route, one that visits several landmarks in turn
+    # [lo, hi]: a chained route visits U{lo..hi} landmarks (aimlandmark_nums; [2, 2]: always 2, no extra draw)
+    chain_landmarks: list[int] = field(default_factory=lambda: [2, 2])
+    chain_bearing_deg: list[float] = field(default_factory=lambda: [30.0, 150.0])  # each next leg turns this
     takeoff_landing_prob: float = 0.0  # add_takeoff_land: probability of -1 / -2 phases
     start_yaw_jitter_deg: float = 45.0  # start yaw = bearing to the goal +- U(jitter)
 
@@ -93,6 +95,10 @@ class RouteConfig:
         for name in ("with_turn_prob", "chain_prob", "takeoff_landing_prob"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"route.{name} must be a probability in [0, 1], got {value}")
+        _check(
+            len(self.chain_landmarks) == 2 and 2 <= self.chain_landmarks[0] <= self.chain_landmarks[1],
+            f"route.chain_landmarks must be [lo, hi] with 2 <= lo <= hi, got {self.chain_landmarks}",
+        )
         lo, hi = self.chain_bearing_deg
         _check(
             0 <= lo <= hi <= 180, f"route.chain_bearing_deg must be [lo, hi] within [0, 180], got {[lo, hi]}"
@@ -188,6 +194,10 @@ class InstructionConfig:
     # jogs (a forward run shorter than this between two turns) fold into one net turn; 0 = a clause per
     # action transition, exactly as the paper splits
     merge_short_m: float = 9.0
+    # a leg target whose leg ends in a climb, or in the clause of the next target, is named by the next
+    # clause that can name it (so a chained route's instruction names every target, in order); false: it is
+    # named only where its leg ends (embedded-small's instructions)
+    name_every_target: bool = False
 
     def __post_init__(self) -> None:
         _check(self.merge_short_m >= 0, "instructions.merge_short_m must be >= 0")

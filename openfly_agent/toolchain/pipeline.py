@@ -31,6 +31,7 @@ from openfly_agent.toolchain.landmarks import fill_landmark_heights, segment_lan
 from openfly_agent.toolchain.render import RenderedFrames, render_poses, target_boxes
 from openfly_agent.toolchain.routes import Route, RouteSampler, RouteSamplingFailed
 from openfly_agent.toolchain.scenes import ToolchainScene
+from openfly_agent.toolchain.visibility import route_visibility
 from openfly_agent.toolchain.voxel_map import PlanningMap, build_planning_map
 from openfly_agent.utils.geometry import Pose, path_length
 
@@ -237,6 +238,7 @@ def instruction_request(
         frames=rendered.frames if cfg.instructions.backend == "vlm" else None,
         min_box_area=cfg.instructions.min_box_area,
         merge_short_m=cfg.instructions.merge_short_m,
+        name_every_target=cfg.instructions.name_every_target,
     )
 
 
@@ -270,5 +272,7 @@ def generate_unit(prepared: PreparedScene, sim: Simulator, unit: WorkUnit, cfg: 
         flight_height_m=float(planned.route.flight_z - prepared.pmap.elevation),
         path_length_m=float(path_length(nav)),
         num_frames=len(episode),
+        landmarks=len(planned.route.landmark_ids),
+        **route_visibility(request),
     )
     return UnitResult(unit, episode=episode, frames=rendered.frames, request=request, stats=stats)

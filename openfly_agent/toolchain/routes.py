@@ -3,7 +3,8 @@
 Flight height ~ U(floor + h, floor + H); a landmark whose top reaches that height (minus a slack); a start
 on the ring [r, R] around it, outside every footprint and obstacle; the goal found by walking from the
 landmark towards the start in 1 m steps until outside its (dilated) footprint; optionally a route that must
-turn (straight line blocked) and a second leg to another landmark whose bearing differs by 30-150 deg.
+turn (straight line blocked), and a chained route: more legs, each to a landmark not visited yet that lies
+[min_dist, max_dist] from the previous goal at a bearing 30-150 deg off the previous leg's heading.
 """
 
 from __future__ import annotations
@@ -92,6 +93,9 @@ class RouteSampler:
         with_turn = rng.random() < cfg.with_turn_prob
         chain = rng.random() < cfg.chain_prob
         takeoff_landing = rng.random() < cfg.takeoff_landing_prob
+        lo, hi = cfg.chain_landmarks
+        # drawn only for a range, so [2, 2] keeps the draws (and the routes) of the 2-landmark chains
+        n_landmarks = (int(rng.integers(lo, hi + 1)) if hi > lo else lo) if chain else 1
         candidates = np.flatnonzero(self._tops > flight_z - cfg.landmark_top_slack_m)
         if len(candidates) == 0:
             raise RouteSamplingFailed(f"no landmark reaches {flight_z - cfg.landmark_top_slack_m:.1f} m")
@@ -100,12 +104,9 @@ class RouteSampler:
             if first is None:
                 continue
             start_xyz, leg = first
-            legs = [leg]
-            if chain:
-                second = self._next_leg(leg, start_xyz, flight_z, rng)
-                if second is None:
-                    continue
-                legs.append(second)
+            legs = self._chain(start_xyz, leg, n_landmarks, flight_z, rng)
+            if legs is None:
+                continue
             bearing = math.atan2(leg.goal[1] - start_xyz[1], leg.goal[0] - start_xyz[0])
             yaw = wrap_yaw(
                 bearing + math.radians(rng.uniform(-cfg.start_yaw_jitter_deg, cfg.start_yaw_jitter_deg))
@@ -130,11 +131,25 @@ class RouteSampler:
             return start, RouteLeg(landmark, goal)
         return None
 
+    def _chain(
+        self, start_xyz: np.ndarray, first: RouteLeg, landmarks: int, z: float, rng: np.random.Generator
+    ) -> list[RouteLeg] | None:
+        """`first` and legs to `landmarks - 1` more landmarks, each from the previous goal; None if one fails."""
+        legs, origin = [first], start_xyz
+        while len(legs) < landmarks:
+            leg = self._next_leg(legs[-1], origin, {lg.landmark.landmark_id for lg in legs}, z, rng)
+            if leg is None:
+                return None
+            origin = legs[-1].goal
+            legs.append(leg)
+        return legs
+
     def _next_leg(
-        self, leg: RouteLeg, start_xyz: np.ndarray, z: float, rng: np.random.Generator
+        self, leg: RouteLeg, origin_xyz: np.ndarray, visited: set[str], z: float, rng: np.random.Generator
     ) -> RouteLeg | None:
+        """A leg from `leg`'s goal to a landmark not in `visited`, turning off the heading origin -> goal."""
         cfg = self.cfg
-        heading = math.atan2(leg.goal[1] - start_xyz[1], leg.goal[0] - start_xyz[0])
+        heading = math.atan2(leg.goal[1] - origin_xyz[1], leg.goal[0] - origin_xyz[0])
         offsets = self._xy - leg.goal[:2]
         dist = np.linalg.norm(offsets, axis=1)
         bearing = np.arctan2(offsets[:, 1], offsets[:, 0])
@@ -149,7 +164,7 @@ class RouteSampler:
         )
         for index in rng.permutation(np.flatnonzero(ok))[: cfg.max_start_tries]:
             landmark = self.landmarks[index]
-            if landmark.landmark_id == leg.landmark.landmark_id:
+            if landmark.landmark_id in visited:
                 continue
             goal = _walk_out_of_footprint(self.pmap, landmark_xy(landmark), leg.goal[:2], z)
             if goal is not None:

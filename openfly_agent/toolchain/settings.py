@@ -4,8 +4,10 @@
 city parameters from it). A rerun with other data settings would leave trajectories of both kinds side by
 side and overwrite that record, so it is refused, naming the settings that differ, unless `--overwrite=true`
 discards the dataset first. Settings that do not change the data (where it goes, how many workers, which
-shard, plots, the VLM client's transport) may change between runs. A dataset recorded before the `val` split's
-settings existed resumes with them: the rerun adds the `val` split and leaves the other splits as they are.
+shard, plots, the VLM client's transport) may change between runs. A setting added after the dataset was
+recorded counts as recorded at its default (defaults keep the data of earlier versions), except the `val`
+split's settings (`ADDED_KEYS`), which an older dataset takes as given: the rerun adds the `val` split and
+leaves the other splits as they are.
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
                 f"{path} is not readable ({err}): pass --overwrite=true to generate anew"
             ) from err
         absent = tuple(key for key in ADDED_KEYS if key not in flat_settings(stored))
+        stored = {**flat_settings(config_to_dict(GenerateConfig())), **flat_settings(stored)}
         changes = describe_changes(
             changed_settings(stored, config_to_dict(cfg), RUNTIME_KEYS + absent + ignore)
         )

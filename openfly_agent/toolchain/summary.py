@@ -1,7 +1,8 @@
 """The statistics the paper reports about its data, from the unit ledgers: JSON and plots.
 
 Trajectory count (per split, scene, category), vocabulary size, path and instruction length, action
-histogram, flight height distribution, and how many route attempts each filter rejected.
+histogram, flight height distribution, how many route attempts each filter rejected, landmarks per route, and
+how often the landmark the instruction is talking about is out of view (toolchain/visibility.py).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ def _describe(values) -> dict:
         "count": int(values.size),
         "mean": float(values.mean()),
         "median": float(np.median(values)),
+        "p90": float(np.percentile(values, 90)),
         "min": float(values.min()),
         "max": float(values.max()),
     }
@@ -35,6 +37,32 @@ def _describe(values) -> dict:
 def words_of(text: str) -> list[str]:
     """Lower-case word tokens ("U-turn" is one word)."""
     return _WORD.findall(text.lower())
+
+
+def _share(part: int, whole: int) -> float | None:
+    return part / whole if whole else None
+
+
+def visibility_summary(records: list[dict]) -> dict:
+    """The counts of `visibility.route_visibility`, pooled over the A* records that carry them.
+
+    clause_hidden_share (clause_unseen_share): of the decision steps whose current instruction clause names a
+    landmark, the share at which that landmark is not in the frame (or too small to be seen);
+    leg_hidden_share (leg_unseen_share): of all decision steps, the share at which the current leg's target is
+    not; targets_named_share: of the routes, those whose instruction names every target in order.
+    """
+    rows = [r for r in records if "decision_steps" in r]
+    keys = ("decision_steps", "clause_steps", "clause_hidden", "clause_unseen", "leg_hidden", "leg_unseen")
+    total = {k: sum(int(r[k]) for r in rows) for k in keys}
+    return {
+        "routes": len(rows),
+        **total,
+        "clause_hidden_share": _share(total["clause_hidden"], total["clause_steps"]),
+        "clause_unseen_share": _share(total["clause_unseen"], total["clause_steps"]),
+        "leg_hidden_share": _share(total["leg_hidden"], total["decision_steps"]),
+        "leg_unseen_share": _share(total["leg_unseen"], total["decision_steps"]),
+        "targets_named_share": _share(sum(int(r["targets_named"]) for r in rows), len(rows)),
+    }
 
 
 def summarize_records(records: list[dict], height_bin_m: float = 10.0) -> dict:
@@ -60,6 +88,10 @@ def summarize_records(records: list[dict], height_bin_m: float = 10.0) -> dict:
         "instruction_words": _describe(len(words_of(t)) for t in instructions),
         "path_length_m": _describe(r["path_length_m"] for r in ok if "path_length_m" in r),
         "actions_per_trajectory": _describe(len(r.get("actions", [])) for r in ok),
+        "landmarks_per_route": dict(
+            sorted(Counter(str(r["landmarks"]) for r in ok if "landmarks" in r).items())
+        ),
+        "visibility": visibility_summary(ok),
         "action_histogram": {C.ACTION_NAMES[a]: actions[a] for a in sorted(actions)},
         "flight_height_m": {
             **_describe(heights),

@@ -239,3 +239,41 @@ def test_command_line_errors_and_help(capsys):
     assert recipe_main(["--help"]) == 0
     text = capsys.readouterr().out
     assert "--dagger.rounds INT" in text and "(default: 1500)" in text and "examples:" in text
+
+
+def test_the_long_route_arms_differ_in_the_memory_only_and_evaluate_long_episodes():
+    from openfly_agent.training.config import TrainConfig
+
+    arms = ["current_frame", "uniform_history", "random_keyframes", "keyframes", "uniform_history_merging",
+            "keyframes_merging"]  # fmt: skip
+    base = load_yaml_config(RecipeConfig, REPO_ROOT / "configs" / "recipe" / "long-recipe.yaml", [])
+    memory = []
+    for arm in arms:
+        cfg = load_yaml_config(
+            RecipeConfig, REPO_ROOT / "configs" / "recipe" / "long-ablations" / f"{arm}.yaml", []
+        )
+        assert (cfg.toolchain_config, cfg.dataset_root) == (
+            "configs/toolchain/embedded-long.yaml",
+            "outputs/datasets/embedded-long",
+        )
+        assert (cfg.grounding, cfg.navigation, cfg.seed, cfg.eval) == (
+            base.grounding,
+            base.navigation,
+            base.seed,
+            base.eval,
+        )
+        train = load_yaml_config(TrainConfig, resolve_config_path(cfg.train_config), [])
+        memory.append((train.model.memory.capacity > 0, train.data.history.mode, train.model.merging.enabled))
+        evaluation = next(s for s in recipe_steps(cfg) if s.name == "eval")
+        assert _flag(evaluation.command, "max_steps") == "200"
+    assert memory == [
+        (False, "none", False),
+        (True, "uniform", False),
+        (True, "random", False),
+        (True, "keyframes", False),
+        (True, "uniform", True),
+        (True, "keyframes", True),
+    ]
+    assert base.extra_toolchain_configs == [] and base.eval.more_cities == []
+    main = next(s for s in recipe_steps(RecipeConfig()) if s.name == "eval")
+    assert _flag(main.command, "max_steps") is None  # the default cap is eval.py's own

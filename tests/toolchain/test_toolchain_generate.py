@@ -442,3 +442,45 @@ def test_cli_generate_warns_after_its_summary_when_a_split_came_out_empty(monkey
     assert len(lines) == 1 and lines[0].startswith(
         "python -m openfly_agent.toolchain generate: warning: split(s) test_seen, test_unseen came out empty"
     )
+
+
+def test_default_route_options_give_the_routes_and_instructions_pinned_before_chain_landmarks(tmp_path):
+    """The data of today's configs is unchanged by `route.chain_landmarks` / `instructions.name_every_target`
+    at their defaults: the digest below was computed with the code before they existed (commit c795c3e)."""
+    cfg = small_config(tmp_path, trajectories_per_scene=8)
+    cfg.route.chain_prob, cfg.dagger.episodes_per_scene = 0.5, 0
+    generate(cfg, progress=False)
+    episodes = sorted(
+        (
+            e
+            for f in ("train", "seen", "unseen")
+            for e in json.loads((tmp_path / "Annotation" / f"{f}.json").read_text())
+        ),
+        key=lambda e: e["image_path"],
+    )
+    digest = hashlib.sha256()
+    for e in episodes:
+        pos = ";".join(",".join(f"{v:.6f}" for v in p) for p in e["pos"])
+        yaw = ",".join(f"{v:.6f}" for v in e["yaw"])
+        fields = [e["image_path"], e["gpt_instruction"], str(e["action"]), str(e["landmark_ids"]), pos, yaw]
+        digest.update("|".join(fields).encode())
+    assert len(episodes) == 16 and sum(len(e["landmark_ids"]) == 2 for e in episodes) == 6
+    assert digest.hexdigest() == "de630c311b9e25bb465cb167cbcd7b026f38bc64c397a3b96acd82c8fa7062a6"
+
+
+def test_a_dataset_recorded_before_an_option_existed_resumes_at_its_default(dataset, tmp_path):
+    from openfly_agent.toolchain.settings import GenerateSettingsError
+
+    cfg, root, summary = dataset
+    copy = tmp_path / "copy"
+    shutil.copytree(root, copy)
+    record = copy / C.TOOLCHAIN_CONFIG_JSON
+    stored = json.loads(record.read_text())
+    del stored["route"]["chain_landmarks"], stored["instructions"]["name_every_target"]
+    record.write_text(json.dumps(stored))
+    assert generate(dataclasses.replace(cfg, output_dir=str(copy)), progress=False) == summary
+    longer = dataclasses.replace(
+        cfg, output_dir=str(copy), route=dataclasses.replace(cfg.route, chain_landmarks=[3, 4])
+    )
+    with pytest.raises(GenerateSettingsError, match=r"route\.chain_landmarks: \[2, 2\] -> \[3, 4\]"):
+        generate(longer, progress=False)

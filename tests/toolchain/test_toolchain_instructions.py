@@ -136,3 +136,28 @@ def test_merging_shortens_zigzag_instructions():
     merged = template_instruction(_request(zigzag))
     assert len(merged.split()) < len(full.split())
     assert "red tower" in merged and "spire" in merged
+
+
+def test_name_every_target_moves_a_target_out_of_a_climb_in_order():
+    # forward 6 m, climb 3 m, forward 6 m, STOP; leg 1 (b0, the red tower) ends in the climb (frame 3)
+    actions = [9, 9, 4, 9, 9, 0]
+    request = _request(actions, targets=("b0", "b1"), leg_ends=(3, 5))
+    text = template_instruction(request)
+    assert "red" not in text and "blue office building" in text  # the climb's clause names no landmark
+    text = template_instruction(dataclasses.replace(request, name_every_target=True))
+    assert "red tower" in text and text.index("red tower") < text.index("blue office building")
+    segs = assign_landmarks(
+        dataclasses.replace(request, name_every_target=True), split_at_transitions(actions)
+    )
+    assert [(s.kind, s.landmark_id, s.forced) for s in segs] == [
+        ("forward", None, False),
+        ("up", None, False),
+        ("forward", "b0", True),  # b1, whose leg ends here too, is named by the closing stop clause
+    ]
+
+
+def test_name_every_target_keeps_two_targets_of_one_clause_apart():
+    request = _request([9, 9, 9, 0], targets=("b0", "b1"), leg_ends=(1, 3))
+    assert "red" not in template_instruction(request)  # b1 took the only clause
+    text = template_instruction(dataclasses.replace(request, name_every_target=True))
+    assert text.index("red tower") < text.index("blue office building")

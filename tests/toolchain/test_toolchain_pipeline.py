@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -43,6 +44,7 @@ from openfly_agent.toolchain.pipeline import (
     plan_trajectory,
     prepare_scene,
 )
+from openfly_agent.toolchain.routes import RouteSampler
 from openfly_agent.toolchain.scenes import (
     city_config_for,
     embedded_scene,
@@ -327,3 +329,47 @@ def test_ledger_appends_after_a_torn_line_stay_readable(tmp_path):
     ledger.append("s", {"index": 3})
     assert [r["index"] for r in ledger.read("s")] == [0, 2, 3]
     assert ledger.path("s").read_text().count("\n") == 4
+
+
+def test_chained_routes_visit_three_or_four_landmarks_in_order_and_the_instruction_names_them(prepared):
+    from openfly_agent.toolchain.instructions import template_instruction
+    from openfly_agent.toolchain.pipeline import instruction_request
+    from openfly_agent.toolchain.render import RenderedFrames
+
+    cfg = tiny_config()
+    cfg.route.chain_prob, cfg.route.chain_landmarks = 1.0, [3, 4]
+    cfg.instructions.name_every_target = True
+    sampler = RouteSampler(prepared.pmap, list(prepared.landmarks.values()), cfg.route)
+    chained = dataclasses.replace(prepared, sampler=sampler)
+    counts = set()
+    for seed in range(12):
+        try:
+            planned = plan_trajectory(chained, np.random.default_rng(seed), cfg)
+        except Rejected:
+            continue
+        route, seq = planned.route, planned.seq
+        ids = route.landmark_ids
+        counts.add(len(ids))
+        assert len(ids) in (3, 4) and len(set(ids)) == len(ids) == len(planned.leg_end_frames)
+        assert planned.leg_end_frames == sorted(planned.leg_end_frames)
+        origin = route.start.position
+        for k, (leg, frame) in enumerate(zip(route.legs, planned.leg_end_frames)):
+            assert (
+                np.linalg.norm(seq.positions[frame] - leg.goal) <= 3.1 + 6.0
+            )  # a merged block may overshoot
+            if k:  # each next landmark lies 40-90 m from the previous goal, at a bearing 30-150 deg off
+                previous = route.legs[k - 1].goal
+                centre = np.array(leg.landmark.position[:2])
+                assert 40 <= np.linalg.norm(centre - previous[:2]) <= 90
+                heading = np.arctan2(*(previous[1::-1] - origin[1::-1]))
+                bearing = np.arctan2(*(centre[::-1] - previous[1::-1]))
+                assert 30 <= abs(np.degrees((bearing - heading + np.pi) % (2 * np.pi) - np.pi)) <= 150
+                origin = previous
+        # no boxes: the instruction names the route's targets only, each by colour and type, in order
+        rendered = RenderedFrames([], [{} for _ in range(len(seq))])
+        text = template_instruction(instruction_request(chained, planned, rendered, seed, cfg))
+        at = 0
+        for landmark_id in ids:
+            landmark = prepared.landmarks[landmark_id]
+            at = text.index(f"{landmark.color} {landmark.type}", at) + 1
+    assert counts == {3, 4}

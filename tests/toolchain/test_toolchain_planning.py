@@ -231,3 +231,9 @@ def test_heuristic_counts_the_turns_any_path_still_needs():
     assert h(0.0, -60.0, 20.0, 9) == pytest.approx(120.0 + 2.0 * 6)  # heading away from it: a U-turn
     assert h(0.0, 0.0, 20.0 + 80.0, 0) == pytest.approx(math.hypot(60.0, 80.0) + 6.0)
     assert h(0.0, 58.0, 20.0, 7) == pytest.approx(2.0)  # within tolerance horizontally: no turn needed
+
+
+@pytest.mark.parametrize("landmarks", [[1, 2], [4, 3], [3]])
+def test_chain_landmarks_must_be_a_range_from_two(landmarks):
+    with pytest.raises(ValueError, match="route.chain_landmarks"):
+        RouteConfig(chain_landmarks=landmarks)

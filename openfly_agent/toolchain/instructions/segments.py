@@ -16,6 +16,7 @@ from openfly_agent.sim.scene import Landmark
 
 FORWARD, LEFT, RIGHT, UP, DOWN = "forward", "left", "right", "up", "down"
 TAKEOFF, LANDING, STOP = "takeoff", "landing", "stop"
+NAMING_KINDS = (FORWARD, LEFT, RIGHT)  # the sub-trajectories whose clause names their landmark
 _KIND = {
     C.ACTION_FORWARD: FORWARD,
     C.ACTION_FORWARD_6: FORWARD,
@@ -66,6 +67,7 @@ class InstructionRequest:
     frames: list[np.ndarray] | None = None  # (H, W, 3) uint8, used by the VLM backend
     min_box_area: float = 0.002
     merge_short_m: float = 9.0  # see merge_short_segments; 0 = one clause per action transition
+    name_every_target: bool = False  # see assign_landmarks
     extra: dict = field(default_factory=dict)
 
 
@@ -168,7 +170,13 @@ def image_side(box) -> str:
 
 
 def assign_landmarks(request: InstructionRequest, segments: list[Segment]) -> list[Segment]:
-    """Set each segment's landmark: leg targets where legs end, else the most prominent visible one."""
+    """Set each segment's landmark: leg targets where legs end, else the most prominent visible one.
+
+    A leg target goes to the segment in which its leg ends. With `request.name_every_target` it goes to the
+    first segment from there on that names a landmark (a forward run or a turn, not a climb) and holds no
+    earlier target, so every target of a chained route is named, in order (the last one at least by the
+    closing stop clause).
+    """
     nav = [s for s in segments if s.kind not in (TAKEOFF, LANDING)]
     last_frame = len(request.frame_boxes) - 1
     for seg in nav:
@@ -178,6 +186,9 @@ def assign_landmarks(request: InstructionRequest, segments: list[Segment]) -> li
         owners = [s for s in nav if s.start < end_frame <= s.end] or [s for s in nav if s.end <= end_frame][
             -1:
         ]
+        if owners and request.name_every_target:
+            first = next(i for i, s in enumerate(nav) if s is owners[0])
+            owners = [s for s in nav[first:] if s.kind in NAMING_KINDS and not s.forced]
         if owners:
             owners[0].landmark_id, owners[0].forced = target, True
     return segments

@@ -16,6 +16,7 @@ from openfly_agent.toolchain.instructions.segments import (
     FORWARD,
     LANDING,
     LEFT,
+    NAMING_KINDS,
     RIGHT,
     TAKEOFF,
     UP,
@@ -149,7 +150,7 @@ def action_phrase(seg: Segment, rng: np.random.Generator, mention_distance: bool
 
 def _clause(seg: Segment, name, rng: np.random.Generator, mention_distance: bool, is_last: bool) -> str:
     text = action_phrase(seg, rng, mention_distance)
-    if seg.landmark_id is None or seg.kind not in (FORWARD, LEFT, RIGHT):
+    if seg.landmark_id is None or seg.kind not in NAMING_KINDS:
         return text
     if seg.kind in (LEFT, RIGHT):
         return f"{text} {_pick(rng, FACING)} {name(seg.landmark_id)}"

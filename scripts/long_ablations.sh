@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# The paper's memory ablation on the long-route benchmark (configs/recipe/long-recipe.yaml, data_cards/embedded-long.md):
+#   1. keyframes + token merging (configs/recipe/long-ablations/keyframes_merging.yaml, the full OpenFly-Agent) into
+#      $ROOT/keyframes_merging, with the grounding stage the other arms share (about 12 min) and the benchmark
+#      generated first when missing;
+#   2. the other five arms of configs/recipe/long-ablations/ into $ROOT/<arm>, each from that grounding stage
+#      (--grounding_from), with the same navigation steps (5,000) and training seed: current frame only, uniform
+#      history, random earlier frames, keyframes without merging, uniform history + merging;
+#   3. the table of every finished arm (bench/ablation_table.py) into $ROOT/table.md and $ROOT/table.json, each arm
+#      with its agent's paired SR difference from keyframes + merging on the same episodes (the first row).
+# Estimated at about 40 minutes per arm on the reference 2-core machine (the navigation stage 21-24 min plus the
+# evaluation), under 4 hours in all; run nothing else meanwhile. Every recipe resumes where it stopped, so
+# re-running the script after an interruption finishes the table.
+# Knobs (environment): ROOT (default outputs/long-ablations), ARMS (a subset of the five, e.g. "current_frame
+# keyframes"), VENV (default .venv, set up by scripts/setup.sh).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TRANSFORMERS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
+VENV=${VENV:-.venv}
+ROOT=${ROOT:-outputs/long-ablations}
+ARMS=${ARMS:-"current_frame uniform_history random_keyframes keyframes uniform_history_merging"}
+CONFIGS=configs/recipe/long-ablations
+recipe() { "$VENV/bin/python" -m openfly_agent.recipe "$@"; }
+for arm in $ARMS; do  # every arm named exists, before hours of training
+  [ -f "$CONFIGS/$arm.yaml" ] || { echo "long_ablations.sh: no arm $arm ($CONFIGS/$arm.yaml is missing)" >&2; exit 2; }
+done
+
+mkdir -p "$ROOT"
+recipe --config_path "$CONFIGS/keyframes_merging.yaml" --output_dir "$ROOT/keyframes_merging"
+rows=(--run "keyframes_merging=$ROOT/keyframes_merging")
+for arm in $ARMS; do
+  # the agent next to random only: the other baselines do not depend on the arm (the first arm's table has them)
+  recipe --config_path "$CONFIGS/$arm.yaml" --output_dir "$ROOT/$arm" "--eval.baselines=[random]" \
+    --grounding_from "$ROOT/keyframes_merging/grounding"
+  rows+=(--run "$arm=$ROOT/$arm")
+done
+"$VENV/bin/python" bench/ablation_table.py "${rows[@]}" --json "$ROOT/table.json" | tee "$ROOT/table.md"
