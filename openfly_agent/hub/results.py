@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from openfly_agent.constants import RESULTS_JSON, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
+from openfly_agent.constants import MEMORY_PROBE_NONE, RESULTS_JSON, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
 from openfly_agent.eval.metrics import INTERVAL_KEYS
 from openfly_agent.eval.stats import wilson_interval
 
@@ -79,7 +79,8 @@ def load_results(path: str | Path) -> EvalResults:
                                                           "osr_pct": 20.0, "spl_pct": 11.0, ...}, ...}}}}
 
     Raises:
-        ResultsError: not JSON, results of a baseline, episodes that ended in an engine error (not scored),
+        ResultsError: not JSON, results of a baseline or of a memory probe (a diagnostic), episodes that ended
+            in an engine error (not scored),
             results of one split only (a release reports both RELEASE_SPLITS), or a profile / metric missing or
             not finite.
     """
@@ -112,6 +113,12 @@ def parse_results(data: dict[str, Any], source: str = "<results>", policy: str =
             "(into the same --output_dir, the episodes already done are kept)"
         )
     meta = dict(data.get("meta") or {})
+    probe = meta.get("memory_probe")
+    if probe not in (None, MEMORY_PROBE_NONE):
+        raise ResultsError(
+            f"{source}: results of the memory probe agent.memory_probe={probe}, a diagnostic, not the model as "
+            "trained; release the results of an eval.py run without the probe"
+        )
     split_sizes = meta.get("split_episodes") or {}
     rows = []
     for split in RELEASE_SPLITS:

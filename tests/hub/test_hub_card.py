@@ -306,3 +306,13 @@ def test_install_line_is_a_clone_never_an_unpublished_pip_version():
         "git clone https://example.org/openfly-agent.git openfly-agent\npip install -e ./openfly-agent"
         in cloned
     )
+
+
+def test_results_of_the_memory_probe_are_not_a_release():
+    """`eval.py --agent.memory_probe=empty` is a diagnostic of the memory; its numbers are not the model's."""
+    probed = {**RESULTS, "meta": {**RESULTS["meta"], "memory_probe": "empty"}}
+    with pytest.raises(ResultsError, match=r"memory probe agent.memory_probe=empty, a diagnostic") as err:
+        parse_results(probed, source="r.json")
+    assert "\n" not in str(err.value)
+    unprobed = {**RESULTS, "meta": {**RESULTS["meta"], "memory_probe": "none"}}
+    assert len(parse_results(unprobed).rows) == 4
