@@ -331,6 +331,7 @@ REPOSITORY_WIDE_TESTS = {
     "test_layering.py",
     "test_paths.py",
     "test_self_contained.py",
+    "test_suite_layout.py",
 }
 
 
