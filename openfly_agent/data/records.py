@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Sequence
 from numbers import Real
 
 import numpy as np
@@ -236,8 +235,3 @@ def record_from_episode(episode: Episode) -> dict:
     if episode.goal is not None:
         record["goal"] = [float(v) for v in episode.goal]
     return record
-
-
-def records_from_episodes(episodes: Sequence[Episode]) -> list[dict]:
-    """`record_from_episode` over a sequence."""
-    return [record_from_episode(e) for e in episodes]

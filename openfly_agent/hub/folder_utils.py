@@ -39,10 +39,3 @@ def read_json(path: Path) -> Any:
         return json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"{path}: cannot read JSON ({err})") from err
-
-
-def write_json(path: Path, data: Any) -> None:
-    """Write indented JSON with a trailing newline (atomic: tmp file + rename)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)

@@ -33,10 +33,6 @@ class CameraModel:
     def focal_px(self) -> float:
         return self.width / 2.0 / math.tan(math.radians(self.hfov_deg) / 2.0)
 
-    @property
-    def vfov_deg(self) -> float:
-        return math.degrees(2.0 * math.atan(self.height / 2.0 / self.focal_px))
-
 
 def camera_axes(yaw: float, pitch_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(forward, right, up) unit vectors (3,) in the world frame."""

@@ -57,10 +57,6 @@ class OccupancyGrid:
         inside = np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)
         return idx, inside
 
-    def center_of(self, idx: np.ndarray) -> np.ndarray:
-        """(N, 3) voxel indices -> (N, 3) voxel centres in metres."""
-        return self.origin + (np.atleast_2d(idx) + 0.5) * self.voxel_size
-
     def mark_box(self, lo: np.ndarray, hi: np.ndarray) -> None:
         """Mark every voxel that intersects the axis-aligned box [lo, hi] (metres)."""
         a = np.floor((np.asarray(lo) - self.origin) / self.voxel_size).astype(np.int64)

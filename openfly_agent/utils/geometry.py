@@ -16,13 +16,6 @@ def wrap_yaw(yaw: float) -> float:
     return wrapped - math.pi
 
 
-def wrap_yaw_array(yaw: np.ndarray) -> np.ndarray:
-    """Vectorised `wrap_yaw`: (...,) radians -> (...,) in (-pi, pi]."""
-    wrapped = np.fmod(np.asarray(yaw, dtype=np.float64) + np.pi, 2.0 * np.pi)
-    wrapped = np.where(wrapped <= 0.0, wrapped + 2.0 * np.pi, wrapped)
-    return wrapped - np.pi
-
-
 @dataclass(frozen=True)
 class Pose:
     """A drone pose: position in metres and yaw in radians, CCW from +x (a left turn increases yaw)."""
@@ -31,11 +24,6 @@ class Pose:
     y: float
     z: float
     yaw: float
-
-    @classmethod
-    def from_array(cls, values) -> Pose:
-        x, y, z, yaw = (float(v) for v in values)
-        return cls(x, y, z, yaw)
 
     def as_array(self) -> np.ndarray:
         return np.array([self.x, self.y, self.z, self.yaw], dtype=np.float64)

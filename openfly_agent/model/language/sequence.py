@@ -58,17 +58,3 @@ def left_pad(sequences: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]
         embeds[row, longest - seq.shape[0] :] = seq
         mask[row, longest - seq.shape[0] :] = 1
     return embeds, mask
-
-
-def left_pad_ids(
-    rows: list[list[int]], device: torch.device | str | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Token id lists -> (B, L_max) long ids left-padded with 0 and their (B, L_max) bool mask."""
-    longest = max(len(row) for row in rows)
-    ids = torch.zeros(len(rows), longest, dtype=torch.long)
-    mask = torch.zeros(len(rows), longest, dtype=torch.bool)
-    for i, row in enumerate(rows):
-        if row:
-            ids[i, longest - len(row) :] = torch.tensor(row, dtype=torch.long)
-            mask[i, longest - len(row) :] = True
-    return ids.to(device), mask.to(device)

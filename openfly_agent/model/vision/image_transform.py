@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from openfly_agent.model.config import RESIZE_MODES, VisionConfig
+from openfly_agent.model.config import RESIZE_MODES
 
 
 @dataclass(frozen=True)
@@ -29,11 +29,6 @@ class ImageTransform:
     def __post_init__(self) -> None:
         if self.resize not in RESIZE_MODES:
             raise ValueError(f"resize={self.resize!r} is not supported; use one of {list(RESIZE_MODES)}")
-
-    @classmethod
-    def from_vision_config(cls, vision: VisionConfig) -> ImageTransform:
-        """The transform of a vision section."""
-        return cls(size=vision.image_size, resize=vision.resize)
 
     def __call__(self, rgb: np.ndarray) -> torch.Tensor:
         """(H, W, 3) uint8 RGB -> (3, size, size) uint8 tensor (a copy; frames at the size pass unchanged)."""
