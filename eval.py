@@ -14,6 +14,7 @@ import sys
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.eval.config import EvalConfig, EvalInputError
 from openfly_agent.eval.run import run as evaluate
+from openfly_agent.rollout.checkpoints import CheckpointError
 from openfly_agent.utils.cli_help import command_help, wants_help
 from openfly_agent.utils.cli_options import CommandLineError
 from openfly_agent.utils.config import parse_config
@@ -73,6 +74,7 @@ def run(argv: list[str]) -> int:
         SchemaError,
         RecordError,
         CommandLineError,
+        CheckpointError,
     ) as err:
         print(f"eval.py: {root_cause(err) if isinstance(err, ParsingError) else err}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -170,18 +170,27 @@ def load_agent(
     wrote one, else the adapter on its base (the run's `init.checkpoint`).
     """
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: torch + transformers
-    from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint  # lazy: torch
+    from openfly_agent.model.persistence.openvla_loader import (  # lazy: torch
+        CheckpointMismatchError,
+        agent_from_openvla_checkpoint,
+    )
 
     folder = checkpoint_folder(checkpoint)
     torch_dtype = resolve_dtype(dtype, device)
     if checkpoint_kind(folder) == "openvla":
-        agent, report = agent_from_openvla_checkpoint(
-            folder,
-            _released_model_config(model_config, decode_rule, unnorm_key),
-            tokenizer=load_tokenizer(folder),
-            device=device,
-            dtype=torch_dtype,
-        )
+        try:
+            agent, report = agent_from_openvla_checkpoint(
+                folder,
+                _released_model_config(model_config, decode_rule, unnorm_key),
+                tokenizer=load_tokenizer(folder),
+                device=device,
+                dtype=torch_dtype,
+            )
+        except CheckpointMismatchError as err:
+            raise CheckpointError(
+                f"{err} (the ModelConfig YAML of a released folder: eval.py --agent.model_config=<file>; "
+                f"now {model_config or 'the 7B openvla_compat preset'})"
+            ) from err
         logger.info("released checkpoint %s: %s", folder, report.summary())
         return agent.eval()
     weights = checkpoint_weights(folder)

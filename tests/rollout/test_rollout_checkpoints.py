@@ -59,3 +59,24 @@ def test_weights_change_is_said_in_words():
     assert describe_weights_change(old, gone) == (
         "/r/step-4: model.safetensors is gone (it was 1,234 B modified 2026-11-27 09:14:56 UTC)"
     )
+
+
+def test_a_released_folder_that_does_not_fit_the_model_config_is_one_line_naming_eval_option(tmp_path):
+    """eval.py on a reduced-width OpenVLA folder with the default (7B) released model config: a CheckpointError
+    (one line, exit 2 in eval.py) that names the sizes and the option that gives the right config, read from the
+    headers before any 7B weight is allocated."""
+    import importlib
+
+    from openfly_agent.rollout.checkpoints import CheckpointError, load_agent
+
+    folder = tmp_path / "openvla"
+    importlib.import_module("bench.synthetic_openvla").write_synthetic_openvla(folder, "reduced")
+    with pytest.raises(CheckpointError) as info:
+        load_agent(str(folder))
+    message = str(info.value)
+    assert "\n" not in message
+    assert "checkpoint llm hidden size 128, config 4096" in message
+    assert message.endswith(
+        "(the ModelConfig YAML of a released folder: eval.py --agent.model_config=<file>; now the 7B "
+        "openvla_compat preset)"
+    )

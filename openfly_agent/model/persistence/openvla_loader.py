@@ -93,6 +93,10 @@ DEPTHS = (
 REDUCED_WIDTH_HINT = "did you forget --model=configs/model/reduced-width.yaml?"
 
 
+class CheckpointMismatchError(ValueError):
+    """An OpenVLA-layout checkpoint whose tensors do not fit the configured model (one line, `mismatch_message`)."""
+
+
 def _checkpoint_files(path: Path) -> list[Path]:
     """The safetensors files of a file or folder (sharded with an index, or `*.safetensors`)."""
     if path.is_dir():
@@ -184,7 +188,7 @@ def check_openvla_shapes(agent: nn.Module, folder: str | Path) -> None:
     before any weight is read or allocated.
 
     Raises:
-        ValueError: one line, `mismatch_message`.
+        CheckpointMismatchError: one line, `mismatch_message`.
     """
     targets = {name: tuple(t.shape) for name, t in agent.state_dict().items()}
     prunable = pruned_vision_keys(agent)
@@ -194,7 +198,7 @@ def check_openvla_shapes(agent: nn.Module, folder: str | Path) -> None:
     missing = sorted(k for k in targets if k not in found and not k.startswith(NEW_MODULE_PREFIXES))
     wrong = any(k in targets and shape != targets[k] for k, shape in found.items())
     if unexpected or missing or wrong:
-        raise ValueError(mismatch_message(folder, found, targets, unexpected, missing))
+        raise CheckpointMismatchError(mismatch_message(folder, found, targets, unexpected, missing))
 
 
 def load_openvla_weights(agent: nn.Module, path_or_state_dict) -> LoadReport:
@@ -237,7 +241,7 @@ def load_openvla_weights(agent: nn.Module, path_or_state_dict) -> LoadReport:
     wrong_shape = any(name in expected and shape != expected[name] for name, shape in found.items())
     if unexpected or missing_old or wrong_shape:
         source = path_or_state_dict if not isinstance(path_or_state_dict, dict) else "state dict"
-        raise ValueError(mismatch_message(source, found, expected, unexpected, missing_old))
+        raise CheckpointMismatchError(mismatch_message(source, found, expected, unexpected, missing_old))
     logger.info("OpenVLA weights: %s", report.summary())
     return report
 
