@@ -14,6 +14,7 @@ and the prompt and frame tokens the LLM reads per micro-batch, padded (rows x lo
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import sys
@@ -29,6 +30,7 @@ from openfly_agent.training.builder import load_splits, prepare_agent
 from openfly_agent.training.cli import parse_args
 from openfly_agent.training.loaders import make_train_loader
 from openfly_agent.training.optim import make_optimizer
+from openfly_agent.training.preflight import resolve_val_split
 from openfly_agent.training.stages import stage_data
 
 # the shipped recipe's grounding stage (configs/recipe/tiny-recipe.yaml) on the embedded-small datasets
@@ -49,6 +51,7 @@ def build(overrides: list[str]):
     """(agent, train dataset, collate, cfg) of a grounding-stage run of `STAGE_ARGS + overrides`."""
 
     cfg = parse_args(STAGE_ARGS + overrides)
+    cfg = dataclasses.replace(cfg, data=resolve_val_split(cfg.data)[0])  # as train() does first
     splits = load_splits(cfg.data, cfg.model.grounding)
     agent = prepare_agent(cfg, splits, make_accelerator(cfg), None)
     data = stage_data(cfg, splits, agent)

@@ -98,11 +98,22 @@ def train_in_process(cfg):
         reset_accelerate()
 
 
+def with_val_split(cfg):
+    """`cfg` with the validation split a run reads (`val`, or test_seen on a dataset without one), as `train()`
+    resolves it first: the tests' tiny datasets have no val routes."""
+    import dataclasses
+
+    from openfly_agent.training.preflight import resolve_val_split
+
+    return dataclasses.replace(cfg, data=resolve_val_split(cfg.data)[0])
+
+
 def built_agent(cfg):
     """The agent a run of `cfg` would start training (checks, tokenizer, init weights, freeze / LoRA applied)."""
     from openfly_agent.training.accelerator import make_accelerator
     from openfly_agent.training.builder import load_splits, prepare_agent
 
+    cfg = with_val_split(cfg)
     reset_accelerate()
     try:
         return prepare_agent(cfg, load_splits(cfg.data, cfg.model.grounding), make_accelerator(cfg), None)
@@ -115,6 +126,7 @@ def split_batch(cfg, agent, split: str, indices) -> dict:
     from openfly_agent.data.collator import NavigationCollator
     from openfly_agent.training.builder import load_splits
 
+    cfg = with_val_split(cfg)
     dataset = load_splits(cfg.data, cfg.model.grounding).dataset(split, cfg, agent)
     collate = NavigationCollator(agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size)
     return collate([dataset[i] for i in indices])

@@ -52,6 +52,15 @@ def test_a_misspelt_option_is_caught(tmp_path):
         unknown_options(path)
 
 
+def _free_port() -> int:
+    """A TCP port nothing listens on now (the OS picks it)."""
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
 @pytest.mark.parametrize(
     ("name", "offload"), [("fsdp.yaml", False), ("fsdp_offload.yaml", True), ("fsdp_multinode.yaml", False)]
 )
@@ -69,6 +78,8 @@ def test_fsdp_files_give_the_plugin_the_preflight_reads(name, offload, monkeypat
         ["--config_file", str(REPO_ROOT / "configs/accelerate" / name), "x"]
     )
     args, _, _ = _validate_launch_command(args)
+    # a free port: accelerate refuses one in use, e.g. by a 2-process training run beside the suite (29500)
+    args.main_process_port = _free_port()
     for key, value in prepare_multi_gpu_env(args).items():
         monkeypatch.setenv(key, value)
     plugin = FullyShardedDataParallelPlugin()

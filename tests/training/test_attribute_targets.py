@@ -42,11 +42,18 @@ def _attribute_run(dataset, out, **overrides):
     return make_config(dataset, out, model__grounding__attribute_weight="1.0", **overrides)
 
 
+def _read_splits(cfg):
+    from conftest import with_val_split
+
+    cfg = with_val_split(cfg)
+    return load_splits(cfg.data, cfg.model.grounding)
+
+
 def test_navigation_batches_carry_the_targets_attributes(generated_dataset, tmp_path):
     from conftest import built_agent, split_batch
 
     cfg = _attribute_run(generated_dataset, tmp_path / "run")
-    splits = load_splits(cfg.data, cfg.model.grounding)
+    splits = _read_splits(cfg)
     step = splits.dataset(cfg.data.train_split, cfg, built_agent(cfg))[0]
     lookup = LandmarkAttributes.for_dataset(generated_dataset)
     episode = splits.episodes[cfg.data.train_split][0]
@@ -73,7 +80,7 @@ def test_attribute_classes_must_match_the_city_vocabularies(generated_dataset, t
         generated_dataset, tmp_path / "run", model__grounding__attribute_classes="[12,6,3,9]"
     )
     with pytest.raises(PreflightError, match="vocabularies"):
-        load_splits(cfg.data, cfg.model.grounding)
+        _read_splits(cfg)
 
 
 def test_a_dataset_the_toolchain_did_not_make_has_no_attributes(tmp_path):

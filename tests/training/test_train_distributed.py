@@ -22,6 +22,7 @@ from conftest import (
     train_args,
     train_in_process,
     train_losses,
+    with_val_split,
 )
 
 from openfly_agent.data.collator import NavigationCollator
@@ -82,7 +83,7 @@ def test_two_processes_give_the_same_losses_and_weights_as_one(
 
     # the final offline evaluation covers exactly the 9 samples, as one process over the same 9 does
     single = SimpleNamespace(device=torch.device("cpu"), num_processes=1, process_index=0)
-    cfg = make_config(generated_dataset, reference_dir, **VIT)
+    cfg = with_val_split(make_config(generated_dataset, reference_dir, **VIT))
     test_set = load_splits(cfg.data, cfg.model.grounding).dataset(cfg.data.test_split, cfg, reference.agent)
     collate = NavigationCollator(
         reference.agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size
