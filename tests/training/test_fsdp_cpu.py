@@ -10,14 +10,28 @@ calls (docs/TRAINING.md, "FSDP and activation checkpointing on the CPU").
 from __future__ import annotations
 
 import json
+import re
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
 from conftest import run_script
 
 WORKER = Path(__file__).with_name("fsdp_worker.py")
+SIGNAL_DEATH = re.compile(r"exitcode\s*:\s*-\d+")  # torchrun's failure report of a rank a signal ended
+ERROR_LINE = re.compile(r"terminate called|Error|Exception|Assertion|what\(\)")
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+
+
+def killed_by_a_signal(stderr: str) -> bool:
+    """Whether torchrun reports a rank ended by a signal (SIGABRT, SIGSEGV: negative exit code)."""
+    return bool(SIGNAL_DEATH.search(stderr))
+
+
+def first_error(stderr: str) -> str:
+    """The first line of the workers' output that names an error (the rank that failed first), or ''."""
+    return next((line.strip() for line in stderr.splitlines() if ERROR_LINE.search(line)), "")
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +43,17 @@ def fsdp_results(tmp_path_factory) -> dict[str, dict]:
     tokenizer = out / "tokenizer"
     train_bpe_tokenizer(instructions(16), vocab_size=320, out_dir=tokenizer)
     done = run_script(["--tokenizer", str(tokenizer), "--out", str(out)], TORCHRUN, 300, WORKER)
-    assert done.returncode == 0, done.stderr[-3000:]
+    if done.returncode != 0 and killed_by_a_signal(done.stderr):
+        # Once in a loaded suite run (1 of 4 on 2026-11-28) rank 0 died of SIGABRT (its message cut from the
+        # report) and rank 1 then saw gloo's "Connection reset by peer"; 3 + 3 reruns under load did not repeat it.
+        # A rank the runtime aborted says nothing of FSDP: run it once more, keeping the first attempt's log.
+        (out / "first_attempt_stderr.txt").write_text(done.stderr)
+        warnings.warn(
+            f"FSDP worker: a rank was killed by a signal; retrying once ({first_error(done.stderr)})",
+            stacklevel=2,
+        )
+        done = run_script(["--tokenizer", str(tokenizer), "--out", str(out)], TORCHRUN, 300, WORKER)
+    assert done.returncode == 0, f"{first_error(done.stderr)}\n...\n{done.stderr[-3000:]}"
     return {name: json.loads((out / f"{name}.json").read_text()) for name in ("tiny", "vit-llama")}
 
 
@@ -47,3 +71,15 @@ def test_fully_shard_trains_as_the_unsharded_model_and_resumes_exactly(fsdp_resu
     assert result["saved_tensors"] > 3 * result["sharded_params"]  # weights + exp_avg + exp_avg_sq + step
     assert result["resumed_vs_saved"] == 0.0
     assert result["next_resumed_loss"] == result["next_loss"] and result["after_step_difference"] == 0.0
+
+
+def test_only_a_rank_killed_by_a_signal_is_retried():
+    aborted = "  exitcode  : -6 (pid: 15577)\n  error_file: <N/A>\n  traceback : Signal 6 (SIGABRT) received by PID 15577"
+    assert killed_by_a_signal(aborted)
+    assert not killed_by_a_signal("  exitcode  : 1 (pid: 15577)\n  traceback : AssertionError: losses differ")
+    stderr = (
+        "W1128 warning\n[rank0]: terminate called after throwing an instance of 'gloo::IoException'\nmore"
+    )
+    assert (
+        first_error(stderr) == "[rank0]: terminate called after throwing an instance of 'gloo::IoException'"
+    )
