@@ -47,6 +47,8 @@ EXIT_OK, EXIT_FAILED, EXIT_NO_CUDA = 0, 1, 2
 LAUNCHER_FAILED = 1
 PY = "python"  # the interpreter running this file replaces it when a check runs
 TRAIN = [PY, "-m", "accelerate.commands.launch", "--config_file"]  # `accelerate launch`, this interpreter
+# the synthetic 7B LoRA step of the bench, batch 8, 5 steps (the levers checks add `--levers ...`)
+LORA_BENCH = [PY, "bench/train_throughput.py", "--configs", "7b-lora-bf16", "--batch", "8", "--steps", "5"]
 FULL_FT_BUDGET = [  # the full fine-tune through its first optimizer step only (a 7.5 B checkpoint is ~90 GB)
     "--steps=1", "--stop_after_steps=1", "--batch.global_batch_size=2", "--batch.per_device_batch_size=2",
     "--validation.interval=0", "--validation.final_eval=false", "--logging.tracker=none", "--data.num_workers=2",
@@ -342,42 +344,19 @@ def all_checks(workdir: Path) -> list[Check]:
         ),
         Check(
             "LoRA synthetic step",
-            [PY, "bench/train_throughput.py", "--configs", "7b-lora-bf16", "--batch", "8", "--steps", "5"],
+            LORA_BENCH,
             150,
             figures=throughput_figures,
         ),
         Check(
             "LoRA step, levers",
-            [
-                PY,
-                "bench/train_throughput.py",
-                "--configs",
-                "7b-lora-bf16",
-                "--batch",
-                "8",
-                "--steps",
-                "5",
-                "--levers",
-                "none",
-                "fused_adamw",
-            ],
+            [*LORA_BENCH, "--levers", "none", "fused_adamw"],
             150,
             figures=lever_figures,
         ),  # fmt: skip
         Check(  # its own check: a compilation that fails or runs long costs the other levers nothing
             "LoRA step, compiled layers",
-            [
-                PY,
-                "bench/train_throughput.py",
-                "--configs",
-                "7b-lora-bf16",
-                "--batch",
-                "8",
-                "--steps",
-                "5",
-                "--levers",
-                "compile_layers",
-            ],
+            [*LORA_BENCH, "--levers", "compile_layers"],
             180,
             figures=lever_figures,
         ),  # fmt: skip
