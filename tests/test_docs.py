@@ -165,6 +165,11 @@ def check_command(command: DocCommand) -> None:
         from openfly_agent.eval.compare import CompareConfig, command_args
 
         check_options(CompareConfig, command_args(command.args))
+    elif command.kind == "seeds":
+        from openfly_agent.eval.seeds import SeedsConfig
+        from openfly_agent.eval.seeds import command_args as seeds_args
+
+        check_options(SeedsConfig, seeds_args(command.args))
     elif command.kind == "sim":
         from openfly_agent.sim.cli import COMMANDS as SIM_COMMANDS
 
