@@ -1,6 +1,6 @@
 """What the readers of a toolchain-made dataset need of its generation settings: its frame size and the
 parameters of its embedded cities, for whoever rebuilds its scenes (eval's simulator, training's attribute
-targets, the grounding data; sim/embedded_scenes.py turns them into a city config).
+targets; sim/embedded_scenes.py turns them into a city config).
 
 The toolchain writes them as `GenerationSettings` beside the data (`constants.GENERATION_SETTINGS_JSON`), next to
 its full config (`constants.TOOLCHAIN_CONFIG_JSON`, the record it resumes against). A dataset generated before
