@@ -158,6 +158,8 @@ TOOLCHAIN_UNITS_DIR = "meta/toolchain/units"  # units/<scene>.jsonl: one line pe
 TOOLCHAIN_SUMMARY_JSON = "meta/toolchain/summary.json"  # the paper's statistics of the dataset
 TOOLCHAIN_SUMMARY_PNG = "meta/toolchain/summary.png"
 TOOLCHAIN_CONFIG_JSON = "meta/toolchain/generate_config.json"
+# What the readers of a generated dataset need of its settings (frame size, city), data/generation_settings.py
+GENERATION_SETTINGS_JSON = "meta/generation_settings.json"
 
 MODEL_TYPE = "openfly_agent"
 

@@ -79,6 +79,9 @@ def test_train_help_shows_what_a_plain_run_uses(capsys):
     assert "working directory" in flag_text(text, "--output_dir")
     assert "(default: 250)" in flag_text(text, "--checkpoint.save_interval")
     assert ends_with_example(text, "train.py")
+    intro = " ".join(text.split())  # train.py reads a dataset, never makes one (the toolchain does)
+    assert "generated first when missing" not in intro
+    assert "python -m openfly_agent.toolchain generate" in intro
     overridden = _help(capsys, _script_main("train"), ["--steps=7", "--help"])  # the command line's values
     assert "(default: 7)" in flag_text(overridden, "--steps")
 

@@ -9,12 +9,21 @@ config dataclasses (train.py, eval.py, and each command of the toolchain, hub an
 scripts/ files by their source. A command block runs as documented, with small-data budget options appended
 (a few steps, episodes or trajectories) and the tiny test dataset standing in for embedded-small; blocks that
 train are marked `slow`.
+
+Docs that cannot drift (issue 46): every backticked repository path (`configs/train/tiny.yaml`, `model/agent.py`)
+and every backticked `module.name` / `name()` (`openfly_agent.eval.compare`, `train()`, `agent.forward`) of
+README.md, docs/*.md and data_cards/*.md resolves against the tree ("paths and names in prose" below says what
+counts as either). The experiment log is exempt from that check: a dated entry records the code of its day and
+may rightly name files and functions deleted since, and it is never rewritten.
 """
 
 from __future__ import annotations
 
 import ast
+import builtins
 import dataclasses
+import fnmatch
+import functools
 import importlib
 import importlib.util
 import json
@@ -419,3 +428,220 @@ def test_documented_python_snippets(snippet, tmp_path, monkeypatch):
         return
     monkeypatch.chdir(tmp_path)
     exec(compile(snippet.code, snippet.where, "exec"), {"__name__": "__doc_snippet__"})
+
+
+# -- paths and names in prose --------------------------------------------------------------------------
+# Every inline code span of README.md, docs/*.md and data_cards/*.md that names a file of the repository or a
+# name of its code must resolve against the tree (fenced blocks are commands and snippets, checked above).
+# The experiment log (docs/experiments/) is exempt: its dated entries record what the code was then, and may
+# rightly name files and functions deleted since (its commands' options are still checked, above).
+#
+# A path: a span of path characters that contains "/" and starts with an entry of the repository root
+# (`configs/train/tiny.yaml`, `docs/TRAINING.md`), a package part's folder (`model/`), or any path or bare file
+# name ending in .py or .sh (`model/agent.py`, `vision/backbone.py`, `agent.py`: a file whose path ends so);
+# `path.py::Name` also needs Name defined in that file. Not paths: `outputs/`, `runs/`, placeholders (`<dir>`,
+# `...`), and the files of a dataset, run or checkpoint (`meta/info.json`, `config.json`).
+# A name: a dotted identifier or a call, `openfly_agent.eval.compare`, `train()`, `agent.forward`,
+# `OpenFlyAgent.new_session`, `model.grounding.attribute_weight`. `openfly_agent.<module>[.<name>]`
+# must be a module of the package and a name it defines; otherwise the last part must be a function, class,
+# method, field or attribute the code defines (an ast scan of openfly_agent/, bench/, scripts/ and the entry
+# points), and `Class.member` a member of that class. Plain words (`tiny`, `discrete`) are not checked.
+PROSE_DOCS = [REPO / "README.md", *sorted(REPO.glob("docs/*.md")), *sorted(REPO.glob("data_cards/*.md"))]
+CODE_ROOTS = ("openfly_agent", "bench", "scripts", "train.py", "eval.py")
+NOT_IN_TREE = {  # named on purpose, never files of this repository
+    "train/eval.py": "the released OpenFly code's files (docs/OFFICIAL_OPENFLY.md)",
+    "train/dataset_builder/vln/vln_dataset_builder.py": "the released OpenFly code's files",
+    "configs/eval_test.json": "the released OpenFly code's files",
+    "configs/env_*.yaml": "the released OpenFly code's files",
+    "_meta_registrations.py": "torch's own file (docs/INSTALL.md, a torchvision fix)",
+    "configuration_openfly_agent.py": "written into each checkpoint (model/persistence/remote_code.py)",
+    "modeling_openfly_agent.py": "written into each checkpoint",
+    "processing_openfly_agent.py": "written into each checkpoint",
+}
+FOREIGN = {  # first part of a name -> why it is not this package's
+    "torch": "PyTorch", "np": "NumPy", "numpy": "NumPy", "math": "the standard library",
+    "transformers": "transformers", "huggingface_hub": "huggingface_hub", "cv2": "OpenCV",
+    "accelerator": "accelerate's Accelerator", "Accelerator": "accelerate", "ops": "torchvision.ops",
+    "ls1": "timm's LayerScale keys", "LayerNorm": "timm / transformers key names",
+    "vit_large_patch14_reg4_dinov2": "a timm model name", "destroy_process_group": "torch.distributed",
+    "enableApiControl": "AirSim's client", "armDisarm": "AirSim's client",
+}  # fmt: skip
+# Members a class of ours inherits from transformers (`OpenFlyProcessor.from_pretrained`)
+INHERITED = {"from_pretrained", "save_pretrained", "push_to_hub"}
+FILE_SUFFIXES = {  # a span ending so is a file name (`config.json`), not code
+    "json", "jsonl", "safetensors", "parquet", "png", "md", "txt", "ini", "so", "yaml", "yml", "toml",
+}  # fmt: skip
+_FENCE = re.compile(r"^\s*(```|~~~)")
+_PATH = re.compile(r"[\w.\-/*]+")
+_NAME = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*(\((\w+(, \w+)*)?\))?")
+
+
+@dataclasses.dataclass(frozen=True)
+class CodeIndex:
+    """What prose may name: the files and folders of the tree and the names its Python code defines."""
+
+    paths: tuple[str, ...]  # files and folders, relative to the repository
+    names: frozenset[str]  # functions, classes, methods, fields, attributes, module names
+    members: dict  # class name -> the names defined in its body (methods, fields, self.<attribute>)
+    modules: dict  # dotted module of the package -> its top-level names (with a lazy package's exports)
+
+
+def _targets(node: ast.AST) -> list[str]:
+    """The names an assignment target binds: `x`, `self.x`, `a, b`."""
+    if isinstance(node, ast.Name):
+        return [node.id]
+    if isinstance(node, ast.Attribute):
+        return [node.attr]
+    if isinstance(node, (ast.Tuple, ast.List)):
+        return [name for element in node.elts for name in _targets(element)]
+    return []
+
+
+def _bound(node: ast.AST) -> list[str]:
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return [node.name]
+    if isinstance(node, ast.Assign):
+        return [name for target in node.targets for name in _targets(target)]
+    if isinstance(node, ast.AnnAssign):
+        return _targets(node.target)
+    if isinstance(node, (ast.Import, ast.ImportFrom)):
+        return [(alias.asname or alias.name).split(".")[0] for alias in node.names]
+    return []
+
+
+def _tree_paths() -> tuple[str, ...]:
+    skip = {".git", ".venv", "outputs", "runs", "__pycache__", ".hypothesis", ".ruff_cache", ".pytest_cache"}
+    paths, folders = [], [REPO]
+    while folders:
+        for path in folders.pop().iterdir():
+            if path.name not in skip and not path.name.endswith(".egg-info"):
+                paths.append(path.relative_to(REPO).as_posix())
+                if path.is_dir():
+                    folders.append(path)
+    return tuple(paths)
+
+
+@functools.cache
+def code_index() -> CodeIndex:
+    paths = _tree_paths()
+    names, members, modules = set(), {}, {}
+    for rel in paths:
+        if not rel.endswith(".py") or not rel.startswith(CODE_ROOTS):
+            continue
+        tree = ast.parse((REPO / rel).read_text())
+        names.add(Path(rel).stem)
+        module = rel.removesuffix(".py").removesuffix("/__init__").replace("/", ".")
+        top = {name for node in tree.body for name in _bound(node)}
+        exports = tree.body if rel.endswith("__init__.py") else []  # a package's lazy exports: name -> module
+        for node in exports:
+            if isinstance(node, ast.Assign) and isinstance(node.value, ast.Dict):
+                top |= {key.value for key in node.value.keys if isinstance(key, ast.Constant)}
+        modules[module] = top
+        _collect(tree, None, names, members)
+    return CodeIndex(paths, frozenset(names), members, modules)
+
+
+def _collect(node: ast.AST, owner: str | None, names: set, members: dict) -> None:
+    """Every name bound under `node` into `names`, and into `members[owner]` inside class `owner`'s body."""
+    for child in ast.iter_child_nodes(node):
+        bound = _bound(child)
+        names.update(bound)
+        if owner is not None:
+            members[owner].update(bound)
+        if isinstance(child, ast.ClassDef):
+            members.setdefault(child.name, set())
+        _collect(child, child.name if isinstance(child, ast.ClassDef) else owner, names, members)
+
+
+def _path_resolves(path: str, index: CodeIndex) -> bool:
+    if path in NOT_IN_TREE:
+        return True
+    path = path.rstrip("/")
+    if path.split("/")[0] in {p for p in index.paths if "/" not in p}:
+        return any(fnmatch.fnmatchcase(p, path) for p in index.paths)
+    return any(fnmatch.fnmatchcase(p, path) or fnmatch.fnmatchcase(p, f"*/{path}") for p in index.paths)
+
+
+def _defines(path: str, name: str, index: CodeIndex) -> bool:
+    """Whether the file `path` (as `_path_resolves` finds it) defines `name` anywhere in it."""
+    files = [p for p in index.paths if p == path or p.endswith(f"/{path}")]
+    trees = [ast.parse((REPO / file).read_text()) for file in files]
+    return any(name in _bound(node) for tree in trees for node in ast.walk(tree))
+
+
+def _is_repo_path(span: str, index: CodeIndex) -> bool:
+    if not _PATH.fullmatch(span) or span.startswith(("outputs/", "runs/")):
+        return False
+    first = span.split("/")[0]
+    if "/" in span and first in {p for p in index.paths if "/" not in p}:
+        return True
+    if span.endswith("/") and f"openfly_agent/{first}" in index.paths:
+        return True
+    return re.search(r"(^|/)[\w*-]+\.(py|sh)$", span) is not None
+
+
+def _name_resolves(span: str, index: CodeIndex) -> bool:
+    parts = span.split("(")[0].split(".")
+    if parts[0] in FOREIGN or parts[0] in dir(builtins):
+        return True
+    if parts[0] == "openfly_agent":
+        cut = max((k for k in range(1, len(parts) + 1) if ".".join(parts[:k]) in index.modules), default=0)
+        rest = parts[cut:]
+        return cut > 0 and (not rest or rest[0] in index.modules[".".join(parts[:cut])])
+    if parts[-1] not in index.names:
+        return False
+    owner = parts[0] if len(parts) > 1 and parts[0][:1].isupper() else None
+    return owner not in index.members or parts[1] in index.members[owner] | INHERITED
+
+
+def prose_reference_misses(path: Path, text: str | None = None) -> tuple[list[str], int]:
+    """(`file:line: span` of each path or name that does not resolve, how many spans were checked)."""
+    index, misses, checked, inside = code_index(), [], 0, False
+    relative = path.relative_to(REPO).as_posix() if path.is_relative_to(REPO) else str(path)
+    for number, line in enumerate((path.read_text() if text is None else text).splitlines(), 1):
+        if _FENCE.match(line):
+            inside = not inside
+        if inside or _FENCE.match(line):
+            continue
+        for span in (m.group(1).strip() for m in re.finditer(r"`([^`]+)`", line)):
+            if "..." in span or "<" in span:
+                continue
+            if re.fullmatch(r"[\w./*-]+\.py::[\w.]+", span):
+                file, name = span.split("::")
+                ok = _path_resolves(file, index) and _defines(file, name.split(".")[0], index)
+            elif _is_repo_path(span, index):
+                ok = _path_resolves(span, index)
+            elif _NAME.fullmatch(span) and ("." in span or "(" in span):
+                if span.rsplit(".", 1)[-1] in FILE_SUFFIXES:
+                    continue
+                ok = _name_resolves(span, index)
+            else:
+                continue
+            checked += 1
+            if not ok:
+                misses.append(f"{relative}:{number}: `{span}`")
+    return misses, checked
+
+
+def test_every_backticked_path_and_name_in_the_docs_resolves():
+    misses, checked = [], 0
+    for doc in PROSE_DOCS:
+        found, count = prose_reference_misses(doc)
+        misses += found
+        checked += count
+    assert checked > 500 and not misses, "\n".join(misses)
+
+
+def test_a_stale_path_or_name_is_caught():
+    prose = (
+        "`conv_vision.py` `openfly_agent/model/agent.py` `configs/train/nope.yaml` `configs/train/tiny.yaml`\n"
+        "`activation_checkpointing_enable()` `train()` `OpenFlyAgent.nope` `OpenFlyAgent.forward`\n"
+        "`openfly_agent.eval.nope` `openfly_agent.eval.compare` `model/nope.py::f` `data/labels.py::Episode`\n"
+        "```bash\n`not_checked_in_a_block()`\n```\n`torch.compile` `outputs/x/y.py` `<dir>/x.py` `meta/info.json`\n"
+    )
+    misses, checked = prose_reference_misses(REPO / "docs" / "x.md", prose)
+    assert [m.split(": ", 1)[1] for m in misses] == [
+        "`conv_vision.py`", "`configs/train/nope.yaml`", "`activation_checkpointing_enable()`",
+        "`OpenFlyAgent.nope`", "`openfly_agent.eval.nope`", "`model/nope.py::f`",
+    ]  # fmt: skip
+    assert checked == 13  # the block, the placeholders and the dataset file are not checked

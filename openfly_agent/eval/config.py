@@ -70,9 +70,9 @@ class SimSettings(ChoiceRegistry):
 @dataclass
 class EmbeddedSimSettings(SimSettings):
     """`embedded`: the procedural city of each `embedded-<seed>` scene; the city parameters and, by default, the
-    frame size come from the dataset's toolchain config."""
+    frame size come from the dataset's generation settings (data/generation_settings.py)."""
 
-    width: int | None = None  # frame size; None = the dataset's (toolchain config, else a frame)
+    width: int | None = None  # frame size; None = the dataset's (generation settings, else a frame)
     height: int | None = None
 
     def __post_init__(self) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.data.frames import FrameStore
-from openfly_agent.data.generation_settings import generation_settings
+from openfly_agent.data.generation_settings import read_generation_settings
 from openfly_agent.data.openfly_reader import load_openfly_dataset, non_strict_hint
 from openfly_agent.data.schema import Episode, SchemaError
 from openfly_agent.eval.baselines import make_baseline
@@ -197,21 +197,20 @@ def make_bridge_env(settings: BridgeSimSettings, info: ProcessInfo) -> VectorSim
 def embedded_sim_config(cfg: EvalConfig, episodes: list[Episode]):
     """`EmbeddedSimConfig` that rebuilds the dataset's cities at its frame size, counting collisions.
 
-    Frame size: `sim.width/height`, else the toolchain config of the dataset, else its first frame, else
-    224. City parameters and the collision voxel come from the toolchain config (defaults otherwise).
+    Frame size: `sim.width/height`, else the generation settings of the dataset, else its first frame, else
+    224. The city parameters come from the generation settings (the generator's defaults without them).
     """
-    generated = generation_settings(cfg.dataset_root) or {}
+    generated = read_generation_settings(cfg.dataset_root)
     size = None
-    if "width" in generated and "height" in generated:
-        size = (generated["height"], generated["width"])
+    if generated is not None:
+        size = (generated.height, generated.width)
     elif cfg.sim.width is None or cfg.sim.height is None:
         size = dataset_frame_size(cfg.dataset_root, episodes)
     height = cfg.sim.height or (size[0] if size else DEFAULT_FRAME_SIZE)
     width = cfg.sim.width or (size[1] if size else DEFAULT_FRAME_SIZE)
-    city = city_config(generated)
-    voxel = float(generated.get("collision_voxel_m", 2.0))
+    city = {"city": city_config(generated.city_size_m, generated.city_buildings)} if generated else {}
     return EmbeddedSimConfig(
-        width=int(width), height=int(height), city=city, collision="count", voxel_size=voxel,
+        width=int(width), height=int(height), collision="count", **city,
         max_cached_scenes=max(4, cfg.batch_size),  # lockstep slots may fly in as many cities at once
     )  # fmt: skip
 

@@ -15,13 +15,13 @@ from openfly_agent.sim.city import SCENE_PREFIX, City, CityConfig, generate_city
 from openfly_agent.sim.scene import Landmark
 
 
-def city_config(settings: dict) -> CityConfig:
-    """The `CityConfig` a dataset was generated with, from its generation settings
-    (data/generation_settings.py: `city_size_m`, `city_buildings`; the defaults for what is absent)."""
-    size_m = float(settings.get("city_size_m", CityConfig.size_m))
-    if settings.get("city_buildings") is None:
-        return CityConfig(size_m=size_m)
-    return CityConfig(size_m=size_m, n_buildings=int(settings["city_buildings"]))
+def city_config(size_m: float, buildings: int | None = None) -> CityConfig:
+    """The `CityConfig` of embedded cities of side `size_m` with `buildings` buildings (None: the generator's
+    default), the two city settings the toolchain takes and a generated dataset records
+    (data/generation_settings.py)."""
+    if buildings is None:
+        return CityConfig(size_m=float(size_m))
+    return CityConfig(size_m=float(size_m), n_buildings=int(buildings))
 
 
 EMBEDDED_SCENE_FORM = f"{SCENE_PREFIX}<seed>"  # how an embedded scene id reads, for messages

@@ -1,7 +1,7 @@
 """Resuming `generate` into a folder: only with the settings the dataset there was generated with.
 
-`meta/toolchain/generate_config.json` records the settings of a dataset (eval also reads its frame size and
-city parameters from it). A rerun with other data settings would leave trajectories of both kinds side by
+`meta/toolchain/generate_config.json` records the settings of a dataset; `meta/generation_settings.json`, written
+with it, the few that its readers need (frame size and city parameters, data/generation_settings.py). A rerun with other data settings would leave trajectories of both kinds side by
 side and overwrite that record, so it is refused, naming the settings that differ, unless `--overwrite=true`
 discards the dataset first. Settings that do not change the data (where it goes, how many workers, which
 shard, plots, the VLM client's transport) may change between runs. A setting added after the dataset was
@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from openfly_agent import constants as C
+from openfly_agent.data.generation_settings import GenerationSettings
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.utils.config import (
     changed_settings,
@@ -65,7 +66,8 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
         cfg: the generate config.
         ignore: more keys (or "prefix.") allowed to differ, e.g. "dagger." for the policy DAgger command,
             which adds episodes to a dataset generated with its own DAgger settings.
-        record: write `cfg` as the dataset's generate_config.json (when none is there, or always on a match).
+        record: write `cfg` as the dataset's generate_config.json and its generation settings (when no
+            config is there, or always on a match).
 
     Raises:
         GenerateSettingsError: the folder holds a dataset of other settings and `overwrite` is false.
@@ -95,22 +97,36 @@ def prepare_output(cfg: GenerateConfig, ignore: tuple[str, ...] = (), record: bo
     if record or not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
         save_config(cfg, path)
+        generation_settings(cfg).save(root)
+
+
+def generation_settings(cfg: GenerateConfig) -> GenerationSettings:
+    """What the readers of the dataset `cfg` generates need of its settings."""
+    return GenerationSettings(
+        width=cfg.render.width,
+        height=cfg.render.height,
+        city_size_m=cfg.scenes.city_size_m,
+        city_buildings=cfg.scenes.city_buildings,
+    )
 
 
 @contextlib.contextmanager
 def record_kept_on_success(root: Path) -> Iterator[None]:
     """Around a first `generate` into `root` (no settings record there yet): when it fails before it has written
-    anything but the record, the record goes again, with the empty folders the run made, so the corrected command
-    is not refused as "a dataset generated with other settings". A run that wrote episodes keeps its record (the
-    same command resumes it); files that were there before are never touched."""
+    anything but the records (the config and the generation settings), they go again, with the empty folders the
+    run made, so the corrected command is not refused as "a dataset generated with other settings". A run that
+    wrote episodes keeps its records (the same command resumes it); files that were there before are never
+    touched."""
     record = root / C.TOOLCHAIN_CONFIG_JSON
+    records = {record, root / C.GENERATION_SETTINGS_JSON}
     first_run, created = not record.exists(), first_missing_dir(root)
     before = _files_under(root) if first_run else set()
     try:
         yield
     except BaseException:
-        if first_run and _files_under(root) - before == {record}:
-            record.unlink()
+        if first_run and record.exists() and _files_under(root) - before <= records:
+            for path in records - before:
+                path.unlink(missing_ok=True)
             for name in DATASET_PARTS:
                 remove_empty_tree(root / name)
             remove_created_dirs(root, created)

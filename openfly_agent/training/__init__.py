@@ -8,12 +8,9 @@ from __future__ import annotations
 
 from openfly_agent.utils.imports import lazy_exports
 
-_EXPORTS = {
-    "TrainConfig": "config",
+_EXPORTS = {  # what train.py imports
     "train": "trainer",
-    "TrainResult": "trainer",
     "PreflightError": "preflight",
-    "CheckpointManager": "checkpoint",
 }
 
 __all__ = sorted(_EXPORTS)

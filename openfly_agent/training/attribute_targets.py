@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from openfly_agent import constants as C
-from openfly_agent.data.generation_settings import generation_settings
+from openfly_agent.data.generation_settings import read_generation_settings
 from openfly_agent.sim.embedded_scenes import EmbeddedScenes, city_config
 from openfly_agent.sim.scene import Landmark
 
@@ -50,15 +50,16 @@ class LandmarkAttributes:
         """The lookup for a toolchain-made dataset (its saved city settings).
 
         Raises:
-            FileNotFoundError: `root` holds no toolchain config (not a dataset the toolchain made).
+            FileNotFoundError: `root` holds no generation settings (not a dataset the toolchain made).
+            RecordError: its generation settings are not readable.
         """
-        settings = generation_settings(root)
+        settings = read_generation_settings(root)
         if settings is None:
             raise FileNotFoundError(
-                f"{Path(root) / C.TOOLCHAIN_CONFIG_JSON} not found: the attributes come from the cities of a "
+                f"{Path(root) / C.GENERATION_SETTINGS_JSON} not found: the attributes come from the cities of a "
                 "dataset made by the toolchain (python -m openfly_agent.toolchain generate)"
             )
-        return cls(EmbeddedScenes(city_config(settings)))
+        return cls(EmbeddedScenes(city_config(settings.city_size_m, settings.city_buildings)))
 
     def __call__(self, scene_id: str, landmark_id: str) -> np.ndarray:
         if scene_id not in self._ids:

@@ -1,6 +1,6 @@
 """train.py's command line: the config it parses, its `--help`, and the one-line messages of a run that fails.
 
-train.py stays the short entry point (parse, generate the dataset when missing, `train(cfg)`, report); what
+train.py stays the short entry point (parse, `train(cfg)`, report); what
 it prints for `--help`, for data that cannot be read and for Ctrl-C lives here.
 """
 
@@ -17,8 +17,9 @@ DEFAULT_CONFIG = REPO_ROOT / "configs" / "train" / "tiny.yaml"
 
 DESCRIPTION = (
     "Train OpenFly-Agent with accelerate, from one CPU to many GPUs (docs/TRAINING.md). Without --config_path "
-    "the tiny preset runs on the embedded-small dataset (generated first when missing). Relative paths are "
-    "relative to the working directory; the repository's own configs/ are found from anywhere."
+    "the tiny preset runs on the embedded-small dataset, made beforehand (python -m openfly_agent.toolchain "
+    "generate). Relative paths are relative to the working directory; the repository's own configs/ are found "
+    "from anywhere."
 )
 EXAMPLES = (
     "accelerate launch train.py                                   # tiny preset, embedded-small data, CPU",

@@ -9,9 +9,9 @@ from openfly_agent.sim.embedded_scenes import EmbeddedScenes, city_config, scene
 SMALL = CityConfig(size_m=300.0, n_buildings=20)
 
 
-def test_city_config_reads_the_saved_settings_and_defaults_the_rest():
-    assert city_config({}) == CityConfig()
-    assert city_config({"city_size_m": 300, "city_buildings": 20, "width": 64}) == SMALL
+def test_city_config_takes_the_two_city_settings_and_defaults_the_rest():
+    assert city_config(1000.0) == CityConfig()
+    assert city_config(300, 20) == SMALL
 
 
 def test_landmarks_and_obstacles_are_the_citys_own():

@@ -19,6 +19,7 @@ import pytest
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
 from openfly_agent.data.frames import FrameStore
+from openfly_agent.data.generation_settings import GenerationSettings, read_generation_settings
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.sim import dynamics
 from openfly_agent.sim.city import generate_city, parse_scene_id
@@ -83,6 +84,16 @@ def test_dataset_has_all_splits_and_a_consistent_summary(dataset):
     assert {e.scene_id for e in episodes[C.SPLIT_TRAIN] + episodes[C.SPLIT_TEST_SEEN]} <= {"embedded-0"}
     assert summary["vocabulary_size"] > 20 and sum(summary["action_histogram"].values()) > total
     assert json.loads((root / C.TOOLCHAIN_SUMMARY_JSON).read_text()) == summary
+
+
+def test_the_dataset_records_the_settings_its_readers_need(dataset, tmp_path):
+    cfg, root, _ = dataset
+    settings = GenerationSettings(width=64, height=64, city_size_m=300.0, city_buildings=30)
+    assert read_generation_settings(root) == settings
+    older = tmp_path / C.TOOLCHAIN_CONFIG_JSON  # a dataset generated before the record: its config only
+    older.parent.mkdir(parents=True)
+    shutil.copy(root / C.TOOLCHAIN_CONFIG_JSON, older)
+    assert read_generation_settings(tmp_path) == settings
 
 
 def test_trajectories_replay_without_collision_to_their_goal(dataset):

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from openfly_agent.toolchain.config import InstructionConfig
-from openfly_agent.toolchain.instructions.segments import InstructionRequest, Segment, split_at_transitions
+from openfly_agent.toolchain.instructions.segments import InstructionRequest, split_at_transitions
 from openfly_agent.toolchain.instructions.template import TemplateInstructionBackend, template_instruction
-from openfly_agent.toolchain.instructions.vlm import ChatClient, VLMError, VLMInstructionBackend
+from openfly_agent.toolchain.instructions.vlm import VLMError, VLMInstructionBackend
 
 
 def make_instruction_backend(cfg: InstructionConfig):
@@ -18,9 +18,7 @@ def make_instruction_backend(cfg: InstructionConfig):
 
 
 __all__ = [
-    "ChatClient",
     "InstructionRequest",
-    "Segment",
     "TemplateInstructionBackend",
     "VLMError",
     "VLMInstructionBackend",
