@@ -142,7 +142,7 @@ def test_toolchain_subcommand_helps(capsys):
     )
     assert "(default: 130)" in flag_text(preset, "--scenes.trajectories_per_scene")
     dagger = _help(capsys, _toolchain, ["dagger", "--help"])  # demanded --checkpoint instead
-    assert "trained agent" in flag_text(dagger, "--checkpoint DIR") and "--dagger.noise_prob" in dagger
+    assert "trained agent" in flag_text(dagger, "--checkpoint STR") and "--dagger.noise_prob" in dagger
     assert ends_with_example(dagger, "openfly_agent.toolchain dagger")
     for command, flag in (("summarize", "--root"), ("segment", "--point_cloud")):
         text = _help(capsys, _toolchain, [command, "--help"])

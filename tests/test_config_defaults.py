@@ -4,7 +4,8 @@ to it is reported. A section the YAML gives is decoded from its class's field de
 from the instance its enclosing config defaults to: those are the defaults compared with. A file that merges another (`<<: !include parent.yaml`) may restate a default at the merge's
 level when the parent sets that key otherwise (the child's value then undoes the parent's). So may a section file laid
 over another config on the command line (`--model=configs/model/reduced-width.yaml`, OVERLAYS) where that config
-sets the key otherwise."""
+sets the key otherwise. A recipe stage's `overrides` (train.py settings) are compared with what the recipe's
+train_config and model file give that stage: an override equal to it is reported too."""
 
 from __future__ import annotations
 
@@ -19,11 +20,12 @@ import yaml
 from openfly_agent.data.config import DataConfig
 from openfly_agent.eval.config import EvalConfig
 from openfly_agent.model.config import ModelConfig
-from openfly_agent.recipe.config import RecipeConfig
+from openfly_agent.recipe.config import RecipeConfig, StageBudget, stage_train_config
 from openfly_agent.sim.embedded import EmbeddedSimConfig
 from openfly_agent.toolchain.config import GenerateConfig
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.utils.cli_help import unchecked_defaults
+from openfly_agent.utils.config import config_to_dict, flat_settings, load_yaml_config
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG_CLASSES = {  # folder under configs/ -> the dataclass its files parse into
@@ -162,3 +164,41 @@ def test_a_shipped_yaml_restates_no_default(path):
         under = _effective(REPO / "configs" / base)
         found = [key for key in found if not _sets(under, key.split("."))]
     assert not found, f"{path.relative_to(REPO)} restates defaults: {sorted(set(found))}"
+
+
+def restated_overrides(cfg: RecipeConfig) -> list[str]:
+    """`<stage>.overrides.<key>` of every stage override whose value equals what the recipe's train_config and
+    model file already give that stage."""
+    stages = {"grounding": cfg.grounding, "navigation": cfg.navigation, "dagger.train": cfg.dagger.train}
+    found = []
+    for name, stage in stages.items():
+        given = flat_settings(config_to_dict(stage_train_config(cfg, StageBudget(), name)))
+        for key, value in flat_settings(stage.overrides).items():
+            if key in given and _same(value, given[key]):
+                found.append(f"{name}.overrides.{key}")
+    return found
+
+
+RECIPE_FILES = [path for path in YAML_FILES if path.relative_to(REPO / "configs").parts[0] == "recipe"]
+
+
+@pytest.mark.parametrize("path", RECIPE_FILES, ids=lambda p: str(p.relative_to(REPO / "configs")))
+def test_a_recipe_stage_overrides_only_what_its_train_config_sets_otherwise(path):
+    found = restated_overrides(load_yaml_config(RecipeConfig, path, []))
+    assert not found, f"{path.relative_to(REPO)} restates its train config: {found}"
+
+
+def test_a_stage_override_equal_to_the_train_config_or_the_model_file_is_reported():
+    cfg = RecipeConfig(
+        model="configs/model/tiny-adopted.yaml",
+        navigation=StageBudget(
+            overrides={
+                "optim": {"lr": 1.0e-3, "ema_decay": 0.999},
+                "model": {"grounding": {"visual_skip": True}},
+            }
+        ),
+    )  # configs/train/tiny.yaml's lr is 1.0e-3; tiny-adopted.yaml turns visual_skip on
+    assert restated_overrides(cfg) == [
+        "navigation.overrides.optim.lr",
+        "navigation.overrides.model.grounding.visual_skip",
+    ]

@@ -39,7 +39,7 @@ from eval_helpers import generate_tiny_dataset
 
 from openfly_agent import constants as C
 from openfly_agent.recipe.config import RecipeConfig
-from openfly_agent.toolchain.config import DaggerRoundConfig, GroundingDataConfig
+from openfly_agent.toolchain.config import GroundingDataConfig
 from openfly_agent.utils.cli_options import check_options
 from openfly_agent.utils.processes import run_group
 
@@ -149,16 +149,16 @@ def check_command(command: DocCommand) -> None:
         from openfly_agent.toolchain.config import GenerateConfig
 
         assert command.sub in toolchain.COMMANDS, f"{where}: no toolchain command {command.sub!r}"
-        if command.sub in ("generate", "dagger"):
-            argv = _strip(command.args, ("--checkpoint", "--agent_class"))
-            check_options(GenerateConfig, argv)
+        if command.sub in ("generate", "dagger"):  # dagger: GenerateConfig's fields and its checkpoint
+            config = GenerateConfig if command.sub == "generate" else toolchain.DaggerCommandConfig
+            argv = _strip(command.args, ("--agent_class",))
+            check_options(config, argv)
             if complete:
-                toolchain._parse_generate(argv)
+                toolchain._parse_command_config(config, toolchain._generate_args(argv), command.sub)
         elif command.sub == "grounding":
             check_options(GroundingDataConfig, command.args)
         elif command.sub == "dagger-round":
-            argv = _strip(command.args, ("--checkpoint", "--agent_class", "--torch_threads"))
-            check_options(DaggerRoundConfig, argv)
+            check_options(toolchain.DaggerRoundCommandConfig, _strip(command.args, ("--agent_class",)))
         else:
             config = toolchain.SummarizeConfig if command.sub == "summarize" else toolchain.SegmentConfig
             check_options(config, command.args)

@@ -50,7 +50,15 @@ CASES = {  # id: (command after `python`, what the one line must hold)
     ),
     "toolchain dagger-round: a value that is no number": (
         [*TOOLCHAIN, "dagger-round", "--checkpoint=run", "--torch_threads=abc"],
-        "dagger-round: argument --torch_threads: invalid int value: 'abc'",
+        "toolchain dagger-round: bad dagger-round config: --torch_threads: expected an int, got 'abc'",
+    ),
+    "toolchain dagger-round: a negative thread count": (
+        [*TOOLCHAIN, "dagger-round", "--checkpoint=run", "--torch_threads=-1"],
+        "toolchain dagger-round: bad dagger-round config: torch_threads must be >= 0 (0: torch's default), got -1",
+    ),
+    "toolchain dagger: no --checkpoint": (
+        [*TOOLCHAIN, "dagger", "--output_dir=data"],
+        "toolchain dagger: bad dagger config: --checkpoint is required: the trained agent folder (or Hub id)",
     ),
     "toolchain grounding: a missing --config_path": (
         [*TOOLCHAIN, "grounding", "--config_path=missing.yaml"],
@@ -59,6 +67,11 @@ CASES = {  # id: (command after `python`, what the one line must hold)
     "recipe: a missing --config_path": (
         ["-m", "openfly_agent.recipe", "--config_path=configs/recipe/main-job.yaml"],
         "python -m openfly_agent.recipe: --config_path configs/recipe/main-job.yaml: no such file",
+    ),
+    "recipe: a stage override that names no train.py option": (
+        ["-m", "openfly_agent.recipe", "--navigation.overrides={optim: {lrr: 1.0}}"],
+        "python -m openfly_agent.recipe: navigation.overrides: train.py: unknown option --optim.lrr; did you mean "
+        "--optim.lr?",
     ),
     "hub release: a missing --config_path": (
         ["-m", "openfly_agent.hub", "release", "--config_path=missing.yaml"],

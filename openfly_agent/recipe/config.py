@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
+
+import draccus
 
 from openfly_agent import constants as C
 from openfly_agent.toolchain.config import DaggerRoundConfig
 from openfly_agent.training.config import HORIZONS, TrainConfig
+from openfly_agent.utils.config import flat_settings, parse_config, resolve_config_path
+from openfly_agent.utils.errors import root_cause
 
 
 def _check(condition: bool, message: str) -> None:
@@ -22,7 +27,9 @@ class StageBudget:
 
     steps: int = 1000  # optimizer steps (0: the stage is skipped)
     minutes: float = 10.0  # guard: wall-clock cap of the stage's training (train.py --time_limit_minutes)
-    args: list[str] = field(default_factory=list)  # more train.py overrides, e.g. ["--optim.lr=5e-4"]
+    # train.py settings of this stage over the recipe's train_config and model, laid out as in a train config
+    # (e.g. {optim: {lr: 1.0e-4}}); checked against TrainConfig when the recipe is loaded
+    overrides: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         _check(self.steps >= 0, f"steps must be >= 0, got {self.steps}")
@@ -105,6 +112,9 @@ class RecipeConfig:
     # only the navigation stage share one grounding stage (None: train the stage configured in `grounding`)
     grounding_from: str | None = None
     train_config: str = "configs/train/tiny.yaml"  # train.py preset every stage starts from
+    # a model section file laid over train_config's model section in every stage (train.py --model=<file>), e.g.
+    # configs/model/tiny-adopted.yaml, the adopted tiny model (null: train_config's model as it is)
+    model: str | None = None
     processes: int = 2  # training processes of one torch thread each (1: one process with torch_threads)
     torch_threads: int = 2  # torch threads of one-process training and of the DAgger rollouts
     # train.py --optim.horizon of every stage: `steps` decays the lr over the stage's steps (the same schedule on
@@ -130,3 +140,46 @@ class RecipeConfig:
             f"grounding_from={self.grounding_from!r} but grounding.steps=0: this recipe trains without a grounding "
             "stage, so there is none to share; drop one of the two",
         )
+        _check(
+            self.model is None or resolve_config_path(self.model).is_file(),
+            f"model={self.model}: no such file",
+        )
+        for name, stage in (
+            ("grounding", self.grounding),
+            ("navigation", self.navigation),
+            ("dagger.train", self.dagger.train),
+        ):
+            stage_train_config(self, stage, name)
+
+    def stage_flags(self, stage: StageBudget) -> list[str]:
+        """The train.py options that `model` and a stage's `overrides` add to the stage's command."""
+        model = [f"--model={resolve_config_path(self.model)}"] if self.model else []
+        return model + [
+            f"--{key}={_flag_value(value)}" for key, value in flat_settings(stage.overrides).items()
+        ]
+
+
+def stage_train_config(cfg: RecipeConfig, stage: StageBudget, name: str) -> TrainConfig:
+    """train_config with `model` and the stage's overrides, as train.py reads them (the recipe's own options, such
+    as the data root and the steps, left out).
+
+    Raises:
+        ValueError: one line naming the stage, for an override that names no train.py option or a value it
+            refuses.
+    """
+    args = ["--config_path", str(resolve_config_path(cfg.train_config)), *cfg.stage_flags(stage)]
+    try:
+        return parse_config(TrainConfig, args)
+    except (ValueError, FileNotFoundError, draccus.utils.ParsingError) as err:
+        raise ValueError(f"{name}.overrides: train.py: {root_cause(err)}") from None
+
+
+def _flag_value(value: Any) -> str:
+    """A YAML value as train.py's command line writes it (`true`, `[a,b]`, `null`)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    if value is None:
+        return "null"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_flag_value(v) for v in value) + "]"
+    return str(value)

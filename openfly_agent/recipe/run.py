@@ -87,7 +87,7 @@ def _train_step(
         f"--optim.horizon={cfg.lr_horizon}",
         f"--seed={cfg.seed}",
         *args,
-        *budget.args,
+        *cfg.stage_flags(budget),
     ]  # fmt: skip
     return RecipeStep(name, KIND_TRAIN, command, folder, env, steps=budget.steps)
 

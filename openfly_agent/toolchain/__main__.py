@@ -7,7 +7,7 @@ e.g. a folder that holds a dataset of other settings), 130 interrupted (rerun th
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import sys
 from dataclasses import dataclass
@@ -94,14 +94,15 @@ def _parse_generate(args: list[str]):
     return _parse_command_config(GenerateConfig, _generate_args(args), "generate")
 
 
-def _generate_help(command: str, args: list[str], extra: list[tuple[str, str]] = ()) -> str:
+def _generate_help(command: str, args: list[str], config_class: type = GenerateConfig) -> str:
     description = COMMANDS[command] + (
         ". Relative paths are relative to the working directory; a --config_path under configs/ not found there "
         "is read from the repository."
     )
     return command_help(
-        GenerateConfig, _generate_args(args), f"{PROG} {command}", description, EXAMPLES[command], extra
-    )
+        config_class, _generate_args(args), f"{PROG} {command}", description, EXAMPLES[command],
+        placeholders=CHECKPOINT_PLACEHOLDER if config_class is not GenerateConfig else None,
+    )  # fmt: skip
 
 
 def cmd_generate(args: list[str]) -> None:
@@ -171,37 +172,59 @@ def _agent_session(checkpoint: str):
         raise InputError(str(err)) from None
 
 
-DAGGER_OPTIONS = [
-    ("--checkpoint DIR", "trained agent folder (or Hub id) that flies the DAgger episodes (required)"),
-]
+CHECKPOINT_PLACEHOLDER = {"checkpoint": "x"}  # lets --help parse a command line without its --checkpoint
+
+
+def _require_checkpoint(checkpoint: str, command: str) -> None:
+    if not checkpoint:
+        raise ValueError(
+            f"--checkpoint is required: the trained agent folder (or Hub id) that flies the episodes ({command} "
+            "--help lists the options)"
+        )
+
+
+@dataclass
+class DaggerCommandConfig(GenerateConfig):
+    """`dagger`: a dataset's settings (GenerateConfig) and the trained agent that flies its DAgger episodes."""
+
+    checkpoint: str = ""  # trained agent folder (or Hub id) that flies the DAgger episodes (required)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require_checkpoint(self.checkpoint, "dagger")
+
+
+@dataclass
+class DaggerRoundCommandConfig(DaggerRoundConfig):
+    """`dagger-round`: one round's settings (DaggerRoundConfig), the agent that flies it and its threads."""
+
+    checkpoint: str = ""  # trained agent folder (or Hub id) that flies the rollouts (required)
+    torch_threads: int = 0  # torch threads of the rollouts (0: torch's default)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require_checkpoint(self.checkpoint, "dagger-round")
+        if self.torch_threads < 0:
+            raise ValueError(f"torch_threads must be >= 0 (0: torch's default), got {self.torch_threads}")
+
+
+def _as_base(cfg, base_class):
+    """The `base_class` part of a command's config (the settings a dataset records, without the command's own)."""
+    return base_class(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(base_class)})
 
 
 def cmd_dagger(args: list[str]) -> None:
-    parser = argparse.ArgumentParser(prog=f"{PROG} dagger", add_help=False, exit_on_error=False)
-    parser.add_argument("--checkpoint")
-    ns, rest = _own_options(parser, args)
     if wants_help(args):
-        print(_generate_help("dagger", rest, DAGGER_OPTIONS), end="")
+        print(_generate_help("dagger", args, DaggerCommandConfig), end="")
         return
-    if not ns.checkpoint:
-        raise InputError("dagger needs --checkpoint <trained agent folder> (dagger --help lists the options)")
-    cfg = _parse_generate(rest)
+    cfg = _parse_command_config(DaggerCommandConfig, _generate_args(args), "dagger")
     setup_logging()
-    policy = AgentPolicy(_agent_session(ns.checkpoint))
+    policy = AgentPolicy(_agent_session(cfg.checkpoint))
     try:
-        summary = generate(cfg, policy=policy, kinds=(KIND_DAGGER_POLICY,))
+        summary = generate(_as_base(cfg, GenerateConfig), policy=policy, kinds=(KIND_DAGGER_POLICY,))
     except GenerateSettingsError as err:
         raise InputError(str(err)) from None
     print(json.dumps({k: summary[k] for k in ("trajectories", "dagger_episodes", "rejected")}))
-
-
-def _own_options(parser: argparse.ArgumentParser, args: list[str]) -> tuple[argparse.Namespace, list[str]]:
-    """The options a command reads itself (`--checkpoint`), and the rest (its config's); a bad value is an
-    InputError, not argparse's usage dump."""
-    try:
-        return parser.parse_known_args(args)
-    except argparse.ArgumentError as err:
-        raise InputError(str(err)) from None
 
 
 def cmd_segment(args: list[str]) -> None:
@@ -249,26 +272,21 @@ def cmd_grounding(args: list[str]) -> None:
 
 
 def cmd_dagger_round(args: list[str]) -> None:
-    parser = argparse.ArgumentParser(prog=f"{PROG} dagger-round", add_help=False, exit_on_error=False)
-    parser.add_argument("--checkpoint")
-    parser.add_argument("--torch_threads", type=int, default=0)
-    ns, rest = _own_options(parser, args)
     if wants_help(args):
         text = command_help(
-            DaggerRoundConfig, rest, f"{PROG} dagger-round --checkpoint DIR", COMMANDS["dagger-round"],
-            EXAMPLES["dagger-round"],
+            DaggerRoundCommandConfig, args, f"{PROG} dagger-round --checkpoint DIR", COMMANDS["dagger-round"],
+            EXAMPLES["dagger-round"], placeholders=CHECKPOINT_PLACEHOLDER,
         )  # fmt: skip
         print(text, end="")
         return
-    if not ns.checkpoint:
-        raise InputError("dagger-round needs --checkpoint <trained agent folder> (dagger-round --help)")
-    cfg = _parse_command_config(DaggerRoundConfig, rest, "dagger-round")
+    cfg = _parse_command_config(DaggerRoundCommandConfig, args, "dagger-round")
     setup_logging()
-    if ns.torch_threads:
+    if cfg.torch_threads:
         import torch
 
-        torch.set_num_threads(ns.torch_threads)
-    print(json.dumps(run_dagger_round(AgentPolicy(_agent_session(ns.checkpoint)), cfg)))
+        torch.set_num_threads(cfg.torch_threads)
+    policy = AgentPolicy(_agent_session(cfg.checkpoint))
+    print(json.dumps(run_dagger_round(policy, _as_base(cfg, DaggerRoundConfig))))
 
 
 HANDLERS = {

@@ -3,6 +3,7 @@ in the header of the table the recipe prints."""
 
 from __future__ import annotations
 
+import json
 import re
 
 import pytest
@@ -17,10 +18,12 @@ from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import TrainerState
 from openfly_agent.utils.config import REPO_ROOT, load_yaml_config
 
-SMALL_DATA = [
-    "--batch.global_batch_size=4", "--batch.per_device_batch_size=2", "--validation.interval=0",
-    "--validation.final_max_samples=4", "--logging.tracker=none", "--checkpoint.save_interval=0",
-]  # fmt: skip
+SMALL_DATA = {  # train.py settings of the stage (its `overrides`)
+    "batch": {"global_batch_size": 4, "per_device_batch_size": 2},
+    "validation": {"interval": 0, "final_max_samples": 4},
+    "logging": {"tracker": "none"},
+    "checkpoint": {"save_interval": 0},
+}
 
 
 def _train_flags(cfg: RecipeConfig) -> dict[str, tuple[str, str]]:
@@ -51,14 +54,14 @@ def test_a_stage_the_guard_cut_short_is_named_in_the_printed_header(tmp_path, mo
     generate_tiny_dataset(data)
     cfg = RecipeConfig(
         output_dir=str(tmp_path / "run"), dataset_root=str(data), processes=1, torch_threads=1,
-        grounding=StageBudget(steps=0), navigation=StageBudget(steps=100_000, minutes=0.05, args=SMALL_DATA),
+        grounding=StageBudget(steps=0), navigation=StageBudget(steps=100_000, minutes=0.05, overrides=SMALL_DATA),
         dagger=DaggerSettings(rounds=0),
     )  # fmt: skip
     navigation = [s for s in recipe_steps(cfg) if s.kind == KIND_TRAIN]
     monkeypatch.setattr(recipe_run, "recipe_steps", lambda _: navigation)  # train only: no dataset, no eval
     args = [f"--output_dir={cfg.output_dir}", f"--dataset_root={data}", "--processes=1", "--torch_threads=1"]
     args += ["--grounding.steps=0", "--navigation.steps=100000", "--navigation.minutes=0.05"]
-    args += ["--navigation.args=[" + ",".join(SMALL_DATA) + "]", "--dagger.rounds=0"]
+    args += [f"--navigation.overrides={json.dumps(SMALL_DATA)}", "--dagger.rounds=0"]
     assert recipe_main(args) == 0
     reached = TrainerState.load(CheckpointManager(tmp_path / "run" / "navigation", keep_last=1).latest()).step
     assert 1 <= reached < 100_000
