@@ -75,6 +75,10 @@ MEMORY_BOXES = "memory_boxes"  # (B, K, S, 4) float, (cx, cy, w, h) in [0, 1]
 MEMORY_BOX_VISIBLE = "memory_box_visible"  # (B, K, S) bool
 BOX = "box"  # (B, 4) float, current frame landmark box (cx, cy, w, h)
 BOX_VISIBLE = "box_visible"  # (B,) bool; False = no landmark visible (mask, never a fake box)
+# optional: the box the box token embeds when it is not `box` (the RL stage: the box the policy predicted while
+# it flew, so the recorded step replays what the policy saw; `box` stays the grounding target)
+TOKEN_BOX = "token_box"  # (B, 4) float (cx, cy, w, h)
+TOKEN_BOX_VISIBLE = "token_box_visible"  # (B,) bool
 FRAME_INDEX = "frame_index"  # (B,) long: the frame of `pixel_values` each sequence reads (grounding batches)
 ACTION = "action"  # (B,) long, action id 0..9
 ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
@@ -133,6 +137,9 @@ TRAINER_STATE_NAME = "trainer_state.json"  # a checkpoint's step counters (train
 # Training stages (train_config.json `stage`): the grounding stage trains no action head, so only a navigation
 # stage's checkpoint is an agent.
 STAGE_GROUNDING, STAGE_NAVIGATION = "grounding", "navigation"
+STAGE_RL = (
+    "rl"  # reinforcement fine-tuning of a navigation checkpoint in the simulator (training/rl_trainer.py)
+)
 MODEL_CARD_NAME = "README.md"
 ADAPTER_DIR_NAME = "adapter"
 PROCESSOR_CONFIG_NAME = "processor_config.json"  # OpenFlyProcessor's settings (transformers' name)

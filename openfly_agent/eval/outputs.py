@@ -16,7 +16,6 @@ import numpy as np
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig
-from openfly_agent.eval.metrics import episode_metrics
 from openfly_agent.eval.plots import plot_topdown, safe_name
 from openfly_agent.eval.report import (
     INTERVAL_NOTE,
@@ -24,10 +23,10 @@ from openfly_agent.eval.report import (
     outcomes_markdown,
     policy_results,
     results_markdown,
-    trajectory_of,
 )
 from openfly_agent.eval.scene_map import FootprintCache
 from openfly_agent.rollout.episodes import target_landmark
+from openfly_agent.rollout.metrics import episode_metrics, trajectory_of
 from openfly_agent.rollout.record import EpisodeRecord
 
 logger = logging.getLogger(__name__)

@@ -7,7 +7,7 @@
 - `paired_bootstrap_interval(a, b)`: the percentile interval of mean(b - a) over episodes resampled with
   replacement (the same episodes for both policies in each resample), with a fixed seed.
 
-No scipy: the binomial tail is a sum of `math.comb`; the Wilson limits and the bootstrap are eval/stats.py's.
+No scipy: the binomial tail is a sum of `math.comb`; the Wilson limits and the bootstrap are rollout/stats.py's.
 docs/METRICS.md ("Paired comparison") states what each number means.
 """
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from openfly_agent.eval.stats import (
+from openfly_agent.rollout.stats import (
     BOOTSTRAP_RESAMPLES,
     BOOTSTRAP_SEED,
     Z_95,

@@ -12,16 +12,16 @@ from dataclasses import asdict, replace
 import numpy as np
 
 from openfly_agent.data.records import parse_episode_id
-from openfly_agent.eval.metrics import (
+from openfly_agent.rollout.metrics import (
     EARLY_STOP_STEPS,
     INTERVAL_KEYS,
-    EpisodeTrajectory,
     aggregate,
     episode_metrics,
+    trajectory_of,
 )
-from openfly_agent.eval.profiles import get_profile
-from openfly_agent.eval.stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, format_interval
+from openfly_agent.rollout.profiles import get_profile
 from openfly_agent.rollout.record import EpisodeRecord
+from openfly_agent.rollout.stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, format_interval
 
 RESULTS_VERSION = 2  # 2 added the counts, the 95 % intervals and the breakdowns
 # (summary key, column title, decimals); "successes" prints "k of n", a key of `INTERVAL_KEYS` its interval
@@ -40,7 +40,7 @@ COLUMNS = (
 BREAKDOWN_COLUMNS = tuple(
     c for c in COLUMNS if c[0] in ("episodes", "successes", "ne_m", "sr_pct", "osr_pct", "spl_pct")
 )
-# Where the episodes end (`eval.metrics.OUTCOMES`; the rates of a row sum to 100).
+# Where the episodes end (`rollout.metrics.OUTCOMES`; the rates of a row sum to 100).
 OUTCOME_COLUMNS = (
     ("episodes", "Episodes", 0),
     ("sr_pct", "Success (%)", 1),
@@ -74,20 +74,6 @@ INTERVAL_NOTE = (
 )
 # What `scored` keeps of each profile's `episode_metrics` in the record (EpisodeRecord.metrics).
 RECORD_METRIC_KEYS = ("success", "ne", "oracle_success", "spl", "outcome")
-
-
-def trajectory_of(record: EpisodeRecord) -> EpisodeTrajectory:
-    """The metrics' view of a record: visited positions, STOP, collisions, goal and reference path."""
-    return EpisodeTrajectory(
-        episode_id=record.episode_id,
-        scene_id=record.scene_id,
-        positions=record.positions(),
-        goal=record.goal,
-        reference_path=record.reference_path,
-        stopped=record.stopped,
-        stop_step=record.stop_step,
-        collision_steps=tuple(record.collision_steps),
-    )
 
 
 def scored(record: EpisodeRecord, profiles: Sequence[str]) -> EpisodeRecord:
@@ -175,7 +161,7 @@ def policy_results(
 
     Shape: {"version", "policy", "meta": {...}, "profiles": {name: profile fields},
     "splits": {split: {profile: {"profile", "overall", "per_scene", "scene_mean", "breakdowns"}}},
-    "errors": {split: n}} with the summary keys of `eval.metrics.aggregate` (`ne_m`, `sr_pct`, `osr_pct`,
+    "errors": {split: n}} with the summary keys of `rollout.metrics.aggregate` (`ne_m`, `sr_pct`, `osr_pct`,
     `spl_pct`, ..., `successes`, `sr_ci95`, ...) plus `errors`, the episodes that ended in an engine error and
     are left out of every metric; `breakdowns` holds {by: {group: summary}} for each of `BREAKDOWNS`.
     """

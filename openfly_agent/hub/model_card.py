@@ -8,7 +8,6 @@ from typing import Any
 
 import yaml
 
-from openfly_agent.eval.stats import format_interval
 from openfly_agent.hub.config import CardConfig
 from openfly_agent.hub.results import AGENT_POLICY, EvalResults, ResultRow
 from openfly_agent.model.config import (
@@ -19,6 +18,7 @@ from openfly_agent.model.config import (
     VISION_TINY_CNN,
     ModelConfig,
 )
+from openfly_agent.rollout.stats import format_interval
 
 # Always present; the Hub adds `custom_code` itself for repos with `auto_map`, we state it explicitly.
 FIXED_TAGS = (

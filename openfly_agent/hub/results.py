@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from openfly_agent.constants import MEMORY_PROBE_NONE, RESULTS_JSON, SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN
-from openfly_agent.eval.metrics import INTERVAL_KEYS
-from openfly_agent.eval.stats import wilson_interval
+from openfly_agent.rollout.metrics import INTERVAL_KEYS
+from openfly_agent.rollout.stats import wilson_interval
 
 PROFILES = ("openfly", "standard")
 RELEASE_SPLITS = (SPLIT_TEST_SEEN, SPLIT_TEST_UNSEEN)

@@ -30,6 +30,8 @@ from openfly_agent.constants import (
     MEMORY_PROBE_NONE,
     MODEL_TYPE,
     TARGET_ATTRIBUTES,
+    TOKEN_BOX,
+    TOKEN_BOX_VISIBLE,
 )
 from openfly_agent.model.config import (
     HEAD_DISCRETE,
@@ -183,7 +185,9 @@ class OpenFlyAgent(PreTrainedModel):
         self.tokenizer = self.tokenizer  # rebuilds the processor from the new config
 
     # --- training ---------------------------------------------------------------------------------
-    def forward(self, batch: dict[str, Any]) -> tuple[torch.Tensor, dict[str, float]]:
+    def forward(
+        self, batch: dict[str, Any], outputs: dict[str, torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, dict[str, float]]:
         """Action cross-entropy + `grounding.loss_weight` * grounding loss on a collated batch.
 
         A batch without `labels` is a grounding batch (the grounding stage: a referring expression or an
@@ -196,6 +200,11 @@ class OpenFlyAgent(PreTrainedModel):
         Returns:
             The scalar loss and float logs: loss, action_loss, grounding_loss, action_accuracy, box_iou,
             num_visible_boxes.
+
+        `outputs` (the RL stage, training/rl_trainer.py), when given, receives the tensors behind the loss:
+        `action_logits` (n, V) at the positions before the n labelled tokens (row-major order), `action_targets`
+        (n,) and `grounding_loss` (scalar). A batch with `token_box` / `token_box_visible` embeds that box in the
+        box token instead of `box` (which stays the grounding target).
         """
         input_ids = batch[INPUT_IDS]
         bos = self.model_cfg.llm.bos_token_id
@@ -214,9 +223,12 @@ class OpenFlyAgent(PreTrainedModel):
         has_actions = bool((labels != IGNORE_INDEX).any())
         if self.network.box_token_embed is not None and has_actions:
             box = jitter_boxes(
-                batch[BOX].float(), self.model_cfg.action_head.box_token_jitter if self.training else 0
+                batch.get(TOKEN_BOX, batch[BOX]).float(),
+                self.model_cfg.action_head.box_token_jitter if self.training else 0,
             )
-            token = self.network.box_token_embed(box, batch[BOX_VISIBLE].bool())  # (B, D)
+            token = self.network.box_token_embed(
+                box, batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]).bool()
+            )  # (B, D)
             embeds, mask, labels, at = insert_before_targets(embeds, mask, labels, token)
             readable = mask.bool() & (labels == IGNORE_INDEX)
             readable[torch.arange(readable.shape[0], device=readable.device), at] = False
@@ -231,7 +243,7 @@ class OpenFlyAgent(PreTrainedModel):
         loss = hidden.new_zeros(())
         logs = {}
         if has_actions:
-            action_loss, accuracy = self._action_loss(hidden, labels)
+            action_loss, accuracy = self._action_loss(hidden, labels, outputs)
             loss = loss + action_loss
             logs.update(action_loss=float(action_loss.detach()), action_accuracy=accuracy)
         if self.network.grounding_head is not None and BOX in batch:
@@ -244,6 +256,8 @@ class OpenFlyAgent(PreTrainedModel):
                 output, *targets, self.model_cfg.grounding, batch.get(TARGET_ATTRIBUTES)
             )
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
+            if outputs is not None:
+                outputs["grounding_loss"] = g_loss
             logs.update(g_logs, grounding_loss=float(g_loss.detach()))
         else:
             # no head, no box measured: NaN, which the running means and the evaluation leave out (not a 0 IoU)
@@ -253,13 +267,17 @@ class OpenFlyAgent(PreTrainedModel):
         logs["loss"] = float(loss.detach())
         return loss, logs
 
-    def _action_loss(self, hidden: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, float]:
+    def _action_loss(
+        self, hidden: torch.Tensor, labels: torch.Tensor, outputs: dict | None = None
+    ) -> tuple[torch.Tensor, float]:
         targets = labels[:, 1:]  # next-token targets
         selected = targets != IGNORE_INDEX  # (B, L'-1)
         if not bool(selected.any()):
             raise ValueError("batch has no labelled action token: labels are all -100")
         logits = self.network.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
         target = targets[selected]  # (n,)
+        if outputs is not None:
+            outputs.update(action_logits=logits, action_targets=target)
         head = self.model_cfg.action_head
         stop_weight = head.stop_loss_weight if isinstance(head, DiscreteActionHeadConfig) else 1.0
         if stop_weight == 1.0:

@@ -44,13 +44,27 @@ class AgentSession:
         agent: the `OpenFlyAgent` that acts (its processor is needed once an episode starts).
         memory_probe: `none` (the model as trained) or `empty`: every step reads no memory token, while each
             episode's memory still records its frames (`constants.MEMORY_PROBES`; an evaluation diagnostic).
+        temperature: 0 picks the most likely action (greedy, the default); > 0 samples it from
+            softmax(action logits / temperature) with `generator` (the RL stage's rollouts; `discrete` head only).
+        generator: the random stream of the samples (None: torch's global one).
     """
 
-    def __init__(self, agent: SessionAgent, memory_probe: str = MEMORY_PROBE_NONE) -> None:
+    def __init__(
+        self,
+        agent: SessionAgent,
+        memory_probe: str = MEMORY_PROBE_NONE,
+        temperature: float = 0.0,
+        generator: torch.Generator | None = None,
+    ) -> None:
         if memory_probe not in MEMORY_PROBES:
             raise ValueError(f"memory_probe={memory_probe!r}: choose one of {MEMORY_PROBES}")
+        if temperature < 0:
+            raise ValueError(f"temperature must be >= 0, got {temperature}")
+        if temperature > 0 and agent.action_tokenizer.head != HEAD_DISCRETE:
+            raise ValueError(f"sampling (temperature {temperature}) needs the {HEAD_DISCRETE} action head")
         self.agent = agent
         self.memory_probe = memory_probe
+        self.temperature, self.generator = float(temperature), generator
         self.episodes: dict[str, EpisodeState] = {}
 
     def select_action(self, observations: list[dict[str, Any]]) -> list[int]:
@@ -126,7 +140,10 @@ class AgentSession:
         decoded = network.decode_actions(
             hidden, mask, cache, self.agent.action_tokenizer
         )  # (B, 10) or (B, 8)
-        if self.agent.action_tokenizer.head == HEAD_DISCRETE:
+        if self.agent.action_tokenizer.head == HEAD_DISCRETE and self.temperature > 0:
+            probs = torch.softmax(decoded.float() / self.temperature, dim=-1).cpu()  # (B, 10)
+            actions = [int(a) for a in torch.multinomial(probs, 1, generator=self.generator)[:, 0]]
+        elif self.agent.action_tokenizer.head == HEAD_DISCRETE:
             actions = [int(a) for a in decoded.argmax(dim=-1)]
         else:
             actions = [processor.decode_action(row.tolist()) for row in decoded]

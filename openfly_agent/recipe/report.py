@@ -21,8 +21,8 @@ from pathlib import Path
 from openfly_agent import constants as C
 from openfly_agent.eval.compare import compare_folders, interval, p_value, signed
 from openfly_agent.eval.outputs import SUMMARY_JSON
-from openfly_agent.eval.stats import format_interval, wilson_interval
 from openfly_agent.recipe.run import DONE_MARKER, step_finished
+from openfly_agent.rollout.stats import format_interval, wilson_interval
 from openfly_agent.training.accelerator import LOGS_DIR
 from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from openfly_agent.constants import STAGE_GROUNDING, STAGE_NAVIGATION
+from openfly_agent.constants import STAGE_GROUNDING, STAGE_NAVIGATION, STAGE_RL
 from openfly_agent.data.config import DataConfig
 from openfly_agent.model.config import LoraSettings, ModelConfig, tiny_config
 
 PRECISIONS = ("no", "bf16", "fp16")
-STAGES = (STAGE_GROUNDING, STAGE_NAVIGATION)
+STAGES = (STAGE_GROUNDING, STAGE_NAVIGATION, STAGE_RL)
 SCHEDULES = ("constant", "cosine", "linear")
 HORIZONS = ("steps", "time")  # where the lr decay ends: the step budget, or whichever of steps and time first
 TRACKERS = ("tensorboard", "wandb", "none")
@@ -202,6 +202,56 @@ class CheckpointConfig:
 
 
 @dataclass
+class RLConfig:
+    """The RL stage (`stage=rl`, training/rl_trainer.py): GRPO on the simulator's own success, from a navigation
+    checkpoint (`init.checkpoint`). One update = `episodes_per_update` train episodes x `group_size` sampled
+    rollouts each, then `epochs` x `minibatches` optimizer steps on their steps. The run makes `steps` updates at
+    `optim.lr` (the schedule counts optimizer steps); docs/TRAINING.md, "The RL stage"."""
+
+    group_size: int = 4  # G: rollouts from the same start and instruction (one group)
+    episodes_per_update: int = 4  # groups per update (train episodes, drawn anew each update)
+    temperature: float = 1.0  # actions sampled from softmax(logits / temperature); log-probs use the same
+    clip_epsilon: float = 0.2  # PPO ratio clip: [1 - eps, 1 + eps]
+    kl_coef: float = 0.05  # weight of the k3 KL estimate to the starting (reference) policy
+    grounding_weight: float = 1.0  # grounding loss on the rollout steps where the simulator sees the target
+    epochs: int = 1  # passes over an update's steps
+    minibatches: int = 2  # optimizer steps per pass (each over 1 / minibatches of the steps)
+    profile: str = "standard"  # the metric profile whose success is the reward (docs/METRICS.md)
+    max_steps: int | None = None  # actions per rollout at most (None: the profile's)
+    num_envs: int = 8  # lockstep simulator slots (a group's rollouts fly together)
+    # shaping terms, each off at 0 (the reward is success alone unless one measurably helps):
+    progress_weight: float = 0.0  # x (start distance - final distance) / start distance to the goal
+    collision_penalty: float = 0.0  # subtracted once when a move collided
+    far_stop_penalty: float = 0.0  # subtracted for a STOP outside the profile's success radius
+    std_eps: float = 1e-4  # advantage = (r - group mean) / (group std + std_eps)
+
+    def __post_init__(self) -> None:
+        for name in ("group_size", "episodes_per_update", "epochs", "minibatches", "num_envs"):
+            _require(getattr(self, name) >= 1, f"rl.{name} must be >= 1, got {getattr(self, name)}")
+        _require(
+            self.group_size >= 2,
+            f"rl.group_size must be >= 2 (advantages are within a group), got {self.group_size}",
+        )
+        _require(
+            self.temperature > 0, f"rl.temperature must be > 0 (actions are sampled), got {self.temperature}"
+        )
+        _require(self.clip_epsilon > 0, f"rl.clip_epsilon must be > 0, got {self.clip_epsilon}")
+        for name in (
+            "kl_coef",
+            "grounding_weight",
+            "progress_weight",
+            "collision_penalty",
+            "far_stop_penalty",
+        ):
+            _require(getattr(self, name) >= 0, f"rl.{name} must be >= 0, got {getattr(self, name)}")
+        _require(self.std_eps > 0, f"rl.std_eps must be > 0, got {self.std_eps}")
+        _require(
+            self.max_steps is None or self.max_steps >= 1,
+            f"rl.max_steps must be >= 1 or null, got {self.max_steps}",
+        )
+
+
+@dataclass
 class TrainConfig:
     """A training run. `configs/train/*.yaml` are instances of it; `train.py --help` lists every field."""
 
@@ -215,9 +265,11 @@ class TrainConfig:
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     validation: ValidationConfig = field(default_factory=ValidationConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    rl: RLConfig = field(default_factory=RLConfig)  # the RL stage's settings (stage=rl only)
 
     # grounding: referring expressions + instruction targets, no action loss (data.grounding_root);
-    # navigation: actions and the grounding loss on the navigation dataset (docs/TRAINING.md, "Stages")
+    # navigation: actions and the grounding loss on the navigation dataset; rl: GRPO in the simulator from a
+    # navigation checkpoint, `steps` updates (the `rl` section) (docs/TRAINING.md, "Stages")
     stage: str = "navigation"
     precision: str = "no"  # no | bf16 | fp16 (autocast; overrides the accelerate config file's value)
     gradient_checkpointing: bool = False  # activation checkpointing inside the LLM and ViTs
@@ -247,6 +299,10 @@ class TrainConfig:
         _require(
             self.stage != STAGE_GROUNDING or self.model.grounding.enabled,
             "stage=grounding trains the grounding head: model.grounding.enabled must be true",
+        )
+        _require(
+            self.stage != STAGE_RL or (self.init.checkpoint is not None and self.steps is not None),
+            "stage=rl fine-tunes a navigation checkpoint: set --init.checkpoint and --steps (the updates)",
         )
         _require(
             self.steps is not None or self.epochs is not None,

@@ -22,7 +22,7 @@ from openfly_agent.training.accelerator import closing_trackers, flat_config, ma
 from openfly_agent.training.best import BestMetric
 from openfly_agent.training.builder import load_splits, majority_class_rate, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
-from openfly_agent.training.config import STAGE_NAVIGATION, TrainConfig
+from openfly_agent.training.config import STAGE_NAVIGATION, STAGE_RL, TrainConfig
 from openfly_agent.training.ema import make_ema, update_ema
 from openfly_agent.training.evaluate import evaluate, make_eval_loader
 from openfly_agent.training.export import export_merged_lora
@@ -32,6 +32,7 @@ from openfly_agent.training.metrics import RunningMeans, ThroughputMeter, count_
 from openfly_agent.training.optim import ScheduleClock, make_optimizer, make_scheduler
 from openfly_agent.training.preflight import check_dataset_root, check_output_dir, resolve_val_split
 from openfly_agent.training.resume_settings import record_run_settings, resume_changes
+from openfly_agent.training.rl_trainer import train_rl
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.stages import stage_data
 from openfly_agent.training.state import TrainerState
@@ -71,6 +72,9 @@ def train(cfg: TrainConfig) -> TrainResult:
     Raises:
         PreflightError: bad input (output folder, dataset, batch sizes, checkpoints), before any compute.
     """
+    if cfg.stage == STAGE_RL:  # its own loop: rollouts in the simulator, then policy updates
+        run = train_rl(cfg)
+        return TrainResult(run.state, run.checkpoint, {}, run.stopped_early, run.agent, run.is_main_process)
     # 1. Checks before any compute: each failure is a PreflightError that says what to change.
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     # the dataset's val split; test_seen (with a warning) on a dataset without one, as the run records it

@@ -16,7 +16,7 @@ from openfly_agent.eval.paired_stats import (
     newcombe_paired_interval,
     paired_bootstrap_interval,
 )
-from openfly_agent.eval.stats import wilson_interval
+from openfly_agent.rollout.stats import wilson_interval
 from openfly_agent.utils.processes import run_group
 
 REPO = Path(__file__).resolve().parents[2]

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from openfly_agent.eval.metrics import (
+from openfly_agent.rollout.metrics import (
     OUTCOMES,
     EpisodeTrajectory,
     aggregate,
@@ -21,7 +21,7 @@ from openfly_agent.eval.metrics import (
     ndtw,
     trajectory_from_actions,
 )
-from openfly_agent.eval.profiles import OPENFLY, STANDARD, MetricProfile, get_profile
+from openfly_agent.rollout.profiles import OPENFLY, STANDARD, MetricProfile, get_profile
 from openfly_agent.utils.geometry import Pose
 
 START = Pose(0.0, 0.0, 0.0, 0.0)  # facing +x

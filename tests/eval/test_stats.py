@@ -1,10 +1,10 @@
-"""The 95 % intervals of eval/stats.py against values computed by hand, and the one printed form."""
+"""The 95 % intervals of rollout/stats.py against values computed by hand, and the one printed form."""
 
 from __future__ import annotations
 
 import pytest
 
-from openfly_agent.eval.stats import bootstrap_mean_interval, format_interval, wilson_interval
+from openfly_agent.rollout.stats import bootstrap_mean_interval, format_interval, wilson_interval
 
 
 def test_wilson_interval_of_hand_computed_rates():

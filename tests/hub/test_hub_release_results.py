@@ -15,12 +15,12 @@ import pytest
 from eval_helpers import eval_main, generate_tiny_dataset
 
 from openfly_agent import constants as C
-from openfly_agent.eval.stats import format_interval
 from openfly_agent.hub.cli import main as hub_main
 from openfly_agent.hub.model_card import split_front_matter
 from openfly_agent.hub.model_release import check_card_files
 from openfly_agent.hub.results import ResultsError
 from openfly_agent.hub.results_source import check_results_weights
+from openfly_agent.rollout.stats import format_interval
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import TrainerState
 

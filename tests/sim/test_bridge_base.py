@@ -80,7 +80,7 @@ def test_occupancy_marks_colliding_moves():
     _, second = bridge.step(1)  # 3 -> 6 m: through the wall
     _, turn = bridge.step(2)
     assert (first.collided, second.collided, turn.collided) == (False, True, False)
-    assert not second.done  # the policy (eval/metrics) decides what a collision means
+    assert not second.done  # the policy (rollout/metrics) decides what a collision means
 
 
 def test_reconnect_once_then_fail():

@@ -1,7 +1,7 @@
 """Navigation metrics (NE, SR, OSR, SPL, nDTW, collisions) as pure functions over trajectories.
 
 A rollout becomes an `EpisodeTrajectory`; `episode_metrics` scores it under one `MetricProfile`
-(eval/profiles.py) and `aggregate` averages per scene and overall. Formulas: docs/METRICS.md.
+(rollout/profiles.py) and `aggregate` averages per scene and overall. Formulas: docs/METRICS.md.
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from openfly_agent import constants as C
-from openfly_agent.eval.profiles import DEFAULT_PROFILE_NAMES, MetricProfile, get_profile
-from openfly_agent.eval.stats import bootstrap_mean_interval, wilson_interval
+from openfly_agent.rollout.profiles import DEFAULT_PROFILE_NAMES, MetricProfile, get_profile
+from openfly_agent.rollout.record import EpisodeRecord
+from openfly_agent.rollout.stats import bootstrap_mean_interval, wilson_interval
 from openfly_agent.sim.dynamics import rollout_array
 from openfly_agent.utils.geometry import Pose, path_length
 
@@ -41,7 +42,7 @@ _MEAN_KEYS = {
 OUTCOMES = ("success", "early_stop", "stopped_far", "stopped_after_passing", "collision_end", "step_limit")
 EARLY_STOP_STEPS = 3  # a failed STOP among the first this many actions is an "early_stop"
 # 95 % intervals of each summary: rate key -> (its interval key, the per-episode flag counted);
-# mean key -> (its interval key, the per-episode value, scale). eval/stats.py, docs/METRICS.md.
+# mean key -> (its interval key, the per-episode value, scale). rollout/stats.py, docs/METRICS.md.
 _RATE_INTERVALS = {"sr_pct": ("sr_ci95", "success"), "osr_pct": ("osr_ci95", "oracle_success")}
 _MEAN_INTERVALS = {"spl_pct": ("spl_ci95", "spl", 100.0), "ne_m": ("ne_ci95", "ne", 1.0)}
 INTERVAL_KEYS = {
@@ -114,6 +115,20 @@ class EpisodeTrajectory:
     @property
     def num_actions(self) -> int:
         return len(self.positions) - 1
+
+
+def trajectory_of(record: EpisodeRecord) -> EpisodeTrajectory:
+    """The metrics' view of a record: visited positions, STOP, collisions, goal and reference path."""
+    return EpisodeTrajectory(
+        episode_id=record.episode_id,
+        scene_id=record.scene_id,
+        positions=record.positions(),
+        goal=record.goal,
+        reference_path=record.reference_path,
+        stopped=record.stopped,
+        stop_step=record.stop_step,
+        collision_steps=tuple(record.collision_steps),
+    )
 
 
 def trajectory_from_actions(

@@ -1,0 +1,342 @@
+"""The RL stage (`train.py --stage=rl`): GRPO fine-tuning of a navigation checkpoint in the simulator.
+
+One update (`rl` section, training/config.py):
+1. draw `episodes_per_update` train episodes and fly `group_size` rollouts of each with the policy sampling its
+   action (training/rl_rollouts.py: the rollout layer over a `VectorSimulator`, so a bridge serves as well as
+   the embedded city);
+2. reward each rollout with the simulator's own success under `rl.profile` (rollout/metrics.py), plus the shaping
+   terms that are on; group-relative advantages (training/rl_loss.py); the steps of a group whose rewards are
+   all equal carry no signal and are left out;
+3. replay every kept step through the agent's training forward (its frame, memory, instruction, predicted box
+   and taken action as a batch: the same network path as the rollout, in eval mode, so no box jitter and the
+   BatchNorm statistics of the rollout) for the log-probs of the taken actions under the update's starting
+   policy and under the reference (the `init.checkpoint` policy, frozen);
+4. `epochs` x `minibatches` AdamW steps on the clipped policy loss + `kl_coef` x k3 KL + `grounding_weight` x
+   the grounding loss (steps where the simulator reports boxes); the lr schedule steps once per update.
+
+Every draw of an update comes from seeds derived from (`seed`, update index), so a run resumed from a checkpoint
+flies and trains exactly as the uninterrupted run does; the optimizer, schedule and weights come back from the
+checkpoint as in the other stages (training/saving.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from openfly_agent import constants as C
+from openfly_agent.data.collator import NavigationCollator
+from openfly_agent.data.generation_settings import generation_settings
+from openfly_agent.model.agent import OpenFlyAgent
+from openfly_agent.model.config import HEAD_DISCRETE
+from openfly_agent.rollout.profiles import MetricProfile, get_profile
+from openfly_agent.sim.embedded import EmbeddedSimConfig
+from openfly_agent.sim.embedded_scenes import city_config, is_embedded_scene
+from openfly_agent.sim.vector import VectorSimulator
+from openfly_agent.training.accelerator import closing_trackers, flat_config, make_accelerator
+from openfly_agent.training.builder import Splits, load_splits, prepare_agent
+from openfly_agent.training.checkpoint import CheckpointManager
+from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.metrics import RunningMeans
+from openfly_agent.training.optim import make_optimizer, make_scheduler
+from openfly_agent.training.preflight import (
+    PreflightError,
+    check_dataset_root,
+    check_output_dir,
+    resolve_val_split,
+)
+from openfly_agent.training.resume_settings import record_run_settings, resume_changes
+from openfly_agent.training.rl_loss import action_log_probs, group_advantages, rl_loss
+from openfly_agent.training.rl_rollouts import Rollout, collect_groups, step_sample
+from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
+from openfly_agent.training.state import TrainerState
+from openfly_agent.training.stops import StopFlags
+from openfly_agent.training.trackers import start_trackers
+from openfly_agent.utils.progress import progress_bar
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RLRun:
+    """What the RL stage ends with: counters, the last checkpoint, whether it stopped early, the agent."""
+
+    state: TrainerState
+    checkpoint: Path | None
+    stopped_early: bool
+    agent: OpenFlyAgent
+    is_main_process: bool
+
+
+def update_seeds(seed: int, update: int) -> tuple[np.random.Generator, torch.Generator]:
+    """The update's two random streams, from (`seed`, `update`) alone: episodes and minibatch order (numpy), and
+    the rollouts' action samples (torch)."""
+    rng = np.random.default_rng([seed, update])
+    return rng, torch.Generator().manual_seed(int(rng.integers(2**62)))
+
+
+def check_rl_run(cfg: TrainConfig, splits: Splits, num_processes: int) -> MetricProfile:
+    """What the RL stage needs beyond the other stages' checks; returns the reward's metric profile."""
+    if num_processes != 1:
+        raise PreflightError(f"stage=rl runs in one process (this launch has {num_processes})")
+    if cfg.model.action_head.type != HEAD_DISCRETE:
+        raise PreflightError(f"stage=rl samples actions from the {HEAD_DISCRETE} action head only")
+    try:
+        profile = get_profile(cfg.rl.profile)
+    except (KeyError, ValueError) as err:
+        raise PreflightError(f"rl.profile: {err}") from err
+    train = splits.episodes[cfg.data.train_split]
+    if len(train) < cfg.rl.episodes_per_update:
+        raise PreflightError(
+            f"rl.episodes_per_update={cfg.rl.episodes_per_update} but {cfg.data.train_split} has {len(train)} episodes"
+        )
+    foreign = sorted({e.scene_id for e in train if not is_embedded_scene(e.scene_id)})
+    if foreign:
+        raise PreflightError(
+            f"stage=rl flies the embedded city; {cfg.data.train_split} has other scenes ({', '.join(foreign[:3])})"
+        )
+    return profile
+
+
+def embedded_env(cfg: TrainConfig, splits: Splits, profile: MetricProfile) -> VectorSimulator:
+    """`rl.num_envs` embedded simulators rebuilding the dataset's cities at its frame size; a collision ends the
+    flight when the profile fails it (no step is flown that the reward would not see)."""
+    generated = generation_settings(cfg.data.root) or {}
+    if "width" in generated and "height" in generated:
+        height, width = int(generated["height"]), int(generated["width"])
+    else:
+        first = splits.episodes[cfg.data.train_split][0]
+        height, width = splits.frames.frame(first, 0).shape[:2]
+    sim_cfg = EmbeddedSimConfig(
+        width=width,
+        height=height,
+        city=city_config(generated),
+        collision="end" if profile.collision_policy == "end_fail" else "count",
+        voxel_size=float(generated.get("collision_voxel_m", 2.0)),
+        max_cached_scenes=max(4, cfg.rl.num_envs),
+    )
+    return VectorSimulator.embedded(sim_cfg, num_envs=cfg.rl.num_envs)
+
+
+class StepBatches:
+    """Collated training batches of rollout steps (the navigation collator, plus the box token's input)."""
+
+    def __init__(self, agent: OpenFlyAgent, cfg: TrainConfig) -> None:
+        self.collate = NavigationCollator(
+            agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size
+        )
+
+    def __call__(self, samples: list[dict], device: torch.device) -> dict:
+        batch = self.collate(samples)
+        batch[C.TOKEN_BOX] = torch.stack([torch.as_tensor(s[C.TOKEN_BOX]) for s in samples])  # (B, 4)
+        batch[C.TOKEN_BOX_VISIBLE] = torch.tensor([bool(s[C.TOKEN_BOX_VISIBLE]) for s in samples])  # (B,)
+        return {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+
+
+def taken_log_probs(model, batch: dict, action_ids: torch.Tensor, temperature: float) -> dict:
+    """The training forward on `batch`: (B,) log-probs of the labelled actions, (B,) entropies, the grounding
+    loss (a scalar tensor, or None without a grounding head)."""
+    outputs: dict[str, torch.Tensor] = {}
+    model(batch, outputs=outputs)
+    logp, entropy = action_log_probs(
+        outputs["action_logits"], outputs["action_targets"], action_ids, temperature
+    )
+    return {"logp": logp, "entropy": entropy, "grounding_loss": outputs.get("grounding_loss")}
+
+
+def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
+    """Run the RL stage of `cfg` (module docstring); `env`: the lockstep simulator to fly in (None: the
+    embedded city of `cfg.data.root`, closed at the end; a bridge's environment works the same way).
+
+    Raises:
+        PreflightError: bad input, before any compute.
+    """
+    resume_from = check_output_dir(cfg.output_dir, cfg.resume)
+    data, _ = resolve_val_split(cfg.data)
+    cfg = dataclasses.replace(cfg, data=data)
+    setting_changes = resume_changes(cfg, resume_from)
+    check_dataset_root(cfg.data)
+    accelerator = make_accelerator(cfg)
+    splits = load_splits(cfg.data, cfg.model.grounding)
+    profile = check_rl_run(cfg, splits, accelerator.num_processes)
+    checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
+    checkpoints.remove_stale_staging()
+    agent = prepare_agent(cfg, splits, accelerator, resume_from)  # the init.checkpoint's policy
+    reference = copy.deepcopy(agent).eval().requires_grad_(False)  # the starting policy, frozen
+    record_run_settings(cfg, resume_from, setting_changes)
+    optim = cfg.optim
+    optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps)
+    scheduler = make_scheduler(optimizer, optim.schedule, optim.warmup_steps, cfg.steps, optim.min_lr_ratio)
+    model, optimizer, scheduler = accelerator.prepare(agent, optimizer, scheduler)
+    register_state_hooks(accelerator)
+    state, last_checkpoint, saved_step = TrainerState(), None, None
+    if resume_from is not None:
+        state = restore_checkpoint(accelerator, resume_from)
+        last_checkpoint, saved_step = resume_from, state.step
+    start_trackers(
+        accelerator, cfg.logging.project, flat_config(cfg), None if resume_from is None else state.step
+    )
+    rl = cfg.rl
+    max_steps = rl.max_steps or profile.max_steps
+    train_episodes = splits.episodes[cfg.data.train_split]
+    unwrapped = accelerator.unwrap_model(model)
+    batches = StepBatches(unwrapped, cfg)
+    action_ids = torch.tensor(unwrapped.action_tokenizer.discrete_token_ids, device=accelerator.device)
+    micro = cfg.batch.per_device_batch_size
+    logger.info(
+        "rl: %d updates of %d episodes x %d rollouts (profile %s, at most %d steps), from update %d",
+        cfg.steps,
+        rl.episodes_per_update,
+        rl.group_size,
+        profile.name,
+        max_steps,
+        state.step,
+    )
+    owned = env is None  # an environment given by the caller stays open
+    env = embedded_env(cfg, splits, profile) if owned else env
+    progress = progress_bar(total=cfg.steps, initial=state.step, desc="rl")
+    stops = StopFlags(accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
+    reason = None
+    with env if owned else contextlib.nullcontext(), progress, stops, closing_trackers(accelerator):
+        while state.step < cfg.steps and reason is None:
+            rng, sampler = update_seeds(cfg.seed, state.step)
+            t0 = time.perf_counter()
+            picks = rng.choice(len(train_episodes), rl.episodes_per_update, replace=False)
+            unwrapped.eval()
+            groups = collect_groups(
+                unwrapped, env, [train_episodes[int(i)] for i in picks], rl, profile, sampler, max_steps
+            )
+            rollout_s = time.perf_counter() - t0
+            logs = update_policy(
+                model, reference, optimizer, groups, batches, action_ids, cfg, rng, micro, accelerator
+            )
+            scheduler.step()
+            logs.update(rollout_s=rollout_s, update_s=time.perf_counter() - t0 - rollout_s)
+            logs["lr"] = float(scheduler.get_last_lr()[0])
+            state.step += 1
+            state.samples_seen += int(logs["rollout_steps"])
+            accelerator.log({f"train/{k}": v for k, v in logs.items()}, step=state.step)
+            logger.info(
+                "update %d: reward %.3f, success %.3f, kl %.4f, entropy %.3f, clip %.3f",
+                state.step,
+                logs["reward"],
+                logs["success_rate"],
+                logs.get("kl", float("nan")),
+                logs.get("entropy", float("nan")),
+                logs.get("clip_fraction", float("nan")),
+            )
+            progress.update(1)
+            progress.set_postfix(reward=f"{logs['reward']:.3f}", sr=f"{logs['success_rate']:.2f}")
+            interval = cfg.checkpoint.save_interval
+            if interval and state.step % interval == 0:
+                state.train_seconds = int(stops.elapsed_s())
+                last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+                saved_step = state.step
+            if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
+                logger.warning("stop_after_steps=%d reached: exiting without the final save", state.step)
+                return RLRun(state, last_checkpoint, True, unwrapped, accelerator.is_main_process)
+            reason = stops.reason() if state.step < cfg.steps else None
+        progress.close()
+        if saved_step != state.step:
+            state.train_seconds = int(stops.elapsed_s())
+            last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
+    return RLRun(state, last_checkpoint, reason is not None, unwrapped, accelerator.is_main_process)
+
+
+def update_policy(
+    model,
+    reference,
+    optimizer,
+    groups: list[list[Rollout]],
+    batches,
+    action_ids,
+    cfg,
+    rng,
+    micro,
+    accelerator,
+) -> dict[str, float]:
+    """Steps 2-4 of an update (module docstring) on the flown `groups`; returns the update's logs."""
+    rl = cfg.rl
+    rewards = torch.tensor([[r.reward for r in group] for group in groups], dtype=torch.float64)  # (N, G)
+    advantages = group_advantages(rewards, rl.std_eps)  # (N, G)
+    kept = [
+        (step_sample(r.record, r.steps, t), float(advantages[n, g]), r.steps[t].boxes_known)
+        for n, group in enumerate(groups)
+        if bool(rewards[n].std() > 0)
+        for g, r in enumerate(group)
+        for t in range(len(r.steps))
+    ]
+    logs = {
+        "reward": float(rewards.mean()),
+        "success_rate": float(np.mean([r.success for group in groups for r in group])),
+        "groups_with_signal": float(np.mean([bool(rewards[n].std() > 0) for n in range(len(groups))])),
+        "rollout_steps": float(sum(len(r.steps) for group in groups for r in group)),
+        "samples_trained": float(len(kept)),
+    }
+    if not kept:
+        return logs
+    device = accelerator.device
+    chunks = [list(range(i, min(i + micro, len(kept)))) for i in range(0, len(kept), micro)]
+    old_logp, ref_logp = torch.empty(len(kept)), torch.empty(len(kept))
+    model.eval()  # the rollout's network path: no box jitter, BatchNorm's running statistics
+    with torch.no_grad():
+        for chunk in chunks:
+            batch = batches([kept[i][0] for i in chunk], device)
+            old_logp[chunk] = taken_log_probs(model, batch, action_ids, rl.temperature)["logp"].float().cpu()
+            ref_logp[chunk] = (
+                taken_log_probs(reference, batch, action_ids, rl.temperature)["logp"].float().cpu()
+            )
+    advantage = torch.tensor([a for _, a, _ in kept])
+    means = RunningMeans()
+    for _ in range(rl.epochs):
+        order = rng.permutation(len(kept))
+        for minibatch in np.array_split(order, rl.minibatches):
+            if len(minibatch) == 0:
+                continue
+            optimizer.zero_grad(set_to_none=True)
+            sums = {"pg_loss": 0.0, "kl": 0.0, "clipped": 0.0, "entropy": 0.0}
+            for start in range(0, len(minibatch), micro):
+                rows = [int(i) for i in minibatch[start : start + micro]]
+                batch = batches([kept[i][0] for i in rows], device)
+                out = taken_log_probs(model, batch, action_ids, rl.temperature)
+                total, parts = rl_loss(
+                    out["logp"],
+                    old_logp[rows].to(device),
+                    ref_logp[rows].to(device),
+                    advantage[rows].to(device),
+                    rl.clip_epsilon,
+                    rl.kl_coef,
+                )
+                loss = total / len(minibatch)
+                grounding = out["grounding_loss"]
+                if grounding is not None and rl.grounding_weight and all(kept[i][2] for i in rows):
+                    loss = loss + rl.grounding_weight * grounding * len(rows) / len(minibatch)
+                    means.add({"grounding_loss": float(grounding.detach())})
+                accelerator.backward(loss)
+                for key, value in parts.items():
+                    sums[key] += float(value)
+                sums["entropy"] += float(out["entropy"].detach().sum())
+            if cfg.optim.max_grad_norm is not None:
+                grad_norm = accelerator.clip_grad_norm_(model.parameters(), cfg.optim.max_grad_norm)
+                means.add({"grad_norm": float(grad_norm)})
+            optimizer.step()
+            count = len(minibatch)
+            means.add(
+                {
+                    "pg_loss": sums["pg_loss"] / count,
+                    "kl": sums["kl"] / count,
+                    "clip_fraction": sums["clipped"] / count,
+                    "entropy": sums["entropy"] / count,
+                }
+            )
+    optimizer.zero_grad(set_to_none=True)
+    logs.update(means.pop())
+    return logs
