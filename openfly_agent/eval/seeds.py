@@ -34,7 +34,7 @@ from openfly_agent.eval.compare import (
 from openfly_agent.eval.config import PROFILE_NAMES
 from openfly_agent.eval.paired_stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED
 from openfly_agent.eval.report import episode_rows
-from openfly_agent.eval.stats import bootstrap_mean_interval, format_interval, wilson_interval
+from openfly_agent.rollout.stats import bootstrap_mean_interval, format_interval, wilson_interval
 from openfly_agent.utils.cli_help import command_help, wants_help
 from openfly_agent.utils.cli_options import UnknownOptionError
 from openfly_agent.utils.config import parse_config
