@@ -149,10 +149,10 @@ class LLMConfig(BuiltChoice, ChoiceRegistry):
 class TinyLLMConfig(LLMConfig):
     """`tiny`: a small Llama of the sizes below, whose vocabulary is the trained BPE tokenizer + 256 action ids."""
 
-    hidden_size: int = 128
-    num_layers: int = 2
-    num_heads: int = 4
-    intermediate_size: int = 344
+    hidden_size: int = 128  # width of the hidden states (and of the visual tokens the projector makes)
+    num_layers: int = 2  # decoder layers
+    num_heads: int = 4  # attention heads; must divide hidden_size
+    intermediate_size: int = 344  # width of each layer's MLP
 
     trains_own_tokenizer: ClassVar[bool] = True
 

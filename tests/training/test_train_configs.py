@@ -109,7 +109,7 @@ def test_accelerate_config_loads(path):
         ({"data": {"history": {"mode": "latest"}}}, "data.history.mode='latest'"),
         (
             {"model": {"llm": {"type": "llama2-7b", "hidden_size": 64}}},
-            "`hidden_size` are not valid for Llama2LLMConfig",
+            "`hidden_size`, `num_layers`, `num_heads`, `intermediate_size` are not valid for Llama2LLMConfig",
         ),
         ({"optim": {"schedule": "step"}}, "optim.schedule='step'"),
     ],
