@@ -333,7 +333,6 @@ class ActionHeadConfig(ChoiceRegistry):
     `vocab_end - 256 + a`; the bins head maps bin b (1..256) to `vocab_end - b` as OpenVLA does.
     """
 
-    n_bins: int = NUM_ACTION_SLOTS
     vocab_end: int | None = None
 
     @classmethod
@@ -346,8 +345,6 @@ class ActionHeadConfig(ChoiceRegistry):
         return self.get_choice_name(type(self))
 
     def __post_init__(self) -> None:
-        if self.n_bins != NUM_ACTION_SLOTS:
-            raise ValueError(f"action_head.n_bins={self.n_bins}: only {NUM_ACTION_SLOTS} bins are supported")
         if self.vocab_end is not None and self.vocab_end < NUM_ACTION_SLOTS:
             raise ValueError(f"action_head.vocab_end={self.vocab_end} must be >= {NUM_ACTION_SLOTS}")
 

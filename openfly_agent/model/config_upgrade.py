@@ -46,8 +46,9 @@ DELETED_SWITCHES = {
         "cell_fusion_layers": 0,
     },
 }
-# Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width).
-DEAD_FIELDS = {"vision": ("cnn_stem_width",)}
+# Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's
+# `n_bins` could only be 256, `NUM_ACTION_SLOTS`).
+DEAD_FIELDS = {"vision": ("cnn_stem_width",), "action_head": ("n_bins",)}
 # Before the tiny-only size fields defaulted to None, every config.json held the tiny sizes, also under the
 # 7B presets (which ignored them). Those exact values are dropped when such a file is read.
 LEGACY_TINY_SIZES = {

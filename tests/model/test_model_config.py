@@ -187,8 +187,13 @@ def test_an_old_flat_config_json_loads_as_its_variants():
 
 # The sections of a config.json written at 505bc83, before issue 46, that the upgrade changes: the LLM a preset
 # string (the tiny sizes filled in; null under llama2-7b), the memory encoding a top-level `mode`, the grounding
-# head switched by a boolean (the tiny run's step-50 checkpoint, vocabulary 864 with <pad> = 3).
+# head switched by a boolean, the action head's `n_bins` (256, the only value it took) (the tiny run's step-50
+# checkpoint, vocabulary 864 with <pad> = 3).
 BASE_TINY_AGENT = {
+    "action_head": {
+        "box_token": None, "box_token_jitter": 0.05, "n_bins": 256, "stop_loss_weight": 1.0, "type": "discrete",
+        "vocab_end": 864,
+    },
     "llm": {
         "attn_implementation": "sdpa", "bos_token_id": 1, "eos_token_id": 2, "hidden_size": 128,
         "intermediate_size": 344, "length_groups": 3, "max_length": 2048, "num_heads": 4, "num_layers": 2,
@@ -205,7 +210,9 @@ def test_a_config_json_of_before_the_llm_and_memory_variants_loads_the_same_mode
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
     cfg = OpenFlyAgentConfig(agent=BASE_TINY_AGENT).model_config
-    assert cfg == tiny_config(llm=TinyLLMConfig(vocab_size=864, pad_token_id=3))
+    assert cfg == tiny_config(
+        llm=TinyLLMConfig(vocab_size=864, pad_token_id=3), action_head=DiscreteActionHeadConfig(vocab_end=864)
+    )
     assert upgraded_model_dict(BASE_TINY_AGENT)["llm"]["type"] == "tiny"
     no_head = {**BASE_TINY_AGENT, "grounding": {**BASE_TINY_AGENT["grounding"], "enabled": False, "dim": 64}}
     no_head["action_head"] = {"box_token": None}  # None: on when a head is enabled, so off
