@@ -12,4 +12,3 @@ def check_choice(section: str, name: str, value: str, choices: tuple[str, ...]) 
 def check_positive(section: str, name: str, value: float) -> None:
     if value <= 0:
         raise ValueError(f"{section}.{name} must be > 0, got {value}")
-
