@@ -55,7 +55,7 @@ def build_agent(cfg: ModelConfig, device: str, dtype: torch.dtype):
     from openfly_agent.model.agent import OpenFlyAgent  # lazy: transformers
 
     tokenizer = train_bpe_tokenizer(INSTRUCTIONS * 8, vocab_size=512)
-    if cfg.llm.preset == "tiny":
+    if cfg.llm.type == "tiny":
         return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device=device, dtype=dtype).eval()
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(cfg)

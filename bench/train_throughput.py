@@ -108,7 +108,7 @@ def build_agent(preset: str, device: str, vit: bool = False):
     cfg = make_model_config(preset)
     if vit:
         cfg = dataclasses.replace(cfg, vision=TinyVitVisionConfig(image_size=112, patch_size=14))
-    if cfg.llm.preset == "tiny":
+    if cfg.llm.type == "tiny":
         return OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer).to(device)
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(cfg, tokenizer=tokenizer)

@@ -113,13 +113,13 @@ def generate_tiny_dataset(root, seed: int = 0) -> None:
 
 def small_agent_config():
     """The tiny model preset shrunk further (56 px, 2 blocks of width 32/48, a 2-layer LM of width 64)."""
-    from openfly_agent.model.config import LLMConfig, MemoryConfig, tiny_config
+    from openfly_agent.model.config import MemoryConfig, TinyLLMConfig, tiny_config
 
     return tiny_config(
         vision=TinyVitVisionConfig(
             image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
         ),
-        llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
+        llm=TinyLLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
         grounding=CellGroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
     )
@@ -162,7 +162,7 @@ def save_released_format_agent(folder, texts, seed: int = 0):
     from safetensors.torch import save_file
 
     from openfly_agent.model.agent import OpenFlyAgent
-    from openfly_agent.model.config import MemoryConfig, PromptConfig
+    from openfly_agent.model.config import HistoryEncodingConfig, MemoryConfig, PromptConfig
     from openfly_agent.model.language.tokenizer import train_bpe_tokenizer
     from openfly_agent.model.persistence.openvla_loader import to_openvla_state_dict
     from openfly_agent.utils.config import config_to_dict
@@ -172,8 +172,7 @@ def save_released_format_agent(folder, texts, seed: int = 0):
     tokenizer = train_bpe_tokenizer(list(texts) * 2, vocab_size=320, out_dir=None)
     cfg = dataclasses.replace(
         small_agent_config(),
-        mode="openvla_compat",
-        memory=MemoryConfig(capacity=2, grid=4),
+        memory=MemoryConfig(capacity=2, grid=4, encoding=HistoryEncodingConfig()),
         prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
         action_head=BinsActionHeadConfig(unnorm_key="vlnv1", decode_rule="nearest"),
     )

@@ -19,6 +19,14 @@ CASES = {  # id: (command after `python`, what the one line must hold)
         [str(REPO / "train.py"), "--model.vision.type=resnet"],
         "train.py: --model.vision.type: unknown choice 'resnet'; choose one of tiny-cnn, tiny, dinosiglip-224px",
     ),
+    "train: the LLM, a registered choice, named wrong": (
+        [str(REPO / "train.py"), "--model.llm.type=llama3"],
+        "train.py: --model.llm.type: unknown choice 'llama3'; choose one of tiny, llama2-7b",
+    ),
+    "train: a memory encoding that names no variant": (
+        [str(REPO / "train.py"), "--model.memory.encoding.type=uniform"],
+        "train.py: --model.memory.encoding.type: unknown choice 'uniform'; choose one of keyframes, openvla_history",
+    ),
     "train: a missing --config_path": (
         [str(REPO / "train.py"), "--config_path", "configs/train/tinny.yaml"],
         "train.py: --config_path configs/train/tinny.yaml: no such file",

@@ -204,7 +204,7 @@ def collect_target_boxes(
     if live_weights:
         load_live_weights(agent, folder)
     if agent.grounding_head is None:
-        raise ValueError(f"{folder}: the agent has no grounding head (model.grounding.enabled=false)")
+        raise ValueError(f"{folder}: the agent has no grounding head (model.grounding.type=none)")
     if centre_window != "checkpoint":
         if not isinstance(agent.grounding_head, CellGroundingHead):
             raise ValueError(

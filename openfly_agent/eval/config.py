@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from draccus import ChoiceRegistry
 
 from openfly_agent import constants as C
 from openfly_agent.data.config import ReaderOptions
 from openfly_agent.eval.box_servo import BoxServoSettings
-from openfly_agent.sim.bridges.airsim import AirSimConfig
-from openfly_agent.sim.bridges.gs_http import GSHttpConfig
-from openfly_agent.sim.bridges.unrealcv import UnrealCVConfig
+from openfly_agent.sim.bridges.airsim import AirSimBridge, AirSimConfig
+from openfly_agent.sim.bridges.base import EngineBridge
+from openfly_agent.sim.bridges.gs_http import GSHttpBridge, GSHttpConfig
+from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge, UnrealCVConfig
 
 
 class EvalInputError(ValueError):
@@ -94,8 +96,10 @@ class EmbeddedSimSettings(SimSettings):
 
 @dataclass
 class BridgeSimSettings(SimSettings):
-    """A running engine reached through its bridge (docs/BRIDGES.md); each engine's variant adds its bridge's own
-    config as the section of its name (`--sim.unrealcv.port=9001`)."""
+    """A running engine reached through its bridge (docs/BRIDGES.md); each engine's variant names its bridge class
+    (`bridge_class`) and adds the bridge's own config as the section of its name (`--sim.unrealcv.port=9001`)."""
+
+    bridge_class: ClassVar[type[EngineBridge]]  # the bridge this variant connects with
 
     # a point cloud per scene for collision checks, e.g. "scenes/{scene_id}.pcd" (None = no check, as the
     # official evaluation); voxel size of the occupancy built from it
@@ -127,6 +131,7 @@ class BridgeSimSettings(SimSettings):
 class UnrealCVSimSettings(BridgeSimSettings):
     """`unrealcv`: a UE scene through the UnrealCV TCP server."""
 
+    bridge_class: ClassVar[type[EngineBridge]] = UnrealCVBridge
     unrealcv: UnrealCVConfig = field(default_factory=UnrealCVConfig)
 
 
@@ -135,6 +140,7 @@ class UnrealCVSimSettings(BridgeSimSettings):
 class AirSimSimSettings(BridgeSimSettings):
     """`airsim`: an AirSim scene through its msgpack-RPC server."""
 
+    bridge_class: ClassVar[type[EngineBridge]] = AirSimBridge
     airsim: AirSimConfig = field(default_factory=AirSimConfig)
 
 
@@ -143,6 +149,7 @@ class AirSimSimSettings(BridgeSimSettings):
 class GSHttpSimSettings(BridgeSimSettings):
     """`gs_http`: a 3DGS scene served over HTTP by the patched SIBR viewer."""
 
+    bridge_class: ClassVar[type[EngineBridge]] = GSHttpBridge
     gs_http: GSHttpConfig = field(default_factory=GSHttpConfig)
 
 

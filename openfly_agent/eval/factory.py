@@ -28,10 +28,7 @@ from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.rollout.agent import AgentPolicy
 from openfly_agent.rollout.checkpoints import load_agent, resolve_device
 from openfly_agent.sim.blind import BlindEmbeddedSimulator, CityCache
-from openfly_agent.sim.bridges.airsim import AirSimBridge
 from openfly_agent.sim.bridges.base import BridgeError
-from openfly_agent.sim.bridges.gs_http import GSHttpBridge
-from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
 from openfly_agent.sim.embedded import EmbeddedSimConfig
 from openfly_agent.sim.embedded_scenes import EMBEDDED_SCENE_FORM, city_config, is_embedded_scene
 from openfly_agent.sim.occupancy import OccupancyGrid
@@ -179,8 +176,7 @@ def make_bridge_env(settings: BridgeSimSettings, info: ProcessInfo) -> VectorSim
         EngineUnreachableError: the engine does not answer (connection and handshake are tried at once, so
             a wrong host or port, or an engine that is not running, ends the run before any episode).
     """
-    classes = {"unrealcv": UnrealCVBridge, "airsim": AirSimBridge, "gs_http": GSHttpBridge}
-    bridge_cls = classes[settings.type]
+    bridge_cls = settings.bridge_class
     config = settings.bridge_config()
     if settings.port_per_rank and info.world_size > 1:
         port = (config.port or bridge_cls.default_port) + info.rank
@@ -219,7 +215,7 @@ def make_env(
     cfg: EvalConfig, info: ProcessInfo, episodes: list[Episode], render: bool = True
 ) -> VectorSimulator:
     """The lockstep environment of `cfg.sim`: `batch_size` embedded environments (rendering or blind), or a bridge."""
-    if cfg.sim.type != "embedded":
+    if isinstance(cfg.sim, BridgeSimSettings):
         if cfg.batch_size > 1:
             logger.info("%s: one engine per process, so episodes run one at a time", cfg.sim.type)
         return make_bridge_env(cfg.sim, info)

@@ -11,8 +11,8 @@ import yaml
 from openfly_agent.hub.config import CardConfig
 from openfly_agent.hub.results import AGENT_POLICY, EvalResults, ResultRow
 from openfly_agent.model.config import (
+    ENCODING_OPENVLA_HISTORY,
     LLM_LLAMA2_7B,
-    MODE_OPENVLA_COMPAT,
     VISION_DINOSIGLIP_224,
     VISION_TINY,
     VISION_TINY_CNN,
@@ -102,11 +102,11 @@ def describe_architecture(cfg: ModelConfig) -> str:
     llm = cfg.llm
     language_model = (
         "the Llama 2 7B causal LM"
-        if llm.preset == LLM_LLAMA2_7B
-        else f"a {llm.num_layers}-layer Llama-architecture causal LM of width {llm.hidden_size} (`{llm.preset}`)"
+        if llm.type == LLM_LLAMA2_7B
+        else f"a {llm.num_layers}-layer Llama-architecture causal LM of width {llm.hidden_size} (`{llm.type}`)"
     )
     parts = [backbones[vision.type], "an MLP projector", language_model]
-    parts.append("a landmark grounding head" if cfg.grounding.enabled else "no grounding head")
+    parts.append("a landmark grounding head" if cfg.grounding.has_head else "no grounding head")
     capacity = cfg.memory.capacity
     if capacity:
         merging = "with visual token merging" if cfg.merging.enabled else "without token merging"
@@ -114,8 +114,8 @@ def describe_architecture(cfg: ModelConfig) -> str:
     else:
         parts.append("no history memory (the current frame only)")
     text = ", ".join(parts[:-1]) + f", and {parts[-1]}"
-    if cfg.mode == MODE_OPENVLA_COMPAT:
-        text += "; it runs the released OpenVLA-format forward (`openvla_compat`)"
+    if cfg.memory.encoding.type == ENCODING_OPENVLA_HISTORY:
+        text += f"; it runs the released OpenVLA-format forward (`{ENCODING_OPENVLA_HISTORY}` memory)"
     return text
 
 

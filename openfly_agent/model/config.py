@@ -1,24 +1,30 @@
 """Typed configuration of the OpenFly-Agent model: one nested dataclass per component, plus the presets.
 
 Leaf module (stdlib, draccus and constants only) so run configs can compose it without importing torch. The
-vision backbone, the grounding head and the action head are registered choices (draccus `ChoiceRegistry`): the
-section's `type` names the variant, and each variant has only its own fields.
+vision backbone, the LLM, the grounding head, the memory encoding and the action head are registered choices
+(draccus `ChoiceRegistry`): the section's `type` names the variant, and each variant has only its own fields. A
+variant builds its own module (`build`, registered by the module that implements it: model/config_choice.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from draccus import ChoiceRegistry
 
-from openfly_agent.model.config_checks import check_choice, check_positive, fill_tiny_fields
+from openfly_agent.model.config_checks import check_choice, check_positive
+from openfly_agent.model.config_choice import BuiltChoice
 from openfly_agent.model.grounding.config import (
     GROUNDING_BOX,
     GROUNDING_CELLS,
+    GROUNDING_NONE,
     BoxGroundingConfig,
     CellGroundingConfig,
     GroundingConfig,
+    GroundingHeadConfig,
+    NoGroundingConfig,
 )
 from openfly_agent.model.vision.config import (
     CNN_STEM_PATCH4,
@@ -37,13 +43,11 @@ from openfly_agent.model.vision.config import (
     VisionConfig,
 )
 
-MODE_OPENFLY = "openfly"
-MODE_OPENVLA_COMPAT = "openvla_compat"
-MODES = (MODE_OPENFLY, MODE_OPENVLA_COMPAT)
+ENCODING_KEYFRAMES = "keyframes"  # keyframe sets merged, grid-pooled (model/memory/keyframe_memory.py)
+ENCODING_OPENVLA_HISTORY = "openvla_history"  # the released model's history (model/memory/history_memory.py)
 
 LLM_LLAMA2_7B = "llama2-7b"
 LLM_TINY = "tiny"
-LLM_PRESETS = (LLM_LLAMA2_7B, LLM_TINY)
 # transformers' attention back-ends: sdpa (torch's scaled_dot_product_attention, the default), eager (the
 # explicit softmax), flash_attention_2 (needs the flash-attn wheel and a GPU); tests/model/test_model_attention.py
 # checks that eager and sdpa give the same actions
@@ -68,8 +72,6 @@ LLAMA2_7B_ARCH = {
     "num_attention_heads": 32,
     "rms_norm_eps": 1e-5,
 }
-# Sizes of the `tiny` LLM preset, taken by the tiny-only fields left at None (rejected by the 7B preset when set).
-TINY_LLM = {"hidden_size": 128, "num_layers": 2, "num_heads": 4, "intermediate_size": 344}
 
 
 @dataclass
@@ -83,21 +85,17 @@ class ProjectorConfig:
 
 
 @dataclass
-class LLMConfig:
-    """Causal LM (transformers Llama). `llama2-7b` fixes the architecture (`LLAMA2_7B_ARCH`); `tiny` reads the
-    four size fields below (None takes `TINY_LLM`).
+class LLMConfig(BuiltChoice, ChoiceRegistry):
+    """Causal LM (transformers Llama): `type` picks `tiny` (the default, `TinyLLMConfig`, with its own sizes) or
+    `llama2-7b` (`Llama2LLMConfig`, Llama-2-7B's architecture `LLAMA2_7B_ARCH`). `build(vocab_size)` gives the
+    freshly initialised LM (model/language/llm.py).
 
-    `vocab_size` = embedding rows. None derives it: 32064 for llama2-7b (OpenVLA's padded vocab); for tiny the
-    tokenizer length + 256 reserved action ids (needs the tokenizer when the model is built).
+    `vocab_size` = embedding rows. None derives it (`default_vocab_size`): 32064 for llama2-7b (OpenVLA's padded
+    vocab); for tiny the tokenizer length + 256 reserved action ids (needs the tokenizer when the model is built).
     """
 
-    preset: str = LLM_TINY
     tokenizer_path: str | None = None  # local folder with the tokenizer files (never downloaded)
     vocab_size: int | None = None
-    hidden_size: int | None = None  # tiny only
-    num_layers: int | None = None  # tiny only
-    num_heads: int | None = None  # tiny only
-    intermediate_size: int | None = None  # tiny only
     max_length: int = 2048
     attn_implementation: str = "sdpa"  # one of ATTN_IMPLEMENTATIONS (passed to transformers)
     # training forward: the decoder stack runs on up to this many groups of rows of similar length, each cut to
@@ -109,19 +107,58 @@ class LLMConfig:
     eos_token_id: int = 2
     pad_token_id: int | None = None
 
+    # whether training makes this LLM's tokenizer when none is given (the tiny BPE tokenizer; docs/TRAINING.md)
+    trains_own_tokenizer: ClassVar[bool] = False
+
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return LLM_TINY
+
+    @property
+    def type(self) -> str:
+        """The registered name of this LLM (`tiny`, `llama2-7b`)."""
+        return self.get_choice_name(type(self))
+
     def __post_init__(self) -> None:
-        check_choice("llm", "preset", self.preset, LLM_PRESETS)
         check_choice("llm", "attn_implementation", self.attn_implementation, ATTN_IMPLEMENTATIONS)
-        fill_tiny_fields("llm", self, self.preset == LLM_TINY, TINY_LLM)
         if self.vocab_size is not None and self.vocab_size <= NUM_ACTION_SLOTS:
             raise ValueError(
                 f"llm.vocab_size={self.vocab_size} must exceed the {NUM_ACTION_SLOTS} action ids"
             )
         check_positive("llm", "max_length", self.max_length)
         check_positive("llm", "length_groups", self.length_groups)
-        if self.preset != LLM_TINY:
-            return
-        for name in TINY_LLM:
+
+    @property
+    def architecture(self) -> dict[str, int | float]:
+        """The Llama sizes: hidden_size, intermediate_size, num_hidden_layers, num_attention_heads, rms_norm_eps."""
+        raise NotImplementedError
+
+    @property
+    def hidden_size(self) -> int:
+        """LLM width."""
+        return self.architecture["hidden_size"]
+
+    def default_vocab_size(self, tokenizer_length: int | None) -> int:
+        """The embedding rows when `vocab_size` is None, for a tokenizer of `tokenizer_length` tokens (None: no
+        tokenizer)."""
+        raise NotImplementedError
+
+
+@LLMConfig.register_subclass(LLM_TINY)
+@dataclass
+class TinyLLMConfig(LLMConfig):
+    """`tiny`: a small Llama of the sizes below, whose vocabulary is the trained BPE tokenizer + 256 action ids."""
+
+    hidden_size: int = 128  # width of the hidden states (and of the visual tokens the projector makes)
+    num_layers: int = 2  # decoder layers
+    num_heads: int = 4  # attention heads; must divide hidden_size
+    intermediate_size: int = 344  # width of each layer's MLP
+
+    trains_own_tokenizer: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("hidden_size", "num_layers", "num_heads", "intermediate_size"):
             check_positive("llm", name, getattr(self, name))
         if self.hidden_size % self.num_heads:
             raise ValueError(
@@ -129,9 +166,35 @@ class LLMConfig:
             )
 
     @property
-    def resolved_hidden_size(self) -> int:
-        """LLM width of the chosen preset."""
-        return LLAMA2_7B_ARCH["hidden_size"] if self.preset == LLM_LLAMA2_7B else self.hidden_size
+    def architecture(self) -> dict[str, int | float]:
+        return {
+            "hidden_size": self.hidden_size,
+            "intermediate_size": self.intermediate_size,
+            "num_hidden_layers": self.num_layers,
+            "num_attention_heads": self.num_heads,
+            "rms_norm_eps": 1e-5,
+        }
+
+    def default_vocab_size(self, tokenizer_length: int | None) -> int:
+        if tokenizer_length is None:
+            raise ValueError(
+                "the tiny LLM sizes its vocabulary from the tokenizer: pass tokenizer= or set llm.vocab_size"
+            )
+        return tokenizer_length + NUM_ACTION_SLOTS
+
+
+@LLMConfig.register_subclass(LLM_LLAMA2_7B)
+@dataclass
+class Llama2LLMConfig(LLMConfig):
+    """`llama2-7b`: Llama-2-7B's architecture (`LLAMA2_7B_ARCH`); the weights always come from a checkpoint and
+    the tokenizer from `tokenizer_path` (or `--tokenizer.path`)."""
+
+    @property
+    def architecture(self) -> dict[str, int | float]:
+        return dict(LLAMA2_7B_ARCH)
+
+    def default_vocab_size(self, tokenizer_length: int | None) -> int:
+        return LLAMA2_PADDED_VOCAB
 
 
 @dataclass
@@ -194,11 +257,66 @@ class MergingConfig:
 
 
 @dataclass
+class MemoryEncodingConfig(BuiltChoice, ChoiceRegistry):
+    """How past frames become memory tokens: `type` picks `keyframes` (the default, `KeyframeEncodingConfig`: the
+    last K keyframe sets, each merged into its largest-box frame, grid-pooled, projected) or `openvla_history`
+    (`HistoryEncodingConfig`: the released model's one token per past frame). `build(model_cfg, selector)` gives
+    the encoding (model/factory.py, model/memory/encoding.py)."""
+
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return ENCODING_KEYFRAMES
+
+    @property
+    def type(self) -> str:
+        """The registered name of this encoding (`keyframes`, `openvla_history`)."""
+        return self.get_choice_name(type(self))
+
+    def tokens_per_set(self, grid_side: int, grid: int) -> int:
+        """Memory tokens of one keyframe set (or history frame) on a grid_side x grid_side patch grid pooled by
+        `grid`."""
+        raise NotImplementedError
+
+    def check_model(self, model: ModelConfig) -> None:
+        """Refuse the other sections' settings this encoding cannot run with (ValueError)."""
+
+
+@MemoryEncodingConfig.register_subclass(ENCODING_KEYFRAMES)
+@dataclass
+class KeyframeEncodingConfig(MemoryEncodingConfig):
+    """`keyframes`: (grid_side / g)^2 tokens per keyframe set (the `merging` and `keyframes` sections)."""
+
+    def tokens_per_set(self, grid_side: int, grid: int) -> int:
+        return (grid_side // grid) ** 2
+
+
+@MemoryEncodingConfig.register_subclass(ENCODING_OPENVLA_HISTORY)
+@dataclass
+class HistoryEncodingConfig(MemoryEncodingConfig):
+    """`openvla_history`: the released IPEC-COMMUNITY/openfly-agent-7b's forward, one token per past frame (DINO CLS
+    ++ SigLIP patches pooled over the whole grid)."""
+
+    def tokens_per_set(self, grid_side: int, grid: int) -> int:
+        return 1
+
+    def check_model(self, model: ModelConfig) -> None:
+        name = f"memory.encoding.type={ENCODING_OPENVLA_HISTORY}"
+        if model.action_head.type != HEAD_OPENVLA_BINS:
+            raise ValueError(f"{name} reproduces the released model: set action_head.type=openvla_bins")
+        side = model.vision.grid_side
+        if model.memory.grid != side:
+            raise ValueError(f"{name} summarises each history frame in one token: set memory.grid={side}")
+        if model.vision.type == VISION_TINY_CNN:
+            raise ValueError(f"{name} reproduces the released ViT backbone: not vision.type=tiny-cnn")
+
+
+@dataclass
 class MemoryConfig:
-    """FIFO memory of K keyframe sets, each grid-pooled to (grid_side / g)^2 tokens."""
+    """FIFO memory of K keyframe sets (or past frames), each grid-pooled to `memory_tokens_per_set` tokens."""
 
     capacity: int = 2  # K; 0 = current frame only
     grid: int = 8  # g, pooling window in patches (the paper: 16 on the 16x16 grid of 224 px)
+    encoding: MemoryEncodingConfig = field(default_factory=KeyframeEncodingConfig)
 
     def __post_init__(self) -> None:
         if self.capacity < 0:
@@ -215,7 +333,6 @@ class ActionHeadConfig(ChoiceRegistry):
     `vocab_end - 256 + a`; the bins head maps bin b (1..256) to `vocab_end - b` as OpenVLA does.
     """
 
-    n_bins: int = NUM_ACTION_SLOTS
     vocab_end: int | None = None
 
     @classmethod
@@ -228,8 +345,6 @@ class ActionHeadConfig(ChoiceRegistry):
         return self.get_choice_name(type(self))
 
     def __post_init__(self) -> None:
-        if self.n_bins != NUM_ACTION_SLOTS:
-            raise ValueError(f"action_head.n_bins={self.n_bins}: only {NUM_ACTION_SLOTS} bins are supported")
         if self.vocab_end is not None and self.vocab_end < NUM_ACTION_SLOTS:
             raise ValueError(f"action_head.vocab_end={self.vocab_end} must be >= {NUM_ACTION_SLOTS}")
 
@@ -277,10 +392,9 @@ class BinsActionHeadConfig(ActionHeadConfig):
 class ModelConfig:
     """Everything that defines an OpenFly-Agent network (serialised inside config.json)."""
 
-    mode: str = MODE_OPENFLY  # openfly | openvla_compat (the released checkpoint's forward)
     vision: VisionConfig = field(default_factory=TinyCnnVisionConfig)
     projector: ProjectorConfig = field(default_factory=ProjectorConfig)
-    llm: LLMConfig = field(default_factory=LLMConfig)
+    llm: LLMConfig = field(default_factory=TinyLLMConfig)
     prompt: PromptConfig = field(default_factory=PromptConfig)
     grounding: GroundingConfig = field(default_factory=CellGroundingConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
@@ -289,29 +403,17 @@ class ModelConfig:
     action_head: ActionHeadConfig = field(default_factory=DiscreteActionHeadConfig)
 
     def __post_init__(self) -> None:
-        check_choice("model", "mode", self.mode, MODES)
         side = self.vision.grid_side
         if side % self.memory.grid:
             raise ValueError(
                 f"memory.grid={self.memory.grid} must divide the patch grid side {side} "
                 f"(vision.image_size / vision.patch_size); e.g. one of {_divisors(side)}"
             )
-        if self.mode == MODE_OPENVLA_COMPAT and self.action_head.type != HEAD_OPENVLA_BINS:
+        self.memory.encoding.check_model(self)
+        if self.uses_box_token and not self.grounding.has_head:
             raise ValueError(
-                "mode=openvla_compat reproduces the released model: set action_head.type=openvla_bins"
-            )
-        if self.mode == MODE_OPENVLA_COMPAT and self.memory.grid != side:
-            raise ValueError(
-                f"mode=openvla_compat summarises each history frame in one token: set memory.grid={side}"
-            )
-        if self.uses_box_token and not self.grounding.enabled:
-            raise ValueError(
-                "action_head.box_token reads the action at the grounding head's box: it needs "
-                "grounding.enabled=true (or set action_head.box_token=false)"
-            )
-        if self.mode == MODE_OPENVLA_COMPAT and self.vision.type == VISION_TINY_CNN:
-            raise ValueError(
-                "mode=openvla_compat reproduces the released ViT backbone: not vision.type=tiny-cnn"
+                "action_head.box_token reads the action at the grounding head's box: it needs a head "
+                f"(grounding.type={GROUNDING_CELLS} or {GROUNDING_BOX}; or set action_head.box_token=false)"
             )
         vocab = self.llm.vocab_size
         if (
@@ -325,19 +427,17 @@ class ModelConfig:
 
     @property
     def memory_tokens_per_set(self) -> int:
-        """(grid_side / g)^2 tokens per keyframe set (1 at 224 px, g = 16); compat: 1 per history frame."""
-        if self.mode == MODE_OPENVLA_COMPAT:
-            return 1
-        return (self.vision.grid_side // self.memory.grid) ** 2
+        """(grid_side / g)^2 tokens per keyframe set (1 at 224 px, g = 16); `openvla_history`: 1 per past frame."""
+        return self.memory.encoding.tokens_per_set(self.vision.grid_side, self.memory.grid)
 
     @property
     def uses_box_token(self) -> bool:
-        """`action_head.box_token` of the discrete head, with None resolved: on when grounding is enabled; never
-        with the bins head."""
+        """`action_head.box_token` of the discrete head, with None resolved: on when there is a grounding head;
+        never with the bins head."""
         head = self.action_head
         if not isinstance(head, DiscreteActionHeadConfig):
             return False
-        return self.grounding.enabled if head.box_token is None else head.box_token
+        return self.grounding.has_head if head.box_token is None else head.box_token
 
     def visual_tokens_per_step(self, num_memory_sets: int | None = None) -> int:
         """P current-frame tokens + memory tokens (K full sets by default): 256 + 2 = 258 for 7B."""
@@ -360,8 +460,7 @@ def openfly_7b_config(**overrides) -> ModelConfig:
     """The paper's model: dinosiglip-224px + llama2-7b, K = 2, g = 16 (256 + 2 visual tokens per step)."""
     cfg = ModelConfig(
         vision=DinoSiglipVisionConfig(),
-        llm=LLMConfig(
-            preset=LLM_LLAMA2_7B,
+        llm=Llama2LLMConfig(
             vocab_size=LLAMA2_PADDED_VOCAB,
             pad_token_id=LLAMA2_TOKENIZER_VOCAB,
             length_groups=1,
@@ -377,7 +476,7 @@ def openfly_7b_config(**overrides) -> ModelConfig:
 def openvla_compat_7b_config(**overrides) -> ModelConfig:
     """The released IPEC-COMMUNITY/openfly-agent-7b forward: 2 history frames, raw prompt, 8-dim bins."""
     cfg = openfly_7b_config(
-        mode=MODE_OPENVLA_COMPAT,
+        memory=MemoryConfig(capacity=2, grid=16, encoding=HistoryEncodingConfig()),
         prompt=PromptConfig(template="{instruction}", suffix_token_id=29871),
         action_head=BinsActionHeadConfig(
             vocab_end=LLAMA2_TOKENIZER_VOCAB, decode_rule=DECODE_EXACT, unnorm_key="vlnv1"
@@ -408,6 +507,7 @@ __all__ = [  # the vision section's names are re-exported: model.config is the o
     "DINOSIGLIP_WIDTHS",
     "GROUNDING_BOX",
     "GROUNDING_CELLS",
+    "GROUNDING_NONE",
     "RESIZE_MODES",
     "VISION_DINOSIGLIP_224",
     "VISION_PRESETS",
@@ -420,14 +520,21 @@ __all__ = [  # the vision section's names are re-exported: model.config is the o
     "DinoSiglipVisionConfig",
     "DiscreteActionHeadConfig",
     "GroundingConfig",
+    "GroundingHeadConfig",
+    "HistoryEncodingConfig",
     "KeyframeConfig",
+    "KeyframeEncodingConfig",
     "LLMConfig",
+    "Llama2LLMConfig",
     "MemoryConfig",
+    "MemoryEncodingConfig",
     "MergingConfig",
     "ModelConfig",
+    "NoGroundingConfig",
     "ProjectorConfig",
     "PromptConfig",
     "TinyCnnVisionConfig",
+    "TinyLLMConfig",
     "TinyVitVisionConfig",
     "VisionConfig",
     "make_model_config",

@@ -8,6 +8,11 @@ field present whatever the variant (`vision: {preset: tiny-cnn, width: null, ...
 ...}`); they are registered choices now (`vision: {type: tiny-cnn, cnn_channels: ...}`), each variant with only its
 own fields. The upgrade names the variant under `type` and drops the other variants' fields where they hold a
 value that did nothing (the old config refused any other).
+
+Before issue 46 the LLM, the memory encoding and "no grounding head" were not variants: `llm: {preset: tiny,
+hidden_size: 128, ...}` (the four tiny-only sizes null under `llama2-7b`), a top-level `mode: openfly |
+openvla_compat` and `grounding: {enabled: false, ...}`. They read `llm: {type: ...}`, `memory: {encoding: {type:
+keyframes | openvla_history}}` and `grounding: {type: none}` now.
 """
 
 from __future__ import annotations
@@ -15,7 +20,15 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from openfly_agent.model.config import ActionHeadConfig, GroundingConfig, VisionConfig
+from openfly_agent.model.config import (
+    ENCODING_KEYFRAMES,
+    ENCODING_OPENVLA_HISTORY,
+    GROUNDING_NONE,
+    ActionHeadConfig,
+    GroundingConfig,
+    LLMConfig,
+    VisionConfig,
+)
 
 # Deleted research switches at the value that turned them off (docs/experiments/2026-11-27-deleted-research-switches.md;
 # commit 7544758 still has them). A config that holds one at that value loads without it; any other value is
@@ -33,8 +46,9 @@ DELETED_SWITCHES = {
         "cell_fusion_layers": 0,
     },
 }
-# Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width).
-DEAD_FIELDS = {"vision": ("cnn_stem_width",)}
+# Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's
+# `n_bins` could only be 256, `NUM_ACTION_SLOTS`).
+DEAD_FIELDS = {"vision": ("cnn_stem_width",), "action_head": ("n_bins",)}
 # Before the tiny-only size fields defaulted to None, every config.json held the tiny sizes, also under the
 # 7B presets (which ignored them). Those exact values are dropped when such a file is read.
 LEGACY_TINY_SIZES = {
@@ -58,8 +72,16 @@ FOREIGN_FIELDS = {
         "decode_rule": ANY, "unnorm_key": ANY, "box_token": (None, False), "box_token_jitter": ANY,
         "stop_loss_weight": (1.0,),
     },
+    "llm": {"hidden_size": (None,), "num_layers": (None,), "num_heads": (None,), "intermediate_size": (None,)},
 }  # fmt: skip
-CHOICE_SECTIONS = {"vision": VisionConfig, "grounding": GroundingConfig, "action_head": ActionHeadConfig}
+CHOICE_SECTIONS = {
+    "vision": VisionConfig,
+    "grounding": GroundingConfig,
+    "action_head": ActionHeadConfig,
+    "llm": LLMConfig,
+}
+# The top-level `mode` of before issue 46 -> the memory encoding it chose.
+MODE_ENCODINGS = {"openfly": ENCODING_KEYFRAMES, "openvla_compat": ENCODING_OPENVLA_HISTORY}
 
 
 class RetiredOptionError(ValueError):
@@ -86,10 +108,17 @@ def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
     for section, names in DEAD_FIELDS.items():
         for name in names:
             agent.get(section, {}).pop(name, None)
-    if "preset" in agent.get("vision", {}):
-        agent["vision"]["type"] = agent["vision"].pop("preset")
+    for section in ("vision", "llm"):
+        if "preset" in agent.get(section, {}):
+            agent[section]["type"] = agent[section].pop("preset")
     if "cells" in agent.get("grounding", {}):
         agent["grounding"]["type"] = "cells" if agent["grounding"].pop("cells") else "box"
+    if agent.get("grounding", {}).pop("enabled", True) is False:
+        agent["grounding"] = {"type": GROUNDING_NONE}  # the head's fields did nothing without it
+    if agent.get("mode") in MODE_ENCODINGS:
+        encoding = MODE_ENCODINGS[agent.pop("mode")]
+        if encoding != ENCODING_KEYFRAMES:  # the default
+            agent["memory"] = {**agent.get("memory", {}), "encoding": {"type": encoding}}
     for section, registry in CHOICE_SECTIONS.items():
         values = agent.get(section)
         if not values or values.get("type") not in registry.get_known_choices():

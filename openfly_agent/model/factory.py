@@ -1,4 +1,5 @@
-"""Builders from the config: vocabulary resolution from a tokenizer, the action tokenizer, the memory encoding."""
+"""Builders from the config: vocabulary resolution from a tokenizer, the action tokenizer, the memory encoding (each
+encoding registers its builder with its variant: model/memory/keyframe_memory.py, history_memory.py)."""
 
 from __future__ import annotations
 
@@ -8,17 +9,13 @@ import logging
 from openfly_agent.model.config import (
     DECODE_EXACT,
     HEAD_DISCRETE,
-    LLAMA2_PADDED_VOCAB,
-    LLM_LLAMA2_7B,
-    MODE_OPENVLA_COMPAT,
     NUM_ACTION_SLOTS,
     BinsActionHeadConfig,
     ModelConfig,
 )
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer, select_action_stats
+from openfly_agent.model.memory import history_memory, keyframe_memory  # noqa: F401 (register their builders)
 from openfly_agent.model.memory.encoding import MemoryEncoding
-from openfly_agent.model.memory.history_memory import HistoryMemory
-from openfly_agent.model.memory.keyframe_memory import KeyframeMemory
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 
 logger = logging.getLogger(__name__)
@@ -44,18 +41,12 @@ def make_action_tokenizer(cfg: ModelConfig, norm_stats: dict | None) -> ActionTo
 
 
 def resolve_vocabulary(cfg: ModelConfig, tokenizer) -> ModelConfig:
-    """Fill llm.vocab_size, special ids and action_head.vocab_end from the preset / tokenizer."""
+    """Fill llm.vocab_size (the LLM variant's `default_vocab_size` when None), special ids and
+    action_head.vocab_end from the tokenizer."""
     llm = cfg.llm
     vocab = llm.vocab_size
     if vocab is None:
-        if llm.preset == LLM_LLAMA2_7B:
-            vocab = LLAMA2_PADDED_VOCAB
-        elif tokenizer is None:
-            raise ValueError(
-                "the tiny LLM sizes its vocabulary from the tokenizer: pass tokenizer= or set llm.vocab_size"
-            )
-        else:
-            vocab = len(tokenizer) + NUM_ACTION_SLOTS
+        vocab = llm.default_vocab_size(None if tokenizer is None else len(tokenizer))
     ids = {}
     if tokenizer is not None:
         if len(tokenizer) > vocab:
@@ -77,8 +68,7 @@ def resolve_vocabulary(cfg: ModelConfig, tokenizer) -> ModelConfig:
 
 
 def make_memory_encoding(cfg: ModelConfig, selector: KeyframeSelector) -> MemoryEncoding:
-    """The memory encoding of `cfg.mode`, chosen once: the OpenVLA-compatible history (`openvla_compat`) or the
-    keyframe memory read through `selector` (every other mode)."""
-    if cfg.mode == MODE_OPENVLA_COMPAT:
-        return HistoryMemory(cfg.memory.capacity, cfg.memory.grid, cfg.llm.resolved_hidden_size)
-    return KeyframeMemory(cfg, selector)
+    """The memory encoding `memory.encoding.type` names, as its variant registered it: the keyframe memory read
+    through `selector` (`KeyframeMemory`, `keyframes`) or the OpenVLA-compatible history (`HistoryMemory`,
+    `openvla_history`)."""
+    return cfg.memory.encoding.build(cfg, selector)

@@ -35,22 +35,19 @@ class OpenFlyNetwork(nn.Module):
 
     Args:
         cfg: the resolved model sections (`llm.vocab_size` set); the network reads its structural sections
-            (vision, projector, llm, grounding, memory, merging, keyframes, mode), never the action decoding.
+            (vision, projector, llm, grounding, memory, merging, keyframes), never the action decoding.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        llm_dim = cfg.llm.resolved_hidden_size
+        llm_dim = cfg.llm.hidden_size
         self.vision_backbone = build_vision_backbone(cfg.vision)
         self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         # absent heads are registered as None: the agent, which shares these modules, reads them by name
         self.register_module(
-            "grounding_head",
-            make_grounding_head(llm_dim, cfg.grounding, cfg.vision.grid_side)
-            if cfg.grounding.enabled
-            else None,
+            "grounding_head", make_grounding_head(llm_dim, cfg.grounding, cfg.vision.grid_side)
         )
         self.register_module("box_token_embed", BoxTokenEmbedding(llm_dim) if cfg.uses_box_token else None)
         self.keyframe_selector = KeyframeSelector.from_config(cfg.keyframes, cfg.memory.capacity)
@@ -59,7 +56,7 @@ class OpenFlyNetwork(nn.Module):
     @property
     def llm_dim(self) -> int:
         """LLM hidden size."""
-        return self.cfg.llm.resolved_hidden_size
+        return self.cfg.llm.hidden_size
 
     # --- encode: frames + memory -> visual tokens -------------------------------------------------
     def embed_text(self, input_ids: torch.Tensor) -> torch.Tensor:

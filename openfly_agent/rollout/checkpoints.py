@@ -1,6 +1,6 @@
 """Checkpoints as agents: `load_agent` builds `OpenFlyAgent` from our checkpoint folder or training run (a LoRA
 run's: its merged model when the run wrote one, else the adapter on its base), a released OpenVLA / OpenFly-Agent
-folder (through the model's `openvla_compat` path and `openvla_bins` head) or a Hub id."""
+folder (through the `openvla-compat-7b` model config: the `openvla_history` memory and the `openvla_bins` head) or a Hub id."""
 
 from __future__ import annotations
 
@@ -165,7 +165,7 @@ def load_agent(
     Our folders load with `OpenFlyAgent.from_pretrained`, then take the decoding settings through their config
     (`set_action_decoding`: the action tokenizer, `config.action_tokenizer` and the processor all follow);
     OpenVLA-format folders (the released OpenFly-Agent) through `agent_from_openvla_checkpoint` with the
-    `openvla_compat` model config (`model_config`, default the 7B preset) and its `openvla_bins` head.
+    released model's config (`model_config`, default the `openvla-compat-7b` preset) and its `openvla_bins` head.
     A LoRA checkpoint (adapter only) loads as `checkpoint_weights` says, logged: the run's merged model when it
     wrote one, else the adapter on its base (the run's `init.checkpoint`).
     """

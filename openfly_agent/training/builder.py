@@ -26,7 +26,6 @@ from openfly_agent.data.stats import compute_action_statistics
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import (
     HEAD_OPENVLA_BINS,
-    LLM_TINY,
     CellGroundingConfig,
     GroundingConfig,
     ModelConfig,
@@ -115,7 +114,7 @@ def load_splits(data: DataConfig, grounding: GroundingConfig) -> Splits:
 def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttributes | None:
     """The target attributes' lookup of the dataset at `data_root` when the grounding head learns them
     (`model.grounding.attribute_weight`, the cells head's)."""
-    if not (isinstance(grounding, CellGroundingConfig) and grounding.enabled and grounding.attribute_weight):
+    if not (isinstance(grounding, CellGroundingConfig) and grounding.attribute_weight):
         return None
     if list(grounding.attribute_classes) != vocabulary_sizes():
         raise PreflightError(
@@ -179,9 +178,9 @@ def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accel
     for folder in [c for c in candidates if c]:
         logger.info("tokenizer: %s", folder)
         return load_tokenizer(folder)
-    if cfg.model.llm.preset != LLM_TINY and not (own / "tokenizer_config.json").is_file():
+    if not cfg.model.llm.trains_own_tokenizer and not (own / "tokenizer_config.json").is_file():
         raise PreflightError(
-            f"llm.preset={cfg.model.llm.preset} needs its tokenizer: set --tokenizer.path or "
+            f"llm.type={cfg.model.llm.type} needs its tokenizer: set --tokenizer.path or "
             "--model.llm.tokenizer_path to a local folder (nothing is downloaded)"
         )
     with accelerator.main_process_first():

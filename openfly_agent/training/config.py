@@ -297,8 +297,8 @@ class TrainConfig:
             "(python -m openfly_agent.toolchain grounding writes one)",
         )
         _require(
-            self.stage != STAGE_GROUNDING or self.model.grounding.enabled,
-            "stage=grounding trains the grounding head: model.grounding.enabled must be true",
+            self.stage != STAGE_GROUNDING or self.model.grounding.has_head,
+            "stage=grounding trains the grounding head: model.grounding.type must name one, not none",
         )
         _require(
             self.stage != STAGE_RL or (self.init.checkpoint is not None and self.steps is not None),

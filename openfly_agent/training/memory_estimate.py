@@ -37,7 +37,6 @@ from pathlib import Path
 
 import torch
 
-from openfly_agent.model.config import NUM_ACTION_SLOTS
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.modes import apply_training_mode
 from openfly_agent.training.preflight import PreflightError
@@ -148,8 +147,8 @@ def model_sizes(cfg: TrainConfig) -> ModelSizes:
     llm = dataclasses.replace(
         cfg.model.llm, tokenizer_path=None
     )  # nothing is read: the builder checks it later
-    if llm.vocab_size is None and llm.preset == "tiny":
-        llm = dataclasses.replace(llm, vocab_size=cfg.tokenizer.train_vocab_size + NUM_ACTION_SLOTS)
+    if llm.vocab_size is None and llm.trains_own_tokenizer:
+        llm = dataclasses.replace(llm, vocab_size=llm.default_vocab_size(cfg.tokenizer.train_vocab_size))
     model_cfg = dataclasses.replace(cfg.model, llm=llm)
     with torch.device("meta"):
         agent = OpenFlyAgent.from_model_config(model_cfg)
@@ -306,7 +305,7 @@ def describe_run(cfg: TrainConfig, config_path: str | None = None) -> str:
     """`configs/train/x.yaml: llama2-7b, freeze_stage=full, precision=bf16, per-device batch 16`: the config
     file (when known) and the settings the estimate depends on."""
     settings = (
-        f"{cfg.model.llm.preset}, freeze_stage={cfg.freeze_stage}, precision={cfg.precision}, "
+        f"{cfg.model.llm.type}, freeze_stage={cfg.freeze_stage}, precision={cfg.precision}, "
         f"per-device batch {cfg.batch.per_device_batch_size}"
     )
     return f"{config_path}: {settings}" if config_path else settings

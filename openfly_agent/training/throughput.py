@@ -166,7 +166,7 @@ class StepFlops:
             llm_trainable=llm_trainable,
             llm_input_grads=vision_trains or _trains(agent.projector) or _trains(layers),
             layers=len(layers),
-            width=cfg.llm.resolved_hidden_size,
+            width=cfg.llm.hidden_size,
             model_cfg=cfg,
         )
 

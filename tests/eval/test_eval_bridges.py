@@ -8,11 +8,14 @@ from eval_helpers import make_episode
 
 from openfly_agent import constants as C
 from openfly_agent.eval.baselines import OraclePolicy
-from openfly_agent.eval.config import EvalConfig, UnrealCVSimSettings
+from openfly_agent.eval.config import BridgeSimSettings, EvalConfig, SimSettings, UnrealCVSimSettings
 from openfly_agent.eval.distributed import ProcessInfo
 from openfly_agent.eval.factory import make_bridge_env, scene_occupancy
 from openfly_agent.eval.report import policy_results
 from openfly_agent.rollout.runner import LockstepRunner
+from openfly_agent.sim.bridges.airsim import AirSimBridge
+from openfly_agent.sim.bridges.gs_http import GSHttpBridge
+from openfly_agent.sim.bridges.unrealcv import UnrealCVBridge
 from openfly_agent.sim.pointcloud import write_pcd
 
 
@@ -56,3 +59,9 @@ def test_oracle_over_unrealcv_reaches_every_goal(tmp_path):
     assert table["standard"]["overall"]["sr_pct"] == 50.0  # the wall fails route a
     grid = scene_occupancy(str(tmp_path / "{scene_id}.pcd"), "env_ue_smallcity", 1.0)
     assert grid.is_occupied(np.array([[21.0, 0.0, 30.0], [10.0, 0.0, 30.0]])).tolist() == [True, False]
+
+
+def test_each_bridge_variant_names_its_bridge():
+    variants = {name: SimSettings.get_choice_class(name) for name in SimSettings.get_known_choices()}
+    bridges = {name: cls.bridge_class for name, cls in variants.items() if issubclass(cls, BridgeSimSettings)}
+    assert bridges == {"unrealcv": UnrealCVBridge, "airsim": AirSimBridge, "gs_http": GSHttpBridge}

@@ -276,7 +276,7 @@ def test_the_network_is_described_from_its_config():
     )
     assert "the Llama 2 7B causal LM" in big
     compat = describe_architecture(make_model_config("openvla-compat-7b"))
-    assert compat.endswith("it runs the released OpenVLA-format forward (`openvla_compat`)")
+    assert compat.endswith("it runs the released OpenVLA-format forward (`openvla_history` memory)")
 
 
 @pytest.mark.parametrize(

@@ -26,13 +26,13 @@ def tiny_tokenizer(tmp_path_factory):
 
 def small_config(**overrides):
     """The tiny preset shrunk further (2 blocks of width 32/48 at 56 px, 4x4 patches) for fast tests."""
-    from openfly_agent.model.config import LLMConfig, MemoryConfig, tiny_config
+    from openfly_agent.model.config import MemoryConfig, TinyLLMConfig, tiny_config
 
     cfg = tiny_config(
         vision=TinyVitVisionConfig(
             image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
         ),
-        llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
+        llm=TinyLLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128),
         grounding=CellGroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
     )

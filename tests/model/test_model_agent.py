@@ -14,6 +14,7 @@ from openfly_agent.model.config import (
     DiscreteActionHeadConfig,
     MemoryConfig,
     MergingConfig,
+    NoGroundingConfig,
     TinyCnnVisionConfig,
     openfly_7b_config,
 )
@@ -115,7 +116,7 @@ def test_missing_memory_sets_contribute_nothing(make_agent, make_batch):
 
 
 def test_right_padding_does_not_change_samples(make_agent, make_batch):
-    agent = make_agent(grounding=CellGroundingConfig(enabled=False))
+    agent = make_agent(grounding=NoGroundingConfig())
     batch = make_batch(agent, batch_size=3)
     loss_all, _ = agent(batch)
     singles = []
@@ -129,7 +130,7 @@ def test_right_padding_does_not_change_samples(make_agent, make_batch):
 
 
 def test_an_agent_without_grounding_head_logs_no_box_iou(make_agent, make_batch):
-    agent = make_agent(grounding=CellGroundingConfig(enabled=False))
+    agent = make_agent(grounding=NoGroundingConfig())
     _, logs = agent(make_batch(agent, batch_size=2))
     # nothing measured, not an IoU of 0
     assert math.isnan(logs["box_iou"]) and logs["num_visible_boxes"] == 0.0

@@ -13,9 +13,10 @@ import torch
 
 from openfly_agent.model.config import (
     BinsActionHeadConfig,
-    LLMConfig,
+    HistoryEncodingConfig,
     MemoryConfig,
     PromptConfig,
+    TinyLLMConfig,
 )
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.language.llm import unwrap_causal_lm
@@ -25,17 +26,16 @@ INSTRUCTIONS = ["Fly to the red tower and turn left.", "Go straight."]  # two pr
 VARIANTS = {
     "tiny": {},  # discrete head, box token read after one cached step
     "openvla_compat": {  # history tokens, raw prompt + suffix, 8 bin tokens decoded greedily with the cache
-        "mode": "openvla_compat",
-        "memory": MemoryConfig(capacity=2, grid=4),
+        "memory": MemoryConfig(capacity=2, grid=4, encoding=HistoryEncodingConfig()),
         "prompt": PromptConfig(template="{instruction}", suffix_token_id=5),
         "action_head": BinsActionHeadConfig(decode_rule="nearest"),
     },
 }
 
 
-def llm_section(attn: str) -> LLMConfig:
+def llm_section(attn: str) -> TinyLLMConfig:
     """The reduced-width LLM of tests/model/conftest.py's `small_config` with the given back-end."""
-    return LLMConfig(
+    return TinyLLMConfig(
         hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128, attn_implementation=attn
     )
 
@@ -94,5 +94,5 @@ def test_eager_and_sdpa_give_the_same_cached_decoding(agent_pair):
 
 def test_attention_implementation_is_checked():
     with pytest.raises(ValueError, match="attn_implementation='flash'"):
-        LLMConfig(attn_implementation="flash")
-    assert LLMConfig().attn_implementation == "sdpa"  # today's default
+        TinyLLMConfig(attn_implementation="flash")
+    assert TinyLLMConfig().attn_implementation == "sdpa"  # today's default

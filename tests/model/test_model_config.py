@@ -9,14 +9,17 @@ import pytest
 
 from openfly_agent.model.config import (
     LLAMA2_7B_ARCH,
-    TINY_LLM,
     BoxGroundingConfig,
     CellGroundingConfig,
     DinoSiglipVisionConfig,
-    LLMConfig,
+    DiscreteActionHeadConfig,
+    HistoryEncodingConfig,
+    Llama2LLMConfig,
     MemoryConfig,
     ModelConfig,
+    NoGroundingConfig,
     TinyCnnVisionConfig,
+    TinyLLMConfig,
     TinyVitVisionConfig,
     VisionConfig,
     make_model_config,
@@ -66,7 +69,9 @@ def test_validation_messages_say_what_to_change():
     with pytest.raises(ValueError, match="dinosiglip-224px needs image_size=224"):
         DinoSiglipVisionConfig(image_size=112)
     with pytest.raises(ValueError, match="action_head.type=openvla_bins"):
-        tiny_config(mode="openvla_compat")
+        tiny_config(memory=MemoryConfig(encoding=HistoryEncodingConfig()))
+    with pytest.raises(ValueError, match=r"box_token .* needs a head \(grounding.type=cells or box"):
+        tiny_config(grounding=NoGroundingConfig(), action_head=DiscreteActionHeadConfig(box_token=True))
     with pytest.raises(ValueError, match="unknown model preset"):
         make_model_config("huge")
 
@@ -84,11 +89,20 @@ def test_each_vision_variant_has_only_its_own_fields():
     assert big.vision == DinoSiglipVisionConfig() and big.vision.feature_dim == 2176
     with pytest.raises(TypeError, match="depth"):
         DinoSiglipVisionConfig(depth=24)
-    assert {name: getattr(tiny.llm, name) for name in TINY_LLM} == TINY_LLM
-    assert all(getattr(big.llm, name) is None for name in TINY_LLM)
-    assert big.llm.resolved_hidden_size == LLAMA2_7B_ARCH["hidden_size"] == 4096
-    with pytest.raises(ValueError, match=r"llm.hidden_size=4096 is read by the tiny preset only.*remove"):
-        LLMConfig(preset="llama2-7b", hidden_size=4096)
+
+
+def test_each_llm_variant_has_only_its_own_fields():
+    tiny, big = tiny_config().llm, openfly_7b_config().llm
+    assert type(tiny) is TinyLLMConfig and tiny.type == "tiny"
+    assert (tiny.hidden_size, tiny.num_layers, tiny.num_heads, tiny.intermediate_size) == (128, 2, 4, 344)
+    assert type(big) is Llama2LLMConfig and big.type == "llama2-7b" and not hasattr(big, "num_layers")
+    assert big.hidden_size == LLAMA2_7B_ARCH["hidden_size"] == 4096
+    assert big.architecture == LLAMA2_7B_ARCH and tiny.architecture["num_hidden_layers"] == 2
+    with pytest.raises(TypeError, match="hidden_size"):
+        Llama2LLMConfig(hidden_size=4096)
+    assert (big.default_vocab_size(None), tiny.default_vocab_size(600)) == (32064, 600 + 256)
+    with pytest.raises(ValueError, match="sizes its vocabulary from the tokenizer"):
+        tiny.default_vocab_size(None)
 
 
 def test_the_variants_serialise_under_type_and_parse_from_yaml_and_flags(tmp_path):
@@ -119,10 +133,11 @@ def test_config_json_of_older_7b_checkpoints_still_loads():
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
     old = config_to_dict(openfly_7b_config())
-    old["llm"].update(TINY_LLM)
+    old["llm"]["preset"] = old["llm"].pop("type")
+    old["llm"].update({"hidden_size": 128, "num_layers": 2, "num_heads": 4, "intermediate_size": 344})
     assert OpenFlyAgentConfig(agent=old).model_config == openfly_7b_config()
     old["llm"]["hidden_size"] = 64
-    with pytest.raises(ValueError, match="llm.hidden_size=64 is read by the tiny preset only"):
+    with pytest.raises(ValueError, match="`hidden_size` are not valid for Llama2LLMConfig"):
         OpenFlyAgentConfig(agent=old)
 
 
@@ -152,7 +167,6 @@ OLD_AGENT = {
 
 
 def test_an_old_flat_config_json_loads_as_its_variants():
-    from openfly_agent.model.config import DiscreteActionHeadConfig, LLMConfig
     from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
@@ -160,7 +174,7 @@ def test_an_old_flat_config_json_loads_as_its_variants():
     assert cfg.vision == TinyCnnVisionConfig()
     assert cfg.grounding == CellGroundingConfig()
     assert cfg.action_head == DiscreteActionHeadConfig(vocab_end=810)
-    assert cfg.llm == LLMConfig(vocab_size=810, pad_token_id=3)
+    assert cfg.llm == TinyLLMConfig(vocab_size=810, pad_token_id=3)
     upgraded = upgraded_model_dict(OLD_AGENT)
     assert upgraded["vision"]["type"] == "tiny-cnn" and upgraded["grounding"]["type"] == "cells"
     assert upgraded_model_dict(upgraded) == upgraded  # today's layout passes unchanged
@@ -169,3 +183,46 @@ def test_an_old_flat_config_json_loads_as_its_variants():
     on = {**OLD_AGENT, "grounding": {**OLD_AGENT["grounding"], "attribute_match": True}}
     with pytest.raises(RetiredOptionError, match="grounding.attribute_match was deleted.*7544758"):
         OpenFlyAgentConfig(agent=on)
+
+
+# The sections of a config.json written at 505bc83, before issue 46, that the upgrade changes: the LLM a preset
+# string (the tiny sizes filled in; null under llama2-7b), the memory encoding a top-level `mode`, the grounding
+# head switched by a boolean, the action head's `n_bins` (256, the only value it took) (the tiny run's step-50
+# checkpoint, vocabulary 864 with <pad> = 3).
+BASE_TINY_AGENT = {
+    "action_head": {
+        "box_token": None, "box_token_jitter": 0.05, "n_bins": 256, "stop_loss_weight": 1.0, "type": "discrete",
+        "vocab_end": 864,
+    },
+    "llm": {
+        "attn_implementation": "sdpa", "bos_token_id": 1, "eos_token_id": 2, "hidden_size": 128,
+        "intermediate_size": 344, "length_groups": 3, "max_length": 2048, "num_heads": 4, "num_layers": 2,
+        "pad_token_id": 3, "preset": "tiny", "tokenizer_path": None, "vocab_size": 864,
+    },
+    "grounding": {**config_to_dict(CellGroundingConfig()), "enabled": True},
+    "memory": {"capacity": 2, "grid": 8},
+    "mode": "openfly",
+}  # fmt: skip
+
+
+def test_a_config_json_of_before_the_llm_and_memory_variants_loads_the_same_model():
+    from openfly_agent.model.config_upgrade import upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    cfg = OpenFlyAgentConfig(agent=BASE_TINY_AGENT).model_config
+    assert cfg == tiny_config(
+        llm=TinyLLMConfig(vocab_size=864, pad_token_id=3), action_head=DiscreteActionHeadConfig(vocab_end=864)
+    )
+    assert upgraded_model_dict(BASE_TINY_AGENT)["llm"]["type"] == "tiny"
+    no_head = {**BASE_TINY_AGENT, "grounding": {**BASE_TINY_AGENT["grounding"], "enabled": False, "dim": 64}}
+    no_head["action_head"] = {"box_token": None}  # None: on when a head is enabled, so off
+    cfg = OpenFlyAgentConfig(agent=no_head).model_config
+    assert cfg.grounding == NoGroundingConfig() and cfg.grounding.type == "none" and not cfg.uses_box_token
+    released = config_to_dict(openvla_compat_7b_config())  # today's layout, then as 505bc83 wrote it
+    released["mode"] = "openvla_compat"
+    del released["memory"]["encoding"]
+    released["llm"]["preset"] = released["llm"].pop("type")
+    released["llm"].update(dict.fromkeys(("hidden_size", "num_layers", "num_heads", "intermediate_size")))
+    released["grounding"]["enabled"] = True
+    assert OpenFlyAgentConfig(agent=released).model_config == openvla_compat_7b_config()
+    assert upgraded_model_dict(upgraded_model_dict(released)) == upgraded_model_dict(released)

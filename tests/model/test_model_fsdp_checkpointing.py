@@ -43,7 +43,7 @@ def seven_b_like_agent(make_agent, small_config):
 
 def test_fsdp_style_checkpointing_gives_the_same_loss_and_gradients(make_agent, make_batch, small_config):
     agent = seven_b_like_agent(make_agent, small_config)
-    assert agent.model_cfg.vision.type == "tiny" and agent.model_cfg.llm.preset == "tiny"
+    assert agent.model_cfg.vision.type == "tiny" and agent.model_cfg.llm.type == "tiny"
     wrapped = copy.deepcopy(agent)
     # 2 decoder layers + the 2 ViTs' blocks (depth 3, pruned after block depth - 2: 2 blocks each)
     assert wrap_blocks_as_fsdp_does(wrapped) == 2 + 2 + 2

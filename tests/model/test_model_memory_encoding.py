@@ -1,4 +1,5 @@
-"""The memory encoding chosen once from the config (model/factory.py::make_memory_encoding, model/memory/)."""
+"""The memory encoding chosen once from the config (`memory.encoding.type`, model/factory.py::make_memory_encoding,
+model/memory/)."""
 
 from __future__ import annotations
 
@@ -13,15 +14,15 @@ from openfly_agent.model.memory.keyframes import KeyframeSelector
 
 
 @pytest.mark.parametrize(
-    ("mode", "encoding", "episode_memory"),
+    ("preset", "name", "encoding", "episode_memory"),
     [
-        ("openfly", KeyframeMemory, KeyframeEpisodeMemory),
-        ("openvla_compat", HistoryMemory, HistoryEpisodeMemory),
+        ("tiny", "keyframes", KeyframeMemory, KeyframeEpisodeMemory),
+        ("openvla-compat-7b", "openvla_history", HistoryMemory, HistoryEpisodeMemory),
     ],
 )
-def test_each_mode_picks_its_encoding(mode, encoding, episode_memory):
-    cfg = make_model_config("tiny" if mode == "openfly" else "openvla-compat-7b")  # sections only: cheap
-    assert cfg.mode == mode
+def test_each_encoding_variant_builds_its_encoding(preset, name, encoding, episode_memory):
+    cfg = make_model_config(preset)  # sections only: cheap
+    assert cfg.memory.encoding.type == name
     selector = KeyframeSelector.from_config(cfg.keyframes, cfg.memory.capacity)
     chosen = make_memory_encoding(cfg, selector)
     assert type(chosen) is encoding

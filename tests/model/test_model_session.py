@@ -11,6 +11,7 @@ from openfly_agent.model.config import (
     BinsActionHeadConfig,
     CellGroundingConfig,
     DiscreteActionHeadConfig,
+    HistoryEncodingConfig,
     KeyframeConfig,
     MemoryConfig,
     PromptConfig,
@@ -193,8 +194,7 @@ def test_bins_head_select_action(make_agent):
 
 def test_compat_mode_runs_the_released_layout(make_agent):
     agent = make_agent(
-        mode="openvla_compat",
-        memory=MemoryConfig(capacity=2, grid=4),
+        memory=MemoryConfig(capacity=2, grid=4, encoding=HistoryEncodingConfig()),
         prompt=PromptConfig(template="{instruction}", suffix_token_id=5),
         action_head=BinsActionHeadConfig(),
         norm_stats=NORM_STATS,

@@ -83,11 +83,7 @@ def test_the_recipe_stages_resolve_to_the_settings_they_were_measured_with():
     assert bare.model is None
     for stage_name in ("navigation", "dagger.train"):
         model = stage_train_config(bare, _stages(bare)[stage_name], stage_name).model
-        assert (model.grounding.enabled, model.vision.cnn_colour_stats, model.grounding.attribute_weight) == (
-            False,
-            True,
-            0.0,
-        )
+        assert (model.grounding.has_head, model.vision.cnn_colour_stats) == (False, True)
 
 
 def test_the_adopted_train_config_trains_the_recipe_model():

@@ -43,9 +43,9 @@ from openfly_agent.model.agent import OpenFlyAgent  # noqa: E402
 from openfly_agent.model.config import (  # noqa: E402
     CellGroundingConfig,
     DiscreteActionHeadConfig,
-    LLMConfig,
     MemoryConfig,
     TinyCnnVisionConfig,
+    TinyLLMConfig,
     TinyVitVisionConfig,
     tiny_config,
 )
@@ -65,7 +65,7 @@ MODELS = {
         vision=TinyVitVisionConfig(
             image_size=56, patch_size=14, width=32, fused_width=48, depth=3, num_heads=2
         ),
-        llm=LLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128, length_groups=1),
+        llm=TinyLLMConfig(hidden_size=64, num_layers=2, num_heads=2, intermediate_size=128, length_groups=1),
         grounding=CellGroundingConfig(dim=32, num_heads=2),
         memory=MemoryConfig(capacity=2, grid=2),
         action_head=DiscreteActionHeadConfig(box_token=False),

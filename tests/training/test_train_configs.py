@@ -51,7 +51,7 @@ def test_paper_recipe_values():
         0.0,
         1.0,
     )
-    assert (cfg.batch.global_batch_size, cfg.precision, cfg.model.llm.preset) == (128, "bf16", "llama2-7b")
+    assert (cfg.batch.global_batch_size, cfg.precision, cfg.model.llm.type) == (128, "bf16", "llama2-7b")
     lora = parse_config(TrainConfig, [], config_path=CONFIGS / "train" / "openfly-7b-lora.yaml")
     assert lora.use_lora and lora.freeze_stage == "lora" and lora.lora.rank == 32
     assert not cfg.use_lora
@@ -80,7 +80,7 @@ def test_a_section_file_lays_its_keys_over_the_config_and_options_still_win():
     ):
         model = parse_config(TrainConfig, ["--config_path", lora, *argv]).model
         assert (model.vision.type, model.vision.image_size, model.vision.patch_size) == ("tiny", 56, 14)
-        assert (model.llm.preset, model.memory.grid) == ("tiny", 2)
+        assert (model.llm.type, model.memory.grid) == ("tiny", 2)
         assert (model.llm.vocab_size, model.llm.pad_token_id, model.grounding.type) == (32064, 32000, "box")
     reduced = parse_config(TrainConfig, ["--config_path", lora, f"--model={file}"]).model
     assert reduced == importlib.import_module("bench.synthetic_openvla").model_config("reduced")
@@ -108,8 +108,8 @@ def test_accelerate_config_loads(path):
         ({"steps": None, "epochs": None}, "set `steps`"),
         ({"data": {"history": {"mode": "latest"}}}, "data.history.mode='latest'"),
         (
-            {"model": {"llm": {"preset": "llama2-7b", "hidden_size": 64}}},
-            "llm.hidden_size=64 is read by the tiny preset only",
+            {"model": {"llm": {"type": "llama2-7b", "hidden_size": 64}}},
+            "`hidden_size`, `num_layers`, `num_heads`, `intermediate_size` are not valid for Llama2LLMConfig",
         ),
         ({"optim": {"schedule": "step"}}, "optim.schedule='step'"),
     ],

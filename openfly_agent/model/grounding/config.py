@@ -12,19 +12,50 @@ from dataclasses import dataclass, field
 from draccus import ChoiceRegistry
 
 from openfly_agent.model.config_checks import check_positive
+from openfly_agent.model.config_choice import BuiltChoice
 
 GROUNDING_BOX = "box"  # the paper's box regression (model/grounding/head.py, the 7B presets)
 GROUNDING_CELLS = "cells"  # per-cell scoring (model/grounding/cells.py, the tiny preset)
+GROUNDING_NONE = "none"  # no head
 
 
 @dataclass
-class GroundingConfig(ChoiceRegistry):
-    """Landmark grounding head: learned queries cross-attend to the LLM hidden states and give the landmark's box.
+class GroundingConfig(BuiltChoice, ChoiceRegistry):
+    """Landmark grounding: `type` picks the head, `cells` (the default, `CellGroundingConfig`), `box`
+    (`BoxGroundingConfig`), or `none` (`NoGroundingConfig`: no head, no box and no grounding loss).
 
-    `type` picks the head: `cells` (the default, `CellGroundingConfig`) or `box` (`BoxGroundingConfig`).
+    `build(llm_dim, grid_side)` gives the head of the variant (model/grounding/head.py), None for `none`.
     """
 
-    enabled: bool = True
+    @classmethod
+    def default_choice_name(cls) -> str:
+        return GROUNDING_CELLS
+
+    @property
+    def type(self) -> str:
+        """The registered name of this head (`cells`, `box`, `none`)."""
+        return self.get_choice_name(type(self))
+
+    @property
+    def has_head(self) -> bool:
+        """Whether the model has a grounding head (every type but `none`)."""
+        return True
+
+
+@GroundingConfig.register_subclass(GROUNDING_NONE)
+@dataclass
+class NoGroundingConfig(GroundingConfig):
+    """`none`: no grounding head; the action is read right after the prompt (no box token)."""
+
+    @property
+    def has_head(self) -> bool:
+        return False
+
+
+@dataclass
+class GroundingHeadConfig(GroundingConfig):
+    """The fields of both heads: learned queries cross-attend to the LLM hidden states and give the landmark's box."""
+
     num_layers: int = 3
     num_queries: int = 1
     dim: int = 128  # 256 in the 7B preset
@@ -34,15 +65,6 @@ class GroundingConfig(ChoiceRegistry):
     visibility_weight: float = (
         0.5  # 0 disables the visibility logit's loss (predicted boxes then always count)
     )
-
-    @classmethod
-    def default_choice_name(cls) -> str:
-        return GROUNDING_CELLS
-
-    @property
-    def type(self) -> str:
-        """The registered name of this head (`cells`, `box`)."""
-        return self.get_choice_name(type(self))
 
     def __post_init__(self) -> None:
         for name in ("num_layers", "num_queries", "dim", "num_heads"):
@@ -58,13 +80,13 @@ class GroundingConfig(ChoiceRegistry):
 
 @GroundingConfig.register_subclass(GROUNDING_BOX)
 @dataclass
-class BoxGroundingConfig(GroundingConfig):
+class BoxGroundingConfig(GroundingHeadConfig):
     """`box`: the paper's head, an MLP regresses the box from the pooled queries (the 7B presets)."""
 
 
 @GroundingConfig.register_subclass(GROUNDING_CELLS)
 @dataclass
-class CellGroundingConfig(GroundingConfig):
+class CellGroundingConfig(GroundingHeadConfig):
     """`cells`: per-cell scoring of the current frame. The query starts from the last prompt token, FiLM-scores
     every cell, the box centre is the softmax-weighted cell centre plus an offset, and `cell_weight` x the
     cross-entropy of the cell holding the box centre joins the loss (model/grounding/cells.py)."""

@@ -5,7 +5,8 @@ Learned queries cross-attend (3 layers) to the LLM's last hidden states over the
 frame, plus a visibility logit (our addition: at inference an invisible landmark has no box, so no keyframe area).
 `grounding.type` picks the head: `box`, `BoxRegressionHead`, the paper's box regressed from the pooled queries
 (every 7B preset); `cells`, `CellGroundingHead` (model/grounding/cells.py, the tiny preset), which scores every cell
-of the frame's token grid and places the box centre from those scores. The loss is GIoU + L1 with a visibility
+of the frame's token grid and places the box centre from those scores; `none`, no head. Each variant registers its
+builder here (model/config_choice.py). The loss is GIoU + L1 with a visibility
 mask (+ the cell head's cell and attribute terms).
 """
 
@@ -16,7 +17,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from openfly_agent.model.grounding.cells import CellGroundingHead
-from openfly_agent.model.grounding.config import CellGroundingConfig, GroundingConfig
+from openfly_agent.model.grounding.config import (
+    BoxGroundingConfig,
+    CellGroundingConfig,
+    GroundingConfig,
+    GroundingHeadConfig,
+    NoGroundingConfig,
+)
 from openfly_agent.model.grounding.layers import GroundingOutput, QueryReader
 
 
@@ -28,7 +35,7 @@ class BoxRegressionHead(QueryReader):
         cfg: grounding section of the model config.
     """
 
-    def __init__(self, llm_dim: int, cfg: GroundingConfig) -> None:
+    def __init__(self, llm_dim: int, cfg: GroundingHeadConfig) -> None:
         super().__init__(llm_dim, cfg)
         self.box_mlp = nn.Sequential(nn.Linear(cfg.dim, cfg.dim), nn.GELU(), nn.Linear(cfg.dim, 4))
 
@@ -50,12 +57,25 @@ class BoxRegressionHead(QueryReader):
 GroundingHead = BoxRegressionHead | CellGroundingHead
 
 
-def make_grounding_head(llm_dim: int, cfg: GroundingConfig, grid_side: int) -> GroundingHead:
-    """The head `cfg.type` names: `CellGroundingHead` on the frame's grid_side x grid_side token grid (`cells`), or
-    the paper's `BoxRegressionHead` (`box`)."""
-    if isinstance(cfg, CellGroundingConfig):
-        return CellGroundingHead(llm_dim, cfg, grid_side)
-    return BoxRegressionHead(llm_dim, cfg)
+def make_grounding_head(llm_dim: int, cfg: GroundingConfig, grid_side: int) -> GroundingHead | None:
+    """The head `cfg.type` names, as its variant registered it: `CellGroundingHead` on the frame's grid_side x
+    grid_side token grid (`cells`), the paper's `BoxRegressionHead` (`box`), or None (`none`)."""
+    return cfg.build(llm_dim, grid_side)
+
+
+@CellGroundingConfig.register_builder
+def _cell_head(cfg: CellGroundingConfig, llm_dim: int, grid_side: int) -> CellGroundingHead:
+    return CellGroundingHead(llm_dim, cfg, grid_side)
+
+
+@BoxGroundingConfig.register_builder
+def _box_head(cfg: BoxGroundingConfig, llm_dim: int, grid_side: int) -> BoxRegressionHead:
+    return BoxRegressionHead(llm_dim, cfg)  # reads the pooled queries, not the grid
+
+
+@NoGroundingConfig.register_builder
+def _no_head(cfg: NoGroundingConfig, llm_dim: int, grid_side: int) -> None:
+    return None
 
 
 def cxcywh_to_xyxy(boxes: torch.Tensor) -> torch.Tensor:
@@ -89,7 +109,7 @@ def grounding_loss(
     output: GroundingOutput,
     target_boxes: torch.Tensor,
     visible: torch.Tensor,
-    cfg: GroundingConfig,
+    cfg: GroundingHeadConfig,
     attributes: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """GIoU + l1_weight * L1 on visible boxes (mean), + visibility_weight * BCE on every sample, + cell_weight *
@@ -149,7 +169,7 @@ def attribute_loss(
     target_boxes: torch.Tensor,
     visible: torch.Tensor,
     attributes: torch.Tensor,
-    cfg: GroundingConfig,
+    cfg: CellGroundingConfig,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Mean cross-entropy of each attribute (colour, type, size, feature) of the target, from the query on every
     row and from the token cell holding the target's centre on rows where it is visible (-1 ids are skipped).

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import initialization as init
 
-from openfly_agent.model.grounding.config import GroundingConfig
+from openfly_agent.model.grounding.config import GroundingHeadConfig
 
 
 class CrossAttentionLayer(nn.Module):
@@ -81,7 +81,7 @@ class QueryReader(nn.Module):
         cfg: grounding section of the model config.
     """
 
-    def __init__(self, llm_dim: int, cfg: GroundingConfig) -> None:
+    def __init__(self, llm_dim: int, cfg: GroundingHeadConfig) -> None:
         super().__init__()
         self.input_proj = nn.Linear(llm_dim, cfg.dim)
         self.box_queries = nn.Parameter(torch.zeros(cfg.num_queries, cfg.dim))

@@ -7,23 +7,14 @@ import inspect
 
 from torch import nn
 
-from openfly_agent.model.config import LLAMA2_7B_ARCH, LLM_LLAMA2_7B, LLMConfig
+from openfly_agent.model.config import Llama2LLMConfig, LLMConfig, TinyLLMConfig
 
 
 def llama_config(cfg: LLMConfig, vocab_size: int):
-    """The `transformers.LlamaConfig` of an LLM section (vocab_size resolved by the caller)."""
+    """The `transformers.LlamaConfig` of an LLM section (its variant's `architecture`; vocab_size resolved by the
+    caller)."""
     from transformers import LlamaConfig
 
-    if cfg.preset == LLM_LLAMA2_7B:
-        arch = dict(LLAMA2_7B_ARCH)
-    else:
-        arch = {
-            "hidden_size": cfg.hidden_size,
-            "intermediate_size": cfg.intermediate_size,
-            "num_hidden_layers": cfg.num_layers,
-            "num_attention_heads": cfg.num_heads,
-            "rms_norm_eps": 1e-5,
-        }
     config = LlamaConfig(
         vocab_size=vocab_size,
         max_position_embeddings=cfg.max_length,
@@ -31,14 +22,21 @@ def llama_config(cfg: LLMConfig, vocab_size: int):
         eos_token_id=cfg.eos_token_id,
         pad_token_id=cfg.pad_token_id,
         tie_word_embeddings=False,
-        **arch,
+        **cfg.architecture,
     )
     config._attn_implementation = cfg.attn_implementation
     return config
 
 
 def build_language_model(cfg: LLMConfig, vocab_size: int) -> nn.Module:
-    """A freshly initialised `LlamaForCausalLM` of the preset's architecture (no download, ever)."""
+    """The LM of an LLM section, as its variant registered it (`tiny` and `llama2-7b`: `llama_causal_lm`)."""
+    return cfg.build(vocab_size)
+
+
+@TinyLLMConfig.register_builder
+@Llama2LLMConfig.register_builder
+def llama_causal_lm(cfg: LLMConfig, vocab_size: int) -> nn.Module:
+    """A freshly initialised `LlamaForCausalLM` of the variant's architecture (no download, ever)."""
     from transformers import LlamaForCausalLM
 
     return LlamaForCausalLM(llama_config(cfg, vocab_size))

@@ -1,6 +1,6 @@
-"""The OpenVLA-compatible history (`openvla_compat` mode, the released model's layout): one token per past frame,
-DINO CLS ++ grid-pooled SigLIP patches, projected; online, the released model's 3-image input padded with the
-first frame."""
+"""The OpenVLA-compatible history (`memory.encoding.type: openvla_history`, the released model's layout): one token
+per past frame, DINO CLS ++ grid-pooled SigLIP patches, projected; online, the released model's 3-image input padded
+with the first frame."""
 
 from __future__ import annotations
 
@@ -10,9 +10,11 @@ from typing import Any
 import torch
 from torch import nn
 
+from openfly_agent.model.config import HistoryEncodingConfig, ModelConfig
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 from openfly_agent.model.memory.bank import grid_pool
 from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames, memory_frames
+from openfly_agent.model.memory.keyframes import KeyframeSelector
 
 
 @dataclass
@@ -94,3 +96,10 @@ class HistoryMemory(MemoryEncoding):
             keep = {0, *range(episode.step - self.capacity, episode.step)}
             memory.tokens = {i: t for i, t in memory.tokens.items() if i in keep}
             memory.current = None
+
+
+@HistoryEncodingConfig.register_builder
+def _history_memory(
+    encoding: HistoryEncodingConfig, cfg: ModelConfig, selector: KeyframeSelector
+) -> HistoryMemory:
+    return HistoryMemory(cfg.memory.capacity, cfg.memory.grid, cfg.llm.hidden_size)  # no keyframe selection

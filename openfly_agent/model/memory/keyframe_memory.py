@@ -1,4 +1,4 @@
-"""The keyframe memory (OpenFly mode): the last K keyframe sets, each merged into its largest-box frame,
+"""The keyframe memory (`memory.encoding.type: keyframes`, the default): the last K keyframe sets, each merged into its largest-box frame,
 grid-pooled and projected to LLM tokens; online, the sets the keyframe selector picks from the episode so far."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from openfly_agent.constants import MEMORY_BOX_VISIBLE, MEMORY_BOXES
-from openfly_agent.model.config import ModelConfig
+from openfly_agent.model.config import KeyframeEncodingConfig, ModelConfig
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
 from openfly_agent.model.memory.bank import MemoryBank, grid_pool
 from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames, memory_frames
@@ -142,3 +142,10 @@ class KeyframeMemory(MemoryEncoding):
         tokens = self.set_tokens(projector, features, frame_mask, boxes, frame_mask)  # (N, m, D)
         for row, (episode, frame_set) in enumerate(pending):
             episode.memory.bank.push(tuple(frame_set), tokens[row])
+
+
+@KeyframeEncodingConfig.register_builder
+def _keyframe_memory(
+    encoding: KeyframeEncodingConfig, cfg: ModelConfig, selector: KeyframeSelector
+) -> KeyframeMemory:
+    return KeyframeMemory(cfg, selector)

@@ -1,4 +1,7 @@
-"""Fused DINOv2 + SigLIP vision backbone built with timm: uint8 pixels -> fused per-patch features.
+"""The vision backbones and `build_vision_backbone`, which builds the one a vision section names: the fused
+DINOv2 + SigLIP ViTs built with timm (`DinoSiglipBackbone`, `TinyVitBackbone`), uint8 pixels -> fused per-patch
+features, or the small ResNet (`ConvVisionBackbone`, model/vision/conv.py). Each is registered as its variant's
+builder (model/config_choice.py).
 
 As Prismatic / OpenVLA: both ViTs read the output of their second-to-last block without the final norm
 (the later blocks, norms and SigLIP's attention-pool head are pruned, so they hold no parameters), and the
@@ -12,11 +15,11 @@ from torch import nn
 
 from openfly_agent.model.config import (
     DINOSIGLIP_TIMM_IDS,
-    VISION_DINOSIGLIP_224,
-    VISION_TINY_CNN,
+    DinoSiglipVisionConfig,
+    TinyVitVisionConfig,
     VisionConfig,
 )
-from openfly_agent.model.vision.conv import IMAGENET_MEAN, IMAGENET_STD, ConvVisionBackbone
+from openfly_agent.model.vision.conv import IMAGENET_MEAN, IMAGENET_STD  # conv.py registers `tiny-cnn`
 
 SIGLIP_MEAN = (0.5, 0.5, 0.5)
 SIGLIP_STD = (0.5, 0.5, 0.5)
@@ -24,46 +27,18 @@ SIGLIP_MLP_RATIO = 3.7362  # So400m's MLP width / embedding width, kept for the 
 
 
 def build_featurizers(cfg: VisionConfig, prune: bool = True) -> tuple[nn.Module, nn.Module]:
-    """The (DINO-style, SigLIP-style) timm ViTs of a preset, never with pretrained weights.
+    """The (DINO-style, SigLIP-style) timm ViTs of a ViT variant (its registered backbone's `featurizers`), never
+    with pretrained weights.
 
     Args:
-        cfg: vision section of the model config.
+        cfg: vision section of the model config (`tiny` or `dinosiglip-224px`).
         prune: drop the last block, the final norm and the pooling head (what the backbone uses); False gives
             the full architectures, whose extra keys the OpenVLA loader recognises as unused.
     """
-    if cfg.type == VISION_DINOSIGLIP_224:
-        import timm
-
-        dino = timm.create_model(DINOSIGLIP_TIMM_IDS[0], pretrained=False, num_classes=0, img_size=224)
-        siglip = timm.create_model(DINOSIGLIP_TIMM_IDS[1], pretrained=False, num_classes=0, img_size=224)
-    else:
-        dino, siglip = _tiny_featurizers(cfg)
+    dino, siglip = type(cfg).builder().featurizers(cfg)
     if prune:
         for vit in (dino, siglip):
             vit.prune_intermediate_layers(indices=[len(vit.blocks) - 2], prune_norm=True, prune_head=True)
-    return dino, siglip
-
-
-def _tiny_featurizers(cfg: VisionConfig) -> tuple[nn.Module, nn.Module]:
-    from timm.models.vision_transformer import VisionTransformer
-
-    common = {"img_size": cfg.image_size, "patch_size": cfg.patch_size, "depth": cfg.depth, "num_classes": 0}
-    dino = VisionTransformer(
-        embed_dim=cfg.width,
-        num_heads=cfg.num_heads,
-        init_values=1e-5,
-        reg_tokens=4,
-        no_embed_class=True,
-        **common,
-    )
-    siglip = VisionTransformer(
-        embed_dim=cfg.fused_width,
-        num_heads=cfg.num_heads,
-        mlp_ratio=SIGLIP_MLP_RATIO,
-        class_token=False,
-        global_pool="map",
-        **common,
-    )
     return dino, siglip
 
 
@@ -75,7 +50,8 @@ def _normalise(pixels: torch.Tensor, mean: tuple[float, ...], std: tuple[float, 
 
 
 class FusedVisionBackbone(nn.Module):
-    """`featurizer` (DINOv2-style) + `fused_featurizer` (SigLIP-style); normalises uint8 pixels itself.
+    """`featurizer` (DINOv2-style) + `fused_featurizer` (SigLIP-style); normalises uint8 pixels itself. Each ViT
+    variant subclasses it with its `featurizers`.
 
     Args:
         cfg: vision section of the model config.
@@ -85,6 +61,11 @@ class FusedVisionBackbone(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.featurizer, self.fused_featurizer = build_featurizers(cfg)
+
+    @staticmethod
+    def featurizers(cfg: VisionConfig) -> tuple[nn.Module, nn.Module]:
+        """The variant's two ViTs, whole (`build_featurizers` prunes them)."""
+        raise NotImplementedError
 
     @property
     def feature_dim(self) -> int:
@@ -132,11 +113,56 @@ class FusedVisionBackbone(nn.Module):
         return self.cfg.featurizer_widths[0]
 
 
+@DinoSiglipVisionConfig.register_builder
+class DinoSiglipBackbone(FusedVisionBackbone):
+    """`dinosiglip-224px`: the real timm architectures (weights come from a checkpoint, never downloaded)."""
+
+    @staticmethod
+    def featurizers(cfg: VisionConfig) -> tuple[nn.Module, nn.Module]:
+        import timm
+
+        dino = timm.create_model(DINOSIGLIP_TIMM_IDS[0], pretrained=False, num_classes=0, img_size=224)
+        siglip = timm.create_model(DINOSIGLIP_TIMM_IDS[1], pretrained=False, num_classes=0, img_size=224)
+        return dino, siglip
+
+
+@TinyVitVisionConfig.register_builder
+class TinyVitBackbone(FusedVisionBackbone):
+    """`tiny`: two small ViTs of the dinosiglip structure (registers and LayerScale / a MAP head)."""
+
+    @staticmethod
+    def featurizers(cfg: VisionConfig) -> tuple[nn.Module, nn.Module]:
+        from timm.models.vision_transformer import VisionTransformer
+
+        common = {
+            "img_size": cfg.image_size,
+            "patch_size": cfg.patch_size,
+            "depth": cfg.depth,
+            "num_classes": 0,
+        }
+        dino = VisionTransformer(
+            embed_dim=cfg.width,
+            num_heads=cfg.num_heads,
+            init_values=1e-5,
+            reg_tokens=4,
+            no_embed_class=True,
+            **common,
+        )
+        siglip = VisionTransformer(
+            embed_dim=cfg.fused_width,
+            num_heads=cfg.num_heads,
+            mlp_ratio=SIGLIP_MLP_RATIO,
+            class_token=False,
+            global_pool="map",
+            **common,
+        )
+        return dino, siglip
+
+
 def build_vision_backbone(cfg: VisionConfig) -> nn.Module:
-    """The backbone of a vision section: the fused ViTs (`dinosiglip-224px`, `tiny`) or the ResNet (`tiny-cnn`)."""
-    if cfg.type == VISION_TINY_CNN:
-        return ConvVisionBackbone(cfg)
-    return FusedVisionBackbone(cfg)
+    """The backbone of a vision section, as its variant registered it: `ConvVisionBackbone` (`tiny-cnn`),
+    `TinyVitBackbone` (`tiny`) or `DinoSiglipBackbone` (`dinosiglip-224px`)."""
+    return cfg.build()
 
 
 def encode_frames(

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from draccus import ChoiceRegistry
 
 from openfly_agent.model.config_checks import check_choice, check_positive
+from openfly_agent.model.config_choice import BuiltChoice
 
 VISION_DINOSIGLIP_224 = "dinosiglip-224px"
 VISION_TINY = "tiny"  # two small ViTs of the dinosiglip structure
@@ -29,11 +30,12 @@ CNN_STEMS = (CNN_STEM_RESNET, CNN_STEM_PATCH4)
 
 
 @dataclass
-class VisionConfig(ChoiceRegistry):
+class VisionConfig(BuiltChoice, ChoiceRegistry):
     """The vision backbone: uint8 frames -> one feature vector per cell of a square token grid.
 
-    `type` picks the backbone: `tiny-cnn` (the CPU default, `TinyCnnVisionConfig`), `tiny`
-    (`TinyVitVisionConfig`) or `dinosiglip-224px` (`DinoSiglipVisionConfig`). `image_size` and `resize` also
+    `type` picks the backbone: `tiny-cnn` (the CPU default, `TinyCnnVisionConfig`, built by `ConvVisionBackbone`),
+    `tiny` (`TinyVitVisionConfig`, `TinyVitBackbone`) or `dinosiglip-224px` (`DinoSiglipVisionConfig`,
+    `DinoSiglipBackbone`); `build()` gives the backbone (model/config_choice.py). `image_size` and `resize` also
     define the image preprocessing (the processor's image transform).
     """
 

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import initialization as init
 
-from openfly_agent.model.config import CNN_STEM_PATCH4, CNN_STRIDE, VisionConfig
+from openfly_agent.model.config import CNN_STEM_PATCH4, CNN_STRIDE, TinyCnnVisionConfig, VisionConfig
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)  # input normalisation (DINOv2 and the ResNet)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -75,6 +75,7 @@ def build_resnet(channels: tuple[int, ...], stem: str) -> nn.Module:
     return net
 
 
+@TinyCnnVisionConfig.register_builder
 class ConvVisionBackbone(nn.Module):
     """`featurizer` (a small ResNet) + `pos_embed`: uint8 pixels -> (N, P, C) cell features.
 
