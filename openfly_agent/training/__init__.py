@@ -11,7 +11,7 @@ from openfly_agent.utils.imports import lazy_exports
 _EXPORTS = {
     "TrainConfig": "config",
     "train": "trainer",
-    "TrainResult": "trainer",
+    "TrainResult": "finish",
     "PreflightError": "preflight",
     "CheckpointManager": "checkpoint",
 }
