@@ -110,9 +110,8 @@ def set_up(cfg: TrainConfig) -> Run:
     stop_after = forced_stop_step()  # tests and device checks only: an environment variable (stops.py)
     cfg, resume_from, setting_changes, val_warning = _checked(cfg)
     accelerator = make_accelerator(cfg)  # processes, precision, accumulation = global / (per device x world)
-    check_memory(
-        cfg, accelerator
-    )  # CUDA: the per-GPU estimate; refused here when it cannot fit, before any read
+    # CUDA: the per-GPU estimate; refused here when it cannot fit, before any read
+    check_memory(cfg, accelerator)
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
     if accelerator.is_main_process:
         checkpoints.remove_stale_staging()
