@@ -49,10 +49,15 @@ PY = "python"  # the interpreter running this file replaces it when a check runs
 TRAIN = [PY, "-m", "accelerate.commands.launch", "--config_file"]  # `accelerate launch`, this interpreter
 # the synthetic 7B LoRA step of the bench, batch 8, 5 steps (the levers checks add `--levers ...`)
 LORA_BENCH = [PY, "bench/train_throughput.py", "--configs", "7b-lora-bf16", "--batch", "8", "--steps", "5"]
-FULL_FT_BUDGET = [  # the full fine-tune through its first optimizer step only (a 7.5 B checkpoint is ~90 GB)
-    "--steps=1", "--stop_after_steps=1", "--batch.global_batch_size=2", "--batch.per_device_batch_size=2",
+FULL_FT_BUDGET = [  # the full fine-tune through its first optimizer step only (with FIRST_STEP_ONLY)
+    "--steps=1", "--batch.global_batch_size=2", "--batch.per_device_batch_size=2",
     "--validation.interval=0", "--validation.final_eval=false", "--logging.tracker=none", "--data.num_workers=2",
 ]  # fmt: skip
+
+
+# train.py's test-only stop (training/stops.py, STOP_AFTER_STEPS_ENV): exit after step 1 without the final save,
+# whose checkpoint of a 7.5 B full fine-tune is ~90 GB
+FIRST_STEP_ONLY = {"OPENFLY_STOP_AFTER_STEPS": "1"}
 
 
 STEP_PHASES = ("data", "forward", "backward", "optimizer", "other")  # training/step_timer.py's PHASES
@@ -78,6 +83,7 @@ class Check:
         timeout_s: killed with every process it started after this long.
         needs: checks that must have passed first.
         expect_rc: the exit code that passes.
+        env: environment variables it runs with, beside the offline switches every check gets.
         figures: reads the figures from (workdir, the command's stdout + stderr).
         stderr_pattern: exactly one stderr line must match it (a refusal is printed once).
         or_refused: a preflight refusal that passes too, printed once, with torchrun's exit code 1 (the table
@@ -89,6 +95,7 @@ class Check:
     timeout_s: int
     needs: tuple[str, ...] = ()
     expect_rc: int = 0
+    env: dict[str, str] = field(default_factory=dict)
     figures: Callable[[Path, str], dict] = lambda workdir, output: {}
     stderr_pattern: str | None = None
     or_refused: str | None = None
@@ -317,6 +324,7 @@ def all_checks(workdir: Path) -> list[Check]:
             120,
             needs=("dataset",),
             expect_rc=LAUNCHER_FAILED,
+            env=FIRST_STEP_ONLY,
             stderr_pattern=r"^train\.py: this run .* needs at least \d+ GiB per GPU",
         ),  # fmt: skip
         Check(
@@ -333,6 +341,7 @@ def all_checks(workdir: Path) -> list[Check]:
             ],
             300,
             needs=("openvla folder", "dataset"),
+            env=FIRST_STEP_ONLY,
             figures=fsdp_figures,
             or_refused=r"^train\.py: this run .* keeps at least \d+ GiB of model states in host memory",
         ),  # fmt: skip
@@ -393,7 +402,13 @@ def run_check(check: Check, workdir: Path, passed: dict[str, bool]) -> CheckResu
     if failed_inputs:
         return CheckResult(check.name, None, note=f"skipped: {', '.join(failed_inputs)} did not pass")
     command = [sys.executable if token == PY else token for token in check.command]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
+    env = {
+        **os.environ,
+        "HF_HUB_OFFLINE": "1",
+        "HF_DATASETS_OFFLINE": "1",
+        "TRANSFORMERS_OFFLINE": "1",
+        **check.env,
+    }
     env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")])
     start = time.perf_counter()
     try:
@@ -404,7 +419,8 @@ def run_check(check: Check, workdir: Path, passed: dict[str, bool]) -> CheckResu
     seconds = time.perf_counter() - start
     log = workdir / "logs" / f"{re.sub(r'[^a-z0-9]+', '-', check.name.lower()).strip('-')}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
-    log.write_text(f"$ {shlex.join(command)}\n# exit code {rc}\n{out}\n--- stderr ---\n{err}")
+    shown = [f"{name}={value}" for name, value in check.env.items()] + command
+    log.write_text(f"$ {shlex.join(shown)}\n# exit code {rc}\n{out}\n--- stderr ---\n{err}")
     if rc is None:
         return CheckResult(check.name, False, seconds, note=f"timed out after {check.timeout_s} s ({log})")
     ok = rc == check.expect_rc
@@ -487,7 +503,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown check(s) {unknown}; the checks: {[check.name for check in checks]}")
     if args.plan:
         for check in checks:
-            print(shlex.join(check.command))
+            print(shlex.join([f"{name}={value}" for name, value in check.env.items()] + check.command))
         return EXIT_OK
     if args.table:
         record = json.loads(Path(args.table).read_text())

@@ -29,7 +29,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--run", required=True, help="a training run folder (holds train_config.json)")
-    parser.add_argument("--split", nargs="+", default=None, help="default: the run's data.train_split")
+    parser.add_argument("--split", nargs="+", default=None, help="default: the train split")
     parser.add_argument("--history", nargs="+", default=["keyframes", "uniform"], choices=HISTORY_MODES)
     args = parser.parse_args()
 
@@ -38,17 +38,20 @@ def main() -> None:
     from openfly_agent.data.dataset import NavigationStepDataset  # lazy: torch
     from openfly_agent.model.memory.keyframes import KeyframeSelector  # lazy: the model package
     from openfly_agent.training.builder import load_splits  # lazy: torch and transformers
-    from openfly_agent.training.config import TrainConfig  # lazy: the training stack
+    from openfly_agent.training.config import (
+        TrainConfig,
+        without_removed_settings,
+    )  # lazy: the training stack
     from openfly_agent.utils.config import config_from_dict  # lazy: after the sys.path insert above
 
     config_path = Path(args.run) / C.TRAIN_CONFIG_NAME
     if not config_path.is_file():
         raise SystemExit(f"{args.run} is not a training run: no {C.TRAIN_CONFIG_NAME}")
-    cfg = config_from_dict(TrainConfig, json.loads(config_path.read_text()))
+    cfg = config_from_dict(TrainConfig, without_removed_settings(json.loads(config_path.read_text())))
     model = cfg.model
     selector = KeyframeSelector.from_config(model.keyframes, model.memory.capacity)
     splits = load_splits(cfg.data, cfg.model.grounding)
-    for split in args.split or [cfg.data.train_split]:
+    for split in args.split or [C.SPLIT_TRAIN]:
         if split not in splits.episodes:
             raise SystemExit(f"split {split!r} is not one of the run's splits {sorted(splits.episodes)}")
         for history in args.history:

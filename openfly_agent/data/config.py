@@ -74,12 +74,12 @@ class HistoryConfig:
 
 @dataclass
 class DataConfig:
-    """Where the dataset lives, its splits, and how samples are read and drawn from it.
+    """Where the dataset lives, its splits, and how samples are read and drawn from it. Training reads the `train`
+    split (and that of each `extra_train_roots` dataset).
 
     Attributes:
         root: dataset root (`traj/`, `Annotation/`, `meta/`), released OpenFly or generated; relative to the
             working directory.
-        train_split: the split training reads (one of constants.SPLITS).
         val_split: periodic validation and `checkpoint.keep_best` (what choices are made on). The default `val` is
             the generated datasets' validation split; a dataset without one (the released OpenFly data, datasets
             generated before it existed) validates on `test_seen` instead, with a warning in the run's log.
@@ -99,7 +99,6 @@ class DataConfig:
 
     # dataset root (relative to the working directory); the toolchain writes embedded-small there
     root: str = "outputs/datasets/embedded-small"
-    train_split: str = C.SPLIT_TRAIN
     val_split: str = C.SPLIT_VAL
     test_split: str = C.SPLIT_TEST_UNSEEN
     reader: ReaderOptions = field(default_factory=ReaderOptions)
@@ -117,7 +116,7 @@ class DataConfig:
             raise ValueError(f"data.instruction_fraction={self.instruction_fraction} must be in [0, 1)")
         if self.expressions_per_frame < 1:
             raise ValueError(f"data.expressions_per_frame={self.expressions_per_frame} must be >= 1")
-        for name in ("train_split", "val_split", "test_split"):
+        for name in ("val_split", "test_split"):
             value = getattr(self, name)
             if value not in C.SPLITS:
                 raise ValueError(f"data.{name}={value!r}: choose one of {C.SPLITS}")

@@ -195,7 +195,7 @@ def make_step_dataset(
 
     Args:
         cfg: dataset root, reader options, history mode, frame caches.
-        split: which split (e.g. `cfg.train_split`).
+        split: which split (e.g. `constants.SPLIT_TRAIN`).
         capacity: K, memory sets per sample (the model's `memory.capacity`).
         set_size: S, frames per set (the model's keyframe set size).
         keyframe_selector: required when `cfg.history.mode == "keyframes"`.

@@ -187,7 +187,7 @@ class TinyLLMConfig(LLMConfig):
 @dataclass
 class Llama2LLMConfig(LLMConfig):
     """`llama2-7b`: Llama-2-7B's architecture (`LLAMA2_7B_ARCH`); the weights always come from a checkpoint and
-    the tokenizer from `tokenizer_path` (or `--tokenizer.path`)."""
+    the tokenizer from `tokenizer_path`."""
 
     @property
     def architecture(self) -> dict[str, int | float]:

@@ -10,6 +10,7 @@ from openfly_agent.utils.imports import lazy_exports
 
 _EXPORTS = {  # what train.py imports
     "train": "trainer",
+    "TrainResult": "finish",
     "PreflightError": "preflight",
 }
 

@@ -43,7 +43,7 @@ def make_accelerator(cfg: TrainConfig) -> Accelerator:
     """
     accumulation = check_batch(cfg.batch, world_size(cfg.cpu))
     output_dir = Path(cfg.output_dir)
-    run_name = cfg.logging.run_name or output_dir.name
+    run_name = output_dir.name  # the run's name in its trackers
     accelerator = Accelerator(
         cpu=use_cpu(cfg.cpu),
         mixed_precision=cfg.precision,

@@ -90,21 +90,21 @@ def load_splits(data: DataConfig, grounding: GroundingConfig) -> Splits:
     """Read the train, validation and test splits (and the train splits of `data.extra_train_roots`), with the
     target attributes when the `grounding` head learns them; a bad record or unreadable frames is a
     `PreflightError`."""
-    names = dict.fromkeys((data.train_split, data.val_split, data.test_split))
+    names = dict.fromkeys((C.SPLIT_TRAIN, data.val_split, data.test_split))
     episodes = {split: load_split(data, split) for split in names}
     frames = FrameStore(data.root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
-    check_frames_readable(frames, episodes[data.train_split])
+    check_frames_readable(frames, episodes[C.SPLIT_TRAIN])
     attributes = attribute_lookup(grounding, data.root)
     if not data.extra_train_roots:
         return Splits(episodes, frames, attributes)
     stores = [(frames, [e for split in names for e in episodes[split]])]
     for root in data.extra_train_roots:
-        extra = load_split(dataclasses.replace(data, root=root), data.train_split)
+        extra = load_split(dataclasses.replace(data, root=root), C.SPLIT_TRAIN)
         store = FrameStore(root, cache_episodes=data.cache_episodes, cache_frames=data.cache_frames)
         check_frames_readable(store, extra)
         logger.info("%d more train episodes from %s", len(extra), root)
         stores.append((store, extra))
-        episodes[data.train_split] = episodes[data.train_split] + extra
+        episodes[C.SPLIT_TRAIN] = episodes[C.SPLIT_TRAIN] + extra
     try:
         return Splits(episodes, FrameStores(stores), attributes)
     except ValueError as err:  # an episode id in two roots
@@ -134,7 +134,7 @@ def prepare_agent(
 ) -> OpenFlyAgent:
     """The agent to train: tokenizer, norm stats and checkpoints checked first, then built (or loaded), with
     the freeze stage or LoRA adapters and gradient checkpointing applied."""
-    train_episodes = splits.episodes[cfg.data.train_split]
+    train_episodes = splits.episodes[C.SPLIT_TRAIN]
     tokenizer = resolve_tokenizer(cfg, train_episodes, accelerator)
     norm_stats = None
     if cfg.model.action_head.type == HEAD_OPENVLA_BINS:
@@ -161,15 +161,13 @@ def make_parameters_contiguous(module: torch.nn.Module) -> None:
 
 def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accelerator):
     """The run's tokenizer (order in `TokenizerConfig`); a trained one is written by rank 0 first."""
-    for field_name, path in (
-        ("tokenizer.path", cfg.tokenizer.path),
-        ("model.llm.tokenizer_path", cfg.model.llm.tokenizer_path),
-    ):
-        if path and not Path(path).is_dir():
-            raise PreflightError(
-                f"--{field_name} {path} is not a folder: pass a local tokenizer folder (nothing is downloaded)"
-            )
-    candidates = [cfg.tokenizer.path, cfg.model.llm.tokenizer_path]
+    path = cfg.model.llm.tokenizer_path
+    if path and not Path(path).is_dir():
+        raise PreflightError(
+            f"--model.llm.tokenizer_path {path} is not a folder: pass a local tokenizer folder (nothing is "
+            "downloaded)"
+        )
+    candidates = [path]
     if cfg.init.checkpoint and Path(cfg.init.checkpoint).exists():  # a run folder: its `last` checkpoint
         init_folder = init_checkpoint_folder(cfg.init.checkpoint)
         if (init_folder / "tokenizer_config.json").is_file():
@@ -180,8 +178,8 @@ def resolve_tokenizer(cfg: TrainConfig, train_episodes: list, accelerator: Accel
         return load_tokenizer(folder)
     if not cfg.model.llm.trains_own_tokenizer and not (own / "tokenizer_config.json").is_file():
         raise PreflightError(
-            f"llm.type={cfg.model.llm.type} needs its tokenizer: set --tokenizer.path or "
-            "--model.llm.tokenizer_path to a local folder (nothing is downloaded)"
+            f"llm.type={cfg.model.llm.type} needs its tokenizer: set --model.llm.tokenizer_path to a "
+            "local folder (nothing is downloaded)"
         )
     with accelerator.main_process_first():
         if not (own / "tokenizer_config.json").is_file():
@@ -207,10 +205,8 @@ def init_checkpoint_folder(path: str) -> Path:
         raise PreflightError(f"init.checkpoint: {err}") from None
 
 
-def detect_init_format(folder: Path, requested: str) -> str:
-    """`openfly` when config.json carries our model_type, else `openvla` (or what the config asks)."""
-    if requested != "auto":
-        return requested
+def detect_init_format(folder: Path) -> str:
+    """`openfly` when config.json carries our model_type, else `openvla`."""
     config = folder / C.CONFIG_NAME
     if not config.is_file():
         raise PreflightError(
@@ -234,7 +230,7 @@ def check_init_checkpoint(
         check_weights_readable(folder)
     except UnreadableWeightsError as err:
         raise PreflightError(f"init.checkpoint: {err}") from None
-    fmt = detect_init_format(folder, init.format)
+    fmt = detect_init_format(folder)
     if init.matching and fmt != FORMAT_OURS:
         raise PreflightError(f"init.matching loads checkpoints of ours; {folder} is an {fmt} checkpoint")
     if fmt == FORMAT_OURS and not init.matching:

@@ -6,6 +6,7 @@ torch. YAML files in `configs/train/` override the defaults; `--a.b=c` flags ove
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 from openfly_agent.constants import STAGE_GROUNDING, STAGE_NAVIGATION, STAGE_RL
@@ -17,9 +18,32 @@ STAGES = (STAGE_GROUNDING, STAGE_NAVIGATION, STAGE_RL)
 SCHEDULES = ("constant", "cosine", "linear")
 HORIZONS = ("steps", "time")  # where the lr decay ends: the step budget, or whichever of steps and time first
 TRACKERS = ("tensorboard", "wandb", "none")
-INIT_FORMATS = ("auto", "openfly", "openvla")
 # what `checkpoint.keep_best` may follow: the validation figures (training/evaluate.py); a loss is best lowest
 KEEP_BEST_METRICS = ("val/loss", "val/action_accuracy", "val/box_iou")
+
+
+# Settings that left the training config and what took their place. A run's stored train_config.json that holds
+# one reads without it (`without_removed_settings`); a resume compares only the settings both configs have.
+REMOVED_SETTINGS = {
+    "stop_after_steps": "the test-only OPENFLY_STOP_AFTER_STEPS environment variable (training/stops.py)",
+    "tokenizer.path": "model.llm.tokenizer_path",
+    "init.format": "read from the folder's config.json",
+    "data.train_split": "the train split",
+    "logging.run_name": "the output folder's name",
+}
+
+
+def without_removed_settings(stored: dict) -> dict:
+    """A stored training config (as `utils.config.config_to_dict` wrote it) without the `REMOVED_SETTINGS`."""
+    out = copy.deepcopy(stored)
+    for dotted in REMOVED_SETTINGS:
+        *sections, name = dotted.split(".")
+        node = out
+        for section in sections:
+            node = node.get(section) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(name, None)
+    return out
 
 
 class BatchSizeError(ValueError):
@@ -33,14 +57,13 @@ def _require(condition: bool, message: str) -> None:
 
 @dataclass
 class TokenizerConfig:
-    """Where the text tokenizer comes from.
+    """The tokenizer a tiny-LLM run trains when it has none.
 
-    Order: `path` if set; else the model's `llm.tokenizer_path`; else the init checkpoint's folder when it has
-    tokenizer files; else `<output_dir>/tokenizer` from an earlier run; else (tiny LLM only) a BPE tokenizer
-    trained on the train split's instructions and saved there.
+    Where the text tokenizer comes from, in order: the model's `llm.tokenizer_path`; else the init checkpoint's
+    folder when it has tokenizer files; else `<output_dir>/tokenizer` from an earlier run; else (tiny LLM only)
+    a BPE tokenizer trained on the train split's instructions and saved there.
     """
 
-    path: str | None = None  # a local tokenizer folder (None: see the order above)
     train_vocab_size: int = 1024  # BPE vocabulary when one is trained
 
     def __post_init__(self) -> None:
@@ -55,16 +78,13 @@ class InitConfig:
     `matching` loads every tensor of one of our checkpoints whose name and shape the configured model shares and
     leaves the rest freshly initialised, listing both: how a stage starts from the previous one (the navigation
     stage from the grounding stage, a DAgger round from the navigation stage) when the model gains modules.
+    The format is read from the folder: ours when its config.json has our `model_type`, else OpenVLA's.
     """
 
     checkpoint: str | None = (
         None  # an OpenFly-Agent / OpenVLA HF folder, or one of our checkpoints (run folders too)
     )
-    format: str = "auto"  # auto (ours if config.json has our model_type) | openfly | openvla
     matching: bool = False  # ours only: load the tensors of matching name and shape, list the new ones
-
-    def __post_init__(self) -> None:
-        _require(self.format in INIT_FORMATS, f"init.format={self.format!r}: choose one of {INIT_FORMATS}")
 
 
 @dataclass
@@ -151,11 +171,11 @@ class LoraTrainingConfig(LoraSettings):
 
 @dataclass
 class LoggingConfig:
-    """Trackers (a `metrics.jsonl` is always written) and how often the train metrics are logged."""
+    """Trackers (a `metrics.jsonl` is always written) and how often the train metrics are logged. A run's name
+    in its trackers is its output folder's name."""
 
     tracker: str = "tensorboard"  # tensorboard | wandb | none
     project: str = "openfly-agent"  # tracker project name (W&B project, TensorBoard run group)
-    run_name: str | None = None  # None: the output folder's name
     log_interval: int = 10  # optimizer steps between log lines
 
     def __post_init__(self) -> None:
@@ -281,7 +301,6 @@ class TrainConfig:
     epochs: float | None = 1.0  # passes over the train split, used when `steps` is null
     # also stop (and save) once this much training time has passed, counted over resumes
     time_limit_minutes: float | None = None
-    stop_after_steps: int | None = None  # tests: exit after this step WITHOUT the final save (a crash)
     # run folder (checkpoints/, logs/, tokenizer/), relative to the working directory
     output_dir: str = "outputs/train/tiny"
     seed: int = 7  # model init, data order and augmentation

@@ -114,7 +114,7 @@ def check_dataset_root(data: DataConfig) -> None:
             f"--output_dir={root}), or download the released OpenFly data as {C.RELEASED_DATA_CARD} says and "
             "pass its folder as --data.root"
         )
-    for split in dict.fromkeys((data.train_split, data.val_split, data.test_split)):
+    for split in dict.fromkeys((C.SPLIT_TRAIN, data.val_split, data.test_split)):
         if not annotation_path(root, split).is_file() and not part_files(root, split):
             raise PreflightError(
                 f"dataset {root} has no annotation for split {split!r}: "

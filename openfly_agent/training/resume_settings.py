@@ -33,7 +33,7 @@ CONFIG_CHANGES_NAME = "config_changes.jsonl"
 # Dotted keys (or sections, ending in ".") a resume may change: they decide how long the run goes, what is
 # logged, validated and saved, and where and with which resources it runs, not what a step learns.
 RESUMABLE_KEYS = (
-    "steps", "epochs", "time_limit_minutes", "stop_after_steps", "resume", "output_dir", "cpu",
+    "steps", "epochs", "time_limit_minutes", "resume", "output_dir", "cpu",
     "gradient_checkpointing", "compile_layers", "optim.fused_adamw", "batch.per_device_batch_size", "logging.",
     "validation.", "checkpoint.",
     "data.num_workers", "data.cache_episodes", "data.cache_frames", "data.val_split", "lora.merge_at_end",

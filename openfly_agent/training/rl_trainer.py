@@ -34,7 +34,7 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
-from openfly_agent.data.generation_settings import generation_settings
+from openfly_agent.data.generation_settings import read_generation_settings
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import HEAD_DISCRETE
 from openfly_agent.rollout.profiles import MetricProfile, get_profile
@@ -58,7 +58,7 @@ from openfly_agent.training.rl_loss import action_log_probs, group_advantages, r
 from openfly_agent.training.rl_rollouts import Rollout, collect_groups, step_sample
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.state import TrainerState
-from openfly_agent.training.stops import StopFlags
+from openfly_agent.training.stops import STOP_AFTER_STEPS_ENV, StopFlags, forced_stop_step
 from openfly_agent.training.trackers import start_trackers
 from openfly_agent.utils.progress import progress_bar
 
@@ -93,15 +93,15 @@ def check_rl_run(cfg: TrainConfig, splits: Splits, num_processes: int) -> Metric
         profile = get_profile(cfg.rl.profile)
     except (KeyError, ValueError) as err:
         raise PreflightError(f"rl.profile: {err}") from err
-    train = splits.episodes[cfg.data.train_split]
+    train = splits.episodes[C.SPLIT_TRAIN]
     if len(train) < cfg.rl.episodes_per_update:
         raise PreflightError(
-            f"rl.episodes_per_update={cfg.rl.episodes_per_update} but {cfg.data.train_split} has {len(train)} episodes"
+            f"rl.episodes_per_update={cfg.rl.episodes_per_update} but {C.SPLIT_TRAIN} has {len(train)} episodes"
         )
     foreign = sorted({e.scene_id for e in train if not is_embedded_scene(e.scene_id)})
     if foreign:
         raise PreflightError(
-            f"stage=rl flies the embedded city; {cfg.data.train_split} has other scenes ({', '.join(foreign[:3])})"
+            f"stage=rl flies the embedded city; {C.SPLIT_TRAIN} has other scenes ({', '.join(foreign[:3])})"
         )
     return profile
 
@@ -109,19 +109,19 @@ def check_rl_run(cfg: TrainConfig, splits: Splits, num_processes: int) -> Metric
 def embedded_env(cfg: TrainConfig, splits: Splits, profile: MetricProfile) -> VectorSimulator:
     """`rl.num_envs` embedded simulators rebuilding the dataset's cities at its frame size; a collision ends the
     flight when the profile fails it (no step is flown that the reward would not see)."""
-    generated = generation_settings(cfg.data.root) or {}
-    if "width" in generated and "height" in generated:
-        height, width = int(generated["height"]), int(generated["width"])
+    generated = read_generation_settings(cfg.data.root)
+    if generated is not None:
+        height, width = generated.height, generated.width
     else:
-        first = splits.episodes[cfg.data.train_split][0]
+        first = splits.episodes[C.SPLIT_TRAIN][0]
         height, width = splits.frames.frame(first, 0).shape[:2]
+    city = {"city": city_config(generated.city_size_m, generated.city_buildings)} if generated else {}
     sim_cfg = EmbeddedSimConfig(
         width=width,
         height=height,
-        city=city_config(generated),
         collision="end" if profile.collision_policy == "end_fail" else "count",
-        voxel_size=float(generated.get("collision_voxel_m", 2.0)),
         max_cached_scenes=max(4, cfg.rl.num_envs),
+        **city,
     )
     return VectorSimulator.embedded(sim_cfg, num_envs=cfg.rl.num_envs)
 
@@ -186,7 +186,7 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
     )
     rl = cfg.rl
     max_steps = rl.max_steps or profile.max_steps
-    train_episodes = splits.episodes[cfg.data.train_split]
+    train_episodes = splits.episodes[C.SPLIT_TRAIN]
     unwrapped = accelerator.unwrap_model(model)
     batches = StepBatches(unwrapped, cfg)
     action_ids = torch.tensor(unwrapped.action_tokenizer.discrete_token_ids, device=accelerator.device)
@@ -204,6 +204,7 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
     env = embedded_env(cfg, splits, profile) if owned else env
     progress = progress_bar(total=cfg.steps, initial=state.step, desc="rl")
     stops = StopFlags(accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
+    forced_stop = forced_stop_step()  # tests only: None unless OPENFLY_STOP_AFTER_STEPS is set
     reason = None
     with env if owned else contextlib.nullcontext(), progress, stops, closing_trackers(accelerator):
         while state.step < cfg.steps and reason is None:
@@ -240,8 +241,8 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
                 state.train_seconds = int(stops.elapsed_s())
                 last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
                 saved_step = state.step
-            if cfg.stop_after_steps is not None and state.step >= cfg.stop_after_steps:
-                logger.warning("stop_after_steps=%d reached: exiting without the final save", state.step)
+            if forced_stop is not None and state.step >= forced_stop:  # the test-only stop: a crash
+                logger.warning("%s=%d reached: exiting without the final save", STOP_AFTER_STEPS_ENV, state.step)
                 return RLRun(state, last_checkpoint, True, unwrapped, accelerator.is_main_process)
             reason = stops.reason() if state.step < cfg.steps else None
         progress.close()

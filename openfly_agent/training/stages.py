@@ -58,7 +58,7 @@ def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
     data = cfg.data
     if cfg.stage != STAGE_GROUNDING:
         return StageData(
-            train=splits.dataset(data.train_split, cfg, agent),
+            train=splits.dataset(C.SPLIT_TRAIN, cfg, agent),
             val=splits.dataset(data.val_split, cfg, agent),
             test=splits.dataset(data.test_split, cfg, agent),
             collate=NavigationCollator(
@@ -83,10 +83,10 @@ def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
     )
     targets = {
         split: InstructionTargets(splits.dataset(split, cfg, agent, history="none"))
-        for split in dict.fromkeys((data.train_split, data.val_split, data.test_split))
+        for split in dict.fromkeys((C.SPLIT_TRAIN, data.val_split, data.test_split))
     }
     return StageData(
-        train=GroundingMixture(expressions, targets[data.train_split], data.instruction_fraction),
+        train=GroundingMixture(expressions, targets[C.SPLIT_TRAIN], data.instruction_fraction),
         val=targets[data.val_split],
         test=targets[data.test_split],
         collate=GroundingCollator(agent.processor),

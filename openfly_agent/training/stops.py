@@ -1,8 +1,10 @@
-"""When a run stops before its last step: the time limit or a preemption signal, agreed on by every process."""
+"""Why a run's loop ends: its last step, the time limit or a preemption signal (agreed on by every process), or
+the test-only stop of `OPENFLY_STOP_AFTER_STEPS`."""
 
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
 import time
@@ -11,9 +13,28 @@ from typing import Any
 import torch
 from accelerate import Accelerator
 
+from openfly_agent.training.preflight import PreflightError
+
 logger = logging.getLogger(__name__)
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)  # cluster preemption notices (SLURM `--signal`)
+
+# Why the loop ended (training/after_step.py): the configured steps are done, the time limit, a stop signal, or
+# the test-only stop below (no final save).
+DONE, TIME, SIGNAL, TEST_STOP = "done", "time", "signal", "test stop"
+# Tests and device checks only, never a user setting: exit after this optimizer step WITHOUT the final save, as a
+# crash would (the resume tests; bench/gpu_check.py's first step of a full fine-tune, whose checkpoint is ~90 GB).
+STOP_AFTER_STEPS_ENV = "OPENFLY_STOP_AFTER_STEPS"
+
+
+def forced_stop_step() -> int | None:
+    """The step of the test-only stop (`OPENFLY_STOP_AFTER_STEPS`), None when the variable is unset or empty."""
+    value = os.environ.get(STOP_AFTER_STEPS_ENV, "")
+    if not value:
+        return None
+    if not value.isdigit() or int(value) < 1:
+        raise PreflightError(f"{STOP_AFTER_STEPS_ENV}={value!r}: use a step >= 1, or unset it")
+    return int(value)
 
 
 class StopFlags:
@@ -80,7 +101,7 @@ class StopFlags:
             logger.warning("%s received: stopping %s (the checkpoint is saved)", self.signal_name, self.stage)
 
     def reason(self) -> str | None:
-        """'signal' or 'time' when any process must stop now, else None (one all-reduce per call)."""
+        """SIGNAL or TIME when any process must stop now, else None (one all-reduce per call)."""
         self._say_signal()
         elapsed = self.elapsed_s()
         if self.accelerator.num_processes == 1:  # nothing to agree on: no tensor, no device sync per step
@@ -97,4 +118,4 @@ class StopFlags:
         if self.limit_s is not None:
             self.used_fraction = min(elapsed / self.limit_s, 1.0)
         time_up = self.limit_s is not None and elapsed >= self.limit_s
-        return "signal" if signalled else "time" if time_up else None
+        return SIGNAL if signalled else TIME if time_up else None

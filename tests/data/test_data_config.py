@@ -20,7 +20,7 @@ def test_yaml_configs_parse(name):
     cfg = load_yaml_config(
         DataConfig, CONFIGS / f"{name}.yaml", ["--history.mode=uniform", "--reader.strict=false"]
     )
-    assert cfg.history.mode == "uniform" and cfg.reader.strict is False and cfg.train_split == "train"
+    assert cfg.history.mode == "uniform" and cfg.reader.strict is False
 
 
 def test_validation_reads_the_val_split_by_default_never_a_test_split():
@@ -43,7 +43,7 @@ def test_make_step_dataset(tmp_path):
     writer.write_episode(episode, make_frames(len(episode)))
     writer.finalize()
     cfg = DataConfig(root=str(tmp_path), history=HistoryConfig(mode="uniform"))
-    dataset = make_step_dataset(cfg, cfg.train_split, capacity=2, set_size=5)  # trim (default): 9, 2, 0
+    dataset = make_step_dataset(cfg, "train", capacity=2, set_size=5)  # trim (default): 9, 2, 0
     assert (
         len(dataset) == 3
         and dataset[0]["action"] == 9

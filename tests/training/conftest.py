@@ -87,13 +87,19 @@ def reset_accelerate() -> None:
     GradientState._reset_state()
 
 
-def train_in_process(cfg):
-    """`training.train(cfg)` in this process; returns its `TrainResult`."""
+def train_in_process(cfg, stop_after: int | None = None):
+    """`training.train(cfg)` in this process; returns its `TrainResult`. `stop_after`: the test-only stop
+    (`OPENFLY_STOP_AFTER_STEPS`, training/stops.py): exit after that step without the final save, as a crash."""
+    from unittest import mock
+
+    from openfly_agent.training.stops import STOP_AFTER_STEPS_ENV
     from openfly_agent.training.trainer import train
 
+    env = {} if stop_after is None else {STOP_AFTER_STEPS_ENV: str(stop_after)}
     reset_accelerate()
     try:
-        return train(cfg)
+        with mock.patch.dict(os.environ, env):
+            return train(cfg)
     finally:
         reset_accelerate()
 

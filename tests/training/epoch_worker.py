@@ -37,7 +37,7 @@ def describe(samples: list[dict]) -> list[tuple[str, int, str]]:
 
 
 def make_dataset(cfg: TrainConfig) -> NavigationStepDataset:
-    episodes = load_openfly_dataset(cfg.data.root, cfg.data.train_split, cfg.data.reader)
+    episodes = load_openfly_dataset(cfg.data.root, C.SPLIT_TRAIN, cfg.data.reader)
     return NavigationStepDataset(
         episodes,
         FrameStore(cfg.data.root),

@@ -54,11 +54,11 @@ def test_navigation_batches_carry_the_targets_attributes(generated_dataset, tmp_
 
     cfg = _attribute_run(generated_dataset, tmp_path / "run")
     splits = _read_splits(cfg)
-    step = splits.dataset(cfg.data.train_split, cfg, built_agent(cfg))[0]
+    step = splits.dataset(C.SPLIT_TRAIN, cfg, built_agent(cfg))[0]
     lookup = LandmarkAttributes.for_dataset(generated_dataset)
-    episode = splits.episodes[cfg.data.train_split][0]
+    episode = splits.episodes[C.SPLIT_TRAIN][0]
     assert step[C.TARGET_ATTRIBUTES].tolist() == lookup(episode.scene_id, episode.landmark_ids[-1]).tolist()
-    batch = split_batch(cfg, built_agent(cfg), cfg.data.train_split, [0, 1, 2])
+    batch = split_batch(cfg, built_agent(cfg), C.SPLIT_TRAIN, [0, 1, 2])
     assert batch[C.TARGET_ATTRIBUTES].shape == (3, 4) and bool((batch[C.TARGET_ATTRIBUTES] >= 0).all())
 
 

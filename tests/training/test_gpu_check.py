@@ -40,14 +40,19 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
     from openfly_agent.eval.config import EvalConfig
     from openfly_agent.toolchain.__main__ import _parse_generate
     from openfly_agent.training.cli import parse_args
+    from openfly_agent.training.stops import STOP_AFTER_STEPS_ENV
     from openfly_agent.utils.config import parse_config
 
     done = run_gpu_check("--plan", "--workdir", str(tmp_path))
     assert done.returncode == 0, done.stderr
     commands = [shlex.split(line) for line in done.stdout.splitlines()]
-    assert len(commands) == 8 and all(c[0] == "python" for c in commands)
+    envs = [
+        dict(t.split("=", 1) for t in c[: c.index("python")]) for c in commands
+    ]  # `NAME=value python ...`
+    commands = [c[c.index("python") :] for c in commands]
+    assert len(commands) == 8
     parsed = {"train": [], "eval": [], "generate": [], "bench": []}
-    for tokens in commands:
+    for tokens, env in zip(commands, envs):
         if tokens[1:3] == ["-m", "accelerate.commands.launch"]:
             launch = launch_command_parser().parse_args(tokens[3:])
             assert (REPO_ROOT / launch.config_file).is_file() and launch.training_script == "train.py"
@@ -57,7 +62,7 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
             assert cfg.init.checkpoint == str(tmp_path / "openvla-7b") and cfg.data.root == str(
                 tmp_path / "data"
             )
-            parsed["train"].append((Path(launch.config_file).name, cfg))
+            parsed["train"].append((Path(launch.config_file).name, cfg, env))
         elif tokens[1] == "eval.py":
             cfg = parse_config(EvalConfig, tokens[2:])
             assert cfg.checkpoint == str(tmp_path / "lora") and cfg.max_episodes == 4
@@ -74,11 +79,20 @@ def test_the_plan_parses_against_the_entry_points(tmp_path):
                 for option in (t.split("=")[0] for t in tokens[2:] if t.startswith("--")):
                     assert f'"{option}"' in source, f"{tokens[1]} has no {option}"
             parsed["bench"].append(tokens[1])
-    launchers = [name for name, _ in parsed["train"]]
+    launchers = [name for name, _, _ in parsed["train"]]
     assert launchers == ["single_gpu.yaml", "fsdp.yaml", "fsdp_offload.yaml"]
-    lora, refused, offload = (cfg for _, cfg in parsed["train"])
+    lora, refused, offload = (cfg for _, cfg, _ in parsed["train"])
     assert lora.freeze_stage == "lora" and lora.steps == 12 and lora.batch.global_batch_size == 8
-    assert refused.freeze_stage == offload.freeze_stage == "full" and offload.stop_after_steps == 1
+    assert refused.freeze_stage == offload.freeze_stage == "full"
+    # the full fine-tune stops after its first step without the final save (the test-only stop)
+    assert [env for _, _, env in parsed["train"]] == [
+        {},
+        {STOP_AFTER_STEPS_ENV: "1"},
+        {STOP_AFTER_STEPS_ENV: "1"},
+    ]
+    assert not any(
+        envs[i] for i, c in enumerate(commands) if c[1] != "-m" or c[2] != "accelerate.commands.launch"
+    )
     assert len(parsed["eval"]) == len(parsed["generate"]) == 1
     assert parsed["bench"] == [
         "bench/synthetic_openvla.py",

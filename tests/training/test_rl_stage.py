@@ -5,10 +5,14 @@ ends with the uninterrupted run's weights and figures."""
 from __future__ import annotations
 
 import json
+import os
+from unittest import mock
 
 import pytest
 import torch
 from conftest import checkpoint_weights, train_args, train_main
+
+from openfly_agent.training.stops import STOP_AFTER_STEPS_ENV
 
 pytestmark = pytest.mark.slow  # a navigation run, then two RL runs of train.py (minutes on a loaded machine)
 
@@ -75,7 +79,8 @@ def test_rl_stage_resumed_after_a_crash_ends_as_the_uninterrupted_run(
     rl_run, generated_dataset, reference_run, tmp_path
 ):
     # the first run stops after update 1 without its final save (a crash after the checkpoint of update 1)
-    assert train_main(rl_args(generated_dataset, reference_run, tmp_path, stop_after_steps=1)) == 0
+    with mock.patch.dict(os.environ, {STOP_AFTER_STEPS_ENV: "1"}):
+        assert train_main(rl_args(generated_dataset, reference_run, tmp_path)) == 0
     assert not (tmp_path / "checkpoints" / "step-000002").exists()
     assert train_main(rl_args(generated_dataset, reference_run, tmp_path, resume="true")) == 0
     resumed, uninterrupted = rl_logs(tmp_path), rl_logs(rl_run)

@@ -123,7 +123,7 @@ def test_live_weights_replace_the_average_of_a_loaded_checkpoint(ema_run, tmp_pa
 def test_resume_with_an_average_ends_where_an_unbroken_run_does(ema_run, generated_dataset, tmp_path):
     out, _ = ema_run
     stopped = train_in_process(
-        make_config(generated_dataset, tmp_path, steps=STEPS, stop_after_steps=3, optim__ema_decay=0.9)
+        make_config(generated_dataset, tmp_path, steps=STEPS, optim__ema_decay=0.9), stop_after=3
     )
     assert stopped.stopped_early and stopped.state.step == 3
     resumed = train_in_process(

@@ -112,7 +112,7 @@ def test_a_resumed_run_logs_each_step_once_in_one_tensorboard_run(generated_data
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     settings = {"steps": 4, "checkpoint__save_interval": 2, "logging__tracker": "tensorboard"}
-    train_in_process(make_config(generated_dataset, tmp_path, stop_after_steps=3, **settings))
+    train_in_process(make_config(generated_dataset, tmp_path, **settings), stop_after=3)
     train_in_process(make_config(generated_dataset, tmp_path, resume="true", **settings))
     logged = [r["step"] for r in read_metrics(tmp_path / "logs") if "train/loss" in r]
     assert logged == [1, 2, 3, 4]

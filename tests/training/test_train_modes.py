@@ -69,7 +69,7 @@ def test_a_resume_with_nothing_left_to_train_writes_nothing(lora_run, generated_
     before = _run_files(run)
     assert "merged/model.safetensors" in before and "checkpoints/step-000002/trainer_state.json" in before
     args = train_args(generated_dataset, run, resume="true", **LORA_RUN)
-    with caplog.at_level(logging.INFO, logger="openfly_agent.training.trainer"):
+    with caplog.at_level(logging.INFO, logger="openfly_agent.training.run_setup"):
         assert train_main(args) == 0
     # the copy's resume records that the run moved (output_dir), as any resume records what it changed
     [moved] = (run / CONFIG_CHANGES_NAME).read_text().splitlines()

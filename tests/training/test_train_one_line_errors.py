@@ -36,10 +36,6 @@ CASES = {
         lambda ckpt, data: {"init__checkpoint": data},
         "train.py: init.checkpoint: {data} is not a checkpoint folder (no config.json) nor a training run",
     ),
-    "missing_tokenizer_path": (
-        lambda ckpt, data: {"tokenizer__path": f"{data}/no-tokenizer"},
-        "train.py: --tokenizer.path {data}/no-tokenizer is not a folder",
-    ),
     "missing_llm_tokenizer_path": (
         lambda ckpt, data: {"model__llm__tokenizer_path": f"{data}/no-tokenizer"},
         "train.py: --model.llm.tokenizer_path {data}/no-tokenizer is not a folder",

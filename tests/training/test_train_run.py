@@ -123,9 +123,7 @@ def test_saved_checkpoint_loads_and_acts(reference_run, generated_dataset):
 
 def test_stop_mid_run_then_resume_ends_with_identical_weights(reference_run, generated_dataset, tmp_path):
     out, _ = reference_run
-    stopped = train_in_process(
-        make_config(generated_dataset, tmp_path, steps=STEPS, stop_after_steps=3)
-    )  # no final eval
+    stopped = train_in_process(make_config(generated_dataset, tmp_path, steps=STEPS), stop_after=3)
     assert stopped.stopped_early and stopped.state.step == 3
     assert CheckpointManager(tmp_path, 5).latest().name == "step-000002"  # step 3 was never saved
     resume = make_config(

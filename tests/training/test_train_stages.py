@@ -171,7 +171,7 @@ def test_grounding_step_bench_times_the_stage_and_counts_its_padding(
 
 
 def test_the_progress_bar_shows_only_the_metrics_a_step_has():
-    from openfly_agent.training.trainer import progress_postfix
+    from openfly_agent.training.after_step import progress_postfix
 
     grounding = {"loss": 0.51234, "grounding_loss": 0.5, "box_iou": 0.25}  # no action targets
     assert progress_postfix(grounding) == {"loss": "0.5123"}
