@@ -46,7 +46,9 @@ class DocCommand:
     line: int
     text: str  # as written (continuations joined)
     env: dict[str, str] = field(default_factory=dict)
-    kind: str = "other"  # train | eval | toolchain | hub | sim | recipe | compare | seeds | script | shell | other
+    kind: str = (
+        "other"  # train | eval | toolchain | hub | sim | recipe | compare | seeds | script | shell | other
+    )
     sub: str | None = None  # toolchain / hub / sim sub-command, or the script path
     args: list[str] = field(default_factory=list)  # the entry point's own arguments
     launcher: list[str] = field(default_factory=list)  # accelerate / torchrun part, when there is one
@@ -162,7 +164,11 @@ def parse_command(file: str, line: int, text: str, block: int | None = None) -> 
             }
             if module in kinds:
                 command.kind = kinds[module]
-                if command.kind not in ("recipe", "compare", "seeds") and rest and not rest[0].startswith("-"):
+                if (
+                    command.kind not in ("recipe", "compare", "seeds")
+                    and rest
+                    and not rest[0].startswith("-")
+                ):
                     command.sub, rest = (rest[0], rest[1:]) if rest else (None, [])
                 command.args = rest
             return command

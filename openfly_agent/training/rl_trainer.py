@@ -242,7 +242,9 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
                 last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
                 saved_step = state.step
             if forced_stop is not None and state.step >= forced_stop:  # the test-only stop: a crash
-                logger.warning("%s=%d reached: exiting without the final save", STOP_AFTER_STEPS_ENV, state.step)
+                logger.warning(
+                    "%s=%d reached: exiting without the final save", STOP_AFTER_STEPS_ENV, state.step
+                )
                 return RLRun(state, last_checkpoint, True, unwrapped, accelerator.is_main_process)
             reason = stops.reason() if state.step < cfg.steps else None
         progress.close()
