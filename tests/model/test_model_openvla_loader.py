@@ -37,7 +37,7 @@ def _openvla_state_dict(agent, seed: int = 0) -> dict[str, torch.Tensor]:
         global_pool="map",
         **common,
     )
-    llm_cfg = agent.language_model.config
+    llm_cfg = agent.network.language_model.config
     llm = LlamaForCausalLM(
         LlamaConfig(
             vocab_size=llm_cfg.vocab_size,
@@ -100,14 +100,14 @@ def test_synthetic_openvla_checkpoint_loads_by_name(make_agent, tmp_path):
         )
     )
     assert len(report.loaded) + len(report.unused) == len([k for k in state if not k.startswith("_")])
-    block = agent.vision_backbone.featurizer.blocks[0]
+    block = agent.network.vision_backbone.featurizer.blocks[0]
     assert torch.equal(block.ls1.gamma, state["vision_backbone.featurizer.blocks.0.ls1.scale_factor"])
-    assert torch.equal(agent.projector.fc2.weight, state["projector.fc2.weight"])
-    assert torch.equal(agent.language_model.lm_head.weight, state["language_model.lm_head.weight"])
+    assert torch.equal(agent.network.projector.fc2.weight, state["projector.fc2.weight"])
+    assert torch.equal(agent.network.language_model.lm_head.weight, state["language_model.lm_head.weight"])
 
     # the pruned backbone computes OpenVLA's features: second-to-last block, no final norm
     pixels = torch.randint(0, 256, (2, 3, 56, 56), dtype=torch.uint8)
-    ours = agent.vision_backbone(pixels)
+    ours = agent.network.vision_backbone(pixels)
     x = pixels.float() / 255
     dino_in = (x - torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)) / torch.tensor(
         [0.229, 0.224, 0.225]
@@ -161,7 +161,7 @@ def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_confi
     agent, report = agent_from_openvla_checkpoint(tmp_path / "ckpt", small_config(), tokenizer=tiny_tokenizer)
     assert agent.config.norm_stats == NORM_STATS and report.missing_new
     assert all(not p.is_meta for p in agent.parameters())
-    assert torch.isfinite(agent.grounding_head.box_queries).all()
+    assert torch.isfinite(agent.network.grounding_head.box_queries).all()
     # the new modules (not in an OpenVLA checkpoint) are freshly initialised: give them the reference's weights,
     # since the box token feeds the grounding head's box to the action
     for name in ("grounding_head", "box_token_embed"):
