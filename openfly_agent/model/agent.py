@@ -39,7 +39,6 @@ from openfly_agent.model.config import (
 )
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
 from openfly_agent.model.freeze import freeze
-from openfly_agent.model.grounding.box_token import jitter_boxes
 from openfly_agent.model.grounding.head import grounding_loss
 from openfly_agent.model.grounding.layers import QueryReader
 from openfly_agent.model.language.tokenizer import load_tokenizer
@@ -204,10 +203,10 @@ class OpenFlyAgent(PreTrainedModel):
         has_actions = bool((labels != IGNORE_INDEX).any())
         network = self.network
         memory, memory_mask, current = network.encode(batch)  # (B, M, D), (B, M), (B, P, D)
-        box = None
+        box = None  # the BOX token: the true box, jittered in training
         if network.box_token_embed is not None and has_actions:
             jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
-            box = network.box_token_embed(jitter_boxes(batch[BOX].float(), jitter), batch[BOX_VISIBLE].bool())
+            box = network.box_token(batch[BOX], batch[BOX_VISIBLE], jitter)  # (B, D)
         layout = SequenceLayout.for_training(
             network.embed_text(input_ids), batch[ATTENTION_MASK], labels, memory, memory_mask, current, box
         )  # [BOS] [memory] [current] [prompt] [BOX] [action]: (B, L', D)

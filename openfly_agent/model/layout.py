@@ -38,7 +38,9 @@ class _Piece:
     labels: torch.Tensor
 
 
-def _piece(embeds: torch.Tensor, mask: torch.Tensor | None = None, labels: torch.Tensor | None = None) -> _Piece:
+def _piece(
+    embeds: torch.Tensor, mask: torch.Tensor | None = None, labels: torch.Tensor | None = None
+) -> _Piece:
     """A segment; mask defaults to all attended, labels to IGNORE_INDEX (nothing to predict)."""
     n = embeds.shape[0]
     ones = torch.ones(n, dtype=torch.long, device=embeds.device)
@@ -110,9 +112,7 @@ class SequenceLayout:
                     "bos": _piece(text[row, :1], attention_mask[row, :1], labels[row, :1]),
                     "memory": _piece(memory[row].to(text.dtype), memory_mask[row]),
                     "current": _piece(current[row].to(text.dtype)),
-                    "prompt": _piece(
-                        text[row, 1:start], attention_mask[row, 1:start], labels[row, 1:start]
-                    ),
+                    "prompt": _piece(text[row, 1:start], attention_mask[row, 1:start], labels[row, 1:start]),
                     "box": None if box is None else _piece(box[row, None].to(text.dtype)),
                     "action": _piece(text[row, start:], attention_mask[row, start:], labels[row, start:]),
                 }
@@ -167,8 +167,10 @@ class SequenceLayout:
                 embeds[row, column:end] = piece.embeds
                 mask[row, column:end] = piece.mask
                 labels[row, column:end] = piece.labels
-                first_image[row] = column if name == "current" else first_image[row]
-                is_box[row, column:end] = name == "box"
+                if name == "current":
+                    first_image[row] = column
+                if name == "box":
+                    is_box[row, column:end] = True
                 column = end
         return cls(
             embeds=embeds,

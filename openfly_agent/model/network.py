@@ -21,7 +21,7 @@ from openfly_agent.constants import FRAME_INDEX, MEMORY_PIXEL_VALUES, PIXEL_VALU
 from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_memory_encoding
-from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, last_true_index
+from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, jitter_boxes, last_true_index
 from openfly_agent.model.grounding.head import GroundingOutput, make_grounding_head
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
 from openfly_agent.model.language.length_groups import run_in_length_groups
@@ -110,6 +110,11 @@ class OpenFlyNetwork(nn.Module):
         """Remember this step's frames in each episode's memory (after the episode recorded the step)."""
         self.memory.write(self.projector, episodes, frames)
 
+    def box_token(self, boxes: torch.Tensor, visible: torch.Tensor, jitter: float = 0.0) -> torch.Tensor:
+        """The BOX token's (B, D) input embedding of (B, 4) cxcywh boxes and their (B,) visibility (training: the
+        true boxes, jittered by `jitter`; inference: the grounding head's)."""
+        return self.box_token_embed(jitter_boxes(boxes.float(), jitter), visible.bool())
+
     # --- the backbone (`forward`): layout -> hidden states ---------------------------------------------
     def forward(self, layout: SequenceLayout, cache=None) -> torch.Tensor:
         """The backbone: (B, T, D) last hidden states of the layout's tokens (`network(layout, cache)`, so
@@ -133,7 +138,9 @@ class OpenFlyNetwork(nn.Module):
                 layout.mask,
                 self.cfg.llm.length_groups,
             )  # (B, L, D)
-        return self.run_llm(layout.embeds, layout.mask, position_ids=layout.positions, use_cache=False).last_hidden_state
+        return self.run_llm(
+            layout.embeds, layout.mask, position_ids=layout.positions, use_cache=False
+        ).last_hidden_state
 
     def run_llm(self, embeds: torch.Tensor, attention_mask: torch.Tensor, **kwargs) -> Any:
         """Decoder stack without the LM head -> transformers output (last_hidden_state, past_key_values)."""
@@ -188,7 +195,9 @@ class OpenFlyNetwork(nn.Module):
         """LM head on selected hidden states -> float32 logits."""
         return unwrap_causal_lm(self.language_model).lm_head(hidden).float()
 
-    def predicted_boxes(self, grounding: GroundingOutput | None, batch: int) -> tuple[torch.Tensor, list[bool]]:
+    def predicted_boxes(
+        self, grounding: GroundingOutput | None, batch: int
+    ) -> tuple[torch.Tensor, list[bool]]:
         """(B, 4) float boxes of the grounding head's output and whether each counts as visible (no head: zeros,
         not visible; no visibility training: every box counts)."""
         if grounding is None:

@@ -109,7 +109,7 @@ class AgentSession:
         else:
             boxes, visible = given_boxes(true_boxes, device)
         if box_token:  # [.. prompt] [BOX]: one cached step, the action is read there
-            layout = layout.then(network.box_token_embed(boxes.to(device), torch.tensor(visible, device=device)))
+            layout = layout.then(network.box_token(boxes.to(device), torch.tensor(visible, device=device)))
             logits, _ = network.heads(network(layout, cache), layout, boxes=False)  # (B, V)
         decoded = network.decode_actions(logits, layout, cache, tokenizer)  # (B, 10) or (B, 8)
         if tokenizer.head == HEAD_DISCRETE:

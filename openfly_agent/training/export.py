@@ -18,9 +18,9 @@ from torch import nn
 
 from openfly_agent import constants as C
 from openfly_agent.model.language.lora import TRAINABLE_PARTS, TRAINABLES_NAME, has_lora
-from openfly_agent.model.persistence.saved_names import saved_state_dict
 from openfly_agent.model.persistence.agent_io import save_processor_files
 from openfly_agent.model.persistence.remote_code import remove_auto_map, write_remote_code
+from openfly_agent.model.persistence.saved_names import saved_state_dict
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.lora import lora_scalings, merge_lora_state_dict
 from openfly_agent.utils.config import save_config

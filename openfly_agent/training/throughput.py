@@ -151,7 +151,9 @@ class StepFlops:
         """The count of `agent` (an `OpenFlyAgent`, before accelerate wraps it) with its freeze / LoRA applied."""
         cfg = agent.model_cfg
         vision_all = sum(p.numel() for p in agent.network.vision_backbone.parameters())
-        vision_trainable = sum(p.numel() for p in agent.network.vision_backbone.parameters() if p.requires_grad)
+        vision_trainable = sum(
+            p.numel() for p in agent.network.vision_backbone.parameters() if p.requires_grad
+        )
         vision_trains = vision_trainable > 0
         layers = unwrap_causal_lm(agent.network.language_model).model.layers
         projector_params, projector_trainable = _matrix_params(agent.network.projector)

@@ -76,7 +76,8 @@ def test_merged_release_acts_like_the_adapter(lora_run):
     agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
     assert not has_lora(agent)
     base = OpenFlyAgent.from_pretrained(str(lora_run.root / "base"))
-    assert not torch.equal(agent.network.projector.fc1.weight, base.network.projector.fc1.weight)  # trained parts are in
+    trained = agent.network.projector.fc1.weight
+    assert not torch.equal(trained, base.network.projector.fc1.weight)  # trained parts are in
     got = probe_namespace()["rollout"](agent)
     assert [s["action"] for s in got] == [s["action"] for s in lora_run.behaviour]
     torch.testing.assert_close(

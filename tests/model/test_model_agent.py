@@ -316,7 +316,8 @@ def test_tiny_preset_forward(tiny_tokenizer, make_batch):
     assert agent.action_tokenizer.discrete_token_ids[0] == len(tiny_tokenizer)  # first reserved id
     batch = make_batch(agent, batch_size=2)
     memory, _, current = agent.network.encode(batch)
-    assert (memory.shape, current.shape) == ((2, 2, 128), (2, 64, 128))  # K = 2 sets of (8 / 8)^2, 8x8 patches
+    # K = 2 sets of (8 / 8)^2 tokens, 8x8 patches
+    assert (memory.shape, current.shape) == ((2, 2, 128), (2, 64, 128))
     loss, _ = agent(batch)
     assert torch.isfinite(loss)
 

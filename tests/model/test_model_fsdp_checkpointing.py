@@ -47,7 +47,8 @@ def test_fsdp_style_checkpointing_gives_the_same_loss_and_gradients(make_agent, 
     wrapped = copy.deepcopy(agent)
     # 2 decoder layers + the 2 ViTs' blocks (depth 3, pruned after block depth - 2: 2 blocks each)
     assert wrap_blocks_as_fsdp_does(wrapped) == 2 + 2 + 2
-    assert not getattr(wrapped.network.language_model.model, "gradient_checkpointing", False)  # transformers' is off
+    # transformers' is off
+    assert not getattr(wrapped.network.language_model.model, "gradient_checkpointing", False)
     batch = make_batch(agent)
 
     torch.manual_seed(0)

@@ -19,7 +19,8 @@ def _col(values) -> torch.Tensor:
 
 
 def _training(box: bool = True) -> SequenceLayout:
-    text = _col([[1, 2, 3, 4, 0], [1, 5, 6, 7, 0]])  # [BOS] prompt action pad: row 0 acts 4, row 1 acts 6 then 7
+    # [BOS] prompt action pad: row 0 acts 4, row 1 acts 6 then 7
+    text = _col([[1, 2, 3, 4, 0], [1, 5, 6, 7, 0]])
     mask = torch.tensor([[1, 1, 1, 1, 0], [1, 1, 1, 1, 0]])
     labels = torch.tensor([[X, X, X, 4, X], [X, X, 6, 7, X]])
     memory = _col([[10, 11], [12, 13]])
@@ -34,7 +35,10 @@ def test_training_layout_right_padded_with_the_box_before_the_action():
     layout = _training()
     assert layout.padding == PADDING_RIGHT
     # [BOS] [memory] [current] [prompt] [BOX] [action] [pad]
-    assert layout.embeds[..., 0].tolist() == [[1, 10, 11, 20, 21, 2, 3, 30, 4, 0], [1, 12, 13, 22, 23, 5, 31, 6, 7, 0]]
+    assert layout.embeds[..., 0].tolist() == [
+        [1, 10, 11, 20, 21, 2, 3, 30, 4, 0],
+        [1, 12, 13, 22, 23, 5, 31, 6, 7, 0],
+    ]
     assert layout.mask.tolist() == [[1, 1, 0, 1, 1, 1, 1, 1, 1, 0], [1, 1, 1, 1, 1, 1, 1, 1, 1, 0]]
     assert layout.positions.tolist() == [[0, 1, 1, 2, 3, 4, 5, 6, 7, 7], [0, 1, 2, 3, 4, 5, 6, 7, 8, 8]]
     assert layout.labels.tolist() == [[X, X, X, X, X, X, X, X, 4, X], [X, X, X, X, X, X, X, 6, 7, X]]
@@ -48,7 +52,10 @@ def test_training_layout_right_padded_with_the_box_before_the_action():
 
 def test_training_layout_without_box_token_or_labels():
     layout = _training(box=False)
-    assert layout.embeds[..., 0].tolist() == [[1, 10, 11, 20, 21, 2, 3, 4, 0], [1, 12, 13, 22, 23, 5, 6, 7, 0]]
+    assert layout.embeds[..., 0].tolist() == [
+        [1, 10, 11, 20, 21, 2, 3, 4, 0],
+        [1, 12, 13, 22, 23, 5, 6, 7, 0],
+    ]
     grounding = SequenceLayout.for_training(  # a grounding batch: no action label, every text token readable
         _col([[1, 2, 0]]), torch.tensor([[1, 1, 0]]), torch.tensor([[X, X, X]]),
         _col([[]]).reshape(1, 0, 1), torch.zeros(1, 0, dtype=torch.bool), _col([[20]]),

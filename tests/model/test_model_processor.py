@@ -118,7 +118,7 @@ class _Spy:
         network = agent.network
         embed, vision, llm = network.embed_text, network.vision_backbone.forward_with_cls, network.run_llm
         network.embed_text = lambda ids: (self.ids.append(ids.clone()), embed(ids))[1]
-        agent.network.vision_backbone.forward_with_cls = lambda px: (self.pixels.append(px.clone()), vision(px))[1]
+        network.vision_backbone.forward_with_cls = lambda px: (self.pixels.append(px.clone()), vision(px))[1]
         network.run_llm = lambda embeds, mask, **kw: (
             self.llm.append((embeds.clone(), mask.clone())),
             llm(embeds, mask, **kw),

@@ -210,7 +210,9 @@ def test_compat_mode_runs_the_released_layout(make_agent):
     # history token = projector(DINO CLS ++ pooled SigLIP patches), one per frame
     pixels = agent.processor.image(frames[0, 3])[None]
     patches, cls = agent.network.vision_backbone.forward_with_cls(pixels)
-    manual = agent.network.projector(torch.cat([cls, patches[..., agent.network.vision_backbone.dino_dim :].mean(1)], -1))
+    manual = agent.network.projector(
+        torch.cat([cls, patches[..., agent.network.vision_backbone.dino_dim :].mean(1)], -1)
+    )
     torch.testing.assert_close(state.memory.tokens[3], manual[0], rtol=1e-5, atol=1e-5)
 
 

@@ -46,7 +46,11 @@ def test_lora_run_saves_the_adapter_and_merges_on_rank0(lora_run):
         expected, _ = lora_agent(batch)
         found, _ = merged(batch)
     torch.testing.assert_close(found, expected, rtol=1e-4, atol=1e-5)
-    b = lora_agent.network.language_model.base_model.model.model.layers[0].self_attn.q_proj.lora_B["default"].weight
+    b = (
+        lora_agent.network.language_model.base_model.model.model.layers[0]
+        .self_attn.q_proj.lora_B["default"]
+        .weight
+    )
     assert b.abs().max() > 0  # the adapter trained, so the merge really changed the weights
 
 

@@ -96,7 +96,9 @@ def load_lora_adapter(agent: nn.Module, folder: str | Path) -> nn.Module:
     if not (folder / "adapter_config.json").is_file():
         raise FileNotFoundError(f"{folder} holds no adapter_config.json (write it with save_lora_adapter)")
     with _without_peft_checkpointing_warning():
-        agent.network.language_model = PeftModel.from_pretrained(agent.network.language_model, str(folder), is_trainable=True)
+        agent.network.language_model = PeftModel.from_pretrained(
+            agent.network.language_model, str(folder), is_trainable=True
+        )
     trainables = load_file(str(folder / TRAINABLES_NAME))
     result = agent.network.load_state_dict(trainables, strict=False)
     if result.unexpected_keys:

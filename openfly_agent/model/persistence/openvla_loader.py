@@ -281,7 +281,8 @@ def agent_from_openvla_checkpoint(folder: str | Path, cfg, tokenizer=None, devic
             if type(module).__name__.endswith("RotaryEmbedding"):
                 unwrap = agent.network.language_model
                 unwrap._init_weights(module)
-        for new_module in (agent.network.grounding_head, agent.network.box_token_embed):  # NEW_MODULE_PREFIXES
+        # NEW_MODULE_PREFIXES
+        for new_module in (agent.network.grounding_head, agent.network.box_token_embed):
             if new_module is not None:
                 for module in new_module.modules():
                     agent._init_weights(module)

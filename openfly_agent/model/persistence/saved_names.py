@@ -36,7 +36,9 @@ def saved_state_dict(state_dict: dict) -> dict:
 
 def accept_saved_names(module, state_dict: dict, prefix: str, *args) -> None:
     """`load_state_dict` pre-hook of the agent: rename `<prefix><part>.*` to `<prefix>network.<part>.*` in place."""
-    for key in [k for k in state_dict if k.startswith(prefix) and k[len(prefix) :].split(".", 1)[0] in SAVED_PARTS]:
+    for key in [
+        k for k in state_dict if k.startswith(prefix) and k[len(prefix) :].split(".", 1)[0] in SAVED_PARTS
+    ]:
         state_dict[prefix + live_name(key[len(prefix) :])] = state_dict.pop(key)
 
 
