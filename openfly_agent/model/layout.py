@@ -145,40 +145,37 @@ class SequenceLayout:
 
     @classmethod
     def _from_rows(cls, rows: list[dict[str, _Piece | None]], current: torch.Tensor, padding: str):
-        """Write each row's pieces in `SEGMENTS` order into rows padded to one length."""
+        """Concatenate each row's pieces in `SEGMENTS` order, pad the rows to one length and stack them."""
         unknown = {name for row in rows for name in row} - set(SEGMENTS)
         if unknown:
             raise ValueError(f"segments {sorted(unknown)} are not in SEGMENTS {SEGMENTS}")
-        pieces = [[row[name] for name in SEGMENTS if row.get(name) is not None] for row in rows]
-        lengths = [sum(piece.embeds.shape[0] for piece in row) for row in pieces]
-        b, longest, ref = len(rows), max(lengths), pieces[0][0].embeds
-        embeds = ref.new_zeros(b, longest, ref.shape[-1])  # (B, L, D)
-        mask = torch.zeros(b, longest, dtype=torch.long, device=ref.device)  # (B, L)
-        labels = torch.full_like(mask, IGNORE_INDEX)  # (B, L)
-        is_box = torch.zeros(b, longest, dtype=torch.bool, device=ref.device)  # (B, L)
-        first_image = torch.zeros(b, dtype=torch.long, device=ref.device)  # (B,)
-        for row, named in enumerate(rows):
-            column = longest - lengths[row] if padding == PADDING_LEFT else 0
-            for name in SEGMENTS:
-                piece = named.get(name)
-                if piece is None:
-                    continue
-                end = column + piece.embeds.shape[0]
-                embeds[row, column:end] = piece.embeds
-                mask[row, column:end] = piece.mask
-                labels[row, column:end] = piece.labels
-                if name == "current":
-                    first_image[row] = column
-                if name == "box":
-                    is_box[row, column:end] = True
-                column = end
+        ordered = [[(name, row[name]) for name in SEGMENTS if row.get(name) is not None] for row in rows]
+        lengths = [sum(piece.embeds.shape[0] for _, piece in row) for row in ordered]
+        longest, ref = max(lengths), ordered[0][0][1].embeds
+        embeds, mask, labels, is_box, first_image = [], [], [], [], []
+        for row, length in zip(ordered, lengths, strict=True):
+            pad = _Piece(  # no token: zeros, not attended, no target
+                ref.new_zeros(longest - length, ref.shape[-1]),
+                torch.zeros(longest - length, dtype=torch.long, device=ref.device),
+                torch.full((longest - length,), IGNORE_INDEX, dtype=torch.long, device=ref.device),
+            )
+            row = [("pad", pad), *row] if padding == PADDING_LEFT else [*row, ("pad", pad)]
+            names = [name for name, piece in row for _ in range(piece.embeds.shape[0])]  # (L,) segment names
+            starts = [sum(piece.embeds.shape[0] for _, piece in row[:i]) for i in range(len(row))]
+            embeds.append(torch.cat([piece.embeds for _, piece in row]))  # (L, D)
+            mask.append(torch.cat([piece.mask for _, piece in row]))  # (L,)
+            labels.append(torch.cat([piece.labels for _, piece in row]))  # (L,)
+            is_box.append([name == "box" for name in names])
+            first_image.append(starts[[name for name, _ in row].index("current")])
+        mask, labels = torch.stack(mask), torch.stack(labels)  # (B, L), (B, L)
+        is_box = torch.tensor(is_box, device=ref.device).reshape(mask.shape)  # (B, L)
         return cls(
-            embeds=embeds,
+            embeds=torch.stack(embeds),  # (B, L, D)
             mask=mask,
             positions=position_ids_from_mask(mask),
             labels=labels,
             readable=mask.bool() & (labels == IGNORE_INDEX) & ~is_box,
-            first_image=first_image,
+            first_image=torch.tensor(first_image, device=ref.device),  # (B,)
             current=current,
             padding=padding,
         )
