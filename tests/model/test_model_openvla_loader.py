@@ -83,7 +83,8 @@ def test_synthetic_openvla_checkpoint_loads_by_name(make_agent, tmp_path):
     _write_sharded(state, tmp_path / "ckpt")
     report = load_openvla_weights(agent, tmp_path / "ckpt")
 
-    assert report.missing_new == sorted(k for k in agent.state_dict() if k.startswith(NEW_MODULE_PREFIXES))
+    new = sorted(k for k in agent.network.state_dict() if k.startswith(NEW_MODULE_PREFIXES))
+    assert report.missing_new == new
     assert report.missing_new  # the only thing the checkpoint lacks
     last = agent.model_cfg.vision.depth - 1
     assert sorted(report.unused) == sorted(
@@ -147,9 +148,9 @@ def test_export_round_trip(make_agent):
     assert any(k.endswith("ls1.scale_factor") for k in exported)
     assert not any(k.endswith(".gamma") or k.startswith(NEW_MODULE_PREFIXES) for k in exported)
     load_openvla_weights(target, exported)
-    for key, value in source.state_dict().items():
+    for key, value in source.network.state_dict().items():
         if not key.startswith(NEW_MODULE_PREFIXES):
-            assert torch.equal(target.state_dict()[key], value), key
+            assert torch.equal(target.network.state_dict()[key], value), key
 
 
 def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_config, tiny_tokenizer, tmp_path):
@@ -165,7 +166,7 @@ def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_confi
     # the new modules (not in an OpenVLA checkpoint) are freshly initialised: give them the reference's weights,
     # since the box token feeds the grounding head's box to the action
     for name in ("grounding_head", "box_token_embed"):
-        getattr(agent, name).load_state_dict(getattr(reference, name).state_dict())
+        getattr(agent.network, name).load_state_dict(getattr(reference.network, name).state_dict())
     frame = torch.randint(0, 256, (56, 56, 3), dtype=torch.uint8).numpy()
     obs = [{"episode_id": "a", "instruction": "Fly to the red tower.", "rgb": frame}]
     torch.testing.assert_close(

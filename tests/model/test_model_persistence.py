@@ -99,7 +99,7 @@ def test_freeze_stages(make_agent, stage):
     if stage == "lora":
         attach_lora(agent, LoraSettings(rank=4, alpha=8))
     counts = agent.freeze(stage)
-    trains = {name: p.requires_grad for name, p in agent.named_parameters()}
+    trains = {name: p.requires_grad for name, p in agent.network.named_parameters()}  # as saved
 
     def part(prefix):
         return {trains[n] for n in trains if n.startswith(prefix)}
