@@ -104,7 +104,7 @@ def time_steps(agent, batch: int, steps: int, warmup: int, profile: str | None =
     fill_memory(session, ids)
     for _ in range(warmup):
         session.select_action(observations())
-    sync = torch.cuda.synchronize if agent.projector.fc1.weight.is_cuda else (lambda: None)
+    sync = torch.cuda.synchronize if agent.network.projector.fc1.weight.is_cuda else (lambda: None)
     times = []
     for _ in range(steps):
         obs = observations()
@@ -117,7 +117,9 @@ def time_steps(agent, batch: int, steps: int, warmup: int, profile: str | None =
         assert len(session.episodes[i].memory) == agent.model_cfg.memory.capacity
     if profile is not None:
         obs = observations()
-        write_profile(lambda: session.select_action(obs), profile, cuda=agent.projector.fc1.weight.is_cuda)
+        write_profile(
+            lambda: session.select_action(obs), profile, cuda=agent.network.projector.fc1.weight.is_cuda
+        )
     return float(np.median(times)), float(np.mean(times))
 
 

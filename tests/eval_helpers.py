@@ -136,7 +136,7 @@ def save_small_agent(folder, texts, seed: int = 0) -> None:
     torch.manual_seed(seed)
     agent = OpenFlyAgent.from_model_config(small_agent_config(), tokenizer=tokenizer).eval()
     with torch.no_grad():  # the untrained head says "visible": the records hold boxes the tests can compare
-        agent.grounding_head.visibility.bias.fill_(2.0)
+        agent.network.grounding_head.visibility.bias.fill_(2.0)
     agent.save_pretrained(str(folder))
 
 

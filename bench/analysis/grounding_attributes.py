@@ -138,14 +138,14 @@ class AttributeProbe:
         if folder is None:
             raise FileNotFoundError(f"no checkpoint at {checkpoint or run_dir}")
         self.agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
-        if not isinstance(self.agent.grounding_head, CellGroundingHead):
+        if not isinstance(self.agent.network.grounding_head, CellGroundingHead):
             raise ValueError(f"{folder}: the probe needs a grounding head with per-cell scores")
         self.data = stage_data(cfg, load_splits(cfg.data, cfg.model.grounding), self.agent)
         if not hasattr(self.data.test, "locate"):
             raise ValueError(
                 f"{run_dir} is not a navigation-stage run: pass it with --checkpoint for other stages"
             )
-        self.batch_size, self.grid = batch_size, self.agent.grounding_head.grid_side
+        self.batch_size, self.grid = batch_size, self.agent.network.grounding_head.grid_side
         self.width, self.height, self.city_config = source_render_settings(cfg.data.root)
         self.cities = EmbeddedScenes(self.city_config)
         self._head_cells: list[torch.Tensor] = []
@@ -156,7 +156,7 @@ class AttributeProbe:
     def read(self, split: str, max_samples: int | None, render: bool) -> CellReadings:
         """Readings of `max_samples` evenly spaced samples of "train" or "test" (with landings when `render`)."""
         dataset = self.data.train if split == "train" else self.data.test
-        head = self.agent.grounding_head
+        head = self.agent.network.grounding_head
         hooks = [
             head.register_forward_pre_hook(self._keep_head_cells, with_kwargs=True),
             head.cell_scorer.register_forward_pre_hook(lambda _m, args: self._queries.append(args[1])),
@@ -211,7 +211,7 @@ class AttributeProbe:
         )
 
     def _backbone_tokens(self, pixels: torch.Tensor) -> torch.Tensor | None:
-        return self.agent.vision_backbone(pixels)  # (B, P, C)
+        return self.agent.network.vision_backbone(pixels)  # (B, P, C)
 
     def _pixel_stats(self, pixels: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) uint8 -> (B, P, 18) colour statistics of the token grid's cells."""

@@ -203,17 +203,19 @@ def collect_target_boxes(
     agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
     if live_weights:
         load_live_weights(agent, folder)
-    if agent.grounding_head is None:
+    if agent.network.grounding_head is None:
         raise ValueError(f"{folder}: the agent has no grounding head (model.grounding.type=none)")
     if centre_window != "checkpoint":
-        if not isinstance(agent.grounding_head, CellGroundingHead):
+        if not isinstance(agent.network.grounding_head, CellGroundingHead):
             raise ValueError(
                 f"{folder}: a centre window needs the cell grounding head (grounding.type=cells)"
             )
-        agent.grounding_head.centre_window = centre_window
+        agent.network.grounding_head.centre_window = centre_window
     data = stage_data(cfg, load_splits(cfg.data, cfg.model.grounding), agent)
     outputs = []
-    hook = agent.grounding_head.register_forward_hook(lambda _module, _inputs, output: outputs.append(output))
+    hook = agent.network.grounding_head.register_forward_hook(
+        lambda _module, _inputs, output: outputs.append(output)
+    )
     preds, targets, cells, hits = [], [], [], 0  # visible targets only
     indices = eval_indices(len(data.test), max_samples)
     try:

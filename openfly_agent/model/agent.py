@@ -41,12 +41,10 @@ from openfly_agent.model.config import (
 )
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
 from openfly_agent.model.freeze import freeze
-from openfly_agent.model.grounding.box_token import insert_before_targets, jitter_boxes
 from openfly_agent.model.grounding.head import grounding_loss
 from openfly_agent.model.grounding.layers import QueryReader
-from openfly_agent.model.language.length_groups import run_in_length_groups
-from openfly_agent.model.language.sequence import splice_after_bos
 from openfly_agent.model.language.tokenizer import load_tokenizer
+from openfly_agent.model.layout import SequenceLayout
 from openfly_agent.model.network import OpenFlyNetwork
 from openfly_agent.model.persistence.agent_io import (
     check_no_lora,
@@ -55,6 +53,7 @@ from openfly_agent.model.persistence.agent_io import (
     saved_tokenizer,
 )
 from openfly_agent.model.persistence.remote_code import write_remote_code
+from openfly_agent.model.persistence.saved_names import accept_saved_names, register_saved_names
 from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 from openfly_agent.model.processor import OpenFlyProcessor
 from openfly_agent.model.session import AgentSession
@@ -62,6 +61,7 @@ from openfly_agent.model.vision.conv import ConvVisionBackbone
 from openfly_agent.utils.config import config_to_dict
 
 logger = logging.getLogger(__name__)
+register_saved_names(MODEL_TYPE)  # weights files keep `vision_backbone.*`, ...: no `network.` on disk
 
 
 class OpenFlyAgent(PreTrainedModel):
@@ -94,9 +94,8 @@ class OpenFlyAgent(PreTrainedModel):
                 "OpenFlyAgent.from_model_config(cfg, tokenizer)"
             )
         self._parsed_config: tuple[dict, ModelConfig] = (dict(config.agent), cfg)
-        network = OpenFlyNetwork(cfg)
-        object.__setattr__(self, "network", network)  # not a child: its modules are the agent's own
-        object.__setattr__(self, "_modules", network._modules)
+        self.network = OpenFlyNetwork(cfg)
+        self.register_load_state_dict_pre_hook(accept_saved_names)  # resume files written before the child
         self._build_action_tokenizer()
         self.processor: OpenFlyProcessor | None = None
         self.tokenizer = tokenizer  # builds the processor
@@ -137,11 +136,6 @@ class OpenFlyAgent(PreTrainedModel):
             init.constant_(module.gamma, module.init_values)
         elif isinstance(module, (QueryReader, ConvVisionBackbone)):  # either grounding head, tiny-cnn
             module.init_weights()
-
-    def train(self, mode: bool = True) -> OpenFlyAgent:
-        """`nn.Module.train`, the network's own flag included (it is not a child)."""
-        self.network.training = mode
-        return super().train(mode)
 
     # --- the one configuration --------------------------------------------------------------------
     @property
@@ -215,45 +209,31 @@ class OpenFlyAgent(PreTrainedModel):
         labels = batch.get(LABELS)
         if labels is None:
             labels = torch.full_like(input_ids, IGNORE_INDEX)
-        visual, visual_mask = self.network.encode(batch)
-        embeds, mask, labels = splice_after_bos(
-            self.network.embed_text(input_ids), batch[ATTENTION_MASK], labels, visual, visual_mask
-        )  # [BOS] [memory] [current] [prompt] [action]: (B, L', D), (B, L'), (B, L')
-        readable = mask.bool() & (labels == IGNORE_INDEX)  # what the grounding head may read: no targets
         has_actions = bool((labels != IGNORE_INDEX).any())
-        if self.network.box_token_embed is not None and has_actions:
-            box = jitter_boxes(
-                batch.get(TOKEN_BOX, batch[BOX]).float(),
-                self.model_cfg.action_head.box_token_jitter if self.training else 0,
-            )
-            token = self.network.box_token_embed(
-                box, batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]).bool()
-            )  # (B, D)
-            embeds, mask, labels, at = insert_before_targets(embeds, mask, labels, token)
-            readable = mask.bool() & (labels == IGNORE_INDEX)
-            readable[torch.arange(readable.shape[0], device=readable.device), at] = False
-        # no KV cache in training: under activation checkpointing applied from outside (FSDP's checkpoint
-        # wrapper), a recomputed decoder layer would append its keys to the same cache a second time
-        hidden = run_in_length_groups(
-            lambda rows, rows_mask: self.network.run_llm(rows, rows_mask, use_cache=False).last_hidden_state,
-            embeds,
-            mask,
-            self.model_cfg.llm.length_groups,
-        )  # (B, L', D)
+        network = self.network
+        memory, memory_mask, current = network.encode(batch)  # (B, M, D), (B, M), (B, P, D)
+        box = None  # the BOX token: the true box, jittered in training
+        if network.box_token_embed is not None and has_actions:
+            jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
+            # the true box; the RL stage's replay gives the box the policy predicted (`token_box`)
+            token_box = batch.get(TOKEN_BOX, batch[BOX])
+            box = network.box_token(token_box, batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]), jitter)  # (B, D)
+        layout = SequenceLayout.for_training(
+            network.embed_text(input_ids), batch[ATTENTION_MASK], labels, memory, memory_mask, current, box
+        )  # [BOS] [memory] [current] [prompt] [BOX] [action]: (B, L', D)
+        hidden = network(layout)  # (B, L', D)
+        grounds = network.grounding_head is not None and BOX in batch
+        logits, grounding = network.heads(hidden, layout, actions=has_actions, boxes=grounds)
         loss = hidden.new_zeros(())
         logs = {}
         if has_actions:
-            action_loss, accuracy = self._action_loss(hidden, labels, outputs)
+            action_loss, accuracy = self._action_loss(logits, layout.action_targets(), outputs)
             loss = loss + action_loss
             logs.update(action_loss=float(action_loss.detach()), action_accuracy=accuracy)
-        if self.network.grounding_head is not None and BOX in batch:
-            first_image = visual.shape[1] - self.model_cfg.vision.num_patches + 1  # after BOS and the memory
-            output = self.network.ground(
-                hidden, readable, first_image, visual[:, -self.model_cfg.vision.num_patches :]
-            )
+        if grounds:
             targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
             g_loss, g_logs = grounding_loss(
-                output, *targets, self.model_cfg.grounding, batch.get(TARGET_ATTRIBUTES)
+                grounding, *targets, self.model_cfg.grounding, batch.get(TARGET_ATTRIBUTES)
             )
             loss = loss + self.model_cfg.grounding.loss_weight * g_loss
             if outputs is not None:
@@ -262,20 +242,16 @@ class OpenFlyAgent(PreTrainedModel):
         else:
             # no head, no box measured: NaN, which the running means and the evaluation leave out (not a 0 IoU)
             logs.update(grounding_loss=0.0, box_iou=float("nan"), num_visible_boxes=0.0)
-        if not has_actions and self.network.grounding_head is None:
+        if not has_actions and network.grounding_head is None:
             raise ValueError("batch has no labelled action token and the agent has no grounding head")
         logs["loss"] = float(loss.detach())
         return loss, logs
 
     def _action_loss(
-        self, hidden: torch.Tensor, labels: torch.Tensor, outputs: dict | None = None
+        self, logits: torch.Tensor, target: torch.Tensor, outputs: dict | None = None
     ) -> tuple[torch.Tensor, float]:
-        targets = labels[:, 1:]  # next-token targets
-        selected = targets != IGNORE_INDEX  # (B, L'-1)
-        if not bool(selected.any()):
-            raise ValueError("batch has no labelled action token: labels are all -100")
-        logits = self.network.lm_logits(hidden[:, :-1][selected])  # (n, V), only where a label exists
-        target = targets[selected]  # (n,)
+        """Cross-entropy (STOP weighted) and accuracy of (n, V) float logits against their (n,) targets; with
+        `outputs`, both tensors are also put there (`action_logits`, `action_targets`)."""
         if outputs is not None:
             outputs.update(action_logits=logits, action_targets=target)
         head = self.model_cfg.action_head

@@ -47,7 +47,7 @@ def freeze(agent: nn.Module, stage: str) -> dict[str, int]:
     """
     if stage not in FREEZE_STAGES:
         raise ValueError(f"unknown freeze stage {stage!r}; use one of {list(FREEZE_STAGES)}")
-    params = dict(agent.named_parameters())
+    params = dict(agent.network.named_parameters())  # under the saved names: `projector.*`, ...
     if stage == STAGE_LORA and not any(_is_lora_parameter(n) for n in params):
         raise ValueError(
             "freeze stage 'lora' needs LoRA adapters: call model.lora.attach_lora(agent, settings)"

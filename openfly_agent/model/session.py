@@ -23,7 +23,7 @@ from openfly_agent.model.config import HEAD_DISCRETE
 from openfly_agent.model.episode import Box, EpisodeState, StepResult, check_observations
 from openfly_agent.model.grounding.box_token import given_boxes
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
-from openfly_agent.model.language.sequence import left_pad
+from openfly_agent.model.layout import SequenceLayout
 from openfly_agent.model.network import OpenFlyNetwork
 from openfly_agent.model.processor import OpenFlyProcessor
 
@@ -89,11 +89,13 @@ class AgentSession:
         grounding head's prediction in the box token and the keyframe memory: the agent with perfect
         grounding, which splits its gap to the expert into perception and policy.
 
-        One step of every observed episode in one left-padded prefill: encode the current frames, build
-        `[BOS] [memory] [current] [prompt]` per episode (the training layout without the action tokens), read
-        the action at the last position (`discrete`) or decode 8 bin tokens greedily with the KV cache
-        (`openvla_bins`), predict the landmark box, then record the step in the episode's state and let the
-        memory encoding remember it. Each frame is encoded once; the prompt once per episode.
+        One step of every observed episode, as training's forward: `encode` the current frames and each
+        episode's memory, lay them out with the prompts (`SequenceLayout.for_inference`: the training layout
+        left padded, without BOX and the action), run the network's backbone with a KV cache where later steps need one,
+        read the `heads`: the landmark box, then (with the box token, one cached step later) the action at the
+        last position (`discrete`) or 8 bin tokens decoded greedily (`openvla_bins`); then record the step in
+        the episode's state and let the memory encoding remember it. Each frame is encoded once; the prompt once
+        per episode.
         """
         if not observations:
             return []
@@ -101,49 +103,33 @@ class AgentSession:
         if true_boxes is not None and len(true_boxes) != len(observations):
             raise ValueError(f"{len(true_boxes)} true boxes for {len(observations)} observations")
         network, processor = self.agent.network, self.agent.processor
+        tokenizer = self.agent.action_tokenizer
         states = [self._episode_state(obs[EPISODE_ID], obs[OBS_INSTRUCTION]) for obs in observations]
         device = network.projector.fc1.weight.device
         pixels = torch.stack([processor.image(obs[OBS_RGB]) for obs in observations]).to(device)
-        frames = network.encode_step(pixels)
-        memories = network.read_memory(states, frames)  # (M_i, D) per episode
+        frames, memories = network.encode_step(pixels, states)  # (M_i, D) memory tokens per episode
         if self.memory_probe == MEMORY_PROBE_EMPTY:
             memories = [memory[:0] for memory in memories]  # (0, D) per episode
-        sequences = []
-        for row, state in enumerate(states):
-            prompt = network.embed_text(torch.tensor(state.prompt_ids, device=device))  # (L, D)
-            sequences.append(
-                torch.cat(
-                    [prompt[:1], memories[row].to(frames.current.dtype), frames.current[row], prompt[1:]]
-                )
-            )
-        embeds, mask = left_pad(sequences)  # (B, L_max, D), (B, L_max)
-        # the cache is filled by the prefill and read by the decoding after it
-        needs_cache = self.agent.action_tokenizer.head != HEAD_DISCRETE or network.box_token_embed is not None
-        cache = network.new_cache() if needs_cache else None
-        if cache is None:
-            output = network.run_llm(embeds, mask, use_cache=False)
-        else:
-            output = network.run_cached(embeds, mask, cache)
-        hidden = output.last_hidden_state  # (B, L_max, D)
+        prompts = [network.embed_text(torch.tensor(state.prompt_ids, device=device)) for state in states]
+        layout = SequenceLayout.for_inference(prompts, memories, frames.current)  # [pad] .. [prompt]
+        # the cache is filled by the prefill and read by the steps after it (BOX, decoded bin tokens)
+        box_token = network.box_token_embed is not None
+        cache = network.new_cache() if tokenizer.head != HEAD_DISCRETE or box_token else None
+        hidden = network(layout, cache)  # (B, L_max, D)
+        # the head's prediction is not computed when the true boxes replace it
+        logits, grounding = network.heads(hidden, layout, actions=not box_token, boxes=true_boxes is None)
         if true_boxes is None:
-            padding = mask.shape[1] - mask.sum(dim=1)  # (B,) left padding of each row
-            memory_sizes = torch.tensor([memory.shape[0] for memory in memories], device=mask.device)
-            first_image = padding + 1 + memory_sizes  # after [pad] [BOS] [memory]
-            boxes, visible = network.predict_boxes(hidden, mask, first_image, frames.current)
-        else:  # the head's prediction would be discarded: not computed
+            boxes, visible = network.predicted_boxes(grounding, len(states))
+        else:
             boxes, visible = given_boxes(true_boxes, device)
-        if (
-            network.box_token_embed is not None
-        ):  # [.. prompt] [BOX]: one cached step, the action is read there
-            token = network.box_token_embed(boxes.to(device), torch.tensor(visible, device=device))  # (B, D)
-            hidden, mask = network.decode_one(token, mask, cache)
-        decoded = network.decode_actions(
-            hidden, mask, cache, self.agent.action_tokenizer
-        )  # (B, 10) or (B, 8)
-        if self.agent.action_tokenizer.head == HEAD_DISCRETE and self.temperature > 0:
+        if box_token:  # [.. prompt] [BOX]: one cached step, the action is read there
+            layout = layout.then(network.box_token(boxes.to(device), torch.tensor(visible, device=device)))
+            logits, _ = network.heads(network(layout, cache), layout, boxes=False)  # (B, V)
+        decoded = network.decode_actions(logits, layout, cache, tokenizer)  # (B, 10) or (B, 8)
+        if tokenizer.head == HEAD_DISCRETE and self.temperature > 0:
             probs = torch.softmax(decoded.float() / self.temperature, dim=-1).cpu()  # (B, 10)
             actions = [int(a) for a in torch.multinomial(probs, 1, generator=self.generator)[:, 0]]
-        elif self.agent.action_tokenizer.head == HEAD_DISCRETE:
+        elif tokenizer.head == HEAD_DISCRETE:
             actions = [int(a) for a in decoded.argmax(dim=-1)]
         else:
             actions = [processor.decode_action(row.tolist()) for row in decoded]

@@ -259,7 +259,7 @@ def check_architecture(model_cfg: ModelConfig, tokenizer, norm_stats, folder: Pa
             + "\n  set these fields as in its config.json, or choose another checkpoint"
         )
     if (folder / C.WEIGHTS_NAME).is_file() or (folder / C.WEIGHTS_INDEX_NAME).is_file():
-        expected = {k: tuple(v.shape) for k, v in meta.state_dict().items()}
+        expected = {k: tuple(v.shape) for k, v in meta.network.state_dict().items()}  # the saved names
         compare_shapes(expected, checkpoint_tensor_shapes(folder), f"{what} {folder}")
 
 
@@ -279,7 +279,7 @@ def build_agent(
     with `init.matching`; OpenVLA: by name)."""
     if init_format == FORMAT_OURS and cfg.init.matching:
         agent = OpenFlyAgent.from_model_config(cfg.model, tokenizer=tokenizer, norm_stats=norm_stats)
-        report = load_matching_weights(agent, Path(cfg.init.checkpoint))
+        report = load_matching_weights(agent.network, Path(cfg.init.checkpoint))  # the saved names
         logger.info("initialised from %s: %s", cfg.init.checkpoint, report.summary())
         return agent
     if init_format == FORMAT_OURS:

@@ -20,6 +20,7 @@ from openfly_agent import constants as C
 from openfly_agent.model.language.lora import TRAINABLE_PARTS, TRAINABLES_NAME, has_lora
 from openfly_agent.model.persistence.agent_io import save_processor_files
 from openfly_agent.model.persistence.remote_code import remove_auto_map, write_remote_code
+from openfly_agent.model.persistence.saved_names import saved_state_dict
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.lora import lora_scalings, merge_lora_state_dict
 from openfly_agent.utils.config import save_config
@@ -64,9 +65,10 @@ def write_lora_folder(agent: nn.Module, state_dict: dict, folder: Path) -> Path:
     write_model_metadata(agent, Path(folder))
     write_remote_code(folder)
     out = Path(folder) / C.ADAPTER_DIR_NAME
+    state_dict = saved_state_dict(state_dict)  # `language_model.*`, `projector.*`, ... as on disk
     prefix = "language_model."
     llm_state = {k[len(prefix) :]: v for k, v in state_dict.items() if k.startswith(prefix)}
-    agent.language_model.save_pretrained(str(out), state_dict=llm_state)
+    agent.network.language_model.save_pretrained(str(out), state_dict=llm_state)
     trainables = {k: v.contiguous() for k, v in state_dict.items() if k.split(".", 1)[0] in TRAINABLE_PARTS}
     save_file(trainables, str(out / TRAINABLES_NAME))
     return out
@@ -84,7 +86,7 @@ def export_merged_lora(accelerator: Accelerator, model: nn.Module, output_dir: s
     if not accelerator.is_main_process:
         return None
     agent = accelerator.unwrap_model(model)
-    merged = merge_lora_state_dict(state_dict, lora_scalings(agent))
+    merged = saved_state_dict(merge_lora_state_dict(state_dict, lora_scalings(agent)))
     final = Path(output_dir) / C.MERGED_DIR_NAME
     staging = Path(output_dir) / f".tmp-{C.MERGED_DIR_NAME}"
     if staging.exists():

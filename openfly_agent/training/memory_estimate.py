@@ -165,8 +165,8 @@ def model_sizes(cfg: TrainConfig) -> ModelSizes:
         for block in vit.blocks:
             if isinstance(block, Block) and any(p.requires_grad for p in block.parameters()):
                 vit_blocks.append((block.norm1.normalized_shape[0], block.mlp.fc1.out_features, tokens))
-    linears = [m for m in agent.projector.modules() if isinstance(m, torch.nn.Linear)]
-    config = agent.language_model.config
+    linears = [m for m in agent.network.projector.modules() if isinstance(m, torch.nn.Linear)]
+    config = agent.network.language_model.config
     return ModelSizes(
         params=params,
         trainable=sum(p.numel() for p in agent.parameters() if p.requires_grad),

@@ -31,7 +31,7 @@ def apply_training_mode(agent: nn.Module, cfg: TrainConfig) -> None:
 def compile_decoder_layers(agent: nn.Module, backend: str = "inductor") -> int:
     """`torch.compile` each LLM decoder layer in place (`nn.Module.compile`: the parameter names, the state
     dict and the checkpoints stay the same); compiled on the first call. Returns the number of layers."""
-    layers = unwrap_causal_lm(agent.language_model).model.layers
+    layers = unwrap_causal_lm(agent.network.language_model).model.layers
     for layer in layers:
         layer.compile(backend=backend)
     logger.info("torch.compile (%s) on %d decoder layers", backend, len(layers))

@@ -150,11 +150,13 @@ class StepFlops:
     def from_agent(cls, agent: nn.Module) -> StepFlops:
         """The count of `agent` (an `OpenFlyAgent`, before accelerate wraps it) with its freeze / LoRA applied."""
         cfg = agent.model_cfg
-        vision_all = sum(p.numel() for p in agent.vision_backbone.parameters())
-        vision_trainable = sum(p.numel() for p in agent.vision_backbone.parameters() if p.requires_grad)
+        vision_all = sum(p.numel() for p in agent.network.vision_backbone.parameters())
+        vision_trainable = sum(
+            p.numel() for p in agent.network.vision_backbone.parameters() if p.requires_grad
+        )
         vision_trains = vision_trainable > 0
-        layers = unwrap_causal_lm(agent.language_model).model.layers
-        projector_params, projector_trainable = _matrix_params(agent.projector)
+        layers = unwrap_causal_lm(agent.network.language_model).model.layers
+        projector_params, projector_trainable = _matrix_params(agent.network.projector)
         llm_params, llm_trainable = _matrix_params(layers)
         return cls(
             vision_frame=vision_frame_flops(cfg.vision),
@@ -164,7 +166,7 @@ class StepFlops:
             projector_input_grads=vision_trains,
             llm_params=llm_params,
             llm_trainable=llm_trainable,
-            llm_input_grads=vision_trains or _trains(agent.projector) or _trains(layers),
+            llm_input_grads=vision_trains or _trains(agent.network.projector) or _trains(layers),
             layers=len(layers),
             width=cfg.llm.hidden_size,
             model_cfg=cfg,

@@ -76,7 +76,8 @@ def test_merged_release_acts_like_the_adapter(lora_run):
     agent = OpenFlyAgent.from_pretrained(str(folder)).eval()
     assert not has_lora(agent)
     base = OpenFlyAgent.from_pretrained(str(lora_run.root / "base"))
-    assert not torch.equal(agent.projector.fc1.weight, base.projector.fc1.weight)  # trained parts are in
+    trained = agent.network.projector.fc1.weight
+    assert not torch.equal(trained, base.network.projector.fc1.weight)  # trained parts are in
     got = probe_namespace()["rollout"](agent)
     assert [s["action"] for s in got] == [s["action"] for s in lora_run.behaviour]
     torch.testing.assert_close(
@@ -164,7 +165,7 @@ def test_eval_loads_a_lora_run_merged_else_adapter_on_base(lora_run, lora_run_fo
         agent = load_agent(str(lora_run_folder), "cpu")
     base_projector = _projector(lora_run_folder / "merged" if merged else lora_run.root / "base")
     # merged/ holds the base here; the adapter's run moved the projector away from it
-    assert torch.equal(agent.projector.fc1.weight, base_projector) == merged
+    assert torch.equal(agent.network.projector.fc1.weight, base_projector) == merged
     step = lora_run_folder / "checkpoints" / "step-000010"
     said = "the LoRA run's merged model" if merged else f"the LoRA adapter of {step} on its base"
     assert said in caplog.text

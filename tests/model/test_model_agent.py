@@ -71,10 +71,10 @@ def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overri
 
 def test_visual_token_count_tiny(make_agent, make_batch):
     agent = make_agent()  # 4x4 patches, g = 2 -> 4 tokens per set, K = 2
-    visual, mask = agent.network.encode(make_batch(agent, batch_size=2))
-    assert visual.shape == (2, 16 + 2 * 4, agent.network.llm_dim)
+    memory, memory_mask, current = agent.network.encode(make_batch(agent, batch_size=2))
+    assert memory.shape == (2, 2 * 4, agent.network.llm_dim) and memory_mask.shape == (2, 2 * 4)
+    assert current.shape == (2, 16, agent.network.llm_dim)
     assert agent.model_cfg.visual_tokens_per_step() == 24
-    assert mask[:, -16:].all()
 
 
 def test_7b_shapes_on_meta_device():
@@ -84,10 +84,10 @@ def test_7b_shapes_on_meta_device():
         agent = OpenFlyAgent.from_model_config(openfly_7b_config())
     assert 7.4e9 < sum(p.numel() for p in agent.parameters()) < 7.6e9
     pixels = torch.zeros(2, 3, 224, 224, dtype=torch.uint8, device="meta")
-    features = agent.vision_backbone(pixels)
+    features = agent.network.vision_backbone(pixels)
     assert features.shape == (2, 256, 2176)
     sets = agent.network.memory.set_tokens(
-        agent.projector,
+        agent.network.projector,
         torch.zeros(4, 5, 256, 2176, device="meta"),
         torch.ones(4, 5, dtype=torch.bool, device="meta"),
         torch.zeros(4, 5, 4, device="meta"),
@@ -95,7 +95,7 @@ def test_7b_shapes_on_meta_device():
     )
     assert sets.shape == (4, 1, 4096)  # (16 / g)^2 = 1 token per keyframe set
     assert features.shape[1] + 2 * sets.shape[1] == 258 == agent.model_cfg.visual_tokens_per_step()
-    assert agent.language_model.lm_head.weight.shape == (32064, 4096)
+    assert agent.network.language_model.lm_head.weight.shape == (32064, 4096)
 
 
 def test_missing_memory_sets_contribute_nothing(make_agent, make_batch):
@@ -142,8 +142,8 @@ def test_merging_disabled_and_memory_off(make_agent, make_batch):
     assert torch.isfinite(loss)
     agent = make_agent(memory=MemoryConfig(capacity=0, grid=2))
     batch = make_batch(agent, capacity=0)
-    visual, _ = agent.network.encode(batch)
-    assert visual.shape[1] == 16
+    memory, _, current = agent.network.encode(batch)
+    assert memory.shape[1] == 0 and current.shape[1] == 16
     assert torch.isfinite(agent(batch)[0])
 
 
@@ -295,7 +295,7 @@ def test_activation_checkpointing_gives_the_same_gradients(make_agent, make_batc
     plain = {n: p.grad.clone() for n, p in agent.named_parameters()}
     agent.zero_grad()
     switch_on_decoder_checkpointing(agent)  # the transformers name that exists (5.17 lacks the new one)
-    assert agent.vision_backbone.featurizer.grad_checkpointing
+    assert agent.network.vision_backbone.featurizer.grad_checkpointing
     torch.manual_seed(0)
     agent(batch)[0].backward()
     for name, param in agent.named_parameters():
@@ -316,8 +316,9 @@ def test_tiny_preset_forward(tiny_tokenizer, make_batch):
     assert agent.model_cfg.llm.vocab_size == len(tiny_tokenizer) + 256
     assert agent.action_tokenizer.discrete_token_ids[0] == len(tiny_tokenizer)  # first reserved id
     batch = make_batch(agent, batch_size=2)
-    visual, _ = agent.network.encode(batch)
-    assert visual.shape == (2, 64 + 2, 128)  # 8x8 patches + K = 2 sets of (8 / 8)^2 tokens
+    memory, _, current = agent.network.encode(batch)
+    # K = 2 sets of (8 / 8)^2 tokens, 8x8 patches
+    assert (memory.shape, current.shape) == ((2, 2, 128), (2, 64, 128))
     loss, _ = agent(batch)
     assert torch.isfinite(loss)
 

@@ -50,9 +50,9 @@ def agent_pair(make_agent, request):
     agents["eager"].load_state_dict(agents["sdpa"].state_dict())
     with torch.no_grad():  # louder visual tokens: the actions depend on the frames
         for agent in agents.values():
-            agent.projector.fc3.weight.mul_(10.0)
+            agent.network.projector.fc3.weight.mul_(10.0)
     for attn, agent in agents.items():
-        assert unwrap_causal_lm(agent.language_model).config._attn_implementation == attn
+        assert unwrap_causal_lm(agent.network.language_model).config._attn_implementation == attn
     return agents
 
 

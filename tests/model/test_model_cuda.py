@@ -72,7 +72,7 @@ def test_cuda_closed_loop_actions_equal_the_cpu_ones(make_agent):
 
     agent = make_agent(seed=1)
     with torch.no_grad():
-        agent.projector.fc3.weight.mul_(10.0)  # actions that change with the image
+        agent.network.projector.fc3.weight.mul_(10.0)  # actions that change with the image
     on_cpu = fly(agent)
     assert len({a for step in on_cpu for a in step}) > 1  # not a constant policy, so equality means something
     assert fly(agent.to("cuda")) == on_cpu

@@ -47,7 +47,8 @@ def test_fsdp_style_checkpointing_gives_the_same_loss_and_gradients(make_agent, 
     wrapped = copy.deepcopy(agent)
     # 2 decoder layers + the 2 ViTs' blocks (depth 3, pruned after block depth - 2: 2 blocks each)
     assert wrap_blocks_as_fsdp_does(wrapped) == 2 + 2 + 2
-    assert not getattr(wrapped.language_model.model, "gradient_checkpointing", False)  # transformers' is off
+    # transformers' is off
+    assert not getattr(wrapped.network.language_model.model, "gradient_checkpointing", False)
     batch = make_batch(agent)
 
     torch.manual_seed(0)
@@ -73,9 +74,9 @@ def test_fsdp_style_checkpointing_gives_the_same_loss_and_gradients(make_agent, 
 def test_the_training_forward_never_builds_a_kv_cache(make_agent, make_batch, small_config):
     """The decoder is called with use_cache=False in training, whatever the Llama config's default says."""
     agent = seven_b_like_agent(make_agent, small_config)
-    assert agent.language_model.config.use_cache  # the model default a plain call would take
+    assert agent.network.language_model.config.use_cache  # the model default a plain call would take
     seen = []
-    core = agent.language_model.model
+    core = agent.network.language_model.model
     hook = core.register_forward_hook(lambda module, args, output: seen.append(output.past_key_values))
     try:
         agent(make_batch(agent))
@@ -99,9 +100,9 @@ def test_fsdp_preparation_makes_the_tiny_preset_contiguous_with_equal_outputs(ti
     side = agent.model_cfg.vision.image_size
     frames = torch.randint(0, 256, (2, 3, side, side), dtype=torch.uint8)
     with torch.no_grad():
-        reference = agent.vision_backbone(frames)
+        reference = agent.network.vision_backbone(frames)
     make_parameters_contiguous(agent)
     assert [name for name, p in agent.named_parameters() if not p.is_contiguous()] == []
     assert all(torch.equal(p, before[name]) for name, p in agent.named_parameters())
     with torch.no_grad():
-        torch.testing.assert_close(agent.vision_backbone(frames), reference)
+        torch.testing.assert_close(agent.network.vision_backbone(frames), reference)

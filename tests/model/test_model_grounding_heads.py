@@ -72,7 +72,7 @@ def test_the_config_picks_the_head_and_the_keys_stay_those_of_earlier_checkpoint
 
 def test_the_regression_head_initialises_in_a_fresh_agent_and_trains(make_agent, make_batch):
     agent = make_agent(grounding=BoxGroundingConfig(dim=32, num_heads=2))
-    head = agent.grounding_head
+    head = agent.network.grounding_head
     assert isinstance(head, BoxRegressionHead) and head.box_queries.std() > 0  # the queries' own init ran
     agent.train()
     loss, logs = agent(make_batch(agent))
@@ -98,8 +98,8 @@ def test_an_agent_starts_from_openvla_weights_with_either_head(
     agent, report = agent_from_openvla_checkpoint(
         tmp_path, small_config(grounding=grounding), tokenizer=tiny_tokenizer
     )
-    head = agent.grounding_head
+    head = agent.network.grounding_head
     new = [key for key in report.missing_new if key.startswith("grounding_head.")]
     assert new == sorted(f"grounding_head.{key}" for key in head.state_dict())
     assert all(torch.isfinite(p).all() for p in head.parameters()) and head.box_queries.std() > 0
-    torch.testing.assert_close(agent.projector.fc1.weight, source.projector.fc1.weight)
+    torch.testing.assert_close(agent.network.projector.fc1.weight, source.network.projector.fc1.weight)

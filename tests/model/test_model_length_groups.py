@@ -65,7 +65,7 @@ def tiny_llama():
 
 
 def test_grouped_hidden_states_and_gradients_equal_one_call():
-    from openfly_agent.model.language.sequence import position_ids_from_mask
+    from openfly_agent.model.layout import position_ids_from_mask
 
     model = tiny_llama()
 

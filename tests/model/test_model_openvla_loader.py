@@ -37,7 +37,7 @@ def _openvla_state_dict(agent, seed: int = 0) -> dict[str, torch.Tensor]:
         global_pool="map",
         **common,
     )
-    llm_cfg = agent.language_model.config
+    llm_cfg = agent.network.language_model.config
     llm = LlamaForCausalLM(
         LlamaConfig(
             vocab_size=llm_cfg.vocab_size,
@@ -83,7 +83,8 @@ def test_synthetic_openvla_checkpoint_loads_by_name(make_agent, tmp_path):
     _write_sharded(state, tmp_path / "ckpt")
     report = load_openvla_weights(agent, tmp_path / "ckpt")
 
-    assert report.missing_new == sorted(k for k in agent.state_dict() if k.startswith(NEW_MODULE_PREFIXES))
+    new = sorted(k for k in agent.network.state_dict() if k.startswith(NEW_MODULE_PREFIXES))
+    assert report.missing_new == new
     assert report.missing_new  # the only thing the checkpoint lacks
     last = agent.model_cfg.vision.depth - 1
     assert sorted(report.unused) == sorted(
@@ -100,14 +101,14 @@ def test_synthetic_openvla_checkpoint_loads_by_name(make_agent, tmp_path):
         )
     )
     assert len(report.loaded) + len(report.unused) == len([k for k in state if not k.startswith("_")])
-    block = agent.vision_backbone.featurizer.blocks[0]
+    block = agent.network.vision_backbone.featurizer.blocks[0]
     assert torch.equal(block.ls1.gamma, state["vision_backbone.featurizer.blocks.0.ls1.scale_factor"])
-    assert torch.equal(agent.projector.fc2.weight, state["projector.fc2.weight"])
-    assert torch.equal(agent.language_model.lm_head.weight, state["language_model.lm_head.weight"])
+    assert torch.equal(agent.network.projector.fc2.weight, state["projector.fc2.weight"])
+    assert torch.equal(agent.network.language_model.lm_head.weight, state["language_model.lm_head.weight"])
 
     # the pruned backbone computes OpenVLA's features: second-to-last block, no final norm
     pixels = torch.randint(0, 256, (2, 3, 56, 56), dtype=torch.uint8)
-    ours = agent.vision_backbone(pixels)
+    ours = agent.network.vision_backbone(pixels)
     x = pixels.float() / 255
     dino_in = (x - torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)) / torch.tensor(
         [0.229, 0.224, 0.225]
@@ -147,9 +148,9 @@ def test_export_round_trip(make_agent):
     assert any(k.endswith("ls1.scale_factor") for k in exported)
     assert not any(k.endswith(".gamma") or k.startswith(NEW_MODULE_PREFIXES) for k in exported)
     load_openvla_weights(target, exported)
-    for key, value in source.state_dict().items():
+    for key, value in source.network.state_dict().items():
         if not key.startswith(NEW_MODULE_PREFIXES):
-            assert torch.equal(target.state_dict()[key], value), key
+            assert torch.equal(target.network.state_dict()[key], value), key
 
 
 def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_config, tiny_tokenizer, tmp_path):
@@ -161,11 +162,11 @@ def test_agent_from_checkpoint_on_meta_then_materialised(make_agent, small_confi
     agent, report = agent_from_openvla_checkpoint(tmp_path / "ckpt", small_config(), tokenizer=tiny_tokenizer)
     assert agent.config.norm_stats == NORM_STATS and report.missing_new
     assert all(not p.is_meta for p in agent.parameters())
-    assert torch.isfinite(agent.grounding_head.box_queries).all()
+    assert torch.isfinite(agent.network.grounding_head.box_queries).all()
     # the new modules (not in an OpenVLA checkpoint) are freshly initialised: give them the reference's weights,
     # since the box token feeds the grounding head's box to the action
     for name in ("grounding_head", "box_token_embed"):
-        getattr(agent, name).load_state_dict(getattr(reference, name).state_dict())
+        getattr(agent.network, name).load_state_dict(getattr(reference.network, name).state_dict())
     frame = torch.randint(0, 256, (56, 56, 3), dtype=torch.uint8).numpy()
     obs = [{"episode_id": "a", "instruction": "Fly to the red tower.", "rgb": frame}]
     torch.testing.assert_close(

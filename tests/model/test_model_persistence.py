@@ -29,14 +29,14 @@ NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).
 
 def _logits(agent, batch) -> torch.Tensor:
     """Full-vocabulary logits at every position of the training layout (eval mode, no grad)."""
-    from openfly_agent.model.language.sequence import splice_after_bos
+    from openfly_agent.model.layout import SequenceLayout
 
+    network = agent.network
     with torch.no_grad():
-        visual, visual_mask = agent.network.encode(batch)
-        embeds, mask, _ = splice_after_bos(
-            agent.network.embed_text(batch["input_ids"]), batch["attention_mask"], None, visual, visual_mask
-        )
-        return agent.network.lm_logits(agent.network.run_llm(embeds, mask).last_hidden_state)
+        text = network.embed_text(batch["input_ids"])
+        no_labels = torch.full_like(batch["input_ids"], -100)
+        layout = SequenceLayout.for_training(text, batch["attention_mask"], no_labels, *network.encode(batch))
+        return network.lm_logits(network(layout))
 
 
 def test_save_load_gives_identical_logits(make_agent, make_batch, tmp_path):
@@ -99,7 +99,7 @@ def test_freeze_stages(make_agent, stage):
     if stage == "lora":
         attach_lora(agent, LoraSettings(rank=4, alpha=8))
     counts = agent.freeze(stage)
-    trains = {name: p.requires_grad for name, p in agent.named_parameters()}
+    trains = {name: p.requires_grad for name, p in agent.network.named_parameters()}  # as saved
 
     def part(prefix):
         return {trains[n] for n in trains if n.startswith(prefix)}
@@ -155,7 +155,7 @@ def test_lora_merge_equals_unmerged_and_adapter_round_trip(make_agent, make_batc
         for name, param in agent.named_parameters():
             if "lora_B" in name:
                 param.normal_(std=0.05)
-        agent.projector.fc3.bias.add_(0.1)
+        agent.network.projector.fc3.bias.add_(0.1)
     unmerged = _logits(agent, batch)
     assert not torch.allclose(unmerged, base_logits, atol=1e-4)
     with pytest.raises(ValueError, match="LoRA is attached"):

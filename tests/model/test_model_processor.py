@@ -118,7 +118,7 @@ class _Spy:
         network = agent.network
         embed, vision, llm = network.embed_text, network.vision_backbone.forward_with_cls, network.run_llm
         network.embed_text = lambda ids: (self.ids.append(ids.clone()), embed(ids))[1]
-        agent.vision_backbone.forward_with_cls = lambda px: (self.pixels.append(px.clone()), vision(px))[1]
+        network.vision_backbone.forward_with_cls = lambda px: (self.pixels.append(px.clone()), vision(px))[1]
         network.run_llm = lambda embeds, mask, **kw: (
             self.llm.append((embeds.clone(), mask.clone())),
             llm(embeds, mask, **kw),
@@ -144,7 +144,7 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
     (result,) = session.predict_step([obs(steps)])
     inference_pixels = spy.pixels[-1][0]
     # the prefill, then (box token) one cached step that embeds the predicted target box
-    box_token = agent.box_token_embed is not None
+    box_token = agent.network.box_token_embed is not None
     inference_embeds, inference_mask = spy.llm[-2] if box_token else spy.llm[-1]
     if box_token:
         inference_embeds = torch.cat([inference_embeds, spy.llm[-1][0]], dim=1)

@@ -37,7 +37,7 @@ def memory_agent(make_agent, **overrides):
         **overrides,
     )
     with torch.no_grad():
-        agent.projector.fc3.weight.mul_(10.0)
+        agent.network.projector.fc3.weight.mul_(10.0)
     return agent
 
 
@@ -209,8 +209,10 @@ def test_compat_mode_runs_the_released_layout(make_agent):
     assert sorted(state.memory.tokens) == [0, 2, 3]  # frame 0 (padding) + the last K frames
     # history token = projector(DINO CLS ++ pooled SigLIP patches), one per frame
     pixels = agent.processor.image(frames[0, 3])[None]
-    patches, cls = agent.vision_backbone.forward_with_cls(pixels)
-    manual = agent.projector(torch.cat([cls, patches[..., agent.vision_backbone.dino_dim :].mean(1)], -1))
+    patches, cls = agent.network.vision_backbone.forward_with_cls(pixels)
+    manual = agent.network.projector(
+        torch.cat([cls, patches[..., agent.network.vision_backbone.dino_dim :].mean(1)], -1)
+    )
     torch.testing.assert_close(state.memory.tokens[3], manual[0], rtol=1e-5, atol=1e-5)
 
 
@@ -218,8 +220,8 @@ def test_true_boxes_replace_the_grounding_heads_prediction(make_agent):
     agent = make_agent(seed=1, keyframes=KeyframeConfig(theta=0.0))  # with a visibility logit
     session = agent.new_session()
     with torch.no_grad():
-        agent.projector.fc3.weight.mul_(10.0)
-    assert agent.box_token_embed is not None
+        agent.network.projector.fc3.weight.mul_(10.0)
+    assert agent.network.box_token_embed is not None
     frames = _frames(2, 4, seed=5)
     own = [session.predict_step([_obs(e, frames[e, t]) for e in range(2)]) for t in range(4)]
     session.reset()

@@ -29,7 +29,7 @@ def _agent(make_agent):
     with (
         torch.no_grad()
     ):  # logits a few units apart (a fresh init's are all about 0): a policy worth sampling
-        agent.language_model.lm_head.weight.mul_(10.0)
+        agent.network.language_model.lm_head.weight.mul_(10.0)
     return agent
 
 

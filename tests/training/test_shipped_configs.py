@@ -133,7 +133,7 @@ def test_the_7b_lora_config_trains_resumes_merges_evaluates_and_releases(
 
     agent = OpenFlyAgent.from_pretrained(str(release)).eval()
     merged = OpenFlyAgent.from_pretrained(str(run / "merged"))
-    assert isinstance(agent.grounding_head, BoxRegressionHead)
+    assert isinstance(agent.network.grounding_head, BoxRegressionHead)
     for name, tensor in merged.state_dict().items():
         assert torch.equal(agent.state_dict()[name], tensor), name
 

@@ -46,7 +46,11 @@ def test_lora_run_saves_the_adapter_and_merges_on_rank0(lora_run):
         expected, _ = lora_agent(batch)
         found, _ = merged(batch)
     torch.testing.assert_close(found, expected, rtol=1e-4, atol=1e-5)
-    b = lora_agent.language_model.base_model.model.model.layers[0].self_attn.q_proj.lora_B["default"].weight
+    b = (
+        lora_agent.network.language_model.base_model.model.model.layers[0]
+        .self_attn.q_proj.lora_B["default"]
+        .weight
+    )
     assert b.abs().max() > 0  # the adapter trained, so the merge really changed the weights
 
 
@@ -150,7 +154,7 @@ def test_compiled_decoder_layers_are_off_by_default_and_give_the_same_loss(gener
     cfg = make_config(generated_dataset, tmp_path, validation__final_eval="false")
     assert cfg.compile_layers is False
     agent = built_agent(cfg).train()
-    layers = unwrap_causal_lm(agent.language_model).model.layers
+    layers = unwrap_causal_lm(agent.network.language_model).model.layers
     assert all(layer._compiled_call_impl is None for layer in layers)
     batch = split_batch(cfg, agent, cfg.data.test_split, range(2))
     torch.manual_seed(0)  # the same box-token jitter in both passes

@@ -4,15 +4,14 @@ With `action_head.box_token` the step's sequence is `[BOS] [memory] [current] [p
 LLM reads the action at the BOX position, whose input embedding encodes where the instruction's target is in the
 frame. At inference BOX carries the grounding head's prediction from the prefill of `[BOS] .. [prompt]` (then one
 cached decode step); in training the ground-truth box, jittered so the action learns to tolerate a grounding
-head's errors. The grounding head never reads the BOX position, so both see the same prefix.
+head's errors. The grounding head never reads the BOX position, so both see the same prefix. Where BOX goes is
+the sequence layout's (model/layout.py); this module makes its embedding.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import nn
-
-from openfly_agent.constants import IGNORE_INDEX
 
 NUM_BOX_FEATURES = 6  # visible, cx - 0.5, cy - 0.5, sqrt(area), w, h
 
@@ -54,35 +53,6 @@ class BoxTokenEmbedding(nn.Module):
     def forward(self, boxes: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
         features = box_features(boxes, visible).to(self.fc1.weight.dtype)
         return self.fc2(nn.functional.gelu(self.fc1(features)))
-
-
-def insert_before_targets(
-    embeds: torch.Tensor, mask: torch.Tensor, labels: torch.Tensor, token: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Insert `token` right before each row's first labelled position (right-padded training rows).
-
-    Args:
-        embeds: (B, L, D) input embeddings; mask: (B, L); labels: (B, L) with IGNORE_INDEX off the targets.
-        token: (B, D) the embedding to insert.
-
-    Returns:
-        (B, L + 1, D) embeddings, (B, L + 1) mask, (B, L + 1) labels (IGNORE_INDEX at the token) and the
-        (B,) positions of the inserted tokens. The target predicted at the token is the first label after it.
-    """
-    b, length = labels.shape
-    labelled = labels != IGNORE_INDEX  # (B, L)
-    if not bool(labelled.any(dim=1).all()):
-        raise ValueError("every row needs a labelled action token to put the box token before")
-    position = labelled.long().argmax(dim=1)  # (B,) first labelled column
-    columns = torch.arange(length + 1, device=labels.device)[None]  # (1, L + 1)
-    source = columns - (columns > position[:, None]).long()  # (B, L + 1) old column of each new column
-    source = source.clamp(max=length - 1)
-    rows = torch.arange(b, device=labels.device)[:, None]
-    at_token = columns == position[:, None]  # (B, L + 1)
-    new_embeds = torch.where(at_token[..., None], token[:, None].to(embeds.dtype), embeds[rows, source])
-    new_mask = torch.where(at_token, torch.ones_like(mask[:, :1]), mask[rows, source])
-    new_labels = torch.where(at_token, torch.full_like(labels[:, :1], IGNORE_INDEX), labels[rows, source])
-    return new_embeds, new_mask, new_labels, position
 
 
 def last_true_index(mask: torch.Tensor) -> torch.Tensor:

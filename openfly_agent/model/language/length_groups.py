@@ -3,7 +3,7 @@
 A grounding-stage micro-batch mixes short referring expressions with long instructions, and a navigation batch
 mixes instructions of different lengths: in one call every row is padded to the longest, and the tiny LLM
 spends about half its work on padding. Rows are independent in a causal LM with a key padding mask and
-positions counted from the mask (model/language/sequence.py), so each group can be cut to its own longest row, run alone,
+positions counted from the mask (model/layout.py), so each group can be cut to its own longest row, run alone,
 and padded back: every real position gets the hidden state of the single call (up to float rounding of the
 different matmul shapes). Padding past a group's longest row gets zeros; nothing reads padding.
 """

@@ -37,7 +37,7 @@ def _without_peft_checkpointing_warning() -> Iterator[None]:
 
 def has_lora(agent: nn.Module) -> bool:
     """Whether peft adapters are attached to the agent's LLM."""
-    return getattr(agent.language_model, "peft_config", None) is not None
+    return getattr(agent.network.language_model, "peft_config", None) is not None
 
 
 def attach_lora(agent: nn.Module, settings: LoraSettings | None = None) -> nn.Module:
@@ -57,7 +57,7 @@ def attach_lora(agent: nn.Module, settings: LoraSettings | None = None) -> nn.Mo
         bias="none",
     )
     with _without_peft_checkpointing_warning():
-        agent.language_model = get_peft_model(agent.language_model, config)
+        agent.network.language_model = get_peft_model(agent.network.language_model, config)
     freeze(agent, STAGE_LORA)
     return agent
 
@@ -65,7 +65,7 @@ def attach_lora(agent: nn.Module, settings: LoraSettings | None = None) -> nn.Mo
 def _trainables_state(agent: nn.Module) -> dict:
     return {
         name: tensor.detach().contiguous()
-        for name, tensor in agent.state_dict().items()
+        for name, tensor in agent.network.state_dict().items()
         if name.split(".", 1)[0] in TRAINABLE_PARTS
     }
 
@@ -77,7 +77,7 @@ def save_lora_adapter(agent: nn.Module, folder: str | Path) -> Path:
     if not has_lora(agent):
         raise ValueError("no LoRA adapter to save: call attach_lora first")
     out = Path(folder) / ADAPTER_DIR_NAME
-    agent.language_model.save_pretrained(str(out))
+    agent.network.language_model.save_pretrained(str(out))
     save_file(_trainables_state(agent), str(out / TRAINABLES_NAME))
     logger.info("saved the LoRA adapter to %s", out)
     return out
@@ -96,9 +96,11 @@ def load_lora_adapter(agent: nn.Module, folder: str | Path) -> nn.Module:
     if not (folder / "adapter_config.json").is_file():
         raise FileNotFoundError(f"{folder} holds no adapter_config.json (write it with save_lora_adapter)")
     with _without_peft_checkpointing_warning():
-        agent.language_model = PeftModel.from_pretrained(agent.language_model, str(folder), is_trainable=True)
+        agent.network.language_model = PeftModel.from_pretrained(
+            agent.network.language_model, str(folder), is_trainable=True
+        )
     trainables = load_file(str(folder / TRAINABLES_NAME))
-    result = agent.load_state_dict(trainables, strict=False)
+    result = agent.network.load_state_dict(trainables, strict=False)
     if result.unexpected_keys:
         raise ValueError(f"{folder / TRAINABLES_NAME}: unexpected keys {result.unexpected_keys[:10]}")
     missing = [k for k in result.missing_keys if k.split(".", 1)[0] in TRAINABLE_PARTS]
@@ -112,6 +114,6 @@ def merge_lora(agent: nn.Module) -> nn.Module:
     """Fold the adapters into the LLM weights (peft merge_and_unload); the agent saves as a plain one."""
     if not has_lora(agent):
         raise ValueError("no LoRA adapter to merge: call attach_lora or load_lora_adapter first")
-    agent.language_model = agent.language_model.merge_and_unload()
+    agent.network.language_model = agent.network.language_model.merge_and_unload()
     logger.info("merged the LoRA adapters into the LLM")
     return agent

@@ -59,7 +59,7 @@ def to_openvla_state_dict(agent: nn.Module) -> dict[str, torch.Tensor]:
     """The agent's weights in the OpenVLA key layout, without the new modules (for export / comparison)."""
     return {
         agent_to_openvla_key(name): tensor
-        for name, tensor in agent.state_dict().items()
+        for name, tensor in agent.network.state_dict().items()
         if not name.startswith(NEW_MODULE_PREFIXES)
     }
 
@@ -68,7 +68,7 @@ def pruned_vision_keys(agent: nn.Module) -> set[str]:
     """Agent-style keys the full timm ViTs have and the agent's pruned ones do not."""
     with torch.device("meta"):
         full = build_featurizers(agent.model_cfg.vision, prune=False)
-    ours = (agent.vision_backbone.featurizer, agent.vision_backbone.fused_featurizer)
+    ours = (agent.network.vision_backbone.featurizer, agent.network.vision_backbone.fused_featurizer)
     keys = set()
     for prefix, whole, pruned in zip(VISION_PREFIXES, full, ours):
         keys |= {prefix + k for k in set(whole.state_dict()) - set(pruned.state_dict())}
@@ -190,7 +190,7 @@ def check_openvla_shapes(agent: nn.Module, folder: str | Path) -> None:
     Raises:
         CheckpointMismatchError: one line, `mismatch_message`.
     """
-    targets = {name: tuple(t.shape) for name, t in agent.state_dict().items()}
+    targets = {name: tuple(t.shape) for name, t in agent.network.state_dict().items()}
     prunable = pruned_vision_keys(agent)
     found = {openvla_to_agent_key(k): shape for k, shape in checkpoint_shapes(folder).items()}
     found = {k: shape for k, shape in found.items() if k not in prunable}  # the ViT parts the agent drops
@@ -215,9 +215,9 @@ def load_openvla_weights(agent: nn.Module, path_or_state_dict) -> LoadReport:
     Raises:
         ValueError: listing unexpected, missing (other than new-module) and wrong-shape keys.
     """
-    if getattr(agent.language_model, "peft_config", None) is not None:
+    if getattr(agent.network.language_model, "peft_config", None) is not None:
         raise ValueError("load OpenVLA weights before attaching LoRA")
-    targets = agent.state_dict()
+    targets = agent.network.state_dict()
     prunable = pruned_vision_keys(agent)
     report, unexpected, found = LoadReport(), [], {}
     for key, tensor in _iter_checkpoint(path_or_state_dict):
@@ -279,9 +279,10 @@ def agent_from_openvla_checkpoint(folder: str | Path, cfg, tokenizer=None, devic
     with torch.no_grad():
         for module in agent.modules():  # new modules and non-persistent buffers (rotary inv_freq)
             if type(module).__name__.endswith("RotaryEmbedding"):
-                unwrap = agent.language_model
+                unwrap = agent.network.language_model
                 unwrap._init_weights(module)
-        for new_module in (agent.grounding_head, agent.box_token_embed):  # NEW_MODULE_PREFIXES
+        # NEW_MODULE_PREFIXES
+        for new_module in (agent.network.grounding_head, agent.network.box_token_embed):
             if new_module is not None:
                 for module in new_module.modules():
                     agent._init_weights(module)

@@ -24,7 +24,7 @@ def materialize_random_(
         agent.to(dtype)
     for module in agent.modules():
         if type(module).__name__.endswith("RotaryEmbedding"):
-            agent.language_model._init_weights(module)
+            agent.network.language_model._init_weights(module)
     for name, param in agent.named_parameters():
         if param.ndim >= 2:
             param.normal_(0.0, INIT_STD)
