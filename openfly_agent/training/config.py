@@ -243,7 +243,6 @@ class RLConfig:
     progress_weight: float = 0.0  # x (start distance - final distance) / start distance to the goal
     collision_penalty: float = 0.0  # subtracted once when a move collided
     far_stop_penalty: float = 0.0  # subtracted for a STOP outside the profile's success radius
-    std_eps: float = 1e-4  # advantage = (r - group mean) / (group std + std_eps)
 
     def __post_init__(self) -> None:
         for name in ("group_size", "episodes_per_update", "epochs", "minibatches", "num_envs"):
@@ -264,7 +263,6 @@ class RLConfig:
             "far_stop_penalty",
         ):
             _require(getattr(self, name) >= 0, f"rl.{name} must be >= 0, got {getattr(self, name)}")
-        _require(self.std_eps > 0, f"rl.std_eps must be > 0, got {self.std_eps}")
         _require(
             self.max_steps is None or self.max_steps >= 1,
             f"rl.max_steps must be >= 1 or null, got {self.max_steps}",

@@ -12,7 +12,10 @@ from __future__ import annotations
 import torch
 
 
-def group_advantages(rewards: torch.Tensor, eps: float) -> torch.Tensor:
+ADVANTAGE_EPS = 1e-4  # keeps a group of nearly equal rewards from dividing by a std of about 0
+
+
+def group_advantages(rewards: torch.Tensor, eps: float = ADVANTAGE_EPS) -> torch.Tensor:
     """(N, G) rewards of N groups of G rollouts -> (N, G) advantages `(r - mean) / (std + eps)`.
 
     `std` is the Bessel-corrected standard deviation of the group (divides by G - 1): rewards [1, 0, 0, 1] give

@@ -269,7 +269,7 @@ def update_policy(
     """Steps 2-4 of an update (module docstring) on the flown `groups`; returns the update's logs."""
     rl = cfg.rl
     rewards = torch.tensor([[r.reward for r in group] for group in groups], dtype=torch.float64)  # (N, G)
-    advantages = group_advantages(rewards, rl.std_eps)  # (N, G)
+    advantages = group_advantages(rewards)  # (N, G)
     kept = [
         (step_sample(r.record, r.steps, t), float(advantages[n, g]), r.steps[t].boxes_known)
         for n, group in enumerate(groups)

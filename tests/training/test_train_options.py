@@ -11,8 +11,8 @@ from openfly_agent.utils.config import config_from_dict, config_to_dict, flat_se
 
 MAX_OPTIONS = 89  # issue 46: under 90 options in `train.py --help`
 # the options outside `--model.*` (`--config_path` included): 65 before issue 46 took out stop_after_steps,
-# tokenizer.path, init.format, data.train_split and logging.run_name
-MAX_TRAINING_OPTIONS = 60
+# tokenizer.path, init.format, data.train_split and logging.run_name (60); the RL stage's section added 14
+MAX_TRAINING_OPTIONS = 74
 
 
 def help_options() -> list[str]:
