@@ -217,7 +217,9 @@ class OpenFlyAgent(PreTrainedModel):
             jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
             # the true box; the RL stage's replay gives the box the policy predicted (`token_box`)
             token_box = batch.get(TOKEN_BOX, batch[BOX])
-            box = network.box_token(token_box, batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]), jitter)  # (B, D)
+            box = network.box_token(
+                token_box, batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]), jitter
+            )  # (B, D)
         layout = SequenceLayout.for_training(
             network.embed_text(input_ids), batch[ATTENTION_MASK], labels, memory, memory_mask, current, box
         )  # [BOS] [memory] [current] [prompt] [BOX] [action]: (B, L', D)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import torch
 
-
 ADVANTAGE_EPS = 1e-4  # keeps a group of nearly equal rewards from dividing by a std of about 0
 
 
