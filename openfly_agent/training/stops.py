@@ -16,6 +16,8 @@ from accelerate import Accelerator
 from openfly_agent.training.preflight import PreflightError
 
 logger = logging.getLogger(__name__)
+# the clock of the time limit (a module attribute: a test flies a run on a clock it advances itself)
+monotonic_clock = time.monotonic
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)  # cluster preemption notices (SLURM `--signal`)
 
@@ -61,7 +63,7 @@ class StopFlags:
         self.accelerator = accelerator
         self.limit_s = None if time_limit_minutes is None else 60.0 * time_limit_minutes
         self.elapsed_before_s = elapsed_before_s
-        self.started = time.monotonic()
+        self.started = monotonic_clock()
         self.used_fraction = 0.0 if self.limit_s is None else min(elapsed_before_s / self.limit_s, 1.0)
         self.signal_name: str | None = None
         self._signal_said = False
@@ -70,7 +72,7 @@ class StopFlags:
 
     def elapsed_s(self) -> float:
         """Training seconds of the run so far (this process's clock), resumes included."""
-        return self.elapsed_before_s + time.monotonic() - self.started
+        return self.elapsed_before_s + monotonic_clock() - self.started
 
     def __enter__(self) -> StopFlags:
         if threading.current_thread() is threading.main_thread():  # signal handlers live in the main thread

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import signal
 import subprocess
 import time
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ from conftest import (
 )
 
 from openfly_agent import constants as C
+from openfly_agent.training import stops
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import ACCELERATE_STATE_DIR, TRAINER_STATE_NAME
 from openfly_agent.utils.processes import communicate_group
@@ -202,8 +205,12 @@ def test_a_time_horizon_decays_the_lr_over_the_time_limit_counted_over_resumes(g
         "optim__warmup_steps": 0, "optim__min_lr_ratio": 0.0, "checkpoint__save_interval": 0,
         "validation__final_eval": "false",
     }  # fmt: skip
-    result = train_in_process(make_config(generated_dataset, tmp_path, **overrides))
-    assert result.stopped_early and 1 <= result.state.step < 100_000
+    # the run's clock advances 0.1 s each time it is read, so the 3 s budget lasts the same number of steps
+    # however loaded the machine is (a real clock let a slow first step spend the whole budget alone)
+    ticks = itertools.count()
+    with mock.patch.object(stops, "monotonic_clock", lambda: 0.1 * next(ticks)):
+        result = train_in_process(make_config(generated_dataset, tmp_path, **overrides))
+    assert result.stopped_early and 3 <= result.state.step < 100_000
     lrs = _logged(tmp_path, "train/lr")
     peak = make_config(generated_dataset, tmp_path, **overrides).optim.lr
     steps = sorted(lrs)  # each step's lr reads the time used up to the step before: the last one is near 0
@@ -212,5 +219,6 @@ def test_a_time_horizon_decays_the_lr_over_the_time_limit_counted_over_resumes(g
     saved = json.loads((CheckpointManager(tmp_path, 5).latest() / TRAINER_STATE_NAME).read_text())
     assert saved["train_seconds"] >= 3
     # the whole budget is spent: a resume with the same limit stops after one step instead of starting over
-    resumed = train_in_process(make_config(generated_dataset, tmp_path, resume="true", **overrides))
+    with mock.patch.object(stops, "monotonic_clock", lambda: 0.1 * next(ticks)):
+        resumed = train_in_process(make_config(generated_dataset, tmp_path, resume="true", **overrides))
     assert resumed.state.step == result.state.step + 1
