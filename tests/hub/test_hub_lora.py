@@ -38,7 +38,7 @@ def lora_run(tmp_path_factory):
     agent = attach_lora(OpenFlyAgent.from_pretrained(str(root / "base")), LoraSettings(rank=4, alpha=8))
     with torch.no_grad():  # stand-in for training: non-zero adapters, a moved projector
         for name, param in agent.named_parameters():
-            if "lora_B" in name or name.startswith("projector."):
+            if "lora_B" in name or name.startswith("network.projector."):
                 param.add_(0.05 * torch.randn_like(param))
     agent.eval()
     checkpoint = root / "run" / "checkpoints" / "step-000010"
