@@ -467,7 +467,13 @@ FOREIGN = {  # first part of a name -> why it is not this package's
     "enableApiControl": "AirSim's client", "armDisarm": "AirSim's client",
 }  # fmt: skip
 # Members a class of ours inherits from transformers (`OpenFlyProcessor.from_pretrained`)
-INHERITED = {"from_pretrained", "save_pretrained", "push_to_hub", "load_state_dict", "state_dict"}  # torch / transformers
+INHERITED = {
+    "from_pretrained",
+    "save_pretrained",
+    "push_to_hub",
+    "load_state_dict",
+    "state_dict",
+}  # torch / transformers
 FILE_SUFFIXES = {  # a span ending so is a file name (`config.json`), not code
     "json", "jsonl", "safetensors", "parquet", "png", "md", "txt", "ini", "so", "yaml", "yml", "toml",
 }  # fmt: skip
