@@ -459,7 +459,7 @@ NOT_IN_TREE = {  # named on purpose, never files of this repository
     "processing_openfly_agent.py": "written into each checkpoint",
 }
 FOREIGN = {  # first part of a name -> why it is not this package's
-    "torch": "PyTorch", "np": "NumPy", "numpy": "NumPy", "math": "the standard library",
+    "torch": "PyTorch", "np": "NumPy", "numpy": "NumPy", "math": "the standard library", "sys": "the standard library",
     "transformers": "transformers", "huggingface_hub": "huggingface_hub", "cv2": "OpenCV",
     "accelerator": "accelerate's Accelerator", "Accelerator": "accelerate", "ops": "torchvision.ops",
     "ls1": "timm's LayerScale keys", "LayerNorm": "timm / transformers key names",
@@ -595,7 +595,7 @@ def _name_resolves(span: str, index: CodeIndex) -> bool:
         rest = parts[cut:]
         return cut > 0 and (not rest or rest[0] in index.modules[".".join(parts[:cut])])
     if parts[-1] not in index.names:
-        return False
+        return parts[-1] in INHERITED  # `agent.load_state_dict`: torch's / transformers' method of our class
     owner = parts[0] if len(parts) > 1 and parts[0][:1].isupper() else None
     return owner not in index.members or parts[1] in index.members[owner] | INHERITED
 
