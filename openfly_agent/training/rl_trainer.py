@@ -28,6 +28,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -152,13 +153,30 @@ def taken_log_probs(model, batch: dict, action_ids: torch.Tensor, temperature: f
     return {"logp": logp, "entropy": entropy, "grounding_loss": outputs.get("grounding_loss")}
 
 
-def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
-    """Run the RL stage of `cfg` (module docstring); `env`: the lockstep simulator to fly in (None: the
-    embedded city of `cfg.data.root`, closed at the end; a bridge's environment works the same way).
+@dataclass
+class RLSetup:
+    """Everything an RL run holds between its updates (`set_up_rl`)."""
 
-    Raises:
-        PreflightError: bad input, before any compute.
-    """
+    cfg: TrainConfig
+    accelerator: Any
+    model: Any  # the prepared agent (what the optimizer moves)
+    reference: OpenFlyAgent  # the starting policy, frozen
+    optimizer: Any
+    scheduler: Any
+    checkpoints: CheckpointManager
+    state: TrainerState
+    last_checkpoint: Path | None
+    saved_step: int | None
+    profile: MetricProfile
+    max_steps: int
+    batches: StepBatches
+    action_ids: torch.Tensor  # (10,) the discrete action token ids
+    splits: Splits
+
+
+def set_up_rl(cfg: TrainConfig) -> RLSetup:
+    """The checks, the agent and its frozen copy, the optimizer and a resumed state (PreflightError on bad
+    input, before any compute)."""
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     data, _ = resolve_val_split(cfg.data)
     cfg = dataclasses.replace(cfg, data=data)
@@ -184,74 +202,94 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
     start_trackers(
         accelerator, cfg.logging.project, flat_config(cfg), None if resume_from is None else state.step
     )
-    rl = cfg.rl
-    max_steps = rl.max_steps or profile.max_steps
-    train_episodes = splits.episodes[C.SPLIT_TRAIN]
     unwrapped = accelerator.unwrap_model(model)
-    batches = StepBatches(unwrapped, cfg)
     action_ids = torch.tensor(unwrapped.action_tokenizer.discrete_token_ids, device=accelerator.device)
-    micro = cfg.batch.per_device_batch_size
+    max_steps = cfg.rl.max_steps or profile.max_steps
+    return RLSetup(
+        cfg, accelerator, model, reference, optimizer, scheduler, checkpoints, state, last_checkpoint,
+        saved_step, profile, max_steps, StepBatches(unwrapped, cfg), action_ids, splits,
+    )  # fmt: skip
+
+
+def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
+    """Run the RL stage of `cfg` (module docstring); `env`: the lockstep simulator to fly in (None: the
+    embedded city of `cfg.data.root`, closed at the end; a bridge's environment works the same way).
+
+    Raises:
+        PreflightError: bad input, before any compute.
+    """
+    run = set_up_rl(cfg)
+    cfg, state, rl = run.cfg, run.state, run.cfg.rl
     logger.info(
         "rl: %d updates of %d episodes x %d rollouts (profile %s, at most %d steps), from update %d",
-        cfg.steps,
-        rl.episodes_per_update,
-        rl.group_size,
-        profile.name,
-        max_steps,
-        state.step,
-    )
+        cfg.steps, rl.episodes_per_update, rl.group_size, run.profile.name, run.max_steps, state.step,
+    )  # fmt: skip
     owned = env is None  # an environment given by the caller stays open
-    env = embedded_env(cfg, splits, profile) if owned else env
+    env = embedded_env(cfg, run.splits, run.profile) if owned else env
     progress = progress_bar(total=cfg.steps, initial=state.step, desc="rl")
-    stops = StopFlags(accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
+    stops = StopFlags(run.accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
     forced_stop = forced_stop_step()  # tests only: None unless OPENFLY_STOP_AFTER_STEPS is set
-    reason = None
-    with env if owned else contextlib.nullcontext(), progress, stops, closing_trackers(accelerator):
+    reason, crashed = None, False
+    with env if owned else contextlib.nullcontext(), progress, stops, closing_trackers(run.accelerator):
         while state.step < cfg.steps and reason is None:
-            rng, sampler = update_seeds(cfg.seed, state.step)
-            t0 = time.perf_counter()
-            picks = rng.choice(len(train_episodes), rl.episodes_per_update, replace=False)
-            unwrapped.eval()
-            groups = collect_groups(
-                unwrapped, env, [train_episodes[int(i)] for i in picks], rl, profile, sampler, max_steps
-            )
-            rollout_s = time.perf_counter() - t0
-            logs = update_policy(
-                model, reference, optimizer, groups, batches, action_ids, cfg, rng, micro, accelerator
-            )
-            scheduler.step()
-            logs.update(rollout_s=rollout_s, update_s=time.perf_counter() - t0 - rollout_s)
-            logs["lr"] = float(scheduler.get_last_lr()[0])
-            state.step += 1
-            state.samples_seen += int(logs["rollout_steps"])
-            accelerator.log({f"train/{k}": v for k, v in logs.items()}, step=state.step)
-            logger.info(
-                "update %d: reward %.3f, success %.3f, kl %.4f, entropy %.3f, clip %.3f",
-                state.step,
-                logs["reward"],
-                logs["success_rate"],
-                logs.get("kl", float("nan")),
-                logs.get("entropy", float("nan")),
-                logs.get("clip_fraction", float("nan")),
-            )
+            logs = one_update(run, env)
             progress.update(1)
             progress.set_postfix(reward=f"{logs['reward']:.3f}", sr=f"{logs['success_rate']:.2f}")
             interval = cfg.checkpoint.save_interval
             if interval and state.step % interval == 0:
-                state.train_seconds = int(stops.elapsed_s())
-                last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
-                saved_step = state.step
+                save_rl_checkpoint(run, stops)
             if forced_stop is not None and state.step >= forced_stop:  # the test-only stop: a crash
                 logger.warning(
                     "%s=%d reached: exiting without the final save", STOP_AFTER_STEPS_ENV, state.step
                 )
-                return RLRun(state, last_checkpoint, True, unwrapped, accelerator.is_main_process)
+                crashed = True
+                break
             reason = stops.reason() if state.step < cfg.steps else None
         progress.close()
-        if saved_step != state.step:
-            state.train_seconds = int(stops.elapsed_s())
-            last_checkpoint = save_checkpoint(accelerator, model, state, checkpoints, cfg)
-    return RLRun(state, last_checkpoint, reason is not None, unwrapped, accelerator.is_main_process)
+        if not crashed and run.saved_step != state.step:
+            save_rl_checkpoint(run, stops)
+    unwrapped = run.accelerator.unwrap_model(run.model)
+    stopped_early = crashed or reason is not None
+    return RLRun(state, run.last_checkpoint, stopped_early, unwrapped, run.accelerator.is_main_process)
+
+
+def save_rl_checkpoint(run: RLSetup, stops: StopFlags) -> None:
+    """A checkpoint of the run at its current update, with the training time so far."""
+    run.state.train_seconds = int(stops.elapsed_s())
+    run.last_checkpoint = save_checkpoint(run.accelerator, run.model, run.state, run.checkpoints, run.cfg)
+    run.saved_step = run.state.step
+
+
+def one_update(run: RLSetup, env: VectorSimulator) -> dict[str, float]:
+    """Fly the update's groups, update the policy, step the schedule and the counters, log; returns the logs."""
+    cfg, state, rl = run.cfg, run.state, run.cfg.rl
+    train_episodes = run.splits.episodes[C.SPLIT_TRAIN]
+    unwrapped = run.accelerator.unwrap_model(run.model)
+    rng, sampler = update_seeds(cfg.seed, state.step)
+    t0 = time.perf_counter()
+    picks = rng.choice(len(train_episodes), rl.episodes_per_update, replace=False)
+    unwrapped.eval()
+    groups = collect_groups(
+        unwrapped, env, [train_episodes[int(i)] for i in picks], rl, run.profile, sampler, run.max_steps
+    )
+    rollout_s = time.perf_counter() - t0
+    micro = cfg.batch.per_device_batch_size
+    logs = update_policy(
+        run.model, run.reference, run.optimizer, groups, run.batches, run.action_ids, cfg, rng, micro,
+        run.accelerator,
+    )  # fmt: skip
+    run.scheduler.step()
+    logs.update(rollout_s=rollout_s, update_s=time.perf_counter() - t0 - rollout_s)
+    logs["lr"] = float(run.scheduler.get_last_lr()[0])
+    state.step += 1
+    state.samples_seen += int(logs["rollout_steps"])
+    run.accelerator.log({f"train/{k}": v for k, v in logs.items()}, step=state.step)
+    logger.info(
+        "update %d: reward %.3f, success %.3f, kl %.4f, entropy %.3f, clip %.3f",
+        state.step, logs["reward"], logs["success_rate"], logs.get("kl", float("nan")),
+        logs.get("entropy", float("nan")), logs.get("clip_fraction", float("nan")),
+    )  # fmt: skip
+    return logs
 
 
 def update_policy(
@@ -286,60 +324,75 @@ def update_policy(
     }
     if not kept:
         return logs
-    device = accelerator.device
-    chunks = [list(range(i, min(i + micro, len(kept)))) for i in range(0, len(kept), micro)]
-    old_logp, ref_logp = torch.empty(len(kept)), torch.empty(len(kept))
-    model.eval()  # the rollout's network path: no box jitter, BatchNorm's running statistics
-    with torch.no_grad():
-        for chunk in chunks:
-            batch = batches([kept[i][0] for i in chunk], device)
-            old_logp[chunk] = taken_log_probs(model, batch, action_ids, rl.temperature)["logp"].float().cpu()
-            ref_logp[chunk] = (
-                taken_log_probs(reference, batch, action_ids, rl.temperature)["logp"].float().cpu()
-            )
-    advantage = torch.tensor([a for _, a, _ in kept])
+    old_logp, ref_logp = starting_log_probs(
+        model, reference, kept, batches, action_ids, rl.temperature, micro
+    )
+    advantage = torch.tensor([a for _, a, _ in kept])  # (K,)
     means = RunningMeans()
     for _ in range(rl.epochs):
         order = rng.permutation(len(kept))
         for minibatch in np.array_split(order, rl.minibatches):
-            if len(minibatch) == 0:
-                continue
-            optimizer.zero_grad(set_to_none=True)
-            sums = {"pg_loss": 0.0, "kl": 0.0, "clipped": 0.0, "entropy": 0.0}
-            for start in range(0, len(minibatch), micro):
-                rows = [int(i) for i in minibatch[start : start + micro]]
-                batch = batches([kept[i][0] for i in rows], device)
-                out = taken_log_probs(model, batch, action_ids, rl.temperature)
-                total, parts = rl_loss(
-                    out["logp"],
-                    old_logp[rows].to(device),
-                    ref_logp[rows].to(device),
-                    advantage[rows].to(device),
-                    rl.clip_epsilon,
-                    rl.kl_coef,
-                )
-                loss = total / len(minibatch)
-                grounding = out["grounding_loss"]
-                if grounding is not None and rl.grounding_weight and all(kept[i][2] for i in rows):
-                    loss = loss + rl.grounding_weight * grounding * len(rows) / len(minibatch)
-                    means.add({"grounding_loss": float(grounding.detach())})
-                accelerator.backward(loss)
-                for key, value in parts.items():
-                    sums[key] += float(value)
-                sums["entropy"] += float(out["entropy"].detach().sum())
-            if cfg.optim.max_grad_norm is not None:
-                grad_norm = accelerator.clip_grad_norm_(model.parameters(), cfg.optim.max_grad_norm)
-                means.add({"grad_norm": float(grad_norm)})
-            optimizer.step()
-            count = len(minibatch)
-            means.add(
-                {
-                    "pg_loss": sums["pg_loss"] / count,
-                    "kl": sums["kl"] / count,
-                    "clip_fraction": sums["clipped"] / count,
-                    "entropy": sums["entropy"] / count,
-                }
-            )
+            if len(minibatch) > 0:
+                means.add(
+                    minibatch_step(
+                        model, optimizer, kept, minibatch, (old_logp, ref_logp, advantage), batches,
+                        action_ids, cfg, micro, accelerator, means,
+                    )
+                )  # fmt: skip
     optimizer.zero_grad(set_to_none=True)
     logs.update(means.pop())
     return logs
+
+
+def starting_log_probs(model, reference, kept, batches, action_ids, temperature, micro):
+    """(K,) log-probs of the kept steps' taken actions under the update's starting policy and under the frozen
+    reference, in eval mode (the rollout's network path: no box jitter, BatchNorm's running statistics)."""
+    device = next(model.parameters()).device
+    chunks = [list(range(i, min(i + micro, len(kept)))) for i in range(0, len(kept), micro)]
+    old_logp, ref_logp = torch.empty(len(kept)), torch.empty(len(kept))
+    model.eval()
+    with torch.no_grad():
+        for chunk in chunks:
+            batch = batches([kept[i][0] for i in chunk], device)
+            old_logp[chunk] = taken_log_probs(model, batch, action_ids, temperature)["logp"].float().cpu()
+            ref_logp[chunk] = taken_log_probs(reference, batch, action_ids, temperature)["logp"].float().cpu()
+    return old_logp, ref_logp
+
+
+def minibatch_step(
+    model, optimizer, kept, minibatch, starting, batches, action_ids, cfg, micro, accelerator, means
+) -> dict[str, float]:
+    """One optimizer step on a minibatch of kept steps (micro-batches of `micro`); returns its mean figures.
+    `starting`: the (K,) old and reference log-probs and the advantages."""
+    rl, device = cfg.rl, accelerator.device
+    old_logp, ref_logp, advantage = starting
+    optimizer.zero_grad(set_to_none=True)
+    sums = {"pg_loss": 0.0, "kl": 0.0, "clipped": 0.0, "entropy": 0.0}
+    for start in range(0, len(minibatch), micro):
+        rows = [int(i) for i in minibatch[start : start + micro]]
+        batch = batches([kept[i][0] for i in rows], device)
+        out = taken_log_probs(model, batch, action_ids, rl.temperature)
+        total, parts = rl_loss(
+            out["logp"], old_logp[rows].to(device), ref_logp[rows].to(device), advantage[rows].to(device),
+            rl.clip_epsilon, rl.kl_coef,
+        )  # fmt: skip
+        loss = total / len(minibatch)
+        grounding = out["grounding_loss"]
+        if grounding is not None and rl.grounding_weight and all(kept[i][2] for i in rows):
+            loss = loss + rl.grounding_weight * grounding * len(rows) / len(minibatch)
+            means.add({"grounding_loss": float(grounding.detach())})
+        accelerator.backward(loss)
+        for key, value in parts.items():
+            sums[key] += float(value)
+        sums["entropy"] += float(out["entropy"].detach().sum())
+    if cfg.optim.max_grad_norm is not None:
+        grad_norm = accelerator.clip_grad_norm_(model.parameters(), cfg.optim.max_grad_norm)
+        means.add({"grad_norm": float(grad_norm)})
+    optimizer.step()
+    count = len(minibatch)
+    return {
+        "pg_loss": sums["pg_loss"] / count,
+        "kl": sums["kl"] / count,
+        "clip_fraction": sums["clipped"] / count,
+        "entropy": sums["entropy"] / count,
+    }

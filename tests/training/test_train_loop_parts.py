@@ -114,17 +114,5 @@ def test_the_length_check_finds_a_long_function(tmp_path):
     assert long_functions(tmp_path, MAX_FUNCTION_LINES) == ["long.py:6 long (61 lines)"]
 
 
-# Known and to be split, each with its reason; an entry that no longer applies fails the test below.
-NOT_YET_SPLIT = {
-    # the RL stage (issue 47) landed with its loop in two long functions; splitting them as `train()` was split
-    # waits for a run of its slow end-to-end and resume tests (tests/training/test_rl_stage.py) on the new parts
-    "rl_trainer.py train_rl",
-    "rl_trainer.py update_policy",
-}
-
-
 def test_no_function_of_training_is_longer_than_a_screen():
-    found = long_functions(TRAINING, MAX_FUNCTION_LINES)
-    named = {entry.split(":")[0] + " " + entry.split()[1] for entry in found}
-    assert named - NOT_YET_SPLIT == set(), found
-    assert NOT_YET_SPLIT - named == set(), "split now: remove it from NOT_YET_SPLIT"
+    assert long_functions(TRAINING, MAX_FUNCTION_LINES) == []
