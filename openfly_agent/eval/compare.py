@@ -314,12 +314,17 @@ def main(argv: list[str] | None = None) -> int:
     except (UnknownOptionError, ValueError, RecordError, draccus.utils.ParsingError) as err:
         sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
         return EXIT_BAD_INPUT
-    sys.stdout.write(comparison_markdown(comparison))
-    if cfg.json:
-        out = Path(cfg.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(comparison, indent=2) + "\n")
+    write_report(comparison_markdown(comparison), comparison, cfg.json)
     return 0
+
+
+def write_report(markdown: str, numbers: dict, json_path: str | None) -> None:
+    """The table on stdout, and every number to `json_path` when one is given (the compare commands' output)."""
+    sys.stdout.write(markdown)
+    if json_path:
+        out = Path(json_path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(numbers, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ same settings, `compare.check_pairing`), else one line and exit code 2. docs/EVA
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 from collections.abc import Sequence
@@ -30,6 +29,7 @@ from openfly_agent.eval.compare import (
     check_pairing,
     compare_split,
     load_policy_folder,
+    write_report,
 )
 from openfly_agent.eval.config import PROFILE_NAMES
 from openfly_agent.eval.paired_stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED
@@ -259,11 +259,7 @@ def main(argv: list[str] | None = None) -> int:
     except (UnknownOptionError, ValueError, RecordError, draccus.utils.ParsingError) as err:
         sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
         return EXIT_BAD_INPUT
-    sys.stdout.write(seeds_markdown(summary))
-    if cfg.json:
-        out = Path(cfg.json)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(summary, indent=2) + "\n")
+    write_report(seeds_markdown(summary), summary, cfg.json)
     return 0
 
 
