@@ -37,6 +37,7 @@ from openfly_agent.model.persistence.checkpoint_path import (
     resolve_checkpoint_folder,
 )
 from openfly_agent.model.persistence.openvla_loader import agent_from_openvla_checkpoint
+from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 from openfly_agent.training.attribute_targets import LandmarkAttributes, vocabulary_sizes
 from openfly_agent.training.config import STAGE_GROUNDING, InitConfig, TrainConfig
 from openfly_agent.training.init_matching import load_matching_weights
@@ -250,7 +251,10 @@ def check_architecture(model_cfg: ModelConfig, tokenizer, norm_stats, folder: Pa
     if not config_file.is_file():
         raise PreflightError(f"{what} {folder} has no {C.CONFIG_NAME}")
     meta = meta_agent(model_cfg, tokenizer, norm_stats)
-    saved = json.loads(config_file.read_text()).get("agent", {})
+    try:  # an older config.json in today's layout, as loading the checkpoint reads it
+        saved = OpenFlyAgentConfig(agent=json.loads(config_file.read_text()).get("agent", {})).agent
+    except ValueError as err:
+        raise PreflightError(f"{what} {folder}/{C.CONFIG_NAME}: {err}") from None
     differences = diff_configs(_shape_relevant(meta.config.agent), _shape_relevant(saved))
     if differences:
         raise PreflightError(

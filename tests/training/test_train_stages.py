@@ -178,3 +178,33 @@ def test_the_progress_bar_shows_only_the_metrics_a_step_has():
     navigation = {"loss": 1.0, "action_accuracy": 0.4567}
     assert progress_postfix(navigation) == {"loss": "1.0000", "acc": "0.457"}
     assert progress_postfix({"loss": float("nan")}) == {}
+
+
+def as_written_at_505bc83(agent: dict) -> dict:
+    """A tiny model's `agent` section of config.json as commit 505bc83 wrote it, before issue 46: the LLM a
+    `preset` with its sizes filled in, the memory encoding a top-level `mode`, the grounding head a boolean."""
+    old = json.loads(json.dumps(agent))
+    old["llm"]["preset"] = old["llm"].pop("type")
+    old["mode"] = "openfly"
+    del old["memory"]["encoding"]
+    old["grounding"]["enabled"] = True
+    old["action_head"]["n_bins"] = 256
+    return old
+
+
+def test_a_checkpoint_written_before_the_config_variants_starts_a_run(
+    generated_dataset, reference_run, tmp_path
+):
+    # init.checkpoint without init.matching compares the stored config with the configured model: an older
+    # config.json is read as loading reads it (upgraded), not refused as "another architecture"
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(reference_run[0] / "checkpoints" / "last", old)
+    stored = json.loads((old / "config.json").read_text())
+    stored["agent"] = as_written_at_505bc83(stored["agent"])
+    (old / "config.json").write_text(json.dumps(stored))
+    agent = built_agent(make_config(generated_dataset, tmp_path / "run", init__checkpoint=str(old), steps=1))
+    before = checkpoint_weights(old)
+    for key, tensor in agent.network.state_dict().items():
+        torch.testing.assert_close(tensor, before[key], rtol=0, atol=0, msg=key)
