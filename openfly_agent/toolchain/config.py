@@ -198,9 +198,16 @@ class InstructionConfig:
     # clause that can name it (so a chained route's instruction names every target, in order); false: it is
     # named only where its leg ends (embedded-small's instructions)
     name_every_target: bool = False
+    # template: the clause after each leg's end starts "after passing <the target just reached>", and that
+    # target is the clause's deciding landmark in the visibility statistics; false: embedded-small's instructions
+    name_passed_landmark: bool = False
 
     def __post_init__(self) -> None:
         _check(self.merge_short_m >= 0, "instructions.merge_short_m must be >= 0")
+        _check(
+            not self.name_passed_landmark or self.backend == "template",
+            "instructions.name_passed_landmark is a template option; the vlm backend writes its own clauses",
+        )
         _check(
             self.backend in ("template", "vlm"),
             f"instructions.backend must be 'template' or 'vlm', got {self.backend!r}",

@@ -239,6 +239,7 @@ def instruction_request(
         min_box_area=cfg.instructions.min_box_area,
         merge_short_m=cfg.instructions.merge_short_m,
         name_every_target=cfg.instructions.name_every_target,
+        name_passed_landmark=cfg.instructions.name_passed_landmark,
     )
 
 

@@ -10,9 +10,11 @@ labels, every landmark's box per frame, the route's targets and the frame where 
   the labels of frames start..end-1; the current clause is the first segment with end > t (the one being
   flown, or the next one where merging dropped a cancelled jog), and after the last segment the closing
   "stop at <target>" clause, whose landmark is the final target;
-- its landmark: the landmark the clause names: the segment's `landmark_id` (a leg target where a leg ends,
-  else the landmark seen where it ends) for forward runs and turns; a clause that names none (climbs and
-  descents, or nothing seen) does not count;
+- its landmark: the landmark whose position decides the clause's action (`segments.deciding_landmark`): in
+  a clause "after passing <X>, ..." (`instructions.name_passed_landmark`) the target X just reached, which
+  says when the action is due; otherwise the landmark the clause names: the segment's `landmark_id` (a leg
+  target where a leg ends, else the landmark seen where it ends) for forward runs and turns; a clause that
+  names none (climbs and descents, or nothing seen) does not count;
 - the current leg of decision step t: the first leg whose end frame is after t (the STOP frame: the last);
 - hidden: the landmark has no box in frame t (the renderer records a box for every landmark in view, above
   `render.min_box_pixels`); unseen: hidden, or its box covers less than `instructions.min_box_area` of the
@@ -31,6 +33,7 @@ from openfly_agent.toolchain.instructions.segments import (
     InstructionRequest,
     assign_landmarks,
     box_area,
+    deciding_landmark,
     merge_short_segments,
     split_at_transitions,
 )
@@ -66,7 +69,7 @@ def route_visibility(request: InstructionRequest) -> dict[str, int]:
         if clause is None:
             landmark = request.target_ids[-1]
         else:
-            landmark = clause.landmark_id if clause.kind in NAMING_KINDS else None
+            landmark = deciding_landmark(clause)
         leg = next(
             (k for k, end in enumerate(request.leg_end_frames) if end > t), len(request.target_ids) - 1
         )

@@ -106,3 +106,16 @@ def test_a_missing_checkpoint_is_one_line_naming_it(command, tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err
     assert f"--checkpoint {missing!r}" in err and "Traceback" not in err
+
+
+def test_the_long_benchmark_turns_sharply_and_names_the_passed_landmark(capsys):
+    """embedded-long adopts the two levers that raised its hidden share (data_cards/embedded-long.md);
+    embedded-small keeps both off. The passed-landmark phrasing is the template's, so the VLM backend refuses it."""
+    long = load_yaml_config(GenerateConfig, CONFIGS / "embedded-long.yaml")
+    small = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small.yaml")
+    assert long.route.chain_bearing_deg == [90.0, 150.0] and long.instructions.name_passed_landmark
+    assert small.route.chain_bearing_deg == [30.0, 150.0] and not small.instructions.name_passed_landmark
+    config = str(CONFIGS / "embedded-long.yaml")
+    assert main(["generate", "--config_path", config, "--instructions.backend=vlm"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "instructions.name_passed_landmark is a template option" in lines[0]

@@ -456,8 +456,9 @@ def test_cli_generate_warns_after_its_summary_when_a_split_came_out_empty(monkey
 
 
 def test_default_route_options_give_the_routes_and_instructions_pinned_before_chain_landmarks(tmp_path):
-    """The data of today's configs is unchanged by `route.chain_landmarks` / `instructions.name_every_target`
-    at their defaults: the digest below was computed with the code before they existed (commit c795c3e)."""
+    """The data of today's configs is unchanged by `route.chain_landmarks` / `instructions.name_every_target` /
+    `instructions.name_passed_landmark` at their defaults: the digest below was computed with the code before
+    they existed (commit c795c3e)."""
     cfg = small_config(tmp_path, trajectories_per_scene=8)
     cfg.route.chain_prob, cfg.dagger.episodes_per_scene = 0.5, 0
     generate(cfg, progress=False)
@@ -488,6 +489,7 @@ def test_a_dataset_recorded_before_an_option_existed_resumes_at_its_default(data
     record = copy / C.TOOLCHAIN_CONFIG_JSON
     stored = json.loads(record.read_text())
     del stored["route"]["chain_landmarks"], stored["instructions"]["name_every_target"]
+    del stored["instructions"]["name_passed_landmark"]
     record.write_text(json.dumps(stored))
     assert generate(dataclasses.replace(cfg, output_dir=str(copy)), progress=False) == summary
     longer = dataclasses.replace(

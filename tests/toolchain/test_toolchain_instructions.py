@@ -5,15 +5,17 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from toolchain_scene import synthetic_scene
 
+from openfly_agent.toolchain.config import InstructionConfig
 from openfly_agent.toolchain.instructions import (
     InstructionRequest,
     split_at_transitions,
     template_instruction,
 )
 from openfly_agent.toolchain.instructions.segments import assign_landmarks, image_side, seen_landmark
-from openfly_agent.toolchain.instructions.template import describe_landmark
+from openfly_agent.toolchain.instructions.template import PASSED, describe_landmark
 
 # b0 red tower with a spire, b1 blue office building with a billboard, b2 white skyscraper with a dome
 LANDMARKS = {lm.landmark_id: lm for lm in synthetic_scene()[1]}
@@ -161,3 +163,47 @@ def test_name_every_target_keeps_two_targets_of_one_clause_apart():
     assert "red" not in template_instruction(request)  # b1 took the only clause
     text = template_instruction(dataclasses.replace(request, name_every_target=True))
     assert text.index("red tower") < text.index("blue office building")
+
+
+def test_name_passed_landmark_opens_the_clause_after_a_leg_end_with_the_target_just_reached():
+    # forward 18 m to the red tower b0 (leg 1 ends at frame 2), left 90 deg (frames 2-4), forward 18 m, STOP at 7
+    actions = [9, 9, 2, 2, 2, 9, 9, 0]
+    boxes = [{"b0": np.array([0.5, 0.5, 0.3, 0.3])}] * 3 + [{"b1": np.array([0.5, 0.5, 0.3, 0.3])}] * 5
+    request = _request(actions, boxes, targets=("b0", "b1"), leg_ends=(2, 7))
+    plain = template_instruction(request)
+    assert not any(p in plain for p in PASSED)  # off (the default): no "after passing"
+    passed = dataclasses.replace(request, name_passed_landmark=True)
+    segs = assign_landmarks(passed, split_at_transitions(actions))
+    assert [(s.kind, s.landmark_id, s.passed_id) for s in segs] == [
+        ("forward", "b0", None),
+        ("left", "b1", "b0"),  # starts at leg 1's end frame: after passing b0, turn to face b1
+        ("forward", "b1", None),  # the final target is never "passed"
+    ]
+    text = template_instruction(passed)
+    # b0 was named by the clause just before, so the passed mention is "it"; b1 follows in the same clause
+    lead = next(f"{p} it, " for p in PASSED if f"{p} it, " in text)
+    assert text.index("red tower") < text.index(lead) < text.index("blue office building")
+    assert text.count(lead) == 1
+
+
+def test_name_passed_landmark_skips_a_clause_that_names_the_target_itself():
+    # b0's leg ends in the climb (frame 3); with name_every_target the next forward run names b0 itself, so the
+    # "after passing b0" clause is the turn after it, still before leg 2 ends (frame 8)
+    actions = [9, 9, 4, 9, 9, 2, 2, 9, 0]
+    request = _request(actions, targets=("b0", "b1"), leg_ends=(3, 8))
+    request = dataclasses.replace(request, name_every_target=True, name_passed_landmark=True)
+    segs = assign_landmarks(request, split_at_transitions(actions))
+    assert [(s.kind, s.landmark_id, s.passed_id) for s in segs] == [
+        ("forward", None, None),
+        ("up", None, None),
+        ("forward", "b0", None),
+        ("left", None, "b0"),
+        ("forward", "b1", None),
+    ]
+    text = template_instruction(request)
+    assert sum(text.count(f"{p} it, ") for p in PASSED) == 1  # b0 was named by the clause just before
+
+
+def test_name_passed_landmark_is_a_template_option():
+    with pytest.raises(ValueError, match="name_passed_landmark is a template option"):
+        InstructionConfig(backend="vlm", name_passed_landmark=True)

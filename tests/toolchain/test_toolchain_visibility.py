@@ -77,3 +77,24 @@ def test_summary_pools_the_counts_and_reports_the_p90():
     assert vis["leg_hidden_share"] == 0.5 and vis["leg_unseen_share"] == 0.6
     assert vis["targets_named_share"] == 0.9
     assert summary["visibility"] == vis
+
+
+def test_an_after_passing_clause_counts_the_target_just_passed():
+    # forward [0, 2) to "a" (leg 1 ends at frame 2), left turn [2, 5), forward [5, 7) to "b", STOP at 7; during
+    # the turn "a" leaves the frame (frames 3, 4) and "b" comes in (frame 3 on)
+    actions = [9, 9, 2, 2, 2, 9, 9, 0]
+    boxes = [{"a": _box(0.3)}] * 3 + [{"b": _box(0.3)}] * 5
+    plain = route_visibility(_request(actions, boxes, ("a", "b"), (2, 7)))
+    # the turn names b (seen where it ends): b is hidden at frame 2 only
+    assert plain["clause_steps"] == 8 and plain["clause_hidden"] == 1 and plain["leg_hidden"] == 1
+    passed = route_visibility(_request(actions, boxes, ("a", "b"), (2, 7), name_passed_landmark=True))
+    # "after passing a, turn left to face b": a decides when to turn, and is hidden at frames 3 and 4
+    assert passed == {
+        "decision_steps": 8,
+        "clause_steps": 8,
+        "clause_hidden": 2,
+        "clause_unseen": 2,
+        "leg_hidden": 1,  # frame 2: the leg target is already b
+        "leg_unseen": 1,
+        "targets_named": 1,
+    }

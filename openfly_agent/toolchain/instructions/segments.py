@@ -44,6 +44,7 @@ class Segment:
     primitives: int  # 30 deg turns, or 3 m steps (forward / vertical / lateral)
     landmark_id: str | None = None  # the landmark seen at `end` (or the leg target)
     forced: bool = False  # the landmark is a route target (not just what is visible)
+    passed_id: str | None = None  # the route target just reached: "after passing <it>, ..." (see mark_passed)
 
     @property
     def metres(self) -> float:
@@ -68,6 +69,7 @@ class InstructionRequest:
     min_box_area: float = 0.002
     merge_short_m: float = 9.0  # see merge_short_segments; 0 = one clause per action transition
     name_every_target: bool = False  # see assign_landmarks
+    name_passed_landmark: bool = False  # see mark_passed
     extra: dict = field(default_factory=dict)
 
 
@@ -175,7 +177,8 @@ def assign_landmarks(request: InstructionRequest, segments: list[Segment]) -> li
     A leg target goes to the segment in which its leg ends. With `request.name_every_target` it goes to the
     first segment from there on that names a landmark (a forward run or a turn, not a climb) and holds no
     earlier target, so every target of a chained route is named, in order (the last one at least by the
-    closing stop clause).
+    closing stop clause). With `request.name_passed_landmark` the clause after each leg end also names the
+    target just reached (`mark_passed`).
     """
     nav = [s for s in segments if s.kind not in (TAKEOFF, LANDING)]
     last_frame = len(request.frame_boxes) - 1
@@ -191,4 +194,34 @@ def assign_landmarks(request: InstructionRequest, segments: list[Segment]) -> li
             owners = [s for s in nav[first:] if s.kind in NAMING_KINDS and not s.forced]
         if owners:
             owners[0].landmark_id, owners[0].forced = target, True
+    if request.name_passed_landmark:
+        mark_passed(request, nav)
     return segments
+
+
+def mark_passed(request: InstructionRequest, nav: list[Segment]) -> None:
+    """Give the clause after each leg end the target just reached as its `passed_id` ("after passing the red
+    tower, turn left toward the blue building"): the first forward run or turn that starts at or after the
+    leg's end frame and before the next leg's, and does not itself name that target. The final target is
+    never passed (the route stops there)."""
+    ends = request.leg_end_frames
+    for k, target in enumerate(request.target_ids[:-1]):
+        clause = next(
+            (
+                s
+                for s in nav
+                if ends[k] <= s.start < ends[k + 1] and s.kind in NAMING_KINDS and s.landmark_id != target
+            ),
+            None,
+        )
+        if clause is not None:
+            clause.passed_id = target
+
+
+def deciding_landmark(seg: Segment) -> str | None:
+    """The landmark whose position decides a clause's action: the target just passed in an "after passing X"
+    clause (when the action is due), else the landmark a forward run or turn names (where it leads); None for
+    a clause that names none (climbs and descents)."""
+    if seg.kind not in NAMING_KINDS:
+        return None
+    return seg.passed_id or seg.landmark_id

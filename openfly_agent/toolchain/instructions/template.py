@@ -1,9 +1,9 @@
 """Template instructions (offline default): action phrases + landmark names, fused, with pronouns.
 
-Each sub-trajectory becomes a clause ("turn left toward the red office building"), the clauses are joined
-with varied connectors, the last one ends with the stop at the target, and a landmark mentioned again right
-after itself becomes "it". Synonyms are drawn from a generator seeded per trajectory, so the text is
-reproducible.
+Each sub-trajectory becomes a clause ("turn left toward the red office building"; with `name_passed_landmark`
+the clause after a leg's end starts "after passing <the target just reached>, "), the clauses are joined with
+varied connectors, the last one ends with the stop at the target, and a landmark mentioned again right after
+itself becomes "it". Synonyms are drawn from a generator seeded per trajectory, so the text is reproducible.
 """
 
 from __future__ import annotations
@@ -63,6 +63,7 @@ PHRASES = {
 TOWARD = ["toward", "towards", "in the direction of"]
 FACING = ["to face", "toward", "so that you face"]
 REACH = ["until you reach", "until you are next to", "up to"]
+PASSED = ["after passing", "once you have passed", "having passed"]
 STOP = ["stop in front of", "stop next to", "stop near", "halt beside", "come to a stop by"]
 CONNECTORS = [", then ", ", and then ", ". Then ", ". After that, ", ". Next, ", ", after which "]
 
@@ -149,7 +150,9 @@ def action_phrase(seg: Segment, rng: np.random.Generator, mention_distance: bool
 
 
 def _clause(seg: Segment, name, rng: np.random.Generator, mention_distance: bool, is_last: bool) -> str:
-    text = action_phrase(seg, rng, mention_distance)
+    # "after passing the red tower, turn left ..." (drawn only then, so other instructions keep their draws)
+    text = f"{_pick(rng, PASSED)} {name(seg.passed_id)}, " if seg.passed_id is not None else ""
+    text += action_phrase(seg, rng, mention_distance)
     if seg.landmark_id is None or seg.kind not in NAMING_KINDS:
         return text
     if seg.kind in (LEFT, RIGHT):
