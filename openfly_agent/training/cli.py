@@ -45,9 +45,15 @@ DERIVED = (
     "model.llm.bos_token_id",
     "model.llm.eos_token_id",
     "model.llm.pad_token_id",
+    # the end of the 256 action ids: null takes the vocabulary resolve_vocabulary fills in (tiny: the trained
+    # tokenizer's + 256); the llama2-7b presets pin OpenVLA's 32000 (the last ids of the Llama-2 tokenizer)
+    "model.action_head.vocab_end",
     # the embedded city's vocabulary sizes (sim/city_vocab.py): training/builder.py::attribute_lookup refuses any
     # other value
     "model.grounding.attribute_classes",
+    # a Llama-2 token id that the released OpenVLA prompt format appends (29871 '▁', the openvla-compat-7b
+    # preset); no other prompt has one
+    "model.prompt.suffix_token_id",
 )
 # the vision fields a backbone fixes (its config refuses any other value): the ResNet's stride of 16; the
 # dinosiglip ViTs' 224 px and patch 14
@@ -55,9 +61,9 @@ FIXED_BY_VISION = {
     VISION_TINY_CNN: ("model.vision.patch_size",),
     VISION_DINOSIGLIP_224: ("model.vision.image_size", "model.vision.patch_size"),
 }
-# what `--help` needs to get past the checks of a stage it lists (stage=rl needs a checkpoint, stage=grounding
-# a grounding dataset); shown unset
-HELP_PLACEHOLDERS = {"init.checkpoint": "CHECKPOINT", "data.grounding_root": "GROUNDING_ROOT"}
+# what `--help` needs to get past the checks of a run it lists (stage=rl needs a checkpoint, stage=grounding a
+# grounding dataset, steps=null an epoch count); filled only where the command needs them, and shown unset
+HELP_PLACEHOLDERS = {"init.checkpoint": "CHECKPOINT", "data.grounding_root": "GROUNDING_ROOT", "epochs": "1"}
 
 
 def unlisted(cfg: TrainConfig) -> list[Unlisted]:
@@ -78,12 +84,15 @@ def unlisted(cfg: TrainConfig) -> list[Unlisted]:
         )
     if not cfg.model.llm.trains_own_tokenizer:
         groups.append(Unlisted(("tokenizer",), "the tiny LLM's tokenizer", "--model.llm.type=tiny"))
+    if cfg.steps is not None:
+        groups.append(Unlisted(("epochs",), "used only when steps is null", "--steps=null"))
     if cfg.init.checkpoint is None:
         groups.append(Unlisted(("init.matching",), "a checkpoint's", "--init.checkpoint=DIR"))
     if cfg.time_limit_minutes is None:
         groups.append(Unlisted(("optim.horizon",), "a time limit's", "--time_limit_minutes=MIN"))
     derived = (*DERIVED, *FIXED_BY_VISION.get(cfg.model.vision.type, ()))
-    groups.append(Unlisted(derived, "derived by the run or fixed by the model's variants (training/cli.py)"))
+    why = "derived by the run or fixed by the model's variants and presets (training/cli.py)"
+    groups.append(Unlisted(derived, why))
     return groups
 
 

@@ -18,6 +18,7 @@ import ast
 import dataclasses
 import inspect
 import io
+import itertools
 import re
 import sys
 import textwrap
@@ -340,28 +341,31 @@ def command_help(
 
     A command line that does not parse (yet) shows the values of its `--config_path` YAML, else the dataclass
     defaults. `placeholders` are values of required fields, dotted names too ({"checkpoint": "x"}), used only
-    to get past their check where the command line does not give them: those fields are shown unset.
+    to get past their check where the command line does not give them: the fewest that do are filled (so a
+    value the YAML gives stays), and those fields are shown unset.
     `unlisted(config)` names the options that do not apply to the config shown (`Unlisted`).
     """
     args = without_help(args)
     config_path = config_path_of(args)
     given = set(option_names(args))
-    missing = [name for name in placeholders or {} if name not in given]
-    filled = [f"--{name}={placeholders[name]}" for name in missing]
-    attempts = [args, [*args, *filled]] + ([["--config_path", config_path, *filled]] if config_path else [])
+    flags = {name: f"--{name}={value}" for name, value in (placeholders or {}).items() if name not in given}
+    missing = list(flags)
+    fills = [names for size in range(len(missing) + 1) for names in itertools.combinations(missing, size)]
+    attempts = [([*args, *(flags[name] for name in names)], names) for names in fills]
+    if config_path:
+        attempts.append((["--config_path", config_path, *flags.values()], missing))
     config = None
-    for attempt in attempts:
+    for attempt, filled in attempts:
         try:
             config = parse_config(cls, attempt)
         except Exception:  # a bad option, or a required field missing: the next attempt
             continue
-        if attempt is not args:
-            for name in missing:
-                *sections, field_name = name.split(".")
-                owner = config
-                for section in sections:
-                    owner = getattr(owner, section)
-                object.__setattr__(owner, field_name, None)
+        for name in filled:
+            *sections, field_name = name.split(".")
+            owner = config
+            for section in sections:
+                owner = getattr(owner, section)
+            object.__setattr__(owner, field_name, None)
         break
     note = (
         f"Defaults below are the values of {config_path} (and of the options given)." if config_path else None
