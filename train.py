@@ -10,8 +10,8 @@
 Parses the config and calls `training.train` (all input checks come first). The dataset is made beforehand
 (`python -m openfly_agent.toolchain generate`; the recipe and the main job generate theirs). Prints the final
 offline action accuracy next to the majority-class rate. Exit codes: 0 done (or stopped by SIGTERM / SIGUSR1
-with a checkpoint), 2 bad input or unreadable data (one line on stderr), 130 interrupted (Ctrl-C). `python train.py --help` lists every option with the value a plain run uses; the
-help, the did-you-mean and the one-line messages come from `training/cli.py`.
+with a checkpoint), 2 bad input or unreadable data (one line on stderr), 130 interrupted (Ctrl-C). `python train.py --help` lists every option that applies to the run described, with the value it
+uses; the help, the did-you-mean and the one-line messages come from `training/cli.py`.
 """
 
 from __future__ import annotations

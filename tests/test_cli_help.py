@@ -116,7 +116,7 @@ def test_eval_help_attaches_each_description_to_its_flag(capsys):
     preset = _help(
         capsys, _script_main("eval"), ["--config_path", "configs/eval/released-unrealcv.yaml", "--help"]
     )
-    assert "(default: unrealcv)" in flag_text(preset, "--sim.type")
+    assert "\nsim: `unrealcv` (--sim.type=unrealcv; other variants: embedded," in preset
     assert _script_main("eval")(["--sim.type=unrealcv", "--sim.unrealcv.prot=1"]) == 2
     assert "did you mean --sim.unrealcv.port?" in capsys.readouterr().err
 

@@ -1,15 +1,18 @@
 """train.py's command line: the config it parses, its `--help`, and the one-line messages of a run that fails.
 
 train.py stays the short entry point (parse, `train(cfg)`, report); what
-it prints for `--help`, for data that cannot be read and for Ctrl-C lives here.
+it prints for `--help`, for data that cannot be read and for Ctrl-C lives here. `unlisted` is the one place that
+decides which options `--help` leaves out.
 """
 
 from __future__ import annotations
 
+from openfly_agent.constants import STAGE_GROUNDING, STAGE_RL
 from openfly_agent.data.schema import SchemaError
+from openfly_agent.model.config import VISION_DINOSIGLIP_224, VISION_TINY_CNN
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
-from openfly_agent.utils.cli_help import command_help
+from openfly_agent.utils.cli_help import Unlisted, command_help
 from openfly_agent.utils.config import REPO_ROOT, parse_config, with_config_path
 from openfly_agent.utils.errors import RecordError, one_line, worker_error_name
 
@@ -31,6 +34,68 @@ EXAMPLES = (
 )
 
 
+# Settings the run derives, which `--help` never lists: each stays a field (a run's stored train_config.json and
+# its model's config.json hold the resolved value, and a YAML file may pin it), but a value set by hand can only
+# disagree with what the run derives.
+DERIVED = (
+    # the LLM variant's `default_vocab_size`: the tokenizer's length + 256 action ids (tiny), OpenVLA's 32064
+    # (llama2-7b); model/factory.py::resolve_vocabulary fills it in
+    "model.llm.vocab_size",
+    # resolve_vocabulary replaces the three special ids by the tokenizer's, which every training run has
+    "model.llm.bos_token_id",
+    "model.llm.eos_token_id",
+    "model.llm.pad_token_id",
+    # the end of the 256 action ids: null takes the vocabulary resolve_vocabulary fills in (tiny: the trained
+    # tokenizer's + 256); the llama2-7b presets pin OpenVLA's 32000 (the last ids of the Llama-2 tokenizer)
+    "model.action_head.vocab_end",
+    # the embedded city's vocabulary sizes (sim/city_vocab.py): training/builder.py::attribute_lookup refuses any
+    # other value
+    "model.grounding.attribute_classes",
+    # a Llama-2 token id that the released OpenVLA prompt format appends (29871 '▁', the openvla-compat-7b
+    # preset); no other prompt has one
+    "model.prompt.suffix_token_id",
+)
+# the vision fields a backbone fixes (its config refuses any other value): the ResNet's stride of 16; the
+# dinosiglip ViTs' 224 px and patch 14
+FIXED_BY_VISION = {
+    VISION_TINY_CNN: ("model.vision.patch_size",),
+    VISION_DINOSIGLIP_224: ("model.vision.image_size", "model.vision.patch_size"),
+}
+# what `--help` needs to get past the checks of a run it lists (stage=rl needs a checkpoint, stage=grounding a
+# grounding dataset, steps=null an epoch count); filled only where the command needs them, and shown unset
+HELP_PLACEHOLDERS = {"init.checkpoint": "CHECKPOINT", "data.grounding_root": "GROUNDING_ROOT", "epochs": "1"}
+
+
+def unlisted(cfg: TrainConfig) -> list[Unlisted]:
+    """The options `--help` leaves out for the run `cfg` describes (each still accepted): the sections and fields
+    of a stage, freeze stage or setting it does not use, and the settings it derives (`DERIVED`, `FIXED_BY_VISION`).
+    """
+    groups = []
+    if cfg.stage != STAGE_RL:
+        groups.append(Unlisted(("rl",), "the RL stage's", "--stage=rl"))
+    if not cfg.use_lora:
+        groups.append(Unlisted(("lora",), "LoRA's", "--freeze_stage=lora"))
+    if cfg.stage != STAGE_GROUNDING:
+        grounding = ("data.grounding_root", "data.instruction_fraction", "data.expressions_per_frame")
+        groups.append(
+            Unlisted(
+                (*grounding, "model.prompt.grounding_template"), "the grounding stage's", "--stage=grounding"
+            )
+        )
+    if not cfg.model.llm.trains_own_tokenizer:
+        groups.append(Unlisted(("tokenizer",), "the tiny LLM's tokenizer", "--model.llm.type=tiny"))
+    if cfg.steps is not None:
+        groups.append(Unlisted(("epochs",), "used only when steps is null", "--steps=null"))
+    if cfg.init.checkpoint is None:
+        groups.append(Unlisted(("init.matching",), "a checkpoint's", "--init.checkpoint=DIR"))
+    if cfg.time_limit_minutes is None:
+        groups.append(Unlisted(("optim.horizon",), "a time limit's", "--time_limit_minutes=MIN"))
+    derived = (*DERIVED, *FIXED_BY_VISION.get(cfg.model.vision.type, ()))
+    why = "derived by the run or fixed by the model's variants and presets (training/cli.py)"
+    groups.append(Unlisted(derived, why))
+    return groups
+
+
 def with_default_config(argv: list[str]) -> list[str]:
     """`argv` with the tiny preset when no config is given."""
     return with_config_path(argv, DEFAULT_CONFIG)
@@ -42,8 +107,17 @@ def parse_args(argv: list[str]):
 
 
 def help_text(argv: list[str]) -> str:
-    """`--help`: every option with the value the same command line without `--help` would use."""
-    return command_help(TrainConfig, with_default_config(argv), "train.py", DESCRIPTION, EXAMPLES)
+    """`--help`: every option that applies to the run the command line describes (`unlisted` names the others),
+    with the value the same command line without `--help` would use."""
+    return command_help(
+        TrainConfig,
+        with_default_config(argv),
+        "train.py",
+        DESCRIPTION,
+        EXAMPLES,
+        placeholders=HELP_PLACEHOLDERS,
+        unlisted=unlisted,
+    )
 
 
 def data_error_message(err: BaseException) -> str | None:

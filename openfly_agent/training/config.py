@@ -271,7 +271,8 @@ class RLConfig:
 
 @dataclass
 class TrainConfig:
-    """A training run. `configs/train/*.yaml` are instances of it; `train.py --help` lists every field."""
+    """A training run. `configs/train/*.yaml` are instances of it; `train.py --help` lists every field that applies
+    to the run it describes (training/cli.py::unlisted)."""
 
     model: ModelConfig = field(default_factory=tiny_config)
     data: DataConfig = field(default_factory=DataConfig)

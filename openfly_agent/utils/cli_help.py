@@ -6,8 +6,10 @@ draccus builds its `--help` from source comments and gets them wrong when a comm
 inside a wrapped default, and it shows the dataclass defaults rather than the values a YAML preset gives.
 Here every flag's text comes from the class source (`ast` + `tokenize`): the comments on the lines of the
 field's statement, the comment block right above it, or the `Attributes:` entry of the class docstring; the
-default shown is the value in the config the command would run with. What a command line may hold is
-checked in utils/cli_options.py.
+default shown is the value in the config the command would run with. A command may leave out of its help the
+options that do not apply to the run it describes (`Unlisted`: another stage's section, settings the run
+derives); they are still accepted, and one line at the end says how to list them. What a command line may hold
+is checked in utils/cli_options.py.
 """
 
 from __future__ import annotations
@@ -16,16 +18,26 @@ import ast
 import dataclasses
 import inspect
 import io
+import itertools
 import re
 import sys
 import textwrap
 import tokenize
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
-from openfly_agent.utils.cli_options import CONFIG_FLAG, choices_of, config_path_of, nested_class, type_hints
+from openfly_agent.utils.cli_options import (
+    CONFIG_FLAG,
+    choices_of,
+    config_path_of,
+    nested_class,
+    option_names,
+    section_of,
+    type_hints,
+)
 from openfly_agent.utils.config import parse_config
 
 HELP_FLAGS = ("-h", "--help")
@@ -37,6 +49,22 @@ DIALECT = (  # the one command-line form of every entry point (draccus')
     "(--<field>=[a,b]), a section's field by its dotted name (--<section>.<field>=VALUE), and a yes/no option "
     "alone means true (--<flag> is --<flag>=true)."
 )
+
+
+@dataclass(frozen=True)
+class Unlisted:
+    """Options a command's `--help` leaves out for the run it describes, and how to list them.
+
+    Attributes:
+        names: dotted fields or sections (`data.grounding_root`, `rl`: every field of the section).
+        why: what they belong to, e.g. "the RL stage's".
+        flags: the options that make them apply, e.g. "--stage=rl": the help line says `<prog> <flags> --help`;
+            "" for settings the run derives, which no command line lists.
+    """
+
+    names: tuple[str, ...]
+    why: str
+    flags: str = ""
 
 
 # -- field descriptions from the source ------------------------------------------------------------------
@@ -160,11 +188,16 @@ def _flag_lines(flag: str, text: str) -> list[str]:
     return [f"  {flag}"] + [" " * FLAG_COLUMN + line for line in body]
 
 
-def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
-    """The flags of one config class (its scalar fields), then its nested sections."""
+def _section_lines(
+    cls: type, config: Any, prefix: str, prog: str, skip: frozenset[str] = frozenset()
+) -> list[str]:
+    """The flags of one config class (its scalar fields), then its nested sections; the dotted fields and
+    sections in `skip` are left out."""
     hints, docs = type_hints(cls), field_docs(cls)
     scalar, nested = [], []
     for f in dataclasses.fields(cls):
+        if prefix + f.name in skip:
+            continue
         value = getattr(config, f.name, None) if config is not None else None
         sub = nested_class(hints.get(f.name))
         if sub is not None:
@@ -180,14 +213,38 @@ def _section_lines(cls: type, config: Any, prefix: str) -> list[str]:
     for f, sub, value in nested:
         title = f"{prefix}{f.name}"
         summary = field_docs(cls).get(f.name) or class_summary(sub)
-        out += ["", *textwrap.wrap(f"{title}: {summary}" if summary else f"{title}:", WIDTH)]
         registry = next((c for c in sub.__mro__ if "_choice_registry" in vars(c)), None)
-        if registry is not None:  # a registered choice: its variant, then that variant's own fields
-            names = ", ".join(registry.get_known_choices())
-            text = f"the variant: {names}; each has only its own fields (default: {value.type})"
-            out += [line.replace(_NBSP, " ") for line in _flag_lines(f"--{title}.type STR", text)]
-        out += _section_lines(sub, value, prefix=title + ".")
+        # a registered choice: its variant in the title, then that variant's own fields
+        if registry is not None:
+            header = _choice_header(title, registry, value.type, summary, prog)
+        else:
+            header = f"{title}: {summary}" if summary else f"{title}:"
+        out += ["", *_wrap(header, WIDTH)]
+        out += _section_lines(sub, value, title + ".", prog, skip)
     return out
+
+
+def _choice_header(title: str, registry: type, chosen: str, summary: str, prog: str) -> str:
+    """The title of a registered choice's section: the chosen variant and its `type` option, the other variants
+    and the command that lists one's fields, then the chosen variant's summary."""
+    others = [name for name in registry.get_known_choices() if name != chosen]
+    header = f"{title}: `{chosen}` ({_whole(f'--{title}.type={chosen}')}"
+    if others:
+        which = f"other variants: {', '.join(others)}" if others[1:] else f"the other variant: {others[0]}"
+        header += f"; {which}, whose fields {_whole(f'{prog} --{title}.type={others[0]} --help')} lists"
+    rest = summary.removeprefix(f"`{chosen}`:").strip()
+    return f"{header})" + (f": {rest}" if rest else "")
+
+
+def _whole(text: str) -> str:
+    """`text` kept on one line by `_wrap` (an option or a command: a line never starts with a bare `--x`)."""
+    return text.replace(" ", _NBSP)
+
+
+def _wrap(text: str, width: int, indent: str = "") -> list[str]:
+    """`text` wrapped at `width`, never inside a `_whole` part or at a hyphen."""
+    lines = textwrap.wrap(text, width, subsequent_indent=indent, break_on_hyphens=False)
+    return [line.replace(_NBSP, " ") for line in lines]
 
 
 def unchecked_defaults(cls: type) -> Any:
@@ -213,6 +270,7 @@ def config_help(
     examples: Sequence[str],
     config_note: str | None = None,
     extra_options: Sequence[tuple[str, str]] = (),
+    unlisted: Sequence[Unlisted] = (),
 ) -> str:
     """The `--help` text of a command that parses `cls`.
 
@@ -225,9 +283,11 @@ def config_help(
         examples: command lines shown at the end.
         config_note: where the shown defaults come from (e.g. "configs/train/tiny.yaml").
         extra_options: (flag, text) of options the command takes besides the fields.
+        unlisted: options left out, each group named on one line of its own at the end (`Unlisted`).
     """
     if config is None:
         config = unchecked_defaults(cls)
+    skip = frozenset(name for group in unlisted for name in group.names)
     lines = [f"usage: {prog} [--config_path YAML] [--<field>=VALUE ...]", ""]
     lines += textwrap.wrap(" ".join(description.split()), WIDTH)
     lines += ["", *textwrap.wrap(DIALECT, WIDTH)]
@@ -238,9 +298,32 @@ def config_help(
     lines += _flag_lines(f"--{CONFIG_FLAG} YAML", "a YAML file whose values replace the defaults below")
     for flag, text in extra_options:
         lines += _flag_lines(flag, text)
-    lines += ["", *_section_lines(cls, config, prefix="")]
+    lines += ["", *_section_lines(cls, config, "", prog, skip)]
+    if unlisted:
+        lines += ["", *_unlisted_lines(cls, config, prog, unlisted)]
     lines += ["", "examples:", *(f"  {example}" for example in examples)]
     return "\n".join(lines) + "\n"
+
+
+def _unlisted_lines(cls: type, config: Any, prog: str, unlisted: Sequence[Unlisted]) -> list[str]:
+    """One line per group of options the help leaves out: their names, how many, and how to list them."""
+    every = [line.split()[0][2:] for line in _section_lines(cls, config, "", prog) if line.startswith("  --")]
+    lines = ["not listed for this run (accepted all the same):"]
+    for group in unlisted:
+        counts = {
+            name: sum(1 for flag in every if flag == name or flag.startswith(f"{name}."))
+            for name in group.names
+        }
+        present = [name for name, count in counts.items() if count]  # a field of another variant counts none
+        if not present:
+            continue
+        count = sum(counts.values())
+        names = ", ".join(f"{name}.*" if section_of(cls, name) else name for name in present)
+        text = f"{names} ({count} option{'s' if count != 1 else ''}): {group.why}"
+        if group.flags:
+            text += "; " + _whole(f"{prog} {group.flags} --help")
+        lines += [f"  {line}" for line in _wrap(text, WIDTH - 2, indent="    ")]
+    return lines
 
 
 def command_help(
@@ -251,32 +334,44 @@ def command_help(
     examples: Sequence[str],
     extra_options: Sequence[tuple[str, str]] = (),
     placeholders: dict[str, str] | None = None,
+    unlisted: Callable[[Any], Sequence[Unlisted]] | None = None,
 ) -> str:
     """The `--help` of a command line `args` (help flags included) that parses `cls`: every option with the
     value the same command line without `--help` would run with.
 
     A command line that does not parse (yet) shows the values of its `--config_path` YAML, else the dataclass
-    defaults. `placeholders` are values of required fields ({"checkpoint": "x"}) used only to get past their
-    check: those fields are shown unset.
+    defaults. `placeholders` are values of required fields, dotted names too ({"checkpoint": "x"}), used only
+    to get past their check where the command line does not give them: the fewest that do are filled (so a
+    value the YAML gives stays), and those fields are shown unset.
+    `unlisted(config)` names the options that do not apply to the config shown (`Unlisted`).
     """
     args = without_help(args)
     config_path = config_path_of(args)
-    filled = [f"--{name}={value}" for name, value in (placeholders or {}).items()]
-    attempts = [args, [*args, *filled]] + ([["--config_path", config_path, *filled]] if config_path else [])
+    given = set(option_names(args))
+    flags = {name: f"--{name}={value}" for name, value in (placeholders or {}).items() if name not in given}
+    missing = list(flags)
+    fills = [names for size in range(len(missing) + 1) for names in itertools.combinations(missing, size)]
+    attempts = [([*args, *(flags[name] for name in names)], names) for names in fills]
+    if config_path:
+        attempts.append((["--config_path", config_path, *flags.values()], missing))
     config = None
-    for attempt in attempts:
+    for attempt, filled in attempts:
         try:
             config = parse_config(cls, attempt)
         except Exception:  # a bad option, or a required field missing: the next attempt
             continue
-        if attempt is not args:
-            for name in placeholders or {}:
-                object.__setattr__(config, name, None)
+        for name in filled:
+            *sections, field_name = name.split(".")
+            owner = config
+            for section in sections:
+                owner = getattr(owner, section)
+            object.__setattr__(owner, field_name, None)
         break
     note = (
         f"Defaults below are the values of {config_path} (and of the options given)." if config_path else None
     )
-    return config_help(cls, config, prog, description, examples, note, extra_options)
+    left_out = unlisted(config if config is not None else unchecked_defaults(cls)) if unlisted else ()
+    return config_help(cls, config, prog, description, examples, note, extra_options, left_out)
 
 
 def commands_usage(
