@@ -86,10 +86,11 @@ def test_after_dagger_rounds_the_rl_stage_starts_from_the_last_round(tmp_path):
 def test_the_shipped_rl_recipe_is_the_tiny_recipe_plus_the_rl_stage():
     tiny = load_yaml_config(RecipeConfig, RECIPES / "tiny-recipe.yaml", [])
     cfg = load_yaml_config(RecipeConfig, RECIPES / RL_RECIPE, [])
-    assert (cfg.rl.steps, cfg.rl.overrides) == (50, {"optim": {"lr": 1.0e-5, "schedule": "constant"}})
+    assert cfg.rl.steps == 50
     resolved = stage_train_config(cfg, cfg.rl, "rl")
     assert (resolved.rl.group_size, resolved.rl.episodes_per_update) == (4, 4)  # docs/TRAINING.md's example
     assert (resolved.optim.lr, resolved.optim.schedule) == (1.0e-5, "constant")
+    assert resolved.optim.warmup_steps == 0  # the schedule steps once per update: no 50-update warmup
     # every step before the RL stage is the tiny recipe's, up to the output folder
     ours, theirs = recipe_steps(cfg), recipe_steps(tiny)
     first = [s.name for s in ours].index("rl")
