@@ -169,7 +169,12 @@ def test_a_shipped_yaml_restates_no_default(path):
 def restated_overrides(cfg: RecipeConfig) -> list[str]:
     """`<stage>.overrides.<key>` of every stage override whose value equals what the recipe's train_config and
     model file already give that stage."""
-    stages = {"grounding": cfg.grounding, "navigation": cfg.navigation, "dagger.train": cfg.dagger.train}
+    stages = {
+        "grounding": cfg.grounding,
+        "navigation": cfg.navigation,
+        "dagger.train": cfg.dagger.train,
+        "rl": cfg.rl,
+    }
     found = []
     for name, stage in stages.items():
         given = flat_settings(config_to_dict(stage_train_config(cfg, StageBudget(), name)))
@@ -197,8 +202,10 @@ def test_a_stage_override_equal_to_the_train_config_or_the_model_file_is_reporte
                 "model": {"grounding": {"visual_skip": True}},
             }
         ),
-    )  # configs/train/tiny.yaml's lr is 1.0e-3; tiny-adopted.yaml turns visual_skip on
+        rl=StageBudget(steps=1, overrides={"rl": {"group_size": 4, "kl_coef": 0.1}}),
+    )  # configs/train/tiny.yaml's lr is 1.0e-3; tiny-adopted.yaml turns visual_skip on; rl.group_size 4: default
     assert restated_overrides(cfg) == [
         "navigation.overrides.optim.lr",
         "navigation.overrides.model.grounding.visual_skip",
+        "rl.overrides.rl.group_size",
     ]

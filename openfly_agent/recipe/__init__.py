@@ -1,5 +1,5 @@
 """The navigation recipe as one resumable command: data -> grounding stage -> navigation stage -> DAgger rounds ->
-closed-loop evaluation with every baseline (docs/TRAINING.md, "Stages and the recipe")."""
+RL stage (off by default) -> closed-loop evaluation with every baseline (docs/TRAINING.md, "Stages and the recipe")."""
 
 from openfly_agent.recipe.config import DaggerSettings, EvalSettings, RecipeConfig, StageBudget
 from openfly_agent.recipe.run import recipe_steps, run_recipe

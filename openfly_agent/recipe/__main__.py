@@ -25,7 +25,8 @@ from openfly_agent.utils.logging_utils import setup_logging
 PROG = "python -m openfly_agent.recipe"
 DESCRIPTION = (
     "the navigation recipe as one resumable command: dataset -> grounding data -> grounding stage -> navigation "
-    "stage -> DAgger rounds -> closed-loop evaluation with every baseline (docs/TRAINING.md, 'The recipe')"
+    "stage -> DAgger rounds -> RL stage (rl.steps > 0) -> closed-loop evaluation with every baseline "
+    "(docs/TRAINING.md, 'The recipe')"
 )
 EXAMPLES = (
     f"{PROG} --config_path configs/recipe/main_job.yaml          # the README's main job (~30 min on 2 cores)",

@@ -97,7 +97,8 @@ class RecipeConfig:
     repository (as everywhere in the project).
     """
 
-    output_dir: str = "outputs/recipe"  # grounding/, navigation/, dagger/r<k>/, eval/ and recipe_state.json
+    # grounding/, navigation/, dagger/r<k>/, rl/, eval/, eval_before_rl/ and recipe_state.json
+    output_dir: str = "outputs/recipe"
     dataset_root: str = "outputs/datasets/embedded-small"  # generated when missing
     toolchain_config: str = "configs/toolchain/embedded-small.yaml"  # how the dataset is generated
     grounding_root: str = "outputs/datasets/grounding-small"  # the referring-expression dataset (generated)
@@ -126,6 +127,11 @@ class RecipeConfig:
     grounding: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=8.0))
     navigation: StageBudget = field(default_factory=lambda: StageBudget(steps=1500, minutes=10.0))
     dagger: DaggerSettings = field(default_factory=DaggerSettings)
+    # the RL stage (train.py --stage=rl, docs/TRAINING.md "The RL stage") from the navigation stage or the last
+    # DAgger round: `steps` updates, its `overrides` hold the `rl` and `optim` settings (e.g. {rl: {group_size:
+    # 8}, optim: {lr: 1.0e-5}}); when it runs, the evaluation flies its agent and, on the same episodes, the agent
+    # it started from, and the report gives their paired difference. 0 steps (the default): no RL stage
+    rl: StageBudget = field(default_factory=lambda: StageBudget(steps=0, minutes=60.0))
     eval: EvalSettings = field(default_factory=EvalSettings)
 
     def __post_init__(self) -> None:
@@ -148,6 +154,7 @@ class RecipeConfig:
             ("grounding", self.grounding),
             ("navigation", self.navigation),
             ("dagger.train", self.dagger.train),
+            ("rl", self.rl),
         ):
             stage_train_config(self, stage, name)
 

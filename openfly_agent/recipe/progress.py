@@ -12,7 +12,8 @@ from pathlib import Path
 
 from openfly_agent.eval.outputs import SUMMARY_MD
 from openfly_agent.recipe.config import RecipeConfig
-from openfly_agent.recipe.run import KIND_TRAIN, recipe_steps
+from openfly_agent.recipe.report import rl_comparison, rl_markdown
+from openfly_agent.recipe.run import KIND_TRAIN, RL_DIR, recipe_steps
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.state import TrainerState
 
@@ -43,7 +44,7 @@ class StageProgress:
 
 def stage_progress(cfg: RecipeConfig) -> list[StageProgress]:
     """The training stages of `cfg` that have a checkpoint, in recipe order (read from trainer_state.json)."""
-    budgets = {"grounding": cfg.grounding.minutes, "navigation": cfg.navigation.minutes}
+    budgets = {"grounding": cfg.grounding.minutes, "navigation": cfg.navigation.minutes, "rl": cfg.rl.minutes}
     progress = []
     for step in recipe_steps(cfg):
         if step.kind != KIND_TRAIN:
@@ -71,11 +72,15 @@ def budget_header(progress: list[StageProgress]) -> str:
 
 
 def recipe_report(cfg: RecipeConfig) -> str:
-    """The stages' header followed by every evaluation table the run wrote (eval/ and eval-<cities>/): what
+    """The stages' header followed by every evaluation table the run wrote (eval/ and eval-<cities>/) and, after an
+    RL stage, the paired difference of its agent from the agent it started from: what
     `python -m openfly_agent.recipe` prints at the end and writes to `<output_dir>/summary.md`."""
     out = Path(cfg.output_dir)
     parts = [f"# Recipe run {out}\n", budget_header(stage_progress(cfg))]
     for table in [out / "eval" / SUMMARY_MD, *sorted(out.glob(f"eval-*/{SUMMARY_MD}"))]:
         if table.is_file():
             parts.append(f"## {table.parent.name}\n\n{table.read_text().strip()}\n")
+    comparison = rl_comparison(out) if cfg.rl.steps else None
+    if comparison is not None:
+        parts.append(f"## {RL_DIR}\n\n{rl_markdown(comparison).strip()}\n")
     return "\n".join(parts)

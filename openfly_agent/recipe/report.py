@@ -9,6 +9,8 @@ reference arm) episode by episode on the main test splits (eval/compare.py), so 
 from the reference with a 95 % interval and an exact McNemar p. A folder without the marker, e.g. an earlier round's agent evaluated
 by hand into the run folder or a round trained by hand, is not the recipe's and is left out; a main evaluation
 without it is refused, as is an evaluation with failed episodes: a failure is never a result.
+After an RL stage the evaluated agent is its (`rl/`, with the offline figures of the agent it started from: the
+stage runs no offline test), and `rl_comparison` pairs it with that agent (`eval_before_rl/`) on the same episodes.
 """
 
 from __future__ import annotations
@@ -19,14 +21,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from openfly_agent import constants as C
-from openfly_agent.eval.compare import compare_folders, interval, p_value, signed
+from openfly_agent.eval.compare import (
+    compare_folders,
+    comparison_markdown,
+    interval,
+    p_value,
+    signed,
+)
 from openfly_agent.eval.outputs import SUMMARY_JSON
-from openfly_agent.recipe.run import DONE_MARKER, step_finished
+from openfly_agent.recipe.run import DONE_MARKER, EVAL_BEFORE_RL_DIR, RL_DIR, step_finished
 from openfly_agent.rollout.stats import format_interval, wilson_interval
 from openfly_agent.training.accelerator import LOGS_DIR
 from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
 
 AGENT = "agent"
+AGENT_BEFORE_RL = "agent_before_rl"  # the report's name of the agent the RL stage started from
 PROFILE_STANDARD, PROFILE_OPENFLY = "standard", "openfly"
 
 
@@ -36,8 +45,11 @@ class RunFigures:
 
     name: str
     navigation_steps: int  # optimizer steps the navigation stage ran
-    final_stage: str  # the training run of the evaluated agent: "navigation" or "dagger/r<k>/train"
-    offline_accuracy: float | None  # its last test-split action accuracy
+    # the training run of the evaluated agent: "navigation", "dagger/r<k>/train" or "rl"
+    final_stage: str
+    # the last test-split action accuracy of the evaluated agent's supervised stage (after an RL stage: of the
+    # agent it started from; the RL stage runs no offline test)
+    offline_accuracy: float | None
     offline_box_iou: float | None  # ... and target-box IoU (None: a run without a grounding head)
     sr: dict[str, float]  # split -> SR (%), standard profile
     sr_openfly: dict[str, float]  # split -> SR (%), openfly profile
@@ -121,6 +133,8 @@ def read_run(run_dir: str | Path, name: str | None = None) -> RunFigures:
     if rounds:  # the recipe evaluates the last round's agent
         final_stage = rounds[-1].relative_to(run).as_posix()
         _, accuracy, iou = _training_figures(rounds[-1])
+    if step_finished(run / RL_DIR):  # the recipe evaluates the RL stage's agent
+        final_stage = RL_DIR
     main_path = run / "eval" / SUMMARY_JSON
     if main_path.is_file() and not step_finished(main_path.parent):
         raise ValueError(
@@ -171,6 +185,24 @@ def paired_with_reference(run_dir: str | Path, reference_dir: str | Path, refere
         split: {"reference": reference, **{key: by_profile[PROFILE_STANDARD][key] for key in keys}}
         for split, by_profile in comparison["splits"].items()
     }
+
+
+def rl_comparison(run_dir: str | Path) -> dict | None:
+    """The RL stage's agent (B, eval/agent) against the agent it started from (A, eval_before_rl/agent) on the
+    same episodes, every figure of `compare_folders`; None unless the recipe finished both evaluations."""
+    run = Path(run_dir)
+    before, after = run / EVAL_BEFORE_RL_DIR, run / "eval"
+    if not (step_finished(before) and step_finished(after)):
+        return None
+    return compare_folders(before / AGENT, after / AGENT)
+
+
+def rl_markdown(comparison: dict) -> str:
+    """The paired table of `rl_comparison` under a line naming its two sides."""
+    return (
+        f"{AGENT} - {AGENT_BEFORE_RL}: A is {AGENT_BEFORE_RL} (the agent the RL stage started from), B is "
+        f"{AGENT} (the RL stage's), flown on the same episodes.\n\n{comparison_markdown(comparison)}"
+    )
 
 
 def read_runs(named_folders: list[tuple[str, str | Path]]) -> list[RunFigures]:

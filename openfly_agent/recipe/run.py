@@ -7,7 +7,9 @@ stopped on the next run. A stage is complete when its marker file exists (writte
 
     grounding data -> grounding stage -> navigation stage (init: grounding, matching tensors)
         -> DAgger round k: rollouts of the latest agent + training on all data (init: the latest agent)
+        -> the RL stage when it has steps (init: the latest agent)
         -> closed-loop evaluation of the final agent with every baseline
+        -> with the RL stage: the agent it started from on the same episodes (eval_before_rl/)
         -> the same on the test_unseen split of each of `eval.more_cities` (generated with the datasets)
 """
 
@@ -32,6 +34,10 @@ logger = logging.getLogger(__name__)
 DONE_MARKER = ".recipe_done"
 STATE_FILE = "recipe_state.json"
 KIND_DATA, KIND_TRAIN, KIND_EVAL = "data", "train", "eval"
+RL_DIR = "rl"  # the RL stage's training run
+# the agent the RL stage started from, evaluated on the main evaluation's episodes (its policy folder: agent/);
+# not `eval-*`, the folders of the more cities
+EVAL_BEFORE_RL_DIR = "eval_before_rl"
 
 
 def step_finished(folder: Path) -> bool:
@@ -64,19 +70,26 @@ class RecipeStep:
         return step_finished(self.folder)
 
 
-def _train_launcher(cfg: RecipeConfig) -> tuple[list[str], dict[str, str]]:
+def _train_launcher(cfg: RecipeConfig, processes: int) -> tuple[list[str], dict[str, str]]:
     """accelerate with `processes` one-thread processes (gloo), or one process of `torch_threads` threads."""
-    if cfg.processes > 1:
+    if processes > 1:
         accelerate_config = str(resolve_config_path("configs/accelerate/cpu_2proc.yaml"))
         launch = [sys.executable, "-m", "accelerate.commands.launch", "--config_file", accelerate_config]
-        return launch + ["--num_processes", str(cfg.processes)], {"OMP_NUM_THREADS": "1"}
+        return launch + ["--num_processes", str(processes)], {"OMP_NUM_THREADS": "1"}
     return [sys.executable], {"OMP_NUM_THREADS": str(cfg.torch_threads)}
 
 
 def _train_step(
-    cfg: RecipeConfig, name: str, folder: Path, budget: StageBudget, args: list[str]
+    cfg: RecipeConfig,
+    name: str,
+    folder: Path,
+    budget: StageBudget,
+    args: list[str],
+    processes: int | None = None,
 ) -> RecipeStep:
-    launcher, env = _train_launcher(cfg)
+    """train.py on the recipe's data with the stage's budget and settings; `processes`: the recipe's unless given
+    (the RL stage runs in one)."""
+    launcher, env = _train_launcher(cfg, cfg.processes if processes is None else processes)
     command = launcher + [
         str(REPO_ROOT / "train.py"),
         "--config_path", str(resolve_config_path(cfg.train_config)),
@@ -163,12 +176,27 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         ]
         steps.append(_train_step(cfg, f"dagger-r{k}-train", round_dir / "train", d.train, round_args))
         latest = round_dir / "train"
+    before_rl = latest
+    if cfg.rl.steps:
+        steps.append(_rl_step(cfg, out, before_rl))
+        latest = out / RL_DIR
     steps.append(_eval_step(cfg, "eval", latest, cfg.eval.splits, cfg.dataset_root, out / "eval"))
+    if cfg.rl.steps:  # the agent the RL stage started from, alone (the baselines are in eval/), same episodes
+        folder = out / EVAL_BEFORE_RL_DIR
+        steps.append(
+            _eval_step(cfg, "eval-before-rl", before_rl, cfg.eval.splits, cfg.dataset_root, folder, [])
+        )
     for name, root in more_cities:
         steps.append(
             _eval_step(cfg, f"eval-{name}", latest, [C.SPLIT_TEST_UNSEEN], root, out / f"eval-{name}")
         )
     return steps
+
+
+def _rl_step(cfg: RecipeConfig, out: Path, start: Path) -> RecipeStep:
+    """train.py --stage=rl from the agent trained in `start`, in one process (the stage runs in one)."""
+    args = [f"--stage={C.STAGE_RL}", f"--init.checkpoint={start}"]
+    return _train_step(cfg, "rl", out / RL_DIR, cfg.rl, args, processes=1)
 
 
 def _generate_step(config: str, name: str, out: Path) -> tuple[RecipeStep, str]:
@@ -180,13 +208,21 @@ def _generate_step(config: str, name: str, out: Path) -> tuple[RecipeStep, str]:
 
 
 def _eval_step(
-    cfg: RecipeConfig, name: str, checkpoint: Path, splits: list[str], dataset_root: str, folder: Path
+    cfg: RecipeConfig,
+    name: str,
+    checkpoint: Path,
+    splits: list[str],
+    dataset_root: str,
+    folder: Path,
+    baselines: list[str] | None = None,
 ) -> RecipeStep:
-    """eval.py on the embedded simulator: the agent at `checkpoint` and every baseline on `splits`."""
+    """eval.py on the embedded simulator: the agent at `checkpoint` and `baselines` (None: eval.baselines) on
+    `splits`."""
     e = cfg.eval
+    baselines = e.baselines if baselines is None else baselines
     command = [
         sys.executable, str(REPO_ROOT / "eval.py"), f"--checkpoint={checkpoint}", "--sim.type=embedded",
-        f"--split=[{','.join(splits)}]", f"--baselines=[{','.join(e.baselines)}]", f"--dataset_root={dataset_root}",
+        f"--split=[{','.join(splits)}]", f"--baselines=[{','.join(baselines)}]", f"--dataset_root={dataset_root}",
         f"--output_dir={folder}", f"--batch_size={e.batch_size}", f"--torch_threads={e.torch_threads}",
         *([f"--max_episodes={e.max_episodes}"] if e.max_episodes else []),
         *([f"--max_steps={e.max_steps}"] if e.max_steps != C.MAX_EPISODE_STEPS else []),

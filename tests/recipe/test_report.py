@@ -99,6 +99,21 @@ def test_after_dagger_rounds_the_offline_figures_are_the_last_rounds(tmp_path):
     assert read_run(_make_run(tmp_path / "plain")).final_stage == "navigation"
 
 
+def test_after_an_rl_stage_the_evaluated_agent_is_the_rl_stages(tmp_path):
+    root = _make_run(tmp_path / "rl")
+    (root / "rl" / "logs").mkdir(parents=True)  # an RL stage still running: not the evaluated agent yet
+    assert read_run(root).final_stage == "navigation"
+    (root / "rl" / DONE_MARKER).write_text("{}\n")
+    # the pre-RL agent's evaluation is not one of the more cities' (not an eval-* folder)
+    (root / "eval_before_rl").mkdir()
+    (root / "eval_before_rl" / DONE_MARKER).write_text("{}\n")
+    run = read_run(root)
+    assert run.final_stage == "rl"
+    # the RL stage runs no offline test: the offline figures stay those of the agent it started from
+    assert (run.offline_accuracy, run.offline_box_iou) == (0.625, 0.5)
+    assert run.more_cities == {"more": (25.0, 4)}
+
+
 def test_the_table_has_one_row_per_run_and_a_dash_where_a_figure_is_missing(tmp_path):
     runs = [
         read_run(_make_run(tmp_path / "a"), "with grounding"),

@@ -1,9 +1,9 @@
 """Every shipped recipe config runs end to end through `python -m openfly_agent.recipe`, shortened.
 
-Each stage the config has runs (dataset, extra routes, grounding data, grounding, navigation, DAgger rounds,
-evaluation with its more cities), shortened by `SHORT`: the small generated dataset of the training tests for
-every dataset the recipe generates, 2 steps per training stage, 2 episodes per evaluation. The ablations share
-one representative (they change the train config only). Minutes each: marked slow.
+Each stage the config has runs (dataset, extra routes, grounding data, grounding, navigation, DAgger rounds, the
+RL stage, evaluation with its more cities), shortened by `short_args`: the small generated dataset of the training
+tests for every dataset the recipe generates, 2 steps per training stage (1 RL update), 2 episodes per evaluation.
+The ablations share one representative (they change the train config only). Minutes each: marked slow.
 """
 
 from __future__ import annotations
@@ -19,7 +19,9 @@ from openfly_agent.recipe.config import RecipeConfig
 from openfly_agent.utils.config import REPO_ROOT, load_yaml_config
 from openfly_agent.utils.processes import run_group
 
-RECIPES = ["main_job.yaml", "tiny-recipe.yaml", "ablations/uniform_history.yaml"]
+RECIPES = ["main_job.yaml", "tiny-recipe.yaml", "tiny-recipe-rl.yaml", "ablations/uniform_history.yaml"]
+# the RL stage's settings of a shortened run (its `overrides`): 1 update of 2 episodes x 2 rollouts of <= 6 steps
+SHORT_RL = "{optim: {lr: 1.0e-5, schedule: constant}, rl: {group_size: 2, episodes_per_update: 2, max_steps: 6, num_envs: 2}}"
 TINY_DATASET_YAML = REPO_ROOT / "tests" / "training" / "tiny_dataset.yaml"
 
 
@@ -61,6 +63,7 @@ def short_args(cfg: RecipeConfig, folder: Path) -> list[str]:
         "--dagger.train.steps=2",
         "--dagger.episodes=2",
         "--dagger.num_envs=2",
+        *(["--rl.steps=1", f"--rl.overrides={SHORT_RL}"] if cfg.rl.steps else []),
     ]
 
 
@@ -87,3 +90,10 @@ def test_a_shipped_recipe_runs_every_stage(config, tmp_path):
     assert result.returncode == 0, (result.stdout + result.stderr)[-3000:]
     assert (tmp_path / "recipe" / "eval").is_dir()
     assert (tmp_path / "recipe" / "navigation" / "checkpoints" / "last").resolve().name.startswith("step-")
+    if (
+        cfg.rl.steps
+    ):  # the RL agent evaluated, the agent it started from too, and the two paired in the report
+        assert (tmp_path / "recipe" / "rl" / "checkpoints" / "last").resolve().name == "step-000001"
+        assert (tmp_path / "recipe" / "eval_before_rl" / "agent" / "episodes.jsonl").is_file()
+        summary = (tmp_path / "recipe" / "summary.md").read_text()
+        assert "## rl\n\nagent - agent_before_rl" in summary and "| test_unseen / `standard` | 2 |" in summary

@@ -28,7 +28,12 @@ ADOPTED_RECIPES = sorted(
 
 
 def _stages(cfg: RecipeConfig) -> dict[str, StageBudget]:
-    return {"grounding": cfg.grounding, "navigation": cfg.navigation, "dagger.train": cfg.dagger.train}
+    return {
+        "grounding": cfg.grounding,
+        "navigation": cfg.navigation,
+        "dagger.train": cfg.dagger.train,
+        "rl": cfg.rl,
+    }
 
 
 def _recipe(name: str) -> RecipeConfig:
