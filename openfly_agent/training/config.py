@@ -226,7 +226,7 @@ class RLConfig:
     """The RL stage (`stage=rl`, training/rl_trainer.py): GRPO on the simulator's own success, from a navigation
     checkpoint (`init.checkpoint`). One update = `episodes_per_update` train episodes x `group_size` sampled
     rollouts each, then `epochs` x `minibatches` optimizer steps on their steps. The run makes `steps` updates at
-    `optim.lr` (the schedule counts optimizer steps); docs/TRAINING.md, "The RL stage"."""
+    `optim.lr` (the schedule steps once per update, so `optim.warmup_steps` counts updates); docs/TRAINING.md, "The RL stage"."""
 
     group_size: int = 4  # G: rollouts from the same start and instruction (one group)
     episodes_per_update: int = 4  # groups per update (train episodes, drawn anew each update)
