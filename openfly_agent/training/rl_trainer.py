@@ -40,7 +40,12 @@ from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.data.generation_settings import read_generation_settings
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import HEAD_DISCRETE
-from openfly_agent.model.persistence.lora_checkpoint import merged_model_of
+from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.persistence.lora_checkpoint import (
+    has_full_weights,
+    is_lora_checkpoint,
+    merged_model_of,
+)
 from openfly_agent.rollout.profiles import MetricProfile, get_profile
 from openfly_agent.sim.embedded import EmbeddedSimConfig
 from openfly_agent.sim.embedded_scenes import city_config, is_embedded_scene
@@ -112,7 +117,25 @@ def check_rl_run(
         raise PreflightError(
             f"stage=rl flies the embedded city; {C.SPLIT_TRAIN} has other scenes ({', '.join(foreign[:3])})"
         )
+    check_full_weights(cfg.init.checkpoint)
     return profile
+
+
+def check_full_weights(init_checkpoint: str) -> None:
+    """The RL stage starts from full weights (its LoRA reference is the model with fresh adapters off,
+    training/rl_reference.py): a LoRA run's adapter-only checkpoint is refused, naming the run's merged model."""
+    try:
+        folder = resolve_checkpoint_folder(init_checkpoint)
+    except FileNotFoundError:
+        return  # not a checkpoint at all: the builder's checks say so
+    if folder is None or has_full_weights(folder) or not is_lora_checkpoint(folder):
+        return
+    run = folder.parent.parent if folder.parent.name == C.CHECKPOINTS_DIR else folder.parent
+    raise PreflightError(
+        f"init.checkpoint {init_checkpoint} is a LoRA checkpoint ({folder}: the adapter only, no base weights): "
+        f"start stage=rl from {run / C.MERGED_DIR_NAME}, the weights with that adapter folded in, which a LoRA "
+        "run writes at its end (lora.merge_at_end); the RL run attaches fresh adapters to them"
+    )
 
 
 def embedded_env(cfg: TrainConfig, splits: Splits, profile: MetricProfile) -> VectorSimulator:

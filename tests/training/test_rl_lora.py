@@ -7,7 +7,6 @@ merges at the end."""
 from __future__ import annotations
 
 import importlib
-import json
 import os
 from pathlib import Path
 from unittest import mock
@@ -16,6 +15,7 @@ import pytest
 import torch
 from conftest import REPO_ROOT, reset_accelerate, split_batch, train_main
 from safetensors.torch import load_file
+from test_rl_stage import rl_logs
 
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
@@ -60,16 +60,6 @@ def lora_rl_args(openvla: Path, dataset: Path, output_dir: Path, *more: str) -> 
     ]  # fmt: skip
 
 
-def rl_figures(output_dir: Path) -> dict[int, dict]:
-    """update -> its train/ figures (the last record of an update wins, as after a resume)."""
-    figures = {}
-    for line in (output_dir / "logs" / "metrics.jsonl").read_text().splitlines():
-        record = json.loads(line)
-        if "train/kl" in record:
-            figures[record["step"]] = {k.removeprefix("train/"): v for k, v in record.items()}
-    return figures
-
-
 @pytest.fixture
 def lora_run(synthetic_openvla, generated_dataset, tmp_path):
     """`set_up_rl` of the LoRA config (before its first update)."""
@@ -99,12 +89,12 @@ def test_the_lora_reference_is_the_model_with_its_adapters_off_and_stays_the_sta
             return taken_log_probs(policy, batch, run.action_ids, run.cfg.rl.temperature)["logp"]
 
     start = log_probs(run.model)
-    # update 0: the reference is the starting policy (fresh adapters add B @ A = 0), under the same autocast
+    # update 0: the reference is the starting policy (fresh adapters add B @ A = 0)
     torch.testing.assert_close(log_probs(run.reference), start, rtol=0.0, atol=1e-6)
     assert float(k3_kl(start, log_probs(run.reference)).max()) < 1e-6
     # one optimizer step moves the adapters and the projector; the reference stays the starting policy
     run.optimizer.zero_grad()
-    (-taken_log_probs(run.model, batch, run.action_ids, 1.0)["logp"].sum()).backward()
+    (-taken_log_probs(run.model, batch, run.action_ids, run.cfg.rl.temperature)["logp"].sum()).backward()
     run.optimizer.step()
     lora_b = [p for n, p in agent.named_parameters() if "lora_B" in n]
     assert any(bool(p.detach().any()) for p in lora_b)
@@ -121,10 +111,12 @@ def test_adapters_that_start_non_zero_are_refused():
         AdaptersOff(model, model, "pissa")
 
 
-def test_the_7b_lora_rl_stage_checkpoints_resumes_and_merges(synthetic_openvla, generated_dataset, tmp_path):
+def test_the_7b_lora_rl_stage_checkpoints_resumes_and_merges(
+    synthetic_openvla, generated_dataset, tmp_path, capsys
+):
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     assert train_main(lora_rl_args(synthetic_openvla, generated_dataset, whole)) == 0
-    figures = rl_figures(whole)
+    figures = rl_logs(whole)
     assert sorted(figures) == [1, 2] and all(f["samples_trained"] > 0 for f in figures.values())
     assert figures[1]["kl"] < 1e-6  # one minibatch: the KL before any step, the reference = the start
     assert figures[2]["kl"] > 0  # update 2 starts from the policy update 1 moved
@@ -132,6 +124,15 @@ def test_the_7b_lora_rl_stage_checkpoints_resumes_and_merges(synthetic_openvla, 
     assert all((checkpoints / f"step-00000{i}" / C.ADAPTER_DIR_NAME).is_dir() for i in (1, 2))
     last = (checkpoints / "last").resolve()
     assert merged_model_of(last) == whole / "merged"  # written after the last checkpoint
+    capsys.readouterr()
+    # RL from this run: its checkpoints hold the adapter only, so the merged model is named instead (one line)
+    again = lora_rl_args(
+        synthetic_openvla, generated_dataset, tmp_path / "again", f"--init.checkpoint={whole}"
+    )
+    assert train_main(again) == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]  # after the log lines
+    assert error.startswith(f"train.py: init.checkpoint {whole} is a LoRA checkpoint"), error
+    assert f"start stage=rl from {whole / 'merged'}" in error and error.endswith("fresh adapters to them")
 
     # a run that crashes after the checkpoint of update 1, then resumed, ends with the same adapter and merge
     with mock.patch.dict(os.environ, {STOP_AFTER_STEPS_ENV: "1"}):
