@@ -10,22 +10,24 @@ One update (`rl` section, training/config.py):
 3. replay every kept step through the agent's training forward (its frame, memory, instruction, predicted box
    and taken action as a batch: the same network path as the rollout, in eval mode, so no box jitter and the
    BatchNorm statistics of the rollout) for the log-probs of the taken actions under the update's starting
-   policy and under the reference (the `init.checkpoint` policy, frozen);
+   policy and under the reference (the `init.checkpoint` policy, frozen: training/rl_reference.py, a copy of the
+   agent, or with LoRA the model itself with its adapters off);
 4. `epochs` x `minibatches` AdamW steps on the clipped policy loss + `kl_coef` x k3 KL + `grounding_weight` x
    the grounding loss (steps where the simulator reports boxes); the lr schedule steps once per update.
 
 Every draw of an update comes from seeds derived from (`seed`, update index), so a run resumed from a checkpoint
 flies and trains exactly as the uninterrupted run does; the optimizer, schedule and weights come back from the
-checkpoint as in the other stages (training/saving.py).
+checkpoint as in the other stages (training/saving.py). A LoRA run also writes `<output_dir>/merged` at the end
+(`lora.merge_at_end`), as the navigation stage does.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,12 @@ from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.data.generation_settings import read_generation_settings
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.config import HEAD_DISCRETE
+from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.model.persistence.lora_checkpoint import (
+    has_full_weights,
+    is_lora_checkpoint,
+    merged_model_of,
+)
 from openfly_agent.rollout.profiles import MetricProfile, get_profile
 from openfly_agent.sim.embedded import EmbeddedSimConfig
 from openfly_agent.sim.embedded_scenes import city_config, is_embedded_scene
@@ -46,6 +54,7 @@ from openfly_agent.training.accelerator import closing_trackers, flat_config, ma
 from openfly_agent.training.builder import Splits, load_splits, prepare_agent
 from openfly_agent.training.checkpoint import CheckpointManager
 from openfly_agent.training.config import TrainConfig
+from openfly_agent.training.export import export_merged_lora
 from openfly_agent.training.metrics import RunningMeans
 from openfly_agent.training.optim import make_optimizer, make_scheduler
 from openfly_agent.training.preflight import (
@@ -56,10 +65,11 @@ from openfly_agent.training.preflight import (
 )
 from openfly_agent.training.resume_settings import record_run_settings, resume_changes
 from openfly_agent.training.rl_loss import action_log_probs, group_advantages, rl_loss
+from openfly_agent.training.rl_reference import describe_reference, make_reference
 from openfly_agent.training.rl_rollouts import Rollout, collect_groups, step_sample
 from openfly_agent.training.saving import register_state_hooks, restore_checkpoint, save_checkpoint
 from openfly_agent.training.state import TrainerState
-from openfly_agent.training.stops import STOP_AFTER_STEPS_ENV, StopFlags, forced_stop_step
+from openfly_agent.training.stops import SIGNAL, STOP_AFTER_STEPS_ENV, StopFlags, forced_stop_step
 from openfly_agent.training.trackers import start_trackers
 from openfly_agent.utils.progress import progress_bar
 
@@ -84,8 +94,11 @@ def update_seeds(seed: int, update: int) -> tuple[np.random.Generator, torch.Gen
     return rng, torch.Generator().manual_seed(int(rng.integers(2**62)))
 
 
-def check_rl_run(cfg: TrainConfig, splits: Splits, num_processes: int) -> MetricProfile:
-    """What the RL stage needs beyond the other stages' checks; returns the reward's metric profile."""
+def check_rl_run(
+    cfg: TrainConfig, splits: Splits, num_processes: int, embedded: bool = True
+) -> MetricProfile:
+    """What the RL stage needs beyond the other stages' checks; returns the reward's metric profile.
+    `embedded`: the run flies the embedded city (its train scenes must be embedded ones)."""
     if num_processes != 1:
         raise PreflightError(f"stage=rl runs in one process (this launch has {num_processes})")
     if cfg.model.action_head.type != HEAD_DISCRETE:
@@ -100,11 +113,29 @@ def check_rl_run(cfg: TrainConfig, splits: Splits, num_processes: int) -> Metric
             f"rl.episodes_per_update={cfg.rl.episodes_per_update} but {C.SPLIT_TRAIN} has {len(train)} episodes"
         )
     foreign = sorted({e.scene_id for e in train if not is_embedded_scene(e.scene_id)})
-    if foreign:
+    if foreign and embedded:
         raise PreflightError(
             f"stage=rl flies the embedded city; {C.SPLIT_TRAIN} has other scenes ({', '.join(foreign[:3])})"
         )
+    check_full_weights(cfg.init.checkpoint)
     return profile
+
+
+def check_full_weights(init_checkpoint: str) -> None:
+    """The RL stage starts from full weights (its LoRA reference is the model with fresh adapters off,
+    training/rl_reference.py): a LoRA run's adapter-only checkpoint is refused, naming the run's merged model."""
+    try:
+        folder = resolve_checkpoint_folder(init_checkpoint)
+    except FileNotFoundError:
+        return  # not a checkpoint at all: the builder's checks say so
+    if folder is None or has_full_weights(folder) or not is_lora_checkpoint(folder):
+        return
+    run = folder.parent.parent if folder.parent.name == C.CHECKPOINTS_DIR else folder.parent
+    raise PreflightError(
+        f"init.checkpoint {init_checkpoint} is a LoRA checkpoint ({folder}: the adapter only, no base weights): "
+        f"start stage=rl from {run / C.MERGED_DIR_NAME}, the weights with that adapter folded in, which a LoRA "
+        "run writes at its end (lora.merge_at_end); the RL run attaches fresh adapters to them"
+    )
 
 
 def embedded_env(cfg: TrainConfig, splits: Splits, profile: MetricProfile) -> VectorSimulator:
@@ -160,7 +191,7 @@ class RLSetup:
     cfg: TrainConfig
     accelerator: Any
     model: Any  # the prepared agent (what the optimizer moves)
-    reference: OpenFlyAgent  # the starting policy, frozen
+    reference: Callable  # the starting policy, frozen, called as the agent (training/rl_reference.py)
     optimizer: Any
     scheduler: Any
     checkpoints: CheckpointManager
@@ -174,9 +205,10 @@ class RLSetup:
     splits: Splits
 
 
-def set_up_rl(cfg: TrainConfig) -> RLSetup:
-    """The checks, the agent and its frozen copy, the optimizer and a resumed state (PreflightError on bad
-    input, before any compute)."""
+def set_up_rl(cfg: TrainConfig, embedded: bool = True) -> RLSetup:
+    """The checks, the agent and its reference policy, the optimizer and a resumed state (PreflightError on bad
+    input, before any compute). `embedded`: the run flies the embedded city of `cfg.data.root` (not a given
+    environment), so its train scenes must be embedded ones."""
     resume_from = check_output_dir(cfg.output_dir, cfg.resume)
     data, _ = resolve_val_split(cfg.data)
     cfg = dataclasses.replace(cfg, data=data)
@@ -184,16 +216,18 @@ def set_up_rl(cfg: TrainConfig) -> RLSetup:
     check_dataset_root(cfg.data)
     accelerator = make_accelerator(cfg)
     splits = load_splits(cfg.data, cfg.model.grounding)
-    profile = check_rl_run(cfg, splits, accelerator.num_processes)
+    profile = check_rl_run(cfg, splits, accelerator.num_processes, embedded)
     checkpoints = CheckpointManager(cfg.output_dir, cfg.checkpoint.keep_last)
     checkpoints.remove_stale_staging()
     agent = prepare_agent(cfg, splits, accelerator, resume_from)  # the init.checkpoint's policy
-    reference = copy.deepcopy(agent).eval().requires_grad_(False)  # the starting policy, frozen
     record_run_settings(cfg, resume_from, setting_changes)
     optim = cfg.optim
     optimizer = make_optimizer(agent, optim.lr, optim.weight_decay, optim.betas, optim.eps)
     scheduler = make_scheduler(optimizer, optim.schedule, optim.warmup_steps, cfg.steps, optim.min_lr_ratio)
     model, optimizer, scheduler = accelerator.prepare(agent, optimizer, scheduler)
+    # the KL term's starting policy, made before a resume restores the trained weights
+    reference = make_reference(cfg, model, accelerator.unwrap_model(model))
+    logger.info("rl reference: %s", describe_reference(reference))
     register_state_hooks(accelerator)
     state, last_checkpoint, saved_step = TrainerState(), None, None
     if resume_from is not None:
@@ -218,13 +252,13 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
     Raises:
         PreflightError: bad input, before any compute.
     """
-    run = set_up_rl(cfg)
+    owned = env is None  # an environment given by the caller stays open
+    run = set_up_rl(cfg, embedded=owned)
     cfg, state, rl = run.cfg, run.state, run.cfg.rl
     logger.info(
         "rl: %d updates of %d episodes x %d rollouts (profile %s, at most %d steps), from update %d",
         cfg.steps, rl.episodes_per_update, rl.group_size, run.profile.name, run.max_steps, state.step,
     )  # fmt: skip
-    owned = env is None  # an environment given by the caller stays open
     env = embedded_env(cfg, run.splits, run.profile) if owned else env
     progress = progress_bar(total=cfg.steps, initial=state.step, desc="rl")
     stops = StopFlags(run.accelerator, cfg.time_limit_minutes, elapsed_before_s=state.train_seconds)
@@ -248,6 +282,8 @@ def train_rl(cfg: TrainConfig, env: VectorSimulator | None = None) -> RLRun:
         progress.close()
         if not crashed and run.saved_step != state.step:
             save_rl_checkpoint(run, stops)
+    if not crashed and reason != SIGNAL:
+        merge_lora_at_end(run)
     unwrapped = run.accelerator.unwrap_model(run.model)
     stopped_early = crashed or reason is not None
     return RLRun(state, run.last_checkpoint, stopped_early, unwrapped, run.accelerator.is_main_process)
@@ -258,6 +294,17 @@ def save_rl_checkpoint(run: RLSetup, stops: StopFlags) -> None:
     run.state.train_seconds = int(stops.elapsed_s())
     run.last_checkpoint = save_checkpoint(run.accelerator, run.model, run.state, run.checkpoints, run.cfg)
     run.saved_step = run.state.step
+
+
+def merge_lora_at_end(run: RLSetup) -> None:
+    """A LoRA run's `<output_dir>/merged` (`lora.merge_at_end`), unless it already holds the last checkpoint's
+    merge (a resume with nothing left to train), as the navigation stage writes it (training/finish.py)."""
+    cfg = run.cfg
+    if not (cfg.use_lora and cfg.lora.merge_at_end):
+        return
+    if run.last_checkpoint is not None and merged_model_of(run.last_checkpoint) is not None:
+        return
+    export_merged_lora(run.accelerator, run.model, cfg.output_dir)
 
 
 def one_update(run: RLSetup, env: VectorSimulator) -> dict[str, float]:
