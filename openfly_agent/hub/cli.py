@@ -129,13 +129,14 @@ def _serve_fake_hub(token: str) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.default_int_handler)  # raises KeyboardInterrupt
     with FakeHub(token=token) as hub:
-        print(f"fake Hub listening: export HF_ENDPOINT={hub.url}  (Ctrl-C to stop)", flush=True)
-        try:
+        try:  # the announcement inside: a signal sent as soon as it is read lands in this block
+            print(f"fake Hub listening: export HF_ENDPOINT={hub.url}  (Ctrl-C to stop)", flush=True)
             while True:
                 time.sleep(1.0)
         except KeyboardInterrupt:
-            for (repo_type, repo_id), repo in hub.repos.items():
-                for branch, files in repo.branches.items():
-                    size = sum(map(len, files.values()))
-                    print(f"{repo_type} {repo_id}@{branch}: {len(files)} files, {size} bytes")
+            pass
+        for (repo_type, repo_id), repo in hub.repos.items():
+            for branch, files in repo.branches.items():
+                size = sum(map(len, files.values()))
+                print(f"{repo_type} {repo_id}@{branch}: {len(files)} files, {size} bytes")
     return 0
