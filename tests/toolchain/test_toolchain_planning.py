@@ -237,3 +237,47 @@ def test_heuristic_counts_the_turns_any_path_still_needs():
 def test_chain_landmarks_must_be_a_range_from_two(landmarks):
     with pytest.raises(ValueError, match="route.chain_landmarks"):
         RouteConfig(chain_landmarks=landmarks)
+
+
+def _box_points(x0, x1, y0, y1, top):
+    """(N, 3) points filling the box [x0, x1] x [y0, y1] x [0, top] at 1 m spacing."""
+    grid = np.mgrid[x0 : x1 + 0.5 : 1.0, y0 : y1 + 0.5 : 1.0, 0 : top + 0.5 : 1.0]
+    return grid.reshape(3, -1).T
+
+
+def test_chain_out_of_sight_picks_the_next_landmark_hidden_from_the_previous_goal():
+    """From the goal (0, 0) at 20 m, the leg heading +y, two landmarks 100 m away at 90 deg each side,
+    roofs at 30 m: "east" behind a 40 m wall at x = 45-55 (the line of sight to its roof is 24.5-25.5 m high
+    there), "west" behind a 20 m wall at x = -55..-45 (below the line: still seen)."""
+    from openfly_agent.sim.scene import Landmark
+    from openfly_agent.toolchain.routes import RouteLeg, _line_of_sight
+
+    east = Landmark("east", "tower", "red", "", "", "", (100.0, 0.0, 15.0), (10.0, 10.0, 30.0))
+    west = Landmark("west", "tower", "blue", "", "", "", (-100.0, 0.0, 15.0), (10.0, 10.0, 30.0))
+    points = np.concatenate(
+        [
+            _box_points(95, 105, -5, 5, 30),  # east
+            _box_points(-105, -95, -5, 5, 30),  # west
+            _box_points(45, 55, -10, 10, 40),  # the tall wall before east
+            _box_points(-55, -45, -10, 10, 20),  # the low wall before west
+        ]
+    )
+    pmap = build_planning_map(points, MAP_CFG, SceneBounds(-120, 120, -120, 120, 0, 60), 0.0)
+    previous = Landmark("previous", "tower", "green", "", "", "", (0.0, 10.0, 15.0), (5.0, 5.0, 30.0))
+    leg = RouteLeg(previous, np.array([0.0, 0.0, 20.0]))  # reached flying +y from (0, -50)
+    assert not _line_of_sight(pmap, leg.goal, east) and _line_of_sight(pmap, leg.goal, west)
+
+    def chosen(out_of_sight):
+        cfg = RouteConfig(min_dist_m=80, max_dist_m=120, chain_bearing_deg=[60, 120])
+        cfg.chain_out_of_sight = out_of_sight
+        sampler = RouteSampler(pmap, [east, west], cfg)
+        picks = set()
+        for seed in range(12):
+            nxt = sampler._next_leg(
+                leg, np.array([0.0, -50.0, 20.0]), {"previous"}, 20.0, np.random.default_rng(seed)
+            )
+            picks.add(nxt.landmark.landmark_id)
+        return picks
+
+    assert chosen(False) == {"east", "west"}
+    assert chosen(True) == {"east"}
