@@ -83,8 +83,6 @@ class RouteConfig:
     # [lo, hi]: a chained route visits U{lo..hi} landmarks (aimlandmark_nums; [2, 2]: always 2, no extra draw)
     chain_landmarks: list[int] = field(default_factory=lambda: [2, 2])
     chain_bearing_deg: list[float] = field(default_factory=lambda: [30.0, 150.0])  # each next leg turns this
-    # each next landmark's roof centre hidden from the previous goal (a taller column on the line of sight)
-    chain_out_of_sight: bool = False
     takeoff_landing_prob: float = 0.0  # add_takeoff_land: probability of -1 / -2 phases
     start_yaw_jitter_deg: float = 45.0  # start yaw = bearing to the goal +- U(jitter)
 

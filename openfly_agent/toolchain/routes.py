@@ -4,8 +4,7 @@ Flight height ~ U(floor + h, floor + H); a landmark whose top reaches that heigh
 on the ring [r, R] around it, outside every footprint and obstacle; the goal found by walking from the
 landmark towards the start in 1 m steps until outside its (dilated) footprint; optionally a route that must
 turn (straight line blocked), and a chained route: more legs, each to a landmark not visited yet that lies
-[min_dist, max_dist] from the previous goal at a bearing 30-150 deg off the previous leg's heading (and,
-with `chain_out_of_sight`, whose roof centre cannot be seen from that goal).
+[min_dist, max_dist] from the previous goal at a bearing 30-150 deg off the previous leg's heading.
 """
 
 from __future__ import annotations
@@ -63,19 +62,6 @@ def _walk_out_of_footprint(
     if not ok.any():
         return None
     return pts[int(np.argmax(ok))]
-
-
-def _line_of_sight(pmap: PlanningMap, eye: np.ndarray, landmark: Landmark) -> bool:
-    """Whether the centre of `landmark`'s roof is seen from `eye` (3,): no column of the height map on the
-    straight line between them, outside the landmark's own footprint, reaches the line's height there."""
-    centre = landmark_xy(landmark)
-    target = np.array([centre[0], centre[1], landmark_top(landmark)])
-    n = max(2, int(math.ceil(np.linalg.norm(target[:2] - eye[:2]) / (0.5 * pmap.voxel_size))) + 1)
-    samples = eye + np.linspace(0.0, 1.0, n)[:, None] * (target - eye)  # (S, 3)
-    half = 0.5 * np.array(landmark.extent[:2]) + pmap.voxel_size  # its own walls, one voxel of slack
-    outside = np.any(np.abs(samples[:, :2] - centre) > half, axis=1)
-    heights = pmap.column_height(samples[outside, :2])
-    return bool(np.all(heights < samples[outside, 2]))
 
 
 def _straight_line_free(pmap: PlanningMap, a: np.ndarray, b: np.ndarray) -> bool:
@@ -176,11 +162,7 @@ class RouteSampler:
             & (change <= hi)
             & (self._tops > z - cfg.landmark_top_slack_m)
         )
-        candidates = np.flatnonzero(ok)
-        if cfg.chain_out_of_sight:
-            seen = [_line_of_sight(self.pmap, leg.goal, self.landmarks[i]) for i in candidates]
-            candidates = candidates[~np.array(seen, dtype=bool)]
-        for index in rng.permutation(candidates)[: cfg.max_start_tries]:
+        for index in rng.permutation(np.flatnonzero(ok))[: cfg.max_start_tries]:
             landmark = self.landmarks[index]
             if landmark.landmark_id in visited:
                 continue
