@@ -12,15 +12,18 @@
 # evaluation), under 4 hours in all; run nothing else meanwhile. Every recipe resumes where it stopped, so
 # re-running the script after an interruption finishes the table.
 # Knobs (environment): ROOT (default outputs/long-ablations), ARMS (a subset of the five, e.g. "current_frame
-# keyframes"), VENV (default .venv, set up by scripts/setup.sh).
+# keyframes"), VENV (default .venv, set up by scripts/setup.sh), RECIPE_ARGS (more recipe overrides given to every
+# arm, e.g. "--grounding.minutes=300 --navigation.minutes=300" so that a loaded machine cannot stop a stage early).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TRANSFORMERS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 VENV=${VENV:-.venv}
 ROOT=${ROOT:-outputs/long-ablations}
 ARMS=${ARMS:-"current_frame uniform_history random_keyframes keyframes uniform_history_merging"}
+RECIPE_ARGS=${RECIPE_ARGS:-}
 CONFIGS=configs/recipe/long-ablations
-recipe() { "$VENV/bin/python" -m openfly_agent.recipe "$@"; }
+# shellcheck disable=SC2086  # RECIPE_ARGS is a list of overrides
+recipe() { "$VENV/bin/python" -m openfly_agent.recipe "$@" $RECIPE_ARGS; }
 for arm in $ARMS; do  # every arm named exists, before hours of training
   [ -f "$CONFIGS/$arm.yaml" ] || { echo "long_ablations.sh: no arm $arm ($CONFIGS/$arm.yaml is missing)" >&2; exit 2; }
 done

@@ -62,15 +62,22 @@ def test_an_unknown_arm_stops_the_script_before_anything_runs(tmp_path):
 def test_the_long_route_arms_share_the_full_agents_grounding_stage(tmp_path):
     root = tmp_path / "abl"
     venv, log = _fake_venv(tmp_path)
-    env = {**os.environ, "VENV": str(venv), "ROOT": str(root), "ARMS": "current_frame random_keyframes"}
+    guards = "--grounding.minutes=300 --navigation.minutes=300"
+    env = {
+        **os.environ,
+        "VENV": str(venv),
+        "ROOT": str(root),
+        "ARMS": "current_frame random_keyframes",
+        "RECIPE_ARGS": guards,
+    }
     done = subprocess.run(
         ["bash", str(REPO_ROOT / "scripts" / "long_ablations.sh")], env=env, capture_output=True, text=True
     )
     assert done.returncode == 0, done.stderr
     calls = log.read_text().splitlines()
     first = f"{root}/keyframes_merging"
-    assert calls[0].endswith(f"long-ablations/keyframes_merging.yaml --output_dir {first}")
-    shared = f"--eval.baselines=[random] --grounding_from {first}/grounding"
+    assert calls[0].endswith(f"long-ablations/keyframes_merging.yaml --output_dir {first} {guards}")
+    shared = f"--eval.baselines=[random] --grounding_from {first}/grounding {guards}"
     assert calls[1].endswith(f"long-ablations/current_frame.yaml --output_dir {root}/current_frame {shared}")
     assert calls[2].endswith(
         f"long-ablations/random_keyframes.yaml --output_dir {root}/random_keyframes {shared}"
