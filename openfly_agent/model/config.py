@@ -75,16 +75,6 @@ LLAMA2_7B_ARCH = {
 
 
 @dataclass
-class ProjectorConfig:
-    """Fused GELU MLP: fc1 (D_v -> ratio * D_v), GELU, fc2 (-> D_llm), GELU, fc3 (D_llm -> D_llm)."""
-
-    hidden_ratio: int = 4
-
-    def __post_init__(self) -> None:
-        check_positive("projector", "hidden_ratio", self.hidden_ratio)
-
-
-@dataclass
 class LLMConfig(BuiltChoice, ChoiceRegistry):
     """Causal LM (transformers Llama): `type` picks `tiny` (the default, `TinyLLMConfig`, with its own sizes) or
     `llama2-7b` (`Llama2LLMConfig`, Llama-2-7B's architecture `LLAMA2_7B_ARCH`). `build(vocab_size)` gives the
@@ -393,7 +383,6 @@ class ModelConfig:
     """Everything that defines an OpenFly-Agent network (serialised inside config.json)."""
 
     vision: VisionConfig = field(default_factory=TinyCnnVisionConfig)
-    projector: ProjectorConfig = field(default_factory=ProjectorConfig)
     llm: LLMConfig = field(default_factory=TinyLLMConfig)
     prompt: PromptConfig = field(default_factory=PromptConfig)
     grounding: GroundingConfig = field(default_factory=CellGroundingConfig)
@@ -531,7 +520,6 @@ __all__ = [  # the vision section's names are re-exported: model.config is the o
     "MergingConfig",
     "ModelConfig",
     "NoGroundingConfig",
-    "ProjectorConfig",
     "PromptConfig",
     "TinyCnnVisionConfig",
     "TinyLLMConfig",

@@ -12,7 +12,8 @@ value that did nothing (the old config refused any other).
 Before issue 46 the LLM, the memory encoding and "no grounding head" were not variants: `llm: {preset: tiny,
 hidden_size: 128, ...}` (the four tiny-only sizes null under `llama2-7b`), a top-level `mode: openfly |
 openvla_compat` and `grounding: {enabled: false, ...}`. They read `llm: {type: ...}`, `memory: {encoding: {type:
-keyframes | openvla_history}}` and `grounding: {type: none}` now.
+keyframes | openvla_history}}` and `grounding: {type: none}` now. `projector.hidden_ratio` and
+`grounding.num_queries` were settings until then, at 4 and 1 in every config; those values are dropped.
 """
 
 from __future__ import annotations
@@ -46,6 +47,10 @@ DELETED_SWITCHES = {
         "cell_fusion_layers": 0,
     },
 }
+# Settings with one value that no config or experiment ever changed, fixed in the code since issue 46 (the
+# projector's fc1 width is OpenVLA's 4 x D_v; one target, one learned grounding query): that value is dropped,
+# any other is refused (commit 32e260f still builds it). A section left empty goes with it.
+FIXED_SETTINGS = {"projector": {"hidden_ratio": 4}, "grounding": {"num_queries": 1}}
 # Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's
 # `n_bins` could only be 256, `NUM_ACTION_SLOTS`).
 DEAD_FIELDS = {"vision": ("cnn_stem_width",), "action_head": ("n_bins",)}
@@ -105,6 +110,16 @@ def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
                     "docs/experiments/2026-11-27-deleted-research-switches.md): load this checkpoint with "
                     "commit 7544758"
                 )
+    for section, settings in FIXED_SETTINGS.items():
+        values = agent.get(section, {})
+        for name, fixed in settings.items():
+            if name in values and values.pop(name) != fixed:
+                raise RetiredOptionError(
+                    f"model config: {section}.{name} is fixed at {fixed} now (no config or experiment changed "
+                    "it): load this checkpoint with commit 32e260f"
+                )
+        if section in agent and not agent[section]:
+            del agent[section]
     for section, names in DEAD_FIELDS.items():
         for name in names:
             agent.get(section, {}).pop(name, None)

@@ -46,7 +46,7 @@ class OpenFlyNetwork(nn.Module):
         self.cfg = cfg
         llm_dim = cfg.llm.hidden_size
         self.vision_backbone = build_vision_backbone(cfg.vision)
-        self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim, cfg.projector.hidden_ratio)
+        self.projector = FusedMLPProjector(cfg.vision.feature_dim, llm_dim)
         self.language_model = build_language_model(cfg.llm, cfg.llm.vocab_size)
         # absent heads are registered as None: read by name, they are None
         self.register_module(

@@ -272,7 +272,7 @@ def _shape_relevant(agent_config: dict) -> dict:
     return {
         k: v
         for k, v in agent_config.items()
-        if k in ("vision", "projector", "llm", "grounding", "action_head")
+        if k in ("vision", "llm", "grounding", "action_head")
     }
 
 

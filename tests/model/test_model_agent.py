@@ -191,7 +191,7 @@ def test_grounding_loss_ignores_invisible_targets():
 
 
 def test_grounding_head_outputs_unit_boxes():
-    head = BoxRegressionHead(24, BoxGroundingConfig(dim=16, num_heads=2, num_queries=3))
+    head = BoxRegressionHead(24, BoxGroundingConfig(dim=16, num_heads=2))
     hidden = torch.randn(2, 7, 24) * 10
     mask = torch.tensor([[True] * 7, [True] * 3 + [False] * 4])
     out = head(hidden, mask)

@@ -199,9 +199,10 @@ BASE_TINY_AGENT = {
         "intermediate_size": 344, "length_groups": 3, "max_length": 2048, "num_heads": 4, "num_layers": 2,
         "pad_token_id": 3, "preset": "tiny", "tokenizer_path": None, "vocab_size": 864,
     },
-    "grounding": {**config_to_dict(CellGroundingConfig()), "enabled": True},
+    "grounding": {**config_to_dict(CellGroundingConfig()), "enabled": True, "num_queries": 1},
     "memory": {"capacity": 2, "grid": 8},
     "mode": "openfly",
+    "projector": {"hidden_ratio": 4},
 }  # fmt: skip
 
 
@@ -226,3 +227,19 @@ def test_a_config_json_of_before_the_llm_and_memory_variants_loads_the_same_mode
     released["grounding"]["enabled"] = True
     assert OpenFlyAgentConfig(agent=released).model_config == openvla_compat_7b_config()
     assert upgraded_model_dict(upgraded_model_dict(released)) == upgraded_model_dict(released)
+
+
+def test_the_settings_fixed_by_issue_46_load_at_their_value_and_refuse_any_other():
+    """`projector.hidden_ratio` (4) and `grounding.num_queries` (1) were settings that no config changed; a
+    config.json holding them at those values loads as today's model, any other value names the commit to use."""
+    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    upgraded = upgraded_model_dict(BASE_TINY_AGENT)
+    assert "projector" not in upgraded and "num_queries" not in upgraded["grounding"]
+    wide = {**BASE_TINY_AGENT, "projector": {"hidden_ratio": 8}}
+    with pytest.raises(RetiredOptionError, match=r"projector.hidden_ratio is fixed at 4 .*commit 32e260f"):
+        OpenFlyAgentConfig(agent=wide)
+    queries = {**BASE_TINY_AGENT, "grounding": {**BASE_TINY_AGENT["grounding"], "num_queries": 2}}
+    with pytest.raises(RetiredOptionError, match=r"grounding.num_queries is fixed at 1 .*commit 32e260f"):
+        OpenFlyAgentConfig(agent=queries)

@@ -57,7 +57,6 @@ class GroundingHeadConfig(GroundingConfig):
     """The fields of both heads: learned queries cross-attend to the LLM hidden states and give the landmark's box."""
 
     num_layers: int = 3
-    num_queries: int = 1
     dim: int = 128  # 256 in the 7B preset
     num_heads: int = 4  # 8 in the 7B preset
     loss_weight: float = 1.0  # weight of the grounding loss in the total loss
@@ -67,7 +66,7 @@ class GroundingHeadConfig(GroundingConfig):
     )
 
     def __post_init__(self) -> None:
-        for name in ("num_layers", "num_queries", "dim", "num_heads"):
+        for name in ("num_layers", "dim", "num_heads"):
             check_positive("grounding", name, getattr(self, name))
         if self.dim % self.num_heads:
             raise ValueError(

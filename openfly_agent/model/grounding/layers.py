@@ -66,15 +66,15 @@ class GroundingOutput:
 
 @dataclass
 class QueryReading:
-    """What the queries read: the projected sequence and their pooled state."""
+    """What the query read: the projected sequence and its final state."""
 
     memory: torch.Tensor  # (B, L, d) the hidden states projected to the head's width
-    pooled: torch.Tensor  # (B, d) the queries after the layers, normalised and averaged
-    visibility: torch.Tensor  # (B,) visibility logits of the pooled queries
+    pooled: torch.Tensor  # (B, d) the query after the layers, normalised
+    visibility: torch.Tensor  # (B,) visibility logits of the query
 
 
 class QueryReader(nn.Module):
-    """Learned queries cross-attend (`num_layers` layers) to the LLM's hidden states; a visibility logit.
+    """One learned query cross-attends (`num_layers` layers) to the LLM's hidden states; a visibility logit.
 
     Args:
         llm_dim: LLM hidden size.
@@ -84,7 +84,7 @@ class QueryReader(nn.Module):
     def __init__(self, llm_dim: int, cfg: GroundingHeadConfig) -> None:
         super().__init__()
         self.input_proj = nn.Linear(llm_dim, cfg.dim)
-        self.box_queries = nn.Parameter(torch.zeros(cfg.num_queries, cfg.dim))
+        self.box_queries = nn.Parameter(torch.zeros(1, cfg.dim))  # (1, d): one target, one query
         self.layers = nn.ModuleList(
             [CrossAttentionLayer(cfg.dim, cfg.num_heads) for _ in range(cfg.num_layers)]
         )
@@ -102,10 +102,10 @@ class QueryReader(nn.Module):
         """hidden (B, L, D_llm), key_mask (B, L) bool, start (B, d) added to every query (None: the learned
         queries alone) -> `QueryReading`."""
         memory = self.input_proj(hidden.to(self.input_proj.weight.dtype))  # (B, L, d)
-        queries = self.box_queries[None].expand(hidden.shape[0], -1, -1)  # (B, Q, d)
+        queries = self.box_queries[None].expand(hidden.shape[0], -1, -1)  # (B, 1, d)
         if start is not None:
             queries = queries + start[:, None]
         for layer in self.layers:
             queries = layer(queries, memory, key_mask)
-        pooled = self.norm(queries).mean(dim=1)  # (B, d)
+        pooled = self.norm(queries)[:, 0]  # (B, d)
         return QueryReading(memory, pooled, self.visibility(pooled).squeeze(-1))

@@ -6,19 +6,23 @@ import torch
 from torch import nn
 
 
+# fc1's width as a multiple of the vision width: OpenVLA's 4 x 2176 = 8704 (a setting until issue 46, which no
+# config or experiment changed).
+HIDDEN_RATIO = 4
+
+
 class FusedMLPProjector(nn.Module):
-    """fc1 (D_v -> ratio * D_v) -> GELU -> fc2 (-> D_llm) -> GELU -> fc3 (D_llm -> D_llm).
+    """fc1 (D_v -> 4 D_v) -> GELU -> fc2 (-> D_llm) -> GELU -> fc3 (D_llm -> D_llm).
 
     Args:
         vision_dim: fused vision feature width (2176 for dinosiglip-224px).
         llm_dim: LLM hidden size.
-        hidden_ratio: fc1 width as a multiple of `vision_dim` (4 gives OpenVLA's 8704).
     """
 
-    def __init__(self, vision_dim: int, llm_dim: int, hidden_ratio: int = 4) -> None:
+    def __init__(self, vision_dim: int, llm_dim: int) -> None:
         super().__init__()
-        self.fc1 = nn.Linear(vision_dim, hidden_ratio * vision_dim)
-        self.fc2 = nn.Linear(hidden_ratio * vision_dim, llm_dim)
+        self.fc1 = nn.Linear(vision_dim, HIDDEN_RATIO * vision_dim)
+        self.fc2 = nn.Linear(HIDDEN_RATIO * vision_dim, llm_dim)
         self.fc3 = nn.Linear(llm_dim, llm_dim)
         self.act = nn.GELU()
 
