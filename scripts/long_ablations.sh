@@ -7,7 +7,9 @@
 #      (--grounding_from), with the same navigation steps (5,000) and training seed: current frame only, uniform
 #      history, random earlier frames, keyframes without merging, uniform history + merging;
 #   3. the table of every finished arm (bench/ablation_table.py) into $ROOT/table.md and $ROOT/table.json, each arm
-#      with its agent's paired SR difference from keyframes + merging on the same episodes (the first row).
+#      with its agent's paired SR difference from keyframes + merging on the same episodes (the first row), and,
+#      when current_frame is among the arms, the same table against current frame only (the paper's OpenVLA
+#      baseline) into $ROOT/table-vs-current-frame.md and .json.
 # Estimated at about 40 minutes per arm on the reference 2-core machine (the navigation stage 21-24 min plus the
 # evaluation), under 4 hours in all; run nothing else meanwhile. Every recipe resumes where it stopped, so
 # re-running the script after an interruption finishes the table.
@@ -30,11 +32,22 @@ done
 
 mkdir -p "$ROOT"
 recipe --config_path "$CONFIGS/keyframes_merging.yaml" --output_dir "$ROOT/keyframes_merging"
-rows=(--run "keyframes_merging=$ROOT/keyframes_merging")
+runs=("keyframes_merging=$ROOT/keyframes_merging")  # NAME=FOLDER of each arm, the reference first
 for arm in $ARMS; do
   # the agent next to random only: the other baselines do not depend on the arm (the first arm's table has them)
   recipe --config_path "$CONFIGS/$arm.yaml" --output_dir "$ROOT/$arm" "--eval.baselines=[random]" \
     --grounding_from "$ROOT/keyframes_merging/grounding"
-  rows+=(--run "$arm=$ROOT/$arm")
+  runs+=("$arm=$ROOT/$arm")
 done
-"$VENV/bin/python" bench/ablation_table.py "${rows[@]}" --json "$ROOT/table.json" | tee "$ROOT/table.md"
+table() {  # table OUT NAME=FOLDER...: $ROOT/OUT.md and .json, each run paired with the first
+  local out=$1 args=() run
+  shift
+  for run in "$@"; do args+=(--run "$run"); done
+  "$VENV/bin/python" bench/ablation_table.py "${args[@]}" --json "$ROOT/$out.json" | tee "$ROOT/$out.md"
+}
+table table "${runs[@]}"
+if [[ " $ARMS " == *" current_frame "* ]]; then  # the same rows against current frame only (the paper's OpenVLA)
+  others=()
+  for run in "${runs[@]}"; do [[ "$run" == current_frame=* ]] || others+=("$run"); done
+  table table-vs-current-frame "current_frame=$ROOT/current_frame" "${others[@]}"
+fi

@@ -84,3 +84,7 @@ def test_the_long_route_arms_share_the_full_agents_grounding_stage(tmp_path):
     )
     table = f"--run keyframes_merging={first} --run current_frame={root}/current_frame"
     assert table in calls[3] and calls[3].endswith(f"--json {root}/table.json")
+    # the same rows against current frame only, which leads
+    others = f"--run keyframes_merging={first} --run random_keyframes={root}/random_keyframes"
+    assert f"--run current_frame={root}/current_frame {others} --json" in calls[4]
+    assert calls[4].endswith(f"--json {root}/table-vs-current-frame.json") and len(calls) == 5
