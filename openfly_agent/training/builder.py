@@ -269,11 +269,7 @@ def check_architecture(model_cfg: ModelConfig, tokenizer, norm_stats, folder: Pa
 
 def _shape_relevant(agent_config: dict) -> dict:
     """The config sections that decide tensor shapes (prompt text, thresholds and merging may differ)."""
-    return {
-        k: v
-        for k, v in agent_config.items()
-        if k in ("vision", "llm", "grounding", "action_head")
-    }
+    return {k: v for k, v in agent_config.items() if k in ("vision", "llm", "grounding", "action_head")}
 
 
 def build_agent(

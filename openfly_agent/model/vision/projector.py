@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-
 # fc1's width as a multiple of the vision width: OpenVLA's 4 x 2176 = 8704 (a setting until issue 46, which no
 # config or experiment changed).
 HIDDEN_RATIO = 4
