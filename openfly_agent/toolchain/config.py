@@ -13,6 +13,10 @@ from openfly_agent import constants as C
 # Work-unit index of a city's first validation route: its routes are units of their own (own seeds), after
 # and apart from the `trajectories_per_scene` units of the other splits.
 VAL_INDEX_BASE = 1_000_000
+# whose box each frame of an episode holds (`render.box_target`)
+BOX_TARGET_FINAL = "final"  # the route's last target, at every frame (the released data's labels)
+BOX_TARGET_LEG = "leg"  # the target of the leg the frame belongs to (`leg_of_frame`)
+BOX_TARGETS = (BOX_TARGET_FINAL, BOX_TARGET_LEG)
 
 
 def _check(condition: bool, message: str) -> None:
@@ -150,10 +154,18 @@ class RenderConfig:
     width: int = 128
     height: int = 128
     min_box_pixels: int = 0  # boxes smaller than this many pixels (w * h in pixels) count as not visible
+    # whose box (and visibility) each frame's label holds: `final`, the route's last target at every frame, or
+    # `leg`, the target of the leg the frame belongs to, so that on a chained route the box is the landmark the
+    # expert is flying to (DAgger's recovery episodes keep `final`)
+    box_target: str = BOX_TARGET_FINAL
 
     def __post_init__(self) -> None:
         _check(self.width >= 16 and self.height >= 16, "render.width / height must be >= 16 pixels")
         _check(self.min_box_pixels >= 0, f"render.min_box_pixels must be >= 0, got {self.min_box_pixels}")
+        _check(
+            self.box_target in BOX_TARGETS,
+            f"render.box_target must be one of {BOX_TARGETS}, got {self.box_target!r}",
+        )
 
 
 @dataclass

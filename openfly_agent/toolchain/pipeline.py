@@ -25,10 +25,10 @@ from openfly_agent.toolchain.actions import (
     sequence_category,
 )
 from openfly_agent.toolchain.astar import ActionSpaceAStar, PlanningFailed
-from openfly_agent.toolchain.config import GenerateConfig
+from openfly_agent.toolchain.config import BOX_TARGET_FINAL, BOX_TARGET_LEG, GenerateConfig
 from openfly_agent.toolchain.instructions import InstructionRequest
 from openfly_agent.toolchain.landmarks import fill_landmark_heights, segment_landmarks
-from openfly_agent.toolchain.render import RenderedFrames, render_poses, target_boxes
+from openfly_agent.toolchain.render import RenderedFrames, leg_target_boxes, render_poses, target_boxes
 from openfly_agent.toolchain.routes import Route, RouteSampler, RouteSamplingFailed
 from openfly_agent.toolchain.scenes import ToolchainScene
 from openfly_agent.toolchain.visibility import route_visibility
@@ -205,11 +205,20 @@ def route_episode(
 
 
 def build_episode(
-    unit: WorkUnit, base_seed: int, scene_id: str, planned: PlannedTrajectory, rendered: RenderedFrames
+    unit: WorkUnit,
+    base_seed: int,
+    scene_id: str,
+    planned: PlannedTrajectory,
+    rendered: RenderedFrames,
+    box_target: str = BOX_TARGET_FINAL,
 ) -> Episode:
-    """The OpenFly-format episode of a planned, rendered trajectory (instruction filled in later)."""
+    """The OpenFly-format episode of a planned, rendered trajectory (instruction filled in later); its boxes are
+    those of `box_target` (`render.box_target`)."""
     stamp = unit.stamp().strftime("%Y%m%d_%H%M%S")
-    boxes, visible = target_boxes(rendered, planned.route.landmark_ids[-1])
+    if box_target == BOX_TARGET_LEG:
+        boxes, visible = leg_target_boxes(rendered, planned.route.landmark_ids, planned.leg_end_frames)
+    else:
+        boxes, visible = target_boxes(rendered, planned.route.landmark_ids[-1])
     episode_id = f"{scene_id}/astar_data/{planned.category}/{unit.traj_folder(base_seed)}"
     return replace(
         route_episode(episode_id, scene_id, planned, unit.split),
@@ -266,7 +275,7 @@ def generate_unit(prepared: PreparedScene, sim: Simulator, unit: WorkUnit, cfg: 
     reason = filters.check_frames(rendered.frames, cfg.filters)
     if reason:
         return UnitResult(unit, reason=reason, stats=stats)
-    episode = build_episode(unit, cfg.seed, prepared.scene.scene_id, planned, rendered)
+    episode = build_episode(unit, cfg.seed, prepared.scene.scene_id, planned, rendered, cfg.render.box_target)
     request = instruction_request(prepared, planned, rendered, seed, cfg)
     nav = planned.seq.positions[planned.seq.actions >= 0]
     stats.update(

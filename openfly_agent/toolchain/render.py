@@ -65,9 +65,26 @@ def render_poses(
 
 def target_boxes(rendered: RenderedFrames, landmark_id: str) -> tuple[np.ndarray, np.ndarray]:
     """(T, 4) boxes of one landmark (zeros where invisible) and (T,) visibility."""
+    return leg_target_boxes(rendered, [landmark_id], [len(rendered.boxes)])
+
+
+def leg_of_frame(leg_end_frames: list[int], t: int) -> int:
+    """The leg frame t belongs to: the first whose end frame is after t; the last leg from its own end on (the
+    STOP frame). A leg's end frame belongs to the next leg, whose first decision it is."""
+    return next((k for k, end in enumerate(leg_end_frames) if end > t), len(leg_end_frames) - 1)
+
+
+def leg_target_boxes(
+    rendered: RenderedFrames, target_ids: list[str], leg_end_frames: list[int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 4) boxes of the current leg's target at each frame (zeros where invisible) and (T,) visibility; one
+    target id per leg, in route order."""
+    if len(target_ids) != len(leg_end_frames):
+        raise ValueError(f"{len(target_ids)} targets for {len(leg_end_frames)} legs: one target per leg")
     boxes = np.zeros((len(rendered.boxes), 4), dtype=np.float64)
     visible = np.zeros(len(rendered.boxes), dtype=bool)
     for t, frame_boxes in enumerate(rendered.boxes):
+        landmark_id = target_ids[leg_of_frame(leg_end_frames, t)]
         if landmark_id in frame_boxes:
             boxes[t], visible[t] = frame_boxes[landmark_id], True
     return boxes, visible

@@ -37,6 +37,7 @@ from openfly_agent.toolchain.instructions.segments import (
     merge_short_segments,
     split_at_transitions,
 )
+from openfly_agent.toolchain.render import leg_of_frame
 
 
 def _unseen(landmark_id: str, boxes: dict, min_area: float) -> bool:
@@ -70,9 +71,7 @@ def route_visibility(request: InstructionRequest) -> dict[str, int]:
             landmark = request.target_ids[-1]
         else:
             landmark = deciding_landmark(clause)
-        leg = next(
-            (k for k, end in enumerate(request.leg_end_frames) if end > t), len(request.target_ids) - 1
-        )
+        leg = leg_of_frame(request.leg_end_frames, t)
         counts["decision_steps"] += 1
         if landmark is not None:
             counts["clause_steps"] += 1

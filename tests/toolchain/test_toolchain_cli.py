@@ -115,6 +115,8 @@ def test_the_long_benchmark_turns_sharply_and_names_the_passed_landmark(capsys):
     small = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small.yaml")
     assert long.route.chain_bearing_deg == [90.0, 150.0] and long.instructions.name_passed_landmark
     assert small.route.chain_bearing_deg == [30.0, 150.0] and not small.instructions.name_passed_landmark
+    # each frame's box is its leg's target on the long routes; embedded-small keeps the released labels
+    assert long.render.box_target == "leg" and small.render.box_target == "final"
     config = str(CONFIGS / "embedded-long.yaml")
     assert main(["generate", "--config_path", config, "--instructions.backend=vlm"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()

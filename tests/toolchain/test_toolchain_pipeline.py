@@ -23,6 +23,7 @@ from openfly_agent.toolchain.config import (
     VAL_INDEX_BASE,
     CategoryConfig,
     GenerateConfig,
+    RenderConfig,
     RouteConfig,
     SceneConfig,
 )
@@ -41,9 +42,11 @@ from openfly_agent.toolchain.pipeline import (
     KIND_DAGGER,
     Rejected,
     WorkUnit,
+    build_episode,
     plan_trajectory,
     prepare_scene,
 )
+from openfly_agent.toolchain.render import RenderedFrames, leg_of_frame, leg_target_boxes, target_boxes
 from openfly_agent.toolchain.routes import RouteSampler
 from openfly_agent.toolchain.scenes import (
     city_config_for,
@@ -373,3 +376,52 @@ def test_chained_routes_visit_three_or_four_landmarks_in_order_and_the_instructi
             landmark = prepared.landmarks[landmark_id]
             at = text.index(f"{landmark.color} {landmark.type}", at) + 1
     assert counts == {3, 4}
+
+
+def test_leg_boxes_hold_the_target_of_each_frames_leg():
+    """Three legs ending at frames 1, 3 and 5: frame 0 is leg 0's, a leg's end frame the next leg's first
+    decision (frames 1-2: leg 1, 3-5: leg 2); a target out of the frame gives a zero box, marked invisible."""
+    a, b, c = (0.1, 0.1, 0.2, 0.2), (0.4, 0.4, 0.1, 0.1), (0.7, 0.5, 0.3, 0.3)
+    frames = [{"a": a, "c": c}, {"a": a, "b": b}, {"c": c}, {"b": b, "c": c}, {}, {"c": c}]
+    rendered = RenderedFrames([], frames)
+    ends = [1, 3, 5]
+    assert [leg_of_frame(ends, t) for t in range(6)] == [0, 1, 1, 2, 2, 2]
+    boxes, visible = leg_target_boxes(rendered, ["a", "b", "c"], ends)
+    assert visible.tolist() == [True, True, False, True, False, True]
+    np.testing.assert_array_equal(boxes, [a, b, (0, 0, 0, 0), c, (0, 0, 0, 0), c])
+    final_boxes, final_visible = target_boxes(
+        rendered, "c"
+    )  # the released labels: the last target throughout
+    assert final_visible.tolist() == [True, False, True, True, False, True]
+    np.testing.assert_array_equal(final_boxes, [c, (0, 0, 0, 0), c, c, (0, 0, 0, 0), c])
+    with pytest.raises(ValueError, match="3 targets for 2 legs"):
+        leg_target_boxes(rendered, ["a", "b", "c"], [3, 5])
+
+
+def test_render_box_target_picks_the_boxes_a_chained_episode_stores(prepared):
+    """`render.box_target=leg`: each frame of a chained route's episode holds its leg's target; `final` (the
+    default) the last target's, as before; another value is refused."""
+    cfg = tiny_config()
+    cfg.route.chain_prob, cfg.route.chain_landmarks = 1.0, [3, 3]
+    sampler = RouteSampler(prepared.pmap, list(prepared.landmarks.values()), cfg.route)
+    chained = dataclasses.replace(prepared, sampler=sampler)
+    planned = next(p for p in (_planned_or_none(chained, seed, cfg) for seed in range(12)) if p is not None)
+    ids = planned.route.landmark_ids
+    box = {landmark_id: (0.1 * (k + 1), 0.5, 0.1, 0.1) for k, landmark_id in enumerate(ids)}
+    rendered = RenderedFrames([], [dict(box) for _ in range(len(planned.seq))])  # every target in every frame
+    unit = WorkUnit(0, 0, C.SPLIT_TRAIN)
+    leg = build_episode(unit, 0, "s", planned, rendered, box_target="leg")
+    final = build_episode(unit, 0, "s", planned, rendered)
+    expected = [box[ids[leg_of_frame(planned.leg_end_frames, t)]] for t in range(len(planned.seq))]
+    np.testing.assert_array_equal(leg.boxes, expected)
+    assert {tuple(b) for b in leg.boxes} == set(box.values())  # each of the three legs holds frames
+    np.testing.assert_array_equal(final.boxes, [box[ids[-1]]] * len(planned.seq))
+    with pytest.raises(ValueError, match="render.box_target must be one of"):
+        RenderConfig(box_target="next")
+
+
+def _planned_or_none(prepared, seed, cfg):
+    try:
+        return plan_trajectory(prepared, np.random.default_rng(seed), cfg)
+    except Rejected:
+        return None
