@@ -93,6 +93,20 @@ class RetiredOptionError(ValueError):
     """An older config turns on a switch that was deleted: its checkpoint needs the code of that time."""
 
 
+def _drop_retired(agent: dict[str, Any], retired: dict[str, dict[str, Any]], refusal: str) -> None:
+    """Drop from `agent` each retired field ({section: {name: the one value it may hold}}) that holds that value,
+    and a section left empty; raise `RetiredOptionError` (`refusal` formatted with section, name and value) for
+    any other value."""
+    for section, fields in retired.items():
+        values = agent.get(section, {})
+        for name, value in fields.items():
+            if name in values and values.pop(name) != value:
+                message = refusal.format(section=section, name=name, value=value)
+                raise RetiredOptionError(f"model config: {message}")
+        if section in agent and not agent[section]:
+            del agent[section]
+
+
 def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
     """The model sections of an older `config.json` (`agent`) in today's layout; today's layout is returned as
     it is. Raises `RetiredOptionError` for a deleted switch that is on."""
@@ -101,25 +115,18 @@ def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
         values = agent.get(section)
         if isinstance(values, dict) and values.get("preset", tiny_preset) != tiny_preset:
             agent[section] = {k: v for k, v in values.items() if not (k in sizes and v == sizes[k])}
-    for section, switches in DELETED_SWITCHES.items():
-        values = agent.get(section, {})
-        for name, off in switches.items():
-            if name in values and values.pop(name) != off:
-                raise RetiredOptionError(
-                    f"model config: {section}.{name} was deleted (no measured gain; "
-                    "docs/experiments/2026-11-27-deleted-research-switches.md): load this checkpoint with "
-                    "commit 7544758"
-                )
-    for section, settings in FIXED_SETTINGS.items():
-        values = agent.get(section, {})
-        for name, fixed in settings.items():
-            if name in values and values.pop(name) != fixed:
-                raise RetiredOptionError(
-                    f"model config: {section}.{name} is fixed at {fixed} now (no config or experiment changed "
-                    "it): load this checkpoint with commit 32e260f"
-                )
-        if section in agent and not agent[section]:
-            del agent[section]
+    _drop_retired(
+        agent,
+        DELETED_SWITCHES,
+        "{section}.{name} was deleted (no measured gain; docs/experiments/2026-11-27-deleted-research-switches.md): "
+        "load this checkpoint with commit 7544758",
+    )
+    _drop_retired(
+        agent,
+        FIXED_SETTINGS,
+        "{section}.{name} is fixed at {value} now (no config or experiment changed it): load this checkpoint with "
+        "commit 32e260f",
+    )
     for section, names in DEAD_FIELDS.items():
         for name in names:
             agent.get(section, {}).pop(name, None)

@@ -118,7 +118,8 @@ def test_the_long_benchmark_turns_sharply_and_names_the_passed_landmark(capsys):
     # each frame's box is its leg's target on the long routes; embedded-small keeps the released labels
     assert long.render.box_target == "leg" and small.render.box_target == "final"
     # choices on the long routes are made on a val split of their own, as on embedded-small
-    assert long.scenes.val_seeds == [900] and long.scenes.val_seen_per_scene > 0 < long.scenes.val_unseen_per_scene
+    assert long.scenes.val_seeds == [900]
+    assert long.scenes.val_seen_per_scene > 0 and long.scenes.val_unseen_per_scene > 0
     config = str(CONFIGS / "embedded-long.yaml")
     assert main(["generate", "--config_path", config, "--instructions.backend=vlm"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
