@@ -293,3 +293,49 @@ def test_memory_probe_none_is_the_default_session(make_agent):
         for x, y in zip(a, b):
             assert x.action == y.action and x.memory_sets == y.memory_sets and x.box == y.box
             assert torch.equal(x.action_logits, y.action_logits)
+
+
+def test_without_reversals_masks_the_reverse_of_each_episodes_previous_action():
+    from openfly_agent.model.episode import EpisodeState
+    from openfly_agent.model.session import without_reversals
+
+    def state(actions):
+        return EpisodeState("go", [1], memory=None, actions=list(actions))
+
+    logits = torch.arange(20, dtype=torch.float32).reshape(2, 10)  # (B=2, 10)
+    states = [state([9, 2]), state([])]  # turned left last; a first step
+    masked = without_reversals(logits, states)
+    assert masked[0, 3] == float("-inf")  # turn right, the reverse of turn left
+    assert torch.equal(masked[0, :3], logits[0, :3]) and torch.equal(masked[0, 4:], logits[0, 4:])
+    assert torch.equal(masked[1], logits[1])  # nothing before it: nothing masked
+    assert torch.equal(logits[0, 3], torch.tensor(3.0))  # the input is left as it was
+    for previous, reverse in ((3, 2), (4, 5), (5, 4), (6, 7), (7, 6)):
+        assert without_reversals(logits[:1], [state([previous])])[0, reverse] == float("-inf")
+    for previous in (0, 1, 8, 9):  # stop and the forward moves have no reverse
+        assert torch.equal(without_reversals(logits[:1], [state([previous])]), logits[:1])
+
+
+def test_no_reversal_session_never_undoes_its_previous_action(make_agent, monkeypatch):
+    """Logits that favour turn left, then turn right (forward second), then turn left again: the plain session
+    turns left, right, left; the no_reversal session turns left, flies forward (right is masked after left),
+    turns left; the logits it reports are the network's, unmasked."""
+    agent = make_agent()
+    script = [(2, 1), (3, 1), (2, 9)]  # (best, second best) action per step
+
+    def fake_decode(logits, layout, cache, tokenizer):
+        best, second = script[fake_decode.step]
+        fake_decode.step += 1
+        scores = torch.zeros(logits.shape[0], 10)
+        scores[:, best], scores[:, second] = 2.0, 1.0
+        return scores
+
+    frames = _frames(1, len(script))
+    for no_reversal, expected in ((False, [2, 3, 2]), (True, [2, 1, 2])):
+        fake_decode.step = 0
+        monkeypatch.setattr(agent.network, "decode_actions", fake_decode)
+        session = agent.new_session(no_reversal=no_reversal)
+        results = [session.predict_step([_obs(0, frames[0, t])])[0] for t in range(len(script))]
+        assert [result.action for result in results] == expected
+        assert results[1].action_logits[3] == 2.0  # reported as the network gave it
+    with pytest.raises(ValueError, match="no_reversal needs the discrete action head"):
+        make_agent(action_head=BinsActionHeadConfig()).new_session(no_reversal=True)
