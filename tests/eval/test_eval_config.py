@@ -252,7 +252,9 @@ def test_no_reversal_is_recorded_and_never_resumes_a_run_without_it(tmp_path):
     assert "no_reversal" not in plain.result_identity("agent")  # older folders still resume
     assert masked.result_identity("agent_true_box")["no_reversal"] is True
     assert "no_reversal" not in masked.result_identity("box_servo")  # a baseline decodes no logits
-    assert run_meta(masked, "agent")["no_reversal"] is True and run_meta(masked, "random")["no_reversal"] is None
+    assert (
+        run_meta(masked, "agent")["no_reversal"] is True and run_meta(masked, "random")["no_reversal"] is None
+    )
     folder = tmp_path / "agent"
     prepare_output(folder, plain.result_identity("agent"), False, ProcessInfo())
     with pytest.raises(ValueError, match="no_reversal: None -> True"):
