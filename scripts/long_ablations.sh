@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The paper's memory ablation on the long-route benchmark (configs/recipe/long-recipe.yaml, data_cards/embedded-long.md):
 #   1. keyframes + token merging (configs/recipe/long-ablations/keyframes_merging.yaml, the full OpenFly-Agent) into
-#      $ROOT/keyframes_merging, with the grounding stage the other arms share (about 12 min) and the benchmark
+#      $ROOT/keyframes_merging, with the grounding stage the other arms share (24 min measured) and the benchmark
 #      generated first when missing;
 #   2. the other five arms of configs/recipe/long-ablations/ into $ROOT/<arm>, each from that grounding stage
 #      (--grounding_from), with the same navigation steps (5,000) and training seed: current frame only, uniform
@@ -10,9 +10,9 @@
 #      with its agent's paired SR difference from keyframes + merging on the same episodes (the first row), and,
 #      when current_frame is among the arms, the same table against current frame only (the paper's OpenVLA
 #      baseline) into $ROOT/table-vs-current-frame.md and .json.
-# Estimated at about 40 minutes per arm on the reference 2-core machine (the navigation stage 21-24 min plus the
-# evaluation), under 4 hours in all; run nothing else meanwhile. Every recipe resumes where it stopped, so
-# re-running the script after an interruption finishes the table.
+# Measured for the first arm on the reference 2-core machine: 24 min grounding, then per arm 35 min navigation and
+# 9 min evaluation, about 5 hours for the six; run nothing else meanwhile. Every recipe resumes where it stopped,
+# so re-running the script after an interruption finishes the table.
 # Knobs (environment): ROOT (default outputs/long-ablations), ARMS (a subset of the five, e.g. "current_frame
 # keyframes"), VENV (default .venv, set up by scripts/setup.sh), RECIPE_ARGS (more recipe overrides given to every
 # arm, e.g. "--grounding.minutes=300 --navigation.minutes=300" so that a loaded machine cannot stop a stage early).

@@ -15,6 +15,7 @@ the header prints it. Exit codes: 0 done, 2 bad input. docs/EVAL.md, "Comparing 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from collections.abc import Sequence
@@ -77,6 +78,9 @@ class CompareConfig:
     a: str = ""  # the reference: an eval output folder of one policy, e.g. outputs/eval/agent
     b: str = ""  # the policy compared with it (differences are B - A)
     profiles: list[str] = field(default_factory=lambda: list(PROFILE_NAMES))  # metric profiles reported
+    # only these splits of both folders (each must hold them), e.g. [val] when a rule reads val and the folders
+    # also hold the test splits ([]: every split, the same in both)
+    splits: list[str] = field(default_factory=list)
     json: str | None = None  # also write every number to this JSON file
     resamples: int = BOOTSTRAP_RESAMPLES  # paired bootstrap resamples of the SPL difference
     seed: int = BOOTSTRAP_SEED  # the bootstrap's seed (the same seed gives the same interval)
@@ -129,6 +133,19 @@ def load_policy_folder(folder: str | Path) -> EvaluatedPolicy:
             "run that evaluation again to retry them before comparing"
         )
     return EvaluatedPolicy(path, identity, records)
+
+
+def only_splits(policy: EvaluatedPolicy, splits: Sequence[str]) -> EvaluatedPolicy:
+    """`policy` with the records of `splits` only (all of them when empty); `PairingError` when it lacks one."""
+    if not splits:
+        return policy
+    held = {r.split for r in policy.records}
+    missing = [split for split in splits if split not in held]
+    if missing:
+        raise PairingError(
+            f"{policy.folder} holds no episode of split {', '.join(missing)} (it holds {', '.join(sorted(held))})"
+        )
+    return dataclasses.replace(policy, records=[r for r in policy.records if r.split in splits])
 
 
 def _name(key: tuple[str, str]) -> str:
@@ -207,13 +224,16 @@ def compare_folders(
     profiles: Sequence[str] = PROFILE_NAMES,
     resamples: int = BOOTSTRAP_RESAMPLES,
     seed: int = BOOTSTRAP_SEED,
+    only: Sequence[str] = (),
 ) -> dict:
-    """Every paired figure of two policy folders, per split and profile (`PairingError` when they do not pair).
+    """Every paired figure of two policy folders, per split and profile (`PairingError` when they do not pair);
+    `only`: these splits of both folders (all when empty).
 
     Shape: {"a": {...}, "b": {...}, "settings": {matched field: value}, "methods": {...}, "resamples", "seed",
     "splits": {split: {profile: `compare_split`}}}.
     """
-    a, b = load_policy_folder(folder_a), load_policy_folder(folder_b)
+    a = only_splits(load_policy_folder(folder_a), only)
+    b = only_splits(load_policy_folder(folder_b), only)
     check_pairing(a, b)
     by_key = {r.key: r for r in b.records}
     splits: dict[str, dict] = {}
@@ -311,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         cfg = parse_config(CompareConfig, args)
-        comparison = compare_folders(cfg.a, cfg.b, cfg.profiles, cfg.resamples, cfg.seed)
+        comparison = compare_folders(cfg.a, cfg.b, cfg.profiles, cfg.resamples, cfg.seed, cfg.splits)
     except (UnknownOptionError, ValueError, RecordError, draccus.utils.ParsingError) as err:
         sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
         return EXIT_BAD_INPUT
