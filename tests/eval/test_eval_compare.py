@@ -153,6 +153,7 @@ def test_decoding_with_no_reversal_pairs_with_the_plain_decoding(tmp_path):
 def test_compare_splits_option_reads_only_the_named_splits(tmp_path):
     """A folder that also holds the test splits pairs with a val-only folder on `splits=[val]`, and a split one
     folder lacks is refused in one line."""
+
     def folder(name, successes, extra=()):
         path = policy_folder(tmp_path / name, {})
         records = [success_record(eid, ok, split="val") for eid, ok in successes.items()] + list(extra)
@@ -167,7 +168,12 @@ def test_compare_splits_option_reads_only_the_named_splits(tmp_path):
     assert done.returncode == 0, done.stderr
     numbers = json.loads(out.read_text())
     assert list(numbers["splits"]) == ["val"]
-    assert numbers["splits"]["val"]["standard"]["counts"] == {"both": 1, "only_a": 0, "only_b": 1, "neither": 0}
+    assert numbers["splits"]["val"]["standard"]["counts"] == {
+        "both": 1,
+        "only_a": 0,
+        "only_b": 1,
+        "neither": 0,
+    }
     done = _compare(str(a), str(b), "--splits=[test_seen]")
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
     assert "holds no episode of split test_seen (it holds val)" in done.stderr
