@@ -20,16 +20,6 @@ ACTION_LANDING = -2  # 3 m descent after STOP
 NUM_ACTIONS = 10  # ids 0..9, what the model predicts
 MODEL_ACTION_IDS = tuple(range(NUM_ACTIONS))
 ALL_ACTION_IDS = (ACTION_LANDING, ACTION_TAKEOFF, *MODEL_ACTION_IDS)
-# The action that undoes each motion in place (turn left <-> right, ascend <-> descend, move left <-> right): the
-# A* expert never flies one right after the other (eval.py --agent.no_reversal, docs/EVAL.md)
-REVERSE_ACTIONS: dict[int, int] = {
-    ACTION_TURN_LEFT: ACTION_TURN_RIGHT,
-    ACTION_TURN_RIGHT: ACTION_TURN_LEFT,
-    ACTION_ASCEND: ACTION_DESCEND,
-    ACTION_DESCEND: ACTION_ASCEND,
-    ACTION_MOVE_LEFT: ACTION_MOVE_RIGHT,
-    ACTION_MOVE_RIGHT: ACTION_MOVE_LEFT,
-}
 
 ACTION_NAMES: dict[int, str] = {
     ACTION_LANDING: "landing",

@@ -101,13 +101,16 @@ def _strip(args: list[str], names: tuple[str, ...]) -> list[str]:
     return out
 
 
-# Options an experiment-log entry used that were deleted later, with the entry that says so: the historical
-# commands keep them (entries are never rewritten); commit 7544758 still has every one.
-RETIRED_OPTIONS = {  # docs/experiments/2026-11-27-deleted-research-switches.md
+# Options an experiment-log entry used that were deleted later, with the entry that says so and a commit that
+# still has them: the historical commands keep them (entries are never rewritten).
+RETIRED_OPTIONS = {
+    # docs/experiments/2026-11-27-deleted-research-switches.md (commit 7544758)
     "model.vision.cnn_fine_fusion", "model.vision.cnn_instruction_film", "model.vision.cnn_init",
     "model.vision.cnn_stem_width", "model.grounding.subcells", "model.grounding.attribute_match",
     "model.grounding.dense_attribute_weight", "model.grounding.cell_fusion_layers",
     "data.expression_area_power", "data.group_by_kind",
+    # docs/experiments/2026-11-28-no-reversal-decoding.md (commit 55ef66f)
+    "agent.no_reversal",
 }  # fmt: skip
 
 

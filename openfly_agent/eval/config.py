@@ -166,9 +166,6 @@ class AgentSettings:
     # so a paired comparison with a `none` run (python -m openfly_agent.eval.compare) says whether the memory
     # changes what the agent does; `none` = the model as trained
     memory_probe: str = C.MEMORY_PROBE_NONE
-    # decoding (discrete head): never the action that undoes the previous one (turn right right after turn left,
-    # ascend after descend, ...; constants.REVERSE_ACTIONS), which the A* expert never flies
-    no_reversal: bool = False
 
     def __post_init__(self) -> None:
         if self.memory_probe not in C.MEMORY_PROBES:
@@ -283,8 +280,6 @@ class EvalConfig:
             )
             if self.agent.memory_probe != C.MEMORY_PROBE_NONE:  # absent: the model as trained (older folders)
                 identity["memory_probe"] = self.agent.memory_probe
-            if self.agent.no_reversal:  # absent: off (older folders)
-                identity["no_reversal"] = True
         if policy == "random":
             identity["seed"] = self.seed
         if policy == "oracle":

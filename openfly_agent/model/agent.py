@@ -279,11 +279,10 @@ class OpenFlyAgent(PreTrainedModel):
             )
         return loss, accuracy
 
-    def new_session(self, memory_probe: str = MEMORY_PROBE_NONE, no_reversal: bool = False) -> AgentSession:
+    def new_session(self, memory_probe: str = MEMORY_PROBE_NONE) -> AgentSession:
         """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`;
-        `memory_probe="empty"` reads no memory at any step (an evaluation diagnostic); `no_reversal` never picks
-        the action that undoes the previous one."""
-        return AgentSession(self, memory_probe, no_reversal=no_reversal)
+        `memory_probe="empty"` reads no memory at any step (an evaluation diagnostic)."""
+        return AgentSession(self, memory_probe)
 
     # --- persistence ------------------------------------------------------------------------------
     def save_pretrained(self, save_directory, *args, **kwargs) -> None:

@@ -18,7 +18,6 @@ from openfly_agent.constants import (
     MEMORY_PROBES,
     OBS_INSTRUCTION,
     OBS_RGB,
-    REVERSE_ACTIONS,
 )
 from openfly_agent.model.config import HEAD_DISCRETE
 from openfly_agent.model.episode import Box, EpisodeState, StepResult, check_observations
@@ -48,9 +47,6 @@ class AgentSession:
         temperature: 0 picks the most likely action (greedy, the default); > 0 samples it from
             softmax(action logits / temperature) with `generator` (the RL stage's rollouts; `discrete` head only).
         generator: the random stream of the samples (None: torch's global one).
-        no_reversal: never pick the action that undoes the episode's previous one (`REVERSE_ACTIONS`: turn right
-            right after turn left, ...), which the A* expert never flies; greedy or sampled over the other
-            actions (`discrete` head only).
     """
 
     def __init__(
@@ -59,7 +55,6 @@ class AgentSession:
         memory_probe: str = MEMORY_PROBE_NONE,
         temperature: float = 0.0,
         generator: torch.Generator | None = None,
-        no_reversal: bool = False,
     ) -> None:
         if memory_probe not in MEMORY_PROBES:
             raise ValueError(f"memory_probe={memory_probe!r}: choose one of {MEMORY_PROBES}")
@@ -67,9 +62,6 @@ class AgentSession:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
         if temperature > 0 and agent.action_tokenizer.head != HEAD_DISCRETE:
             raise ValueError(f"sampling (temperature {temperature}) needs the {HEAD_DISCRETE} action head")
-        if no_reversal and agent.action_tokenizer.head != HEAD_DISCRETE:
-            raise ValueError(f"no_reversal needs the {HEAD_DISCRETE} action head")
-        self.no_reversal = no_reversal
         self.agent = agent
         self.memory_probe = memory_probe
         self.temperature, self.generator = float(temperature), generator
@@ -134,13 +126,11 @@ class AgentSession:
             layout = layout.then(network.box_token(boxes.to(device), torch.tensor(visible, device=device)))
             logits, _ = network.heads(network(layout, cache), layout, boxes=False)  # (B, V)
         decoded = network.decode_actions(logits, layout, cache, tokenizer)  # (B, 10) or (B, 8)
-        # what the action is chosen from: the logits, less each episode's reversal under no_reversal
-        allowed = without_reversals(decoded, states) if self.no_reversal else decoded  # (B, 10)
         if tokenizer.head == HEAD_DISCRETE and self.temperature > 0:
-            probs = torch.softmax(allowed.float() / self.temperature, dim=-1).cpu()  # (B, 10)
+            probs = torch.softmax(decoded.float() / self.temperature, dim=-1).cpu()  # (B, 10)
             actions = [int(a) for a in torch.multinomial(probs, 1, generator=self.generator)[:, 0]]
         elif tokenizer.head == HEAD_DISCRETE:
-            actions = [int(a) for a in allowed.argmax(dim=-1)]
+            actions = [int(a) for a in decoded.argmax(dim=-1)]
         else:
             actions = [processor.decode_action(row.tolist()) for row in decoded]
         boxes = boxes.float().cpu()
@@ -183,13 +173,3 @@ class AgentSession:
         state = EpisodeState(instruction, prompt_ids, self.agent.network.memory.new_episode())
         self.episodes[episode_id] = state
         return state
-
-
-def without_reversals(logits: torch.Tensor, states: list[EpisodeState]) -> torch.Tensor:
-    """(B, 10) action logits with each episode's reverse of its previous action (`REVERSE_ACTIONS`) at -inf."""
-    masked = logits.clone()
-    for row, state in enumerate(states):
-        reverse = REVERSE_ACTIONS.get(state.actions[-1]) if state.actions else None
-        if reverse is not None:
-            masked[row, reverse] = float("-inf")
-    return masked

@@ -140,16 +140,6 @@ def test_compare_help_and_bad_option(tmp_path):
     assert done.returncode == 2 and "did you mean --resamples?" in done.stderr
 
 
-def test_decoding_with_no_reversal_pairs_with_the_plain_decoding(tmp_path):
-    """The same checkpoint decoded with and without agent.no_reversal is a comparison, not a mismatch."""
-    from openfly_agent.eval.compare import check_pairing, load_policy_folder
-
-    plain = load_policy_folder(policy_folder(tmp_path / "a", {"e0": True, "e1": False}))
-    masked = load_policy_folder(policy_folder(tmp_path / "b", {"e0": True, "e1": True}, no_reversal=True))
-    check_pairing(plain, masked)  # does not raise
-    assert masked.describe()["no_reversal"] is True and "no_reversal" not in plain.describe()
-
-
 def test_compare_splits_option_reads_only_the_named_splits(tmp_path):
     """A folder that also holds the test splits pairs with a val-only folder on `splits=[val]`, and a split one
     folder lacks is refused in one line."""

@@ -239,23 +239,3 @@ def test_memory_probe_is_recorded_and_never_resumes_another_probe(tmp_path):
         prepare_output(folder, trained.result_identity("agent"), False, ProcessInfo())
     with pytest.raises(ValueError, match="agent.memory_probe='swap': choose one of"):
         EvalConfig(checkpoint="c", agent=AgentSettings(memory_probe="swap"))
-
-
-def test_no_reversal_is_recorded_and_never_resumes_a_run_without_it(tmp_path):
-    from openfly_agent.eval.distributed import ProcessInfo
-    from openfly_agent.eval.outputs import run_meta
-    from openfly_agent.eval.run import prepare_output
-
-    plain = parse_config(EvalConfig, ["--checkpoint=c"])
-    masked = parse_config(EvalConfig, ["--checkpoint=c", "--agent.no_reversal=true"])
-    assert plain.agent.no_reversal is False and masked.agent.no_reversal is True
-    assert "no_reversal" not in plain.result_identity("agent")  # older folders still resume
-    assert masked.result_identity("agent_true_box")["no_reversal"] is True
-    assert "no_reversal" not in masked.result_identity("box_servo")  # a baseline decodes no logits
-    assert (
-        run_meta(masked, "agent")["no_reversal"] is True and run_meta(masked, "random")["no_reversal"] is None
-    )
-    folder = tmp_path / "agent"
-    prepare_output(folder, plain.result_identity("agent"), False, ProcessInfo())
-    with pytest.raises(ValueError, match="no_reversal: None -> True"):
-        prepare_output(folder, masked.result_identity("agent"), False, ProcessInfo())
