@@ -111,6 +111,8 @@ RETIRED_OPTIONS = {
     "data.expression_area_power", "data.group_by_kind",
     # docs/experiments/2026-11-28-no-reversal-decoding.md (commit 55ef66f)
     "agent.no_reversal",
+    # docs/experiments/2026-11-28-long-route-ablation.md (commit 9046d6d)
+    "model.action_head.stop_loss_weight",
 }  # fmt: skip
 
 

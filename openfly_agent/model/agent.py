@@ -20,7 +20,6 @@ from transformers import PreTrainedModel
 from transformers import initialization as init
 
 from openfly_agent.constants import (
-    ACTION_STOP,
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
@@ -36,7 +35,6 @@ from openfly_agent.constants import (
 from openfly_agent.model.config import (
     HEAD_DISCRETE,
     BinsActionHeadConfig,
-    DiscreteActionHeadConfig,
     ModelConfig,
 )
 from openfly_agent.model.factory import make_action_tokenizer, resolve_vocabulary
@@ -252,19 +250,11 @@ class OpenFlyAgent(PreTrainedModel):
     def _action_loss(
         self, logits: torch.Tensor, target: torch.Tensor, outputs: dict | None = None
     ) -> tuple[torch.Tensor, float]:
-        """Cross-entropy (STOP weighted) and accuracy of (n, V) float logits against their (n,) targets; with
+        """Cross-entropy and accuracy of (n, V) float logits against their (n,) targets; with
         `outputs`, both tensors are also put there (`action_logits`, `action_targets`)."""
         if outputs is not None:
             outputs.update(action_logits=logits, action_targets=target)
-        head = self.model_cfg.action_head
-        stop_weight = head.stop_loss_weight if isinstance(head, DiscreteActionHeadConfig) else 1.0
-        if stop_weight == 1.0:
-            loss = F.cross_entropy(logits, target)
-        else:  # a weighted mean: STOP-labelled steps count stop_weight times (discrete head, config-checked)
-            stop_id = self.action_tokenizer.action_to_token_ids(ACTION_STOP)[0]
-            weights = torch.where(target == stop_id, stop_weight, 1.0).to(logits.dtype)  # (n,)
-            per_token = F.cross_entropy(logits, target, reduction="none")  # (n,)
-            loss = (per_token * weights).sum() / weights.sum()
+        loss = F.cross_entropy(logits, target)
         with torch.no_grad():
             if self.action_tokenizer.head == HEAD_DISCRETE:
                 ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=logits.device)

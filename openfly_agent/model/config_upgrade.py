@@ -51,6 +51,9 @@ DELETED_SWITCHES = {
 # projector's fc1 width is OpenVLA's 4 x D_v; one target, one learned grounding query): that value is dropped,
 # any other is refused (commit 32e260f still builds it). A section left empty goes with it.
 FIXED_SETTINGS = {"projector": {"hidden_ratio": 4}, "grounding": {"num_queries": 1}}
+# Switches deleted after the experiment that measured them showed no gain, at the value that turned them off
+# (the STOP weight: docs/experiments/2026-11-28-long-route-ablation.md; commit 9046d6d still has it)
+DELETED_AFTER_MEASUREMENT = {"action_head": {"stop_loss_weight": 1.0}}
 # Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's
 # `n_bins` could only be 256, `NUM_ACTION_SLOTS`).
 DEAD_FIELDS = {"vision": ("cnn_stem_width",), "action_head": ("n_bins",)}
@@ -75,7 +78,6 @@ FOREIGN_FIELDS = {
     },
     "action_head": {
         "decode_rule": ANY, "unnorm_key": ANY, "box_token": (None, False), "box_token_jitter": ANY,
-        "stop_loss_weight": (1.0,),
     },
     "llm": {"hidden_size": (None,), "num_layers": (None,), "num_heads": (None,), "intermediate_size": (None,)},
 }  # fmt: skip
@@ -120,6 +122,12 @@ def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
         DELETED_SWITCHES,
         "{section}.{name} was deleted (no measured gain; docs/experiments/2026-11-27-deleted-research-switches.md): "
         "load this checkpoint with commit 7544758",
+    )
+    _drop_retired(
+        agent,
+        DELETED_AFTER_MEASUREMENT,
+        "{section}.{name} was deleted (no measured gain; docs/experiments/2026-11-28-long-route-ablation.md): "
+        "load this checkpoint with commit 9046d6d",
     )
     _drop_retired(
         agent,

@@ -8,10 +8,8 @@ import pytest
 import torch
 
 from openfly_agent.model.config import (
-    BinsActionHeadConfig,
     BoxGroundingConfig,
     CellGroundingConfig,
-    DiscreteActionHeadConfig,
     MemoryConfig,
     MergingConfig,
     NoGroundingConfig,
@@ -321,50 +319,3 @@ def test_tiny_preset_forward(tiny_tokenizer, make_batch):
     assert (memory.shape, current.shape) == ((2, 2, 128), (2, 64, 128))
     loss, _ = agent(batch)
     assert torch.isfinite(loss)
-
-
-def _labelled_actions(agent, batch, actions):
-    """The batch with row i's action label set to `actions[i]` (the discrete head's one label per row)."""
-    labels = batch["labels"].clone()
-    for row, action in enumerate(actions):
-        (position,) = (labels[row] != -100).nonzero()[:, 0].tolist()
-        labels[row, position] = agent.action_tokenizer.action_to_token_ids(action)[0]
-    return {**batch, "labels": labels}
-
-
-def test_the_stop_loss_weight_is_a_weighted_mean_over_the_labelled_steps(make_agent, make_batch):
-    from openfly_agent.constants import ACTION_FORWARD_9, ACTION_STOP, ACTION_TURN_LEFT
-
-    agent = make_agent()  # eval mode: no box jitter, so the per-step losses are the same in every call
-    batch = _labelled_actions(
-        agent, make_batch(agent, batch_size=3), [ACTION_STOP, ACTION_FORWARD_9, ACTION_TURN_LEFT]
-    )
-    head = agent.model_cfg.action_head
-
-    def action_loss(weight: float) -> float:
-        head.stop_loss_weight = weight
-        with torch.no_grad():
-            return agent(batch)[1]["action_loss"]
-
-    plain, tripled = action_loss(1.0), action_loss(3.0)
-    # plain = (s + r) / 3 and tripled = (3 s + r) / 5, with s the STOP step's loss and r the other two's sum
-    stop = (5 * tripled - 3 * plain) / 2
-    rest = 3 * plain - stop
-    first_row = {key: value[:1] for key, value in batch.items()}  # the STOP step alone: its loss, by itself
-    assert action_loss(1.0) == plain and agent(first_row)[1]["action_loss"] == pytest.approx(stop, rel=1e-3)
-    assert action_loss(7.0) == pytest.approx((7 * stop + rest) / 9, rel=1e-4)
-    assert action_loss(0.5) == pytest.approx((0.5 * stop + rest) / 2.5, rel=1e-4)
-    no_stop = _labelled_actions(agent, batch, [ACTION_FORWARD_9, ACTION_FORWARD_9, ACTION_TURN_LEFT])
-    with torch.no_grad():
-        head.stop_loss_weight = 1.0
-        expected = agent(no_stop)[1]["action_loss"]
-        head.stop_loss_weight = 5.0
-        assert agent(no_stop)[1]["action_loss"] == pytest.approx(expected, rel=1e-6)  # no STOP: no change
-
-
-def test_the_stop_loss_weight_is_checked():
-    with pytest.raises(ValueError, match="stop_loss_weight=0.0 must be > 0"):
-        DiscreteActionHeadConfig(stop_loss_weight=0.0)
-    with pytest.raises(TypeError, match="stop_loss_weight"):
-        BinsActionHeadConfig(stop_loss_weight=2.0)  # a field of the discrete head only
-    assert DiscreteActionHeadConfig(stop_loss_weight=2.0).stop_loss_weight == 2.0

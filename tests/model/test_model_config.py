@@ -243,3 +243,18 @@ def test_the_settings_fixed_by_issue_46_load_at_their_value_and_refuse_any_other
     queries = {**BASE_TINY_AGENT, "grounding": {**BASE_TINY_AGENT["grounding"], "num_queries": 2}}
     with pytest.raises(RetiredOptionError, match=r"grounding.num_queries is fixed at 1 .*commit 32e260f"):
         OpenFlyAgentConfig(agent=queries)
+
+
+def test_the_deleted_stop_weight_loads_at_one_and_refuses_any_other():
+    """`action_head.stop_loss_weight` was deleted after its measured arm (no gain): a config.json at 1.0 (every
+    config written before) loads as today's model, a weighted one names the commit that trains it."""
+    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    assert "stop_loss_weight" not in upgraded_model_dict(BASE_TINY_AGENT)["action_head"]
+    assert "stop_loss_weight" not in upgraded_model_dict(OLD_AGENT)["action_head"]
+    weighted = {**BASE_TINY_AGENT, "action_head": {**BASE_TINY_AGENT["action_head"], "stop_loss_weight": 4.0}}
+    with pytest.raises(
+        RetiredOptionError, match=r"action_head.stop_loss_weight was deleted .*commit 9046d6d"
+    ):
+        OpenFlyAgentConfig(agent=weighted)

@@ -218,15 +218,11 @@ class DiscreteActionHeadConfig(ActionHeadConfig):
     # the action is read at an embedded-box token after the prompt (None: when the grounding head is enabled)
     box_token: bool | None = None
     box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
-    # weight of the STOP-labelled steps in the action cross-entropy (1.0: plain cross-entropy)
-    stop_loss_weight: float = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.box_token_jitter < 0:
             raise ValueError(f"action_head.box_token_jitter={self.box_token_jitter} must be >= 0")
-        if self.stop_loss_weight <= 0:
-            raise ValueError(f"action_head.stop_loss_weight={self.stop_loss_weight} must be > 0")
 
 
 @ActionHeadConfig.register_subclass(HEAD_OPENVLA_BINS)
