@@ -54,6 +54,13 @@ FIXED_SETTINGS = {"projector": {"hidden_ratio": 4}, "grounding": {"num_queries":
 # Switches deleted after the experiment that measured them showed no gain, at the value that turned them off
 # (the STOP weight: docs/experiments/2026-11-28-long-route-ablation.md; commit 9046d6d still has it)
 DELETED_AFTER_MEASUREMENT = {"action_head": {"stop_loss_weight": 1.0}}
+# Each table of retired fields, why a field is gone ({value}: the one it may hold) and the commit that still has it
+NO_GAIN = "was deleted (no measured gain; docs/experiments/{log})"
+RETIRED_FIELDS = (
+    (DELETED_SWITCHES, NO_GAIN.format(log="2026-11-27-deleted-research-switches.md"), "7544758"),
+    (DELETED_AFTER_MEASUREMENT, NO_GAIN.format(log="2026-11-28-long-route-ablation.md"), "9046d6d"),
+    (FIXED_SETTINGS, "is fixed at {value} now (no config or experiment changed it)", "32e260f"),
+)
 # Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's
 # `n_bins` could only be 256, `NUM_ACTION_SLOTS`).
 DEAD_FIELDS = {"vision": ("cnn_stem_width",), "action_head": ("n_bins",)}
@@ -95,16 +102,17 @@ class RetiredOptionError(ValueError):
     """An older config turns on a switch that was deleted: its checkpoint needs the code of that time."""
 
 
-def _drop_retired(agent: dict[str, Any], retired: dict[str, dict[str, Any]], refusal: str) -> None:
+def _drop_retired(agent: dict[str, Any], retired: dict[str, dict[str, Any]], why: str, commit: str) -> None:
     """Drop from `agent` each retired field ({section: {name: the one value it may hold}}) that holds that value,
-    and a section left empty; raise `RetiredOptionError` (`refusal` formatted with section, name and value) for
-    any other value."""
+    and a section left empty; raise `RetiredOptionError` (saying `why` and naming `commit`) for any other value."""
     for section, fields in retired.items():
         values = agent.get(section, {})
         for name, value in fields.items():
             if name in values and values.pop(name) != value:
-                message = refusal.format(section=section, name=name, value=value)
-                raise RetiredOptionError(f"model config: {message}")
+                raise RetiredOptionError(
+                    f"model config: {section}.{name} {why.format(value=value)}: load this checkpoint with "
+                    f"commit {commit}"
+                )
         if section in agent and not agent[section]:
             del agent[section]
 
@@ -117,24 +125,8 @@ def upgraded_model_dict(agent: dict[str, Any]) -> dict[str, Any]:
         values = agent.get(section)
         if isinstance(values, dict) and values.get("preset", tiny_preset) != tiny_preset:
             agent[section] = {k: v for k, v in values.items() if not (k in sizes and v == sizes[k])}
-    _drop_retired(
-        agent,
-        DELETED_SWITCHES,
-        "{section}.{name} was deleted (no measured gain; docs/experiments/2026-11-27-deleted-research-switches.md): "
-        "load this checkpoint with commit 7544758",
-    )
-    _drop_retired(
-        agent,
-        DELETED_AFTER_MEASUREMENT,
-        "{section}.{name} was deleted (no measured gain; docs/experiments/2026-11-28-long-route-ablation.md): "
-        "load this checkpoint with commit 9046d6d",
-    )
-    _drop_retired(
-        agent,
-        FIXED_SETTINGS,
-        "{section}.{name} is fixed at {value} now (no config or experiment changed it): load this checkpoint with "
-        "commit 32e260f",
-    )
+    for retired, why, commit in RETIRED_FIELDS:
+        _drop_retired(agent, retired, why, commit)
     for section, names in DEAD_FIELDS.items():
         for name in names:
             agent.get(section, {}).pop(name, None)
