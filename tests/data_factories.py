@@ -62,6 +62,9 @@ def assert_episodes_equal(a: Episode, b: Episode) -> None:
     np.testing.assert_array_equal(a.positions, b.positions)
     np.testing.assert_array_equal(a.yaws, b.yaws)
     np.testing.assert_array_equal(a.goal, b.goal)
+    assert (a.leg_goals is None) == (b.leg_goals is None)
+    if a.leg_goals is not None:
+        np.testing.assert_array_equal(a.leg_goals, b.leg_goals)
     assert (a.boxes is None) == (b.boxes is None)
     if a.boxes is not None:
         np.testing.assert_array_equal(a.boxes, b.boxes)

@@ -2,7 +2,8 @@
 
 Release fields (docs/OFFICIAL_OPENFLY.md 1.2): `image_path`, `gpt_instruction`, `action`, `index_list`,
 `pos` (3 numbers, sometimes a 4th = yaw), `yaw`. Our extra fields: `scene_id`, `split`, `category`,
-`pitch_deg`, `landmark_ids`, `boxes` ((cx, cy, w, h) or null per frame), `box_visible`, `goal`.
+`pitch_deg`, `landmark_ids`, `boxes` ((cx, cy, w, h) or null per frame), `box_visible`, `goal`, `leg_goals`
+(the goal of each leg of a chained route, in order).
 """
 
 from __future__ import annotations
@@ -185,6 +186,22 @@ def episode_from_record(record: dict, file: str = "", index: int = 0, split: str
     goal = record.get("goal")
     if goal is not None and (not isinstance(goal, list) or len(goal) != 3 or not all(map(_is_number, goal))):
         raise SchemaError(file, index, "goal", f"expected 3 finite numbers, got {goal!r}")
+    leg_goals = record.get("leg_goals")
+    if leg_goals is not None and (
+        not isinstance(leg_goals, list)
+        or not leg_goals
+        or not all(isinstance(g, list) and len(g) == 3 and all(map(_is_number, g)) for g in leg_goals)
+    ):
+        raise SchemaError(
+            file, index, "leg_goals", f"expected a list of 3 finite numbers per leg, got {leg_goals!r}"
+        )
+    if leg_goals is not None and landmark_ids and len(leg_goals) != len(landmark_ids):
+        raise SchemaError(
+            file,
+            index,
+            "leg_goals",
+            f"{len(leg_goals)} legs for {len(landmark_ids)} landmark_ids: one goal per target",
+        )
     category = _string_field(record, "category", file, index, category)
     pitch = record.get("pitch_deg", pitch_for_category(category))
     if not _is_number(pitch):
@@ -204,6 +221,7 @@ def episode_from_record(record: dict, file: str = "", index: int = 0, split: str
         box_visible=visible,
         landmark_ids=list(landmark_ids),
         goal=None if goal is None else np.asarray(goal, dtype=np.float64),
+        leg_goals=None if leg_goals is None else np.asarray(leg_goals, dtype=np.float64),
     )
 
 
@@ -234,4 +252,6 @@ def record_from_episode(episode: Episode) -> dict:
         record["boxes"], record["box_visible"] = boxes
     if episode.goal is not None:
         record["goal"] = [float(v) for v in episode.goal]
+    if episode.leg_goals is not None:
+        record["leg_goals"] = [[float(v) for v in g] for g in episode.leg_goals]
     return record

@@ -42,6 +42,9 @@ class Episode:
     box_visible: np.ndarray | None = None  # (T,) bool
     landmark_ids: list[str] = field(default_factory=list)  # target landmark(s), in route order
     goal: np.ndarray | None = None  # (3,) metres; default the last position (official evaluation)
+    # (K, 3) metres: the goal of each leg of the planned route, in order (the last is `goal`); a DAgger expert
+    # re-plans through them. None where unknown (released data, datasets generated before this field)
+    leg_goals: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.actions = np.asarray(self.actions, dtype=np.int64)
@@ -61,6 +64,8 @@ class Episode:
             self._check_boxes(n)
         if self.goal is None and n:
             self.goal = self.positions[-1].copy()
+        if self.leg_goals is not None:
+            self._check_leg_goals()
 
     def _check_boxes(self, n: int) -> None:
         """Boxes and visibility come together, one per frame: boxes (T, 4), box_visible (T,) bool."""
@@ -77,6 +82,30 @@ class Episode:
             raise SchemaError(
                 self.episode_id, self.episode_id, "box_visible", f"shape {self.box_visible.shape} != ({n},)"
             )
+
+    def _check_leg_goals(self) -> None:
+        """(K, 3) finite, K >= 1, one leg per target landmark when those are known."""
+        self.leg_goals = np.asarray(self.leg_goals, dtype=np.float64)
+        if self.leg_goals.ndim != 2 or self.leg_goals.shape[1:] != (3,) or not len(self.leg_goals):
+            raise SchemaError(
+                self.episode_id, self.episode_id, "leg_goals", f"shape {self.leg_goals.shape} != (K >= 1, 3)"
+            )
+        if not np.isfinite(self.leg_goals).all():
+            raise SchemaError(self.episode_id, self.episode_id, "leg_goals", "not all finite")
+        if self.landmark_ids and len(self.landmark_ids) != len(self.leg_goals):
+            raise SchemaError(
+                self.episode_id,
+                self.episode_id,
+                "leg_goals",
+                f"{len(self.leg_goals)} legs for {len(self.landmark_ids)} target landmarks: one goal per target",
+            )
+
+    @property
+    def route_goals(self) -> list[np.ndarray]:
+        """The goals an expert flies through, in order: `leg_goals` where known, else [`goal`]."""
+        if self.leg_goals is not None:
+            return [np.asarray(g, dtype=np.float64) for g in self.leg_goals]
+        return [np.asarray(self.goal, dtype=np.float64).reshape(3)]
 
     @property
     def has_boxes(self) -> bool:

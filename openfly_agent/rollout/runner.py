@@ -74,7 +74,10 @@ class RunningEpisode:
 
     def target_box(self) -> list[float] | None:
         """The simulator's (cx, cy, w, h) of the target landmark in the current frame, None when not visible."""
-        landmark = target_landmark(self.episode)
+        return self.landmark_box(target_landmark(self.episode))
+
+    def landmark_box(self, landmark: str | None) -> list[float] | None:
+        """The simulator's (cx, cy, w, h) of `landmark` in the current frame, None when not visible (or None)."""
         return box_list((self.obs.boxes or {}).get(landmark)) if landmark else None
 
 

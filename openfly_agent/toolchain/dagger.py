@@ -124,6 +124,19 @@ def relabelled_rollout(
     return rollout
 
 
+def leg_end_frames(legs: list[int], n_legs: int) -> list[int]:
+    """Each leg's end frame from the expert's leg at every state (`DaggerRollout.legs`), in the A* episodes'
+    convention (`leg_of_frame`): leg k ends at the first state of leg k + 1, the last leg at the last state (the
+    STOP). E.g. legs [0, 0, 1, 1, 1] of 2 legs -> [2, 4]."""
+    ends = []
+    for k in range(n_legs - 1):
+        later = [t for t, leg in enumerate(legs) if leg > k]
+        if not later:
+            raise ValueError(f"the rollout never left leg {k} of {n_legs} (legs {legs})")
+        ends.append(later[0])
+    return ends + [len(legs) - 1]
+
+
 def generate_dagger_unit(
     prepared: PreparedScene, sim: Simulator, unit: WorkUnit, cfg: GenerateConfig, policy: Policy | None = None
 ) -> UnitResult:
@@ -161,13 +174,14 @@ def generate_dagger_unit(
     t1 = time.perf_counter()
     clean = render_poses(sim, scene_id, planned.seq.poses, planned.pitch_deg, planned.seq.actions)
     category = sequence_category(seq, prepared.pmap.elevation, cfg.categories)
-    recovery = PlannedTrajectory(planned.route, seq, [len(seq) - 1], category, planned.pitch_deg, 0)
+    leg_ends = leg_end_frames(rollout.legs, len(planned.route.legs))
+    recovery = PlannedTrajectory(planned.route, seq, leg_ends, category, planned.pitch_deg, 0)
     rendered = render_poses(sim, scene_id, seq.poses, planned.pitch_deg, None, cfg.render.min_box_pixels)
     stats = {"plan_s": t1 - t0, "render_s": time.perf_counter() - t1}
     reason = filters.check_frames(rendered.frames, cfg.filters)
     if reason:
         return UnitResult(unit, reason=reason, stats=stats)
-    episode = build_episode(unit, cfg.seed, scene_id, recovery, rendered)
+    episode = build_episode(unit, cfg.seed, scene_id, recovery, rendered, cfg.render.box_target)
     request = instruction_request(prepared, planned, clean, seed, cfg)
     stats.update(
         flight_height_m=float(planned.route.flight_z - prepared.pmap.elevation),

@@ -22,6 +22,7 @@ from openfly_agent.rollout.runner import RolloutHook, RunningEpisode
 from openfly_agent.sim import dynamics
 from openfly_agent.toolchain.actions import merge_forward
 from openfly_agent.toolchain.astar import ActionSpaceAStar, PlanningFailed
+from openfly_agent.toolchain.config import BOX_TARGET_FINAL, BOX_TARGET_LEG, BOX_TARGETS
 from openfly_agent.utils.geometry import Pose
 
 # The policy's actions the expert lets it fly (STOP and the lateral moves are the expert's); in this order the
@@ -99,6 +100,7 @@ class DaggerRollout:
     labels: list[int] = field(default_factory=list)
     frames: list[np.ndarray] = field(default_factory=list)  # (H, W, 3) uint8; 1 x 1 without rendering
     boxes: list[np.ndarray | None] = field(default_factory=list)
+    legs: list[int] = field(default_factory=list)  # the expert's leg at each state (0 .. legs - 1)
     agent_steps: int = 0  # states where the policy proposed the action
     failed: str | None = None
     detail: str = ""
@@ -126,6 +128,9 @@ class ExpertLabelling(RolloutHook):
         max_steps: states at most; a rollout without the expert's STOP by then fails (`NO_STOP`).
         expert_mix: probability that the expert's action is flown instead of the policy's (drawn per proposed
             action; 0 draws nothing).
+        box_target: the landmark whose box each state records, as the dataset's `render.box_target`: `final`
+            (the episode's last target) or `leg` (the target of the expert's current leg; the expert needs one
+            goal per target landmark).
         label_in_observation: add the label to the policy's observation (`OBS_EXPERT_ACTION`; for a policy with
             `features.expert_action`, such as the noisy expert).
         seed: seed of the expert-mix draws.
@@ -141,15 +146,25 @@ class ExpertLabelling(RolloutHook):
         expert_mix: float = 0.0,
         label_in_observation: bool = False,
         seed: int = 0,
+        box_target: str = BOX_TARGET_FINAL,
     ):
-        self.make_expert, self.on_rollout = make_expert, on_rollout
+        if box_target not in BOX_TARGETS:
+            raise ValueError(f"box_target must be one of {BOX_TARGETS}, got {box_target!r}")
+        self.make_expert, self.on_rollout, self.box_target = make_expert, on_rollout, box_target
         self.max_policy_steps, self.max_steps = max_policy_steps, max_steps
         self.expert_mix, self.label_in_observation = expert_mix, label_in_observation
         self.rng = np.random.default_rng(seed)
 
     def on_episode_start(self, running: RunningEpisode) -> None:
+        expert = self.make_expert(running.episode)
+        targets = running.episode.landmark_ids
+        if self.box_target == BOX_TARGET_LEG and len(targets) != len(expert.goals):
+            raise ValueError(
+                f"{running.episode.episode_id}: box_target 'leg' needs one expert goal per target landmark, "
+                f"got {len(expert.goals)} goals for {len(targets)} targets"
+            )
         running.state[_ROLLOUT] = DaggerRollout(running.episode)
-        running.state[_EXPERT] = self.make_expert(running.episode)
+        running.state[_EXPERT] = expert
 
     def before_act(self, running: RunningEpisode) -> bool:
         """Record the current state with the expert's label; True when the rollout ends here."""
@@ -157,15 +172,21 @@ class ExpertLabelling(RolloutHook):
         if len(rollout.labels) >= self.max_steps:  # the last of them was not a STOP
             rollout.failed, rollout.detail = NO_STOP, f"goal not reached in {self.max_steps} steps"
             return True
+        expert = running.state[_EXPERT]
         try:
-            label = running.state[_EXPERT].action(obs.pose)
+            # a state that reaches the current leg's goal moves the expert on to its next leg
+            label = expert.action(obs.pose)
         except PlanningFailed as err:
             rollout.failed, rollout.detail = EXPERT_FAILED, str(err)
             return True
         rollout.poses.append(obs.pose)
         rollout.labels.append(int(label))
+        rollout.legs.append(expert.leg)
         rollout.frames.append(np.ascontiguousarray(obs.rgb))
-        box = running.target_box()
+        if self.box_target == BOX_TARGET_LEG:
+            box = running.landmark_box(running.episode.landmark_ids[expert.leg])
+        else:
+            box = running.target_box()
         rollout.boxes.append(None if box is None else np.asarray(box, dtype=np.float64))
         return rollout.stopped
 

@@ -186,7 +186,8 @@ def route_episode(
     episode_id: str, scene_id: str, planned: PlannedTrajectory, split: str | None = None
 ) -> Episode:
     """The planned trajectory as an episode without frames (frame ids 0..T-1, no boxes, instruction empty): its
-    start pose, actions, final goal, target landmarks and camera pitch, what a closed-loop rollout starts from."""
+    start pose, actions, final goal and each leg's goal, target landmarks and camera pitch, what a closed-loop
+    rollout starts from."""
     seq = planned.seq
     return Episode(
         episode_id=episode_id,
@@ -201,6 +202,7 @@ def route_episode(
         pitch_deg=planned.pitch_deg,
         landmark_ids=list(planned.route.landmark_ids),
         goal=np.asarray(planned.route.legs[-1].goal, dtype=np.float64),
+        leg_goals=np.array([leg.goal for leg in planned.route.legs], dtype=np.float64),
     )
 
 

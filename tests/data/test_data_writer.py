@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -11,7 +12,7 @@ from data_factories import assert_episodes_equal, make_episode, make_frames
 
 from openfly_agent.data.config import ReaderOptions
 from openfly_agent.data.frames import FrameStore
-from openfly_agent.data.openfly_reader import load_openfly_dataset
+from openfly_agent.data.openfly_reader import load_openfly_dataset, read_annotation_file
 from openfly_agent.data.parquet_io import read_parquet_episode
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.data.stats import compute_action_statistics
@@ -216,3 +217,28 @@ def test_part_files_roll_over_and_replace_in_place(tmp_path):
     assert sorted(e.episode_id for e in read) == sorted(ids + [extra.episode_id])
     with pytest.raises(ValueError, match="part_max_records"):
         OpenFlyDatasetWriter(tmp_path, part_max_records=0)
+
+
+def test_each_legs_goal_round_trips_and_a_broken_one_is_named(tmp_path):
+    """`leg_goals` (a chained route's goal per leg) is written and read back exactly; a record whose legs do not
+    match its targets, or whose goal is not 3 numbers, is refused naming the file, the record and the field."""
+    episode = make_episode("embedded-1/astar_data/high_short/traj_a", [9, 2, 9, 1, 0], "train", seed=1)
+    episode.landmark_ids = ["embedded-1/lm3", "embedded-1/lm7"]
+    episode.leg_goals = np.array([[10.0, -4.5, 30.0], [22.25, 8.0, 31.5]])
+    _write_all(tmp_path, [episode])[0].finalize()
+    (read,) = load_openfly_dataset(tmp_path, "train", KEEP)
+    assert_episodes_equal(read, episode)
+    assert [g.tolist() for g in read.route_goals] == [[10.0, -4.5, 30.0], [22.25, 8.0, 31.5]]
+    assert [g.tolist() for g in dataclasses.replace(read, leg_goals=None).route_goals] == [read.goal.tolist()]
+    path = tmp_path / "Annotation" / "train.json"
+    for broken, problem in (
+        ({"leg_goals": [[10.0, -4.5, 30.0]]}, "1 legs for 2 landmark_ids"),
+        ({"leg_goals": [[10.0, -4.5]]}, "3 finite numbers per leg"),
+        ({"leg_goals": []}, "3 finite numbers per leg"),
+    ):
+        record = {**json.loads(path.read_text())[0], **broken}
+        bad = tmp_path / "bad.json"
+        bad.write_text(json.dumps([record]))
+        with pytest.raises(SchemaError, match=problem) as info:
+            read_annotation_file(bad, KEEP)
+        assert (info.value.file, info.value.record, info.value.field_name) == (str(bad), 0, "leg_goals")

@@ -3,21 +3,25 @@ from every visited state."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from toolchain_scene import BOUNDS, synthetic_scene
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
-from openfly_agent.rollout.policy import OBS_STEP, PolicyFeatures
-from openfly_agent.rollout.runner import RolloutHook
+from openfly_agent.rollout.policy import OBS_EXPERT_ACTION, OBS_STEP, PolicyFeatures
+from openfly_agent.rollout.runner import LockstepRunner, RolloutHook
 from openfly_agent.sim import dynamics
 from openfly_agent.sim.base import Observation
+from openfly_agent.sim.free_flight import FreeFlightSimulator
+from openfly_agent.sim.vector import VectorSimulator
 from openfly_agent.toolchain.actions import build_action_sequence
 from openfly_agent.toolchain.astar import ActionSpaceAStar
 from openfly_agent.toolchain.config import MapConfig, PlannerConfig
-from openfly_agent.toolchain.dagger import NoisyExpertPolicy, relabelled_rollout
-from openfly_agent.toolchain.expert import POLICY_MOVES, AStarExpert
+from openfly_agent.toolchain.dagger import NoisyExpertPolicy, leg_end_frames, relabelled_rollout
+from openfly_agent.toolchain.expert import POLICY_MOVES, AStarExpert, ExpertLabelling
 from openfly_agent.toolchain.pipeline import Rejected
 from openfly_agent.toolchain.voxel_map import build_planning_map
 from openfly_agent.utils.geometry import Pose
@@ -261,3 +265,85 @@ def test_the_expert_without_a_plan_rejects_the_rollout(scene):
             150,
         )
     assert err.value.reason == "dagger_expert_failed"
+
+
+def test_leg_end_frames_follow_the_a_star_episodes_convention():
+    """A leg ends at the first state of the next leg (that state is the next leg's first decision); the last
+    leg at the last state, the STOP (`leg_of_frame` reads them back)."""
+    assert leg_end_frames([0, 0, 1, 1, 1], 2) == [2, 4]
+    assert leg_end_frames([0, 1, 2], 3) == [1, 2, 2]
+    assert leg_end_frames([0, 0, 0], 1) == [2]
+    assert leg_end_frames([0, 2, 2], 3) == [1, 1, 2]  # a state that reaches two leg goals at once
+    with pytest.raises(ValueError, match="never left leg 1 of 3"):
+        leg_end_frames([0, 1, 1], 3)
+
+
+class FollowTheLabel:
+    """Flies the expert's label (given in its observation) and reads frames, so every state is rendered."""
+
+    name = "follow_the_label"
+    features = PolicyFeatures(frames=True, expert_action=True)
+
+    def reset(self, episode_ids):
+        pass
+
+    def act(self, observations):
+        return [int(o[OBS_EXPERT_ACTION]) for o in observations]
+
+
+def _labelled(astar, episode, box_target, boxes):
+    """The `DaggerRollout` of `episode` flown by `FollowTheLabel` under `ExpertLabelling(box_target)`, in a
+    world that shows every landmark of `boxes` at its fixed box in every frame."""
+
+    def render(scene_id, pose, pitch_deg):
+        return Observation(rgb=np.zeros((2, 2, 3), np.uint8), pose=pose, boxes=dict(boxes))
+
+    ended = []
+    labelling = ExpertLabelling(
+        lambda e: AStarExpert(astar, e.route_goals),
+        ended.append,
+        max_policy_steps=150,
+        max_steps=150,
+        label_in_observation=True,
+        box_target=box_target,
+    )
+    with VectorSimulator(sims=[FreeFlightSimulator(render, render_steps=150)]) as env:
+        runner = LockstepRunner(
+            FollowTheLabel(), env, 151, [labelling], whole_groups=False, show_progress=False
+        )
+        runner.run([episode], C.SPLIT_TRAIN)
+    (rollout,) = ended
+    return rollout
+
+
+def test_each_state_records_the_experts_leg_and_that_legs_target_box(scene):
+    """Two legs: the expert moves to leg 1 at the first state within its tolerance of leg 0's goal; with
+    `box_target=leg` each state's box is its leg's target's (`final`: the last target's throughout), and the
+    legs give the end frames the A* episodes use."""
+    astar, _ = scene
+    goals = [np.array([-60.0, 60.0, 20.0]), np.array([30.0, 60.0, 20.0])]
+    boxes = {"first": (0.2, 0.5, 0.1, 0.1), "second": (0.7, 0.5, 0.2, 0.2), "other": (0.5, 0.5, 0.3, 0.3)}
+    episode = dataclasses.replace(
+        _route(START, goals[-1]), landmark_ids=["first", "second"], leg_goals=np.array(goals)
+    )
+    rollout = _labelled(astar, episode, "leg", boxes)
+    n, k = len(rollout.poses), rollout.legs.index(1)
+    assert rollout.failed is None and rollout.labels[-1] == C.ACTION_STOP and 0 < k < n - 1
+    assert rollout.legs == [0] * k + [1] * (n - k)
+    tolerance = astar.cfg.goal_tolerance_m
+    assert np.linalg.norm(rollout.poses[k].position - goals[0]) <= tolerance
+    assert all(np.linalg.norm(p.position - goals[0]) > tolerance for p in rollout.poses[:k])
+    np.testing.assert_array_equal(rollout.boxes, [boxes["first"]] * k + [boxes["second"]] * (n - k))
+    assert leg_end_frames(rollout.legs, 2) == [k, n - 1]
+    final = _labelled(astar, episode, "final", boxes)
+    assert final.labels == rollout.labels
+    np.testing.assert_array_equal(final.boxes, [boxes["second"]] * n)
+
+
+def test_leg_boxes_need_one_expert_goal_per_target(scene):
+    astar, _ = scene
+    episode = dataclasses.replace(_route(START, GOAL), landmark_ids=["first", "second"])  # no leg goals
+    with pytest.raises(ValueError, match="needs one expert goal per target landmark, got 1 goals for 2"):
+        _labelled(astar, episode, "leg", {})
+    with pytest.raises(ValueError, match="box_target must be one of"):
+        ExpertLabelling(lambda e: None, print, max_policy_steps=1, max_steps=1, box_target="next")

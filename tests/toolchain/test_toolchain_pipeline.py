@@ -416,6 +416,9 @@ def test_render_box_target_picks_the_boxes_a_chained_episode_stores(prepared):
     np.testing.assert_array_equal(leg.boxes, expected)
     assert {tuple(b) for b in leg.boxes} == set(box.values())  # each of the three legs holds frames
     np.testing.assert_array_equal(final.boxes, [box[ids[-1]]] * len(planned.seq))
+    for episode in (leg, final):  # each leg's goal, the last the episode's goal, whatever the boxes
+        np.testing.assert_array_equal(episode.leg_goals, [lg.goal for lg in planned.route.legs])
+        np.testing.assert_array_equal(episode.leg_goals[-1], episode.goal)
     with pytest.raises(ValueError, match="render.box_target must be one of"):
         RenderConfig(box_target="next")
 
