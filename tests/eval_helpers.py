@@ -83,11 +83,12 @@ class PoseSimulator:
         return None
 
 
-def generate_tiny_dataset(root, seed: int = 0) -> None:
+def generate_tiny_dataset(root, seed: int = 0, chained: bool = False) -> None:
     """A generated embedded dataset small enough for tests (~5 s): 2 scenes of 300 m, 64 px frames.
 
     Scene 0 gives train and test_seen episodes (half each), scene 1 (unseen seed) test_unseen; another `seed`
-    gives other routes (other episode ids) in the same scenes.
+    gives other routes (other episode ids) in the same scenes. `chained`: every route past 2 landmarks, each
+    frame's box its leg's target (the long-route benchmark's labels).
     """
     from openfly_agent.toolchain.config import (
         CategoryConfig,
@@ -102,11 +103,14 @@ def generate_tiny_dataset(root, seed: int = 0) -> None:
         city_size_m=300, city_buildings=30, train_seeds=[0], unseen_seeds=[1], trajectories_per_scene=8,
         test_seen_fraction=0.5,
     )  # fmt: skip
-    route = RouteConfig(height_min_m=10, height_max_m=40, min_dist_m=40, max_dist_m=90, with_turn_prob=0.3)
+    route = RouteConfig(
+        height_min_m=10, height_max_m=40, min_dist_m=40, max_dist_m=90, with_turn_prob=0.3,
+        chain_prob=1.0 if chained else RouteConfig.chain_prob,
+    )  # fmt: skip
     cfg = GenerateConfig(
         output_dir=str(root), seed=seed, workers=1, scenes=scenes, route=route, plots=False,
         categories=CategoryConfig(height_bins_m=[25, 40], length_bins_m=[50, 100]),
-        render=RenderConfig(width=64, height=64),
+        render=RenderConfig(width=64, height=64, box_target="leg" if chained else "final"),
     )  # fmt: skip
     generate(cfg, progress=False)
 

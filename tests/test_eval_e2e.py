@@ -190,6 +190,53 @@ def test_agent_true_box_flies_on_the_simulators_target_boxes(dataset, tmp_path, 
     assert [r.boxes for r in agent] != [r.boxes for r in records]
 
 
+def test_agent_true_box_of_the_current_leg_on_chained_routes(tmp_path, monkeypatch):
+    """`--true_box=leg`: on routes past 2 landmarks, `agent_true_box` is handed the box of the target of the leg
+    the drone is on (the first target until it comes within the success radius of the first leg's goal)."""
+    from openfly_agent.rollout.legs import current_leg
+    from openfly_agent.rollout.policy import OBS_EPISODE_ID, OBS_STEP, OBS_TARGET_BOX
+
+    dataset = tmp_path / "chained"
+    generate_tiny_dataset(dataset, chained=True)
+    episodes = {e.episode_id: e for e in load_openfly_dataset(dataset, C.SPLIT_TEST_UNSEEN)}
+    assert all(len(e.leg_goals) == len(e.landmark_ids) == 2 for e in episodes.values())
+    save_small_agent(tmp_path / "ckpt", [e.instruction for e in episodes.values()])
+    handed, real = {}, LockstepRunner._observation
+
+    def spy(runner, running):  # the box handed over, and every landmark's box in the same frame
+        obs = real(runner, running)
+        handed[(obs[OBS_EPISODE_ID], obs[OBS_STEP])] = (obs[OBS_TARGET_BOX], dict(running.obs.boxes or {}))
+        return obs
+
+    monkeypatch.setattr(LockstepRunner, "_observation", spy)
+    cfg = _cfg(
+        dataset, tmp_path / "out", policy="agent_true_box", checkpoint=str(tmp_path / "ckpt"), true_box="leg",
+        split=[C.SPLIT_TEST_UNSEEN], max_steps=8, plots=0, max_episodes=3, batch_size=3,
+    )  # fmt: skip
+    run(cfg)
+    records = read_all_logs(tmp_path / "out" / "agent_true_box")
+    assert len(records) == 3 and len(handed) == sum(len(r.actions) for r in records)
+    not_final = 0
+    for record in records:
+        episode, leg = episodes[record.episode_id], 0
+        for t, pose in enumerate(record.poses[: len(record.actions)]):
+            leg = current_leg(leg, np.asarray(pose[:3]), episode.leg_goals, C.SUCCESS_RADIUS_M)
+            got, frame_boxes = handed[(record.episode_id, t)]
+            expected = frame_boxes.get(episode.landmark_ids[leg])
+            assert (got is None) == (expected is None), (record.episode_id, t)
+            if expected is not None:
+                assert got == pytest.approx(list(expected), abs=1e-6)
+            final = frame_boxes.get(episode.landmark_ids[-1])
+            not_final += (got is None) != (final is None) or (
+                got is not None and got != pytest.approx(list(final))
+            )
+    assert not_final > 0  # steps at which the final target's box (`true_box=final`) would have differed
+    assert (
+        json.loads((tmp_path / "out" / "agent_true_box" / "run_identity.json").read_text())["true_box"]
+        == "leg"
+    )
+
+
 def test_agent_resumed_after_a_kill_equals_an_uninterrupted_run_bit_for_bit(dataset, tmp_path):
     """A kill after some episodes, then the same command: every record, predicted boxes included, is exactly
     the uninterrupted run's (lockstep groups are recomputed whole, with the same companions)."""

@@ -37,6 +37,11 @@ AGENT_TRUE_BOX = "agent_true_box"
 AGENT_POLICIES = ("agent", AGENT_TRUE_BOX)  # the policies that load --checkpoint
 TRUE_BOX_POLICIES = ("box_servo", AGENT_TRUE_BOX)  # the policies that read the true target box
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo", AGENT_TRUE_BOX)
+TRUE_BOX_FINAL, TRUE_BOX_LEG = (
+    "final",
+    "leg",
+)  # whose true box agent_true_box reads: the last target, the leg's
+TRUE_BOX_TARGETS = (TRUE_BOX_FINAL, TRUE_BOX_LEG)
 SIM_EMBEDDED = "embedded"  # the default simulator; the others are engines reached through a bridge
 PROFILE_NAMES = ("openfly", "standard")
 ORACLE_MODES = ("auto", "replay", "teleport")
@@ -208,6 +213,9 @@ class EvalConfig:
     oracle_mode: str = "auto"  # auto | replay | teleport (docs/EVAL.md)
     # the reflex reference policy on the true target box (embedded simulator only; docs/EVAL.md)
     box_servo: BoxServoSettings = field(default_factory=BoxServoSettings)
+    # whose true box agent_true_box is fed: `final` (the route's last target) or `leg` (the target of the leg
+    # the drone is on, moved on within the success radius of each leg's goal; chained routes, docs/EVAL.md)
+    true_box: str = TRUE_BOX_FINAL
     # results: <output_dir>/summary.md and <output_dir>/<policy>/ (relative to the working directory)
     output_dir: str = "outputs/eval"
     plots: int = 6  # top-down plots per policy and split (evenly spaced over the episode ids)
@@ -234,6 +242,16 @@ class EvalConfig:
                     f"{name} reads the true target box, which only the embedded simulator gives: drop it from "
                     f"--baselines with --sim.type={self.sim.type}"
                 )
+        if self.true_box not in TRUE_BOX_TARGETS:
+            raise ValueError(f"true_box={self.true_box!r}: choose from {TRUE_BOX_TARGETS}")
+        if self.true_box == TRUE_BOX_LEG and (
+            "box_servo" in {self.policy, *self.baselines}
+            or AGENT_TRUE_BOX not in {self.policy, *self.baselines}
+        ):
+            raise ValueError(
+                "true_box=leg feeds agent_true_box the current leg's target box: add agent_true_box to --baselines "
+                "and leave box_servo out (the reflex stops where its box is large, at the first leg's landmark)"
+            )
         for name in set(AGENT_POLICIES) & {self.policy, *self.baselines}:
             if not self.checkpoint:
                 raise ValueError(
@@ -280,6 +298,10 @@ class EvalConfig:
             )
             if self.agent.memory_probe != C.MEMORY_PROBE_NONE:  # absent: the model as trained (older folders)
                 identity["memory_probe"] = self.agent.memory_probe
+        if (
+            policy == AGENT_TRUE_BOX and self.true_box != TRUE_BOX_FINAL
+        ):  # absent: the final target (older logs)
+            identity["true_box"] = self.true_box
         if policy == "random":
             identity["seed"] = self.seed
         if policy == "oracle":

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from openfly_agent.data.schema import Episode
 from openfly_agent.eval.baselines import OraclePolicy
-from openfly_agent.eval.config import AGENT_POLICIES, EvalConfig, EvalInputError
+from openfly_agent.eval.config import AGENT_POLICIES, TRUE_BOX_LEG, EvalConfig, EvalInputError
 from openfly_agent.eval.distributed import (
     ProcessInfo,
     log_name,
@@ -43,6 +43,7 @@ from openfly_agent.rollout.checkpoints import (
     checkpoint_folder,
     describe_weights_change,
 )
+from openfly_agent.rollout.legs import CurrentLegBox
 from openfly_agent.rollout.policy import Policy
 from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.rollout.runner import LockstepRunner, RolloutStats, groups
@@ -143,9 +144,10 @@ def evaluate_policy(
     def save_gif(record: EpisodeRecord, frames: FrameLog) -> None:
         write_gif(frames, record.actions, gif_path(folder, record.split, record.episode_id))
 
-    runner = LockstepRunner(
-        policy, env, cfg.max_steps, [FrameRecorder(gif_ids, save_gif)], show_progress=cfg.progress
-    )
+    hooks = [FrameRecorder(gif_ids, save_gif)]
+    if cfg.true_box == TRUE_BOX_LEG and policy.features.target_box:
+        hooks.append(CurrentLegBox())
+    runner = LockstepRunner(policy, env, cfg.max_steps, hooks, show_progress=cfg.progress)
     for split, episodes in episodes_by_split.items():
         mine = shard(episodes, info.rank, info.world_size)
         todo = [e for e in mine if (split, e.episode_id) not in done]

@@ -104,6 +104,17 @@ def test_a_config_file_with_no_such_choice_or_broken_yaml_is_one_line(yaml_text,
         ({"policy": "stop", "profiles": ["habitat"]}, "profile 'habitat'"),
         ({"policy": "stop", "batch_size": 0}, "batch_size"),
         ({"policy": "stop", "oracle_mode": "fly"}, "oracle_mode"),
+        ({"policy": "stop", "true_box": "next"}, "true_box='next': choose from"),
+        ({"policy": "stop", "true_box": "leg"}, "true_box=leg feeds agent_true_box .* add agent_true_box"),
+        (
+            {
+                "policy": "agent",
+                "checkpoint": "c",
+                "baselines": ["agent_true_box", "box_servo"],
+                "true_box": "leg",
+            },
+            "leave box_servo out",
+        ),
     ],
 )
 def test_config_errors_say_what_to_change(kwargs, message):
@@ -119,6 +130,10 @@ def test_result_identity_tracks_what_changes_results():
     c, d = (EvalConfig(policy="agent", checkpoint=name, baselines=["agent_true_box"]) for name in ("c", "d"))
     assert c.result_identity("agent_true_box") != d.result_identity("agent_true_box")  # its weights
     assert c.result_identity("agent_true_box") != c.result_identity("agent")  # never resumes the agent's log
+    leg = EvalConfig(policy="agent", checkpoint="c", baselines=["agent_true_box"], true_box="leg")
+    assert leg.result_identity("agent_true_box") == {**c.result_identity("agent_true_box"), "true_box": "leg"}
+    assert leg.result_identity("agent") == c.result_identity("agent")  # the agent reads no true box
+    assert "true_box" not in c.result_identity("agent_true_box")  # absent: the final target, as older logs
 
 
 @pytest.mark.parametrize(
