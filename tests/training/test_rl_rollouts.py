@@ -52,6 +52,18 @@ def test_shaping_terms_when_switched_on():
     assert reward == pytest.approx(0.1 - 0.25)
     # success: 1 + 0.5 x 90 / 100
     assert rollout_reward(flight(90.0), STANDARD, rl)[0] == pytest.approx(1.45)
+    # flown on to the step limit 10 m from the goal: progress 0.5 x 90 / 100, above the STOP 50 m short (0.15)
+    assert rollout_reward(flight(90.0, stopped=False), STANDARD, rl) == (pytest.approx(0.45), False)
+
+
+def test_progress_at_stop_pays_progress_to_flights_that_stop_only():
+    rl = RLConfig(progress_weight=0.5, progress_at_stop=True)
+    assert rollout_reward(flight(50.0), STANDARD, rl) == (pytest.approx(0.25), False)  # a STOP 50 m short
+    assert rollout_reward(flight(90.0), STANDARD, rl) == (pytest.approx(1.45), True)  # success
+    # flown on to the step limit 10 m from the goal: no progress, so it no longer outranks the STOP above
+    assert rollout_reward(flight(90.0, stopped=False), STANDARD, rl) == (0.0, False)
+    # a flight the standard profile ends at a collision never stopped: no progress either
+    assert rollout_reward(flight(50.0, collision_steps=[2]), STANDARD, rl) == (0.0, False)
 
 
 def test_group_episodes_repeat_each_source_with_its_own_id():
