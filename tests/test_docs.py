@@ -113,6 +113,8 @@ RETIRED_OPTIONS = {
     "agent.no_reversal",
     # docs/experiments/2026-11-28-long-route-ablation.md (commit 9046d6d)
     "model.action_head.stop_loss_weight",
+    # docs/experiments/2026-11-28-rl-stage-on-the-main-job.md (commit d431633)
+    "rl.progress_at_stop",
 }  # fmt: skip
 
 

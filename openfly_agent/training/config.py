@@ -241,9 +241,6 @@ class RLConfig:
     num_envs: int = 8  # lockstep simulator slots (a group's rollouts fly together)
     # shaping terms, each off at 0 (the reward is success alone unless one measurably helps):
     progress_weight: float = 0.0  # x (start distance - final distance) / start distance to the goal
-    # the progress term for a flight that STOPs only (paid to every flight it ranked flying on to the step limit
-    # above stopping: docs/experiments/2026-11-28-rl-stage-on-the-main-job.md)
-    progress_at_stop: bool = False
     collision_penalty: float = 0.0  # subtracted once when a move collided
     far_stop_penalty: float = 0.0  # subtracted for a STOP outside the profile's success radius
 

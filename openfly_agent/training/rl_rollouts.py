@@ -94,12 +94,11 @@ def group_episodes(sources: Sequence[Episode], group_size: int) -> list[Episode]
 
 def rollout_reward(record: EpisodeRecord, profile: MetricProfile, rl: RLConfig) -> tuple[float, bool]:
     """The reward of a finished flight and its success: 1 for success under `profile` (`episode_metrics`), plus
-    the shaping terms of `rl` that are on (progress toward the goal, for a flight that STOPs only with
-    `rl.progress_at_stop`; a collision; a STOP outside the radius)."""
+    the shaping terms of `rl` that are on (progress toward the goal, a collision, a STOP outside the radius)."""
     trajectory = trajectory_of(record)
     row = episode_metrics(trajectory, profile)
     reward = float(row["success"])
-    if rl.progress_weight and (row["stopped"] or not rl.progress_at_stop):
+    if rl.progress_weight:
         dims = profile.distance_dims
         start = float(np.linalg.norm(trajectory.positions[0, :dims] - trajectory.goal[:dims]))
         reward += rl.progress_weight * (start - row["ne"]) / max(start, 1e-6)

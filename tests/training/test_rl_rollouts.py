@@ -56,16 +56,6 @@ def test_shaping_terms_when_switched_on():
     assert rollout_reward(flight(90.0, stopped=False), STANDARD, rl) == (pytest.approx(0.45), False)
 
 
-def test_progress_at_stop_pays_progress_to_flights_that_stop_only():
-    rl = RLConfig(progress_weight=0.5, progress_at_stop=True)
-    assert rollout_reward(flight(50.0), STANDARD, rl) == (pytest.approx(0.25), False)  # a STOP 50 m short
-    assert rollout_reward(flight(90.0), STANDARD, rl) == (pytest.approx(1.45), True)  # success
-    # flown on to the step limit 10 m from the goal: no progress, so it no longer outranks the STOP above
-    assert rollout_reward(flight(90.0, stopped=False), STANDARD, rl) == (0.0, False)
-    # a flight the standard profile ends at a collision never stopped: no progress either
-    assert rollout_reward(flight(50.0, collision_steps=[2]), STANDARD, rl) == (0.0, False)
-
-
 def test_group_episodes_repeat_each_source_with_its_own_id():
     source = Episode(
         episode_id="s/1", scene_id="embedded-0", instruction="go", actions=np.zeros(1, np.int64),

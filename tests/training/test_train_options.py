@@ -21,13 +21,13 @@ MAX_OPTIONS = 89  # issue 46: under 90 options in `train.py --help`
 LISTED_OPTIONS = 88
 # the options outside `--model.*` (`--config_path` included): 65 before issue 46 took out stop_after_steps,
 # tokenizer.path, init.format, data.train_split and logging.run_name (60); the RL stage's section added 14 (74);
-# listed where they apply: rl (15 with progress_at_stop), lora (6), the grounding stage's 3 data fields, init.matching, optim.horizon
+# listed where they apply: rl (14), lora (6), the grounding stage's 3 data fields, init.matching, optim.horizon
 # and epochs left the default help (48)
 MAX_TRAINING_OPTIONS = 48
 RL_OPTIONS = {  # RLConfig's fields, by hand
     *("group_size", "episodes_per_update", "temperature", "clip_epsilon", "kl_coef", "grounding_weight"),
     *("epochs", "minibatches", "profile", "max_steps", "num_envs", "progress_weight", "collision_penalty"),
-    *("far_stop_penalty", "progress_at_stop"),
+    "far_stop_penalty",
 }
 
 
@@ -68,10 +68,10 @@ def test_train_help_lists_fewer_than_90_options():
 
 def test_the_rl_section_is_listed_under_stage_rl_only():
     rl = [option for option in help_options(("--stage=rl",)) if option.startswith("--rl.")]
-    assert sorted(rl) == sorted(f"--rl.{name}" for name in RL_OPTIONS) and len(rl) == 15
+    assert sorted(rl) == sorted(f"--rl.{name}" for name in RL_OPTIONS) and len(rl) == 14
     assert not [option for option in help_options() if option.startswith("--rl.")]
     lines = help_text([]).splitlines()
-    assert "  rl.* (15 options): the RL stage's; train.py --stage=rl --help" in lines
+    assert "  rl.* (14 options): the RL stage's; train.py --stage=rl --help" in lines
     rl_help = help_text(["--stage=rl"])  # without the checkpoint stage=rl needs: shown unset
     assert not [line for line in rl_help.splitlines() if line.startswith("  rl.*")]
     assert "--init.checkpoint STR?" in rl_help and "CHECKPOINT" not in rl_help
