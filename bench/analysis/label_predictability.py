@@ -71,8 +71,7 @@ def step_features(episode: Episode) -> np.ndarray:
     positions = np.asarray(episode.positions, dtype=np.float64)[:n]  # (T, 3)
     yaws = np.asarray(episode.yaws, dtype=np.float64)[:n]  # (T,)
     goal = positions[-1]
-    delta = goal[None, :2] - positions[:, :2]  # (T, 2)
-    bearing = wrap_angle(np.arctan2(delta[:, 1], delta[:, 0]) - yaws)
+    distance, bearing = _distance_and_bearing(positions, yaws, np.repeat(goal[None], n, axis=0))
     leg_distance, leg_bearing = _distance_and_bearing(positions, yaws, leg_goal_per_step(episode))
     if episode.boxes is not None and episode.box_visible is not None:
         visible = np.asarray(episode.box_visible, dtype=np.float64)[:n]
@@ -83,7 +82,7 @@ def step_features(episode: Episode) -> np.ndarray:
         visible,
         *boxes.T,
         boxes[:, 2] * boxes[:, 3],
-        np.linalg.norm(delta, axis=1) / DISTANCE_SCALE_M,
+        distance,
         bearing,
         positions[:, 2] / DISTANCE_SCALE_M,
         np.full(n, goal[2] / DISTANCE_SCALE_M),

@@ -37,10 +37,8 @@ AGENT_TRUE_BOX = "agent_true_box"
 AGENT_POLICIES = ("agent", AGENT_TRUE_BOX)  # the policies that load --checkpoint
 TRUE_BOX_POLICIES = ("box_servo", AGENT_TRUE_BOX)  # the policies that read the true target box
 POLICY_NAMES = ("agent", "random", "stop", "forward", "oracle", "box_servo", AGENT_TRUE_BOX)
-TRUE_BOX_FINAL, TRUE_BOX_LEG = (
-    "final",
-    "leg",
-)  # whose true box agent_true_box reads: the last target, the leg's
+# whose true box agent_true_box reads: the route's last target, or the target of the leg the drone is on
+TRUE_BOX_FINAL, TRUE_BOX_LEG = "final", "leg"
 TRUE_BOX_TARGETS = (TRUE_BOX_FINAL, TRUE_BOX_LEG)
 SIM_EMBEDDED = "embedded"  # the default simulator; the others are engines reached through a bridge
 PROFILE_NAMES = ("openfly", "standard")
@@ -298,9 +296,8 @@ class EvalConfig:
             )
             if self.agent.memory_probe != C.MEMORY_PROBE_NONE:  # absent: the model as trained (older folders)
                 identity["memory_probe"] = self.agent.memory_probe
-        if (
-            policy == AGENT_TRUE_BOX and self.true_box != TRUE_BOX_FINAL
-        ):  # absent: the final target (older logs)
+        # absent: the final target (older logs)
+        if policy == AGENT_TRUE_BOX and self.true_box != TRUE_BOX_FINAL:
             identity["true_box"] = self.true_box
         if policy == "random":
             identity["seed"] = self.seed

@@ -11,6 +11,8 @@ policy counts as having reached a leg where it would count as having reached the
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from openfly_agent import constants as C
@@ -20,9 +22,10 @@ from openfly_agent.rollout.runner import RolloutHook, RunningEpisode
 _LEG = "current_leg"  # CurrentLegBox's key in RunningEpisode.state
 
 
-def current_leg(leg: int, position: np.ndarray, leg_goals: np.ndarray, radius_m: float) -> int:
+def current_leg(leg: int, position: np.ndarray, leg_goals: Sequence[np.ndarray], radius_m: float) -> int:
     """The leg after reaching `position` on `leg`: each next goal within `radius_m` moves it on (never past the
-    last leg). E.g. goals 10 m apart along x and a radius of 20 m: at x = 0 on leg 0 -> leg 2 of 3."""
+    last leg; the A* expert moves on the same way, within its tolerance). E.g. goals 10 m apart along x and a
+    radius of 20 m: at x = 0 on leg 0 -> leg 2 of 3."""
     while leg < len(leg_goals) - 1 and float(np.linalg.norm(position - leg_goals[leg])) <= radius_m:
         leg += 1
     return leg

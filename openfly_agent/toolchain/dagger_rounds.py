@@ -3,14 +3,15 @@ the A* expert, and write the labelled episodes as a dataset that training aggreg
 
 Each rollout starts at the start pose of a train episode, with its instruction, in lockstep batches (the rollout
 layer's `LockstepRunner`, one batched policy call per step, with the `ExpertLabelling` hook of toolchain/expert.py
-that generation-time DAgger uses too). At every visited state the A* expert (`AStarExpert`, re-planned from wherever the
-agent is to the episode's goal, through each leg's goal in order where the episodes give them) gives the label; the executed action is the agent's, or the expert's with
-probability `expert_mix` (a beta-mixture), and always the expert's when the agent's action would hit an obstacle
-or stop early. After `max_policy_steps` steps the expert flies the rest of the way, so every episode ends with
-the expert's STOP, given at every state within `stop_radius_m` of the goal (the A* plan alone stops only within
-its 3-m tolerance, so rollouts that reach the goal area would teach the agent to fly on past it). The written
-episodes keep the source episode's instruction, targets, goals and camera pitch, and each state's box is that of the
-landmark the source dataset's `render.box_target` names (the expert's current leg's target for `leg`); `positions[t + 1]` follows the executed
+that generation-time DAgger uses too). At every visited state the A* expert (`AStarExpert`, re-planned from
+wherever the agent is to the episode's goal, through each leg's goal in order where the episodes give them) gives
+the label; the executed action is the agent's, or the expert's with probability `expert_mix` (a beta-mixture),
+and always the expert's when the agent's action would hit an obstacle or stop early. After `max_policy_steps`
+steps the expert flies the rest of the way, so every episode ends with the expert's STOP, given at every state
+within `stop_radius_m` of the goal (the A* plan alone stops only within its 3-m tolerance, so rollouts that reach
+the goal area would teach the agent to fly on past it). The written episodes keep the source episode's
+instruction, targets, goals and camera pitch, and each state's box is that of the landmark the source dataset's
+`render.box_target` names (the expert's current leg's target for `leg`); `positions[t + 1]` follows the executed
 action, not the label (that is the point of the relabelling).
 """
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
+from openfly_agent.rollout.legs import current_leg
 from openfly_agent.rollout.policy import OBS_EXPERT_ACTION
 from openfly_agent.rollout.runner import RolloutHook, RunningEpisode
 from openfly_agent.sim import dynamics
@@ -69,8 +70,9 @@ class AStarExpert:
 
     def action(self, pose: Pose) -> int:
         """Raises PlanningFailed when no plan exists from `pose`."""
-        while self.leg < len(self.goals) - 1 and self._reached(pose, self.leg):
-            self.leg, self._labels, self._poses = self.leg + 1, [], []
+        leg = current_leg(self.leg, pose.position, self.goals, self.tolerance)
+        if leg != self.leg:  # a new leg: the plan to the previous goal is spent
+            self.leg, self._labels, self._poses = leg, [], []
         if self._reached(pose, self.leg):
             return C.ACTION_STOP
         if not (self.reuse_plans and self._poses and self._poses[0] == pose):
