@@ -25,7 +25,7 @@ from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, jitter_bo
 from openfly_agent.model.grounding.head import GroundingOutput, make_grounding_head
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
 from openfly_agent.model.language.length_groups import run_in_length_groups
-from openfly_agent.model.language.llm import build_language_model, cache_keyword, unwrap_causal_lm
+from openfly_agent.model.language.llm import build_language_model, cache_keyword
 from openfly_agent.model.layout import PADDING_RIGHT, SequenceLayout, position_ids_from_mask
 from openfly_agent.model.memory.encoding import StepFrames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
@@ -60,6 +60,13 @@ class OpenFlyNetwork(nn.Module):
     def llm_dim(self) -> int:
         """LLM hidden size."""
         return self.cfg.llm.hidden_size
+
+    @property
+    def causal_lm(self) -> nn.Module:
+        """The `LlamaForCausalLM` under `language_model`, also when peft wrapped it for LoRA (peft patches the
+        layers in place). Read on each use: LoRA wraps and merges `language_model` after construction."""
+        get_base = getattr(self.language_model, "get_base_model", None)
+        return get_base() if callable(get_base) else self.language_model
 
     # --- encode: frames + memory -> visual tokens -------------------------------------------------
     def encode(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -123,7 +130,7 @@ class OpenFlyNetwork(nn.Module):
         extend it in place (an inference prefill, then its `SequenceLayout.then` steps).
         """
         if cache is not None:
-            keyword = cache_keyword(type(unwrap_causal_lm(self.language_model).model))
+            keyword = cache_keyword(type(self.causal_lm.model))
             out = self.run_llm(
                 layout.embeds, layout.mask, position_ids=layout.positions, use_cache=True, **{keyword: cache}
             )
@@ -142,7 +149,7 @@ class OpenFlyNetwork(nn.Module):
     def run_llm(self, embeds: torch.Tensor, attention_mask: torch.Tensor, **kwargs) -> Any:
         """Decoder stack without the LM head -> transformers output (last_hidden_state, past_key_values)."""
         kwargs.setdefault("position_ids", position_ids_from_mask(attention_mask))
-        core = unwrap_causal_lm(self.language_model).model
+        core = self.causal_lm.model
         return core(inputs_embeds=embeds, attention_mask=attention_mask, **kwargs)
 
     # The cache is a transformers `DynamicCache` filled in place by every call, passed under the decoder's own
@@ -152,11 +159,11 @@ class OpenFlyNetwork(nn.Module):
         """An empty `DynamicCache` for the LLM."""
         from transformers import DynamicCache
 
-        return DynamicCache(config=unwrap_causal_lm(self.language_model).config)
+        return DynamicCache(config=self.causal_lm.config)
 
     def embed_text(self, input_ids: torch.Tensor) -> torch.Tensor:
         """(B, L) ids -> (B, L, D) input embeddings."""
-        return unwrap_causal_lm(self.language_model).get_input_embeddings()(input_ids)
+        return self.causal_lm.get_input_embeddings()(input_ids)
 
     # --- heads: hidden states -> action logits, box ------------------------------------------------------
     def heads(
@@ -190,7 +197,7 @@ class OpenFlyNetwork(nn.Module):
 
     def lm_logits(self, hidden: torch.Tensor) -> torch.Tensor:
         """LM head on selected hidden states -> float32 logits."""
-        return unwrap_causal_lm(self.language_model).lm_head(hidden).float()
+        return self.causal_lm.lm_head(hidden).float()
 
     def predicted_boxes(
         self, grounding: GroundingOutput | None, batch: int
