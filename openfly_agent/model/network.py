@@ -21,12 +21,17 @@ from openfly_agent.constants import FRAME_INDEX, MEMORY_PIXEL_VALUES, PIXEL_VALU
 from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_memory_encoding
-from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, jitter_boxes, last_true_index
+from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, jitter_boxes
 from openfly_agent.model.grounding.head import GroundingOutput, make_grounding_head
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
-from openfly_agent.model.language.length_groups import run_in_length_groups
 from openfly_agent.model.language.llm import build_language_model, cache_keyword
-from openfly_agent.model.layout import PADDING_RIGHT, SequenceLayout, position_ids_from_mask
+from openfly_agent.model.layout import (
+    PADDING_RIGHT,
+    SequenceLayout,
+    last_true_index,
+    position_ids_from_mask,
+    run_in_length_groups,
+)
 from openfly_agent.model.memory.encoding import StepFrames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 from openfly_agent.model.vision.backbone import build_vision_backbone, encode_frames
@@ -187,11 +192,9 @@ class OpenFlyNetwork(nn.Module):
             logits = self.lm_logits(read)
         if not boxes or self.grounding_head is None:
             return logits, None
-        p = self.cfg.vision.num_patches
-        image_positions = layout.first_image[:, None] + torch.arange(p, device=hidden.device)[None]  # (B, P)
         readable = layout.readable
         grounding = self.grounding_head(
-            hidden, readable, image_positions, last_true_index(readable), layout.current
+            hidden, readable, layout.image_positions(), last_true_index(readable), layout.current
         )
         return logits, grounding
 

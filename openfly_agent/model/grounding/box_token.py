@@ -53,9 +53,3 @@ class BoxTokenEmbedding(nn.Module):
     def forward(self, boxes: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
         features = box_features(boxes, visible).to(self.fc1.weight.dtype)
         return self.fc2(nn.functional.gelu(self.fc1(features)))
-
-
-def last_true_index(mask: torch.Tensor) -> torch.Tensor:
-    """(B, L) bool -> (B,) index of each row's last True column (0 for an all-False row)."""
-    columns = torch.arange(mask.shape[1], device=mask.device)[None]
-    return (mask.long() * columns).amax(dim=1)
