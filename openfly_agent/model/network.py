@@ -34,7 +34,34 @@ from openfly_agent.model.layout import (
 from openfly_agent.model.memory.encoding import StepFrames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 from openfly_agent.model.vision.backbone import build_vision_backbone, encode_frames
-from openfly_agent.model.vision.projector import FusedMLPProjector
+
+# --- the projector: visual features -> LLM input embeddings -------------------------------------------------
+# fc1's width as a multiple of the vision width: OpenVLA's 4 x 2176 = 8704 (a setting until issue 46, which no
+# config or experiment changed).
+PROJECTOR_HIDDEN_RATIO = 4
+
+
+class FusedMLPProjector(nn.Module):
+    """Vision-to-LLM projector, Prismatic's fused GELU MLP under the OpenVLA key names: fc1 (D_v -> 4 D_v) -> GELU
+    -> fc2 (-> D_llm) -> GELU -> fc3 (D_llm -> D_llm).
+
+    Args:
+        vision_dim: fused vision feature width (2176 for dinosiglip-224px).
+        llm_dim: LLM hidden size.
+    """
+
+    def __init__(self, vision_dim: int, llm_dim: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(vision_dim, PROJECTOR_HIDDEN_RATIO * vision_dim)
+        self.fc2 = nn.Linear(PROJECTOR_HIDDEN_RATIO * vision_dim, llm_dim)
+        self.fc3 = nn.Linear(llm_dim, llm_dim)
+        self.act = nn.GELU()
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """(..., D_v) -> (..., D_llm)."""
+        features = features.to(self.fc1.weight.dtype)
+        return self.fc3(self.act(self.fc2(self.act(self.fc1(features)))))
+
 
 # --- the box token: the target's box as one input embedding after the prompt --------------------------------
 NUM_BOX_FEATURES = 6  # visible, cx - 0.5, cy - 0.5, sqrt(area), w, h
