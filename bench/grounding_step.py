@@ -24,7 +24,7 @@ from contextlib import nullcontext
 import torch
 
 from openfly_agent import constants as C
-from openfly_agent.model.grounding.box_token import last_true_index
+from openfly_agent.model.layout import last_true_index
 from openfly_agent.training.accelerator import make_accelerator
 from openfly_agent.training.builder import load_splits, prepare_agent
 from openfly_agent.training.cli import parse_args

@@ -29,7 +29,7 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.grounding.cells import CellGroundingHead
+from openfly_agent.model.grounding.head import CellGroundingHead
 from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.model.vision.conv import cell_colour_stats, normalised_pixels
 from openfly_agent.sim.embedded_scenes import EmbeddedScenes

@@ -20,8 +20,7 @@ import torch
 
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
-from openfly_agent.model.grounding.cells import CellGroundingHead
-from openfly_agent.model.grounding.head import box_cells, iou_and_giou
+from openfly_agent.model.grounding.head import CellGroundingHead, box_cells, iou_and_giou
 from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig

@@ -21,16 +21,97 @@ from openfly_agent.constants import FRAME_INDEX, MEMORY_PIXEL_VALUES, PIXEL_VALU
 from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_memory_encoding
-from openfly_agent.model.grounding.box_token import BoxTokenEmbedding, jitter_boxes, last_true_index
 from openfly_agent.model.grounding.head import GroundingOutput, make_grounding_head
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
-from openfly_agent.model.language.length_groups import run_in_length_groups
-from openfly_agent.model.language.llm import build_language_model, cache_keyword, unwrap_causal_lm
-from openfly_agent.model.layout import PADDING_RIGHT, SequenceLayout, position_ids_from_mask
+from openfly_agent.model.language.llm import build_language_model, cache_keyword
+from openfly_agent.model.layout import (
+    PADDING_RIGHT,
+    SequenceLayout,
+    last_true_index,
+    position_ids_from_mask,
+    run_in_length_groups,
+)
 from openfly_agent.model.memory.encoding import StepFrames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 from openfly_agent.model.vision.backbone import build_vision_backbone, encode_frames
-from openfly_agent.model.vision.projector import FusedMLPProjector
+
+# --- the projector: visual features -> LLM input embeddings -------------------------------------------------
+# fc1's width as a multiple of the vision width: OpenVLA's 4 x 2176 = 8704 (a setting until issue 46, which no
+# config or experiment changed).
+PROJECTOR_HIDDEN_RATIO = 4
+
+
+class FusedMLPProjector(nn.Module):
+    """Vision-to-LLM projector, Prismatic's fused GELU MLP under the OpenVLA key names: fc1 (D_v -> 4 D_v) -> GELU
+    -> fc2 (-> D_llm) -> GELU -> fc3 (D_llm -> D_llm).
+
+    Args:
+        vision_dim: fused vision feature width (2176 for dinosiglip-224px).
+        llm_dim: LLM hidden size.
+    """
+
+    def __init__(self, vision_dim: int, llm_dim: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(vision_dim, PROJECTOR_HIDDEN_RATIO * vision_dim)
+        self.fc2 = nn.Linear(PROJECTOR_HIDDEN_RATIO * vision_dim, llm_dim)
+        self.fc3 = nn.Linear(llm_dim, llm_dim)
+        self.act = nn.GELU()
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """(..., D_v) -> (..., D_llm)."""
+        features = features.to(self.fc1.weight.dtype)
+        return self.fc3(self.act(self.fc2(self.act(self.fc1(features)))))
+
+
+# --- the box token: the target's box as one input embedding after the prompt --------------------------------
+NUM_BOX_FEATURES = 6  # visible, cx - 0.5, cy - 0.5, sqrt(area), w, h
+
+
+def box_features(boxes: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """(B, 4) cxcywh in [0, 1] and (B,) bool -> (B, 6) features; all zeros for an invisible target."""
+    cx, cy, w, h = boxes.float().unbind(-1)
+    features = torch.stack(
+        [torch.ones_like(cx), cx - 0.5, cy - 0.5, (w * h).clamp(min=0).sqrt(), w, h], dim=-1
+    )
+    return features * visible.to(features.dtype)[:, None]
+
+
+def given_boxes(boxes: list, device=None) -> tuple[torch.Tensor, list[bool]]:
+    """A list of (cx, cy, w, h) or None (not visible) -> (B, 4) float boxes (zeros where None), (B,) visibility."""
+    rows = [[0.0] * 4 if box is None else [float(v) for v in box] for box in boxes]
+    if any(len(row) != 4 for row in rows):
+        raise ValueError(f"boxes must be (cx, cy, w, h) or None, got {boxes}")
+    return torch.tensor(rows, dtype=torch.float32, device=device), [box is not None for box in boxes]
+
+
+def jitter_boxes(boxes: torch.Tensor, std: float) -> torch.Tensor:
+    """Training noise on (B, 4) cxcywh: the centre moves by N(0, std), width and height scale by exp(N(0, 2 std))."""
+    if std <= 0:
+        return boxes
+    centre = boxes[:, :2] + torch.randn_like(boxes[:, :2]) * std
+    size = boxes[:, 2:] * torch.exp(torch.randn_like(boxes[:, 2:]) * 2 * std)
+    return torch.cat([centre, size], dim=-1).clamp(0.0, 1.0)
+
+
+class BoxTokenEmbedding(nn.Module):
+    """(B, 6) box features -> (B, D) an input embedding of the LLM (a 2-layer GELU MLP): the BOX token.
+
+    With `action_head.box_token` the step's sequence is `[BOS] [memory] [current] [prompt] [BOX] -> action`: the
+    LLM reads the action at the BOX position, whose input embedding encodes where the instruction's target is in
+    the frame. At inference BOX carries the grounding head's prediction from the prefill of `[BOS] .. [prompt]`
+    (then one cached decode step); in training the ground-truth box, jittered (`jitter_boxes`) so the action learns
+    to tolerate a grounding head's errors. The grounding head never reads the BOX position, so both see the same
+    prefix. Where BOX goes is the sequence layout's (model/layout.py); this class makes its embedding.
+    """
+
+    def __init__(self, llm_dim: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(NUM_BOX_FEATURES, llm_dim)
+        self.fc2 = nn.Linear(llm_dim, llm_dim)
+
+    def forward(self, boxes: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+        features = box_features(boxes, visible).to(self.fc1.weight.dtype)
+        return self.fc2(nn.functional.gelu(self.fc1(features)))
 
 
 class OpenFlyNetwork(nn.Module):
@@ -60,6 +141,13 @@ class OpenFlyNetwork(nn.Module):
     def llm_dim(self) -> int:
         """LLM hidden size."""
         return self.cfg.llm.hidden_size
+
+    @property
+    def causal_lm(self) -> nn.Module:
+        """The `LlamaForCausalLM` under `language_model`, also when peft wrapped it for LoRA (peft patches the
+        layers in place). Read on each use: LoRA wraps and merges `language_model` after construction."""
+        get_base = getattr(self.language_model, "get_base_model", None)
+        return get_base() if callable(get_base) else self.language_model
 
     # --- encode: frames + memory -> visual tokens -------------------------------------------------
     def encode(self, batch: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -123,7 +211,7 @@ class OpenFlyNetwork(nn.Module):
         extend it in place (an inference prefill, then its `SequenceLayout.then` steps).
         """
         if cache is not None:
-            keyword = cache_keyword(type(unwrap_causal_lm(self.language_model).model))
+            keyword = cache_keyword(type(self.causal_lm.model))
             out = self.run_llm(
                 layout.embeds, layout.mask, position_ids=layout.positions, use_cache=True, **{keyword: cache}
             )
@@ -142,7 +230,7 @@ class OpenFlyNetwork(nn.Module):
     def run_llm(self, embeds: torch.Tensor, attention_mask: torch.Tensor, **kwargs) -> Any:
         """Decoder stack without the LM head -> transformers output (last_hidden_state, past_key_values)."""
         kwargs.setdefault("position_ids", position_ids_from_mask(attention_mask))
-        core = unwrap_causal_lm(self.language_model).model
+        core = self.causal_lm.model
         return core(inputs_embeds=embeds, attention_mask=attention_mask, **kwargs)
 
     # The cache is a transformers `DynamicCache` filled in place by every call, passed under the decoder's own
@@ -152,11 +240,11 @@ class OpenFlyNetwork(nn.Module):
         """An empty `DynamicCache` for the LLM."""
         from transformers import DynamicCache
 
-        return DynamicCache(config=unwrap_causal_lm(self.language_model).config)
+        return DynamicCache(config=self.causal_lm.config)
 
     def embed_text(self, input_ids: torch.Tensor) -> torch.Tensor:
         """(B, L) ids -> (B, L, D) input embeddings."""
-        return unwrap_causal_lm(self.language_model).get_input_embeddings()(input_ids)
+        return self.causal_lm.get_input_embeddings()(input_ids)
 
     # --- heads: hidden states -> action logits, box ------------------------------------------------------
     def heads(
@@ -180,17 +268,15 @@ class OpenFlyNetwork(nn.Module):
             logits = self.lm_logits(read)
         if not boxes or self.grounding_head is None:
             return logits, None
-        p = self.cfg.vision.num_patches
-        image_positions = layout.first_image[:, None] + torch.arange(p, device=hidden.device)[None]  # (B, P)
         readable = layout.readable
         grounding = self.grounding_head(
-            hidden, readable, image_positions, last_true_index(readable), layout.current
+            hidden, readable, layout.image_positions(), last_true_index(readable), layout.current
         )
         return logits, grounding
 
     def lm_logits(self, hidden: torch.Tensor) -> torch.Tensor:
         """LM head on selected hidden states -> float32 logits."""
-        return unwrap_causal_lm(self.language_model).lm_head(hidden).float()
+        return self.causal_lm.lm_head(hidden).float()
 
     def predicted_boxes(
         self, grounding: GroundingOutput | None, batch: int

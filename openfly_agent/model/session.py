@@ -21,10 +21,9 @@ from openfly_agent.constants import (
 )
 from openfly_agent.model.config import HEAD_DISCRETE
 from openfly_agent.model.episode import Box, EpisodeState, StepResult, check_observations
-from openfly_agent.model.grounding.box_token import given_boxes
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
 from openfly_agent.model.layout import SequenceLayout
-from openfly_agent.model.network import OpenFlyNetwork
+from openfly_agent.model.network import OpenFlyNetwork, given_boxes
 from openfly_agent.model.processor import OpenFlyProcessor
 
 

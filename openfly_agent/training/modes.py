@@ -8,7 +8,6 @@ import logging
 from torch import nn
 
 from openfly_agent.model.freeze import freeze
-from openfly_agent.model.language.llm import unwrap_causal_lm
 from openfly_agent.model.language.lora import attach_lora
 from openfly_agent.training.config import TrainConfig
 
@@ -31,7 +30,7 @@ def apply_training_mode(agent: nn.Module, cfg: TrainConfig) -> None:
 def compile_decoder_layers(agent: nn.Module, backend: str = "inductor") -> int:
     """`torch.compile` each LLM decoder layer in place (`nn.Module.compile`: the parameter names, the state
     dict and the checkpoints stay the same); compiled on the first call. Returns the number of layers."""
-    layers = unwrap_causal_lm(agent.network.language_model).model.layers
+    layers = agent.network.causal_lm.model.layers
     for layer in layers:
         layer.compile(backend=backend)
     logger.info("torch.compile (%s) on %d decoder layers", backend, len(layers))

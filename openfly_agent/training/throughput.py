@@ -32,7 +32,6 @@ import torch
 from torch import nn
 
 from openfly_agent import constants as C
-from openfly_agent.model.language.llm import unwrap_causal_lm
 
 # bf16 dense tensor-core peaks (datasheets, TFLOP/s), matched as substrings of the CUDA device name
 PEAK_BF16_TFLOPS = {
@@ -155,7 +154,7 @@ class StepFlops:
             p.numel() for p in agent.network.vision_backbone.parameters() if p.requires_grad
         )
         vision_trains = vision_trainable > 0
-        layers = unwrap_causal_lm(agent.network.language_model).model.layers
+        layers = agent.network.causal_lm.model.layers
         projector_params, projector_trainable = _matrix_params(agent.network.projector)
         llm_params, llm_trainable = _matrix_params(layers)
         return cls(

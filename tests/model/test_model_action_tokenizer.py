@@ -51,7 +51,7 @@ def test_discrete_round_trip(action):
 
 def test_discrete_ids_are_in_the_last_256():
     tok = ActionTokenizer("discrete", vocab_end=VOCAB_END)
-    assert tok.discrete_token_ids == list(range(31744, 31754))
+    assert tok.discrete_token_ids == tuple(range(31744, 31754))
     assert tok.is_action_token(np.array(tok.discrete_token_ids)).all()
     with pytest.raises(ValueError, match="not one of the discrete action ids"):
         tok.token_ids_to_action([31743])

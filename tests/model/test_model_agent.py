@@ -16,17 +16,15 @@ from openfly_agent.model.config import (
     TinyCnnVisionConfig,
     openfly_7b_config,
 )
-from openfly_agent.model.grounding.cells import (
-    CellGroundingHead,
-    cell_centres,
-    windowed_softmax,
-)
 from openfly_agent.model.grounding.head import (
     BoxRegressionHead,
+    CellGroundingHead,
     GroundingOutput,
     box_cells,
+    cell_centres,
     grounding_loss,
     iou_and_giou,
+    windowed_softmax,
 )
 
 LOG_KEYS = {"loss", "action_loss", "grounding_loss", "action_accuracy", "box_iou", "num_visible_boxes"}

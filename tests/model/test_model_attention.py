@@ -19,7 +19,6 @@ from openfly_agent.model.config import (
     TinyLLMConfig,
 )
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
-from openfly_agent.model.language.llm import unwrap_causal_lm
 
 NORM_STATS = {"demo": {"action": {"q01": [0.0] * 8, "q99": CODEBOOK.max(axis=0).tolist()}}}
 INSTRUCTIONS = ["Fly to the red tower and turn left.", "Go straight."]  # two prompt lengths: left padding
@@ -52,7 +51,7 @@ def agent_pair(make_agent, request):
         for agent in agents.values():
             agent.network.projector.fc3.weight.mul_(10.0)
     for attn, agent in agents.items():
-        assert unwrap_causal_lm(agent.network.language_model).config._attn_implementation == attn
+        assert agent.network.causal_lm.config._attn_implementation == attn
     return agents
 
 

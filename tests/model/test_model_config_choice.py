@@ -25,8 +25,7 @@ from openfly_agent.model.config import (
     VisionConfig,
 )
 from openfly_agent.model.config_choice import BuiltChoice
-from openfly_agent.model.grounding.cells import CellGroundingHead
-from openfly_agent.model.grounding.head import BoxRegressionHead
+from openfly_agent.model.grounding.head import BoxRegressionHead, CellGroundingHead
 from openfly_agent.model.vision.backbone import TinyVitBackbone
 from openfly_agent.model.vision.conv import ConvVisionBackbone
 

@@ -7,8 +7,7 @@ import pytest
 import torch
 
 from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
-from openfly_agent.model.grounding.cells import CellGroundingHead
-from openfly_agent.model.grounding.head import BoxRegressionHead, make_grounding_head
+from openfly_agent.model.grounding.head import BoxRegressionHead, CellGroundingHead, make_grounding_head
 from openfly_agent.model.persistence.openvla_loader import (
     agent_from_openvla_checkpoint,
     to_openvla_state_dict,

@@ -1,4 +1,4 @@
-"""The grounding head's cells beyond the LLM's hidden states (model/grounding/cells.py): `grounding.visual_skip`
+"""The grounding head's cells beyond the LLM's hidden states (model/grounding/head.py): `grounding.visual_skip`
 (the cells get the frame's visual tokens)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
-from openfly_agent.model.grounding.cells import CellGroundingHead
+from openfly_agent.model.grounding.head import CellGroundingHead
 
 # a 2 x 2 grid at positions 1-4 of a 7-position sequence; position 5 is a prompt token, 6 padding (not readable)
 IMAGE_POSITIONS = torch.tensor([[1, 2, 3, 4]])

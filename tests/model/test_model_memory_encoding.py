@@ -9,7 +9,7 @@ import torch
 from openfly_agent.model.config import make_model_config
 from openfly_agent.model.factory import make_memory_encoding
 from openfly_agent.model.memory.history_memory import HistoryEpisodeMemory, HistoryMemory, history_indices
-from openfly_agent.model.memory.keyframe_memory import KeyframeEpisodeMemory, KeyframeMemory
+from openfly_agent.model.memory.keyframe_memory import KeyframeEpisodeMemory, KeyframeMemory, MemoryBank
 from openfly_agent.model.memory.keyframes import KeyframeSelector
 
 
@@ -48,3 +48,19 @@ def test_history_indices():
     assert history_indices(1, 2) == [0, 0]  # eval: [f0, f0, f1]
     assert history_indices(2, 2) == [0, 1]
     assert history_indices(7, 2) == [5, 6]
+
+
+def test_memory_bank_fifo_eviction_order():
+    bank = MemoryBank(capacity=2)
+    assert bank.push("a", torch.zeros(1)) == []
+    assert bank.push("b", torch.ones(1)) == []
+    assert bank.push("b", torch.ones(1)) == []  # already stored: no change
+    assert bank.push("c", torch.full((1,), 2.0)) == ["a"]
+    assert bank.keys() == ["b", "c"]
+    assert [t.item() for t in bank.tokens()] == [1.0, 2.0]
+    assert bank.push("d", torch.full((1,), 3.0)) == ["b"]
+    assert bank.keys() == ["c", "d"] and "b" not in bank
+    bank.clear()
+    assert len(bank) == 0
+    zero = MemoryBank(capacity=0)
+    assert zero.push("a", torch.zeros(1)) == [] and len(zero) == 0

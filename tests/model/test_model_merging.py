@@ -1,12 +1,11 @@
-"""Visual token merging, grid pooling and the FIFO memory bank on constructed inputs."""
+"""Visual token merging and grid pooling (model/memory/merging.py) on constructed inputs."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from openfly_agent.model.memory.bank import MemoryBank, grid_pool
-from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
+from openfly_agent.model.memory.merging import choose_reference, grid_pool, merge_into_reference
 
 
 def _random_frames(n=2, s=3, p=16, d=8):
@@ -100,19 +99,3 @@ def test_grid_pool_shapes_and_values():
     assert grid_pool(torch.randn(3, 256, 5), 16).shape == (3, 1, 5)
     with pytest.raises(ValueError, match="divide"):
         grid_pool(tokens, 3)
-
-
-def test_memory_bank_fifo_eviction_order():
-    bank = MemoryBank(capacity=2)
-    assert bank.push("a", torch.zeros(1)) == []
-    assert bank.push("b", torch.ones(1)) == []
-    assert bank.push("b", torch.ones(1)) == []  # already stored: no change
-    assert bank.push("c", torch.full((1,), 2.0)) == ["a"]
-    assert bank.keys() == ["b", "c"]
-    assert [t.item() for t in bank.tokens()] == [1.0, 2.0]
-    assert bank.push("d", torch.full((1,), 3.0)) == ["b"]
-    assert bank.keys() == ["c", "d"] and "b" not in bank
-    bank.clear()
-    assert len(bank) == 0
-    zero = MemoryBank(capacity=0)
-    assert zero.push("a", torch.zeros(1)) == [] and len(zero) == 0

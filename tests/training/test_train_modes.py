@@ -148,13 +148,12 @@ def test_init_from_our_checkpoint_starts_from_its_weights(reference_run, generat
 def test_compiled_decoder_layers_are_off_by_default_and_give_the_same_loss(generated_dataset, tmp_path):
     """`compile_layers` compiles each decoder layer in place (here with the `eager` backend: the wiring, not
     inductor's kernels, which need a GPU session to be worth timing); the default compiles nothing."""
-    from openfly_agent.model.language.llm import unwrap_causal_lm
     from openfly_agent.training.modes import compile_decoder_layers
 
     cfg = make_config(generated_dataset, tmp_path, validation__final_eval="false")
     assert cfg.compile_layers is False
     agent = built_agent(cfg).train()
-    layers = unwrap_causal_lm(agent.network.language_model).model.layers
+    layers = agent.network.causal_lm.model.layers
     assert all(layer._compiled_call_impl is None for layer in layers)
     batch = split_batch(cfg, agent, cfg.data.test_split, range(2))
     torch.manual_seed(0)  # the same box-token jitter in both passes

@@ -1,1 +1,1 @@
-"""The grounding heads (box regression, cells), their loss and the box token."""
+"""The grounding heads (box regression, cells), their shared query layers and their loss."""

@@ -15,7 +15,7 @@ from openfly_agent.model.config_checks import check_positive
 from openfly_agent.model.config_choice import BuiltChoice
 
 GROUNDING_BOX = "box"  # the paper's box regression (model/grounding/head.py, the 7B presets)
-GROUNDING_CELLS = "cells"  # per-cell scoring (model/grounding/cells.py, the tiny preset)
+GROUNDING_CELLS = "cells"  # per-cell scoring (`CellGroundingHead`, the tiny preset)
 GROUNDING_NONE = "none"  # no head
 
 
@@ -88,7 +88,7 @@ class BoxGroundingConfig(GroundingHeadConfig):
 class CellGroundingConfig(GroundingHeadConfig):
     """`cells`: per-cell scoring of the current frame. The query starts from the last prompt token, FiLM-scores
     every cell, the box centre is the softmax-weighted cell centre plus an offset, and `cell_weight` x the
-    cross-entropy of the cell holding the box centre joins the loss (model/grounding/cells.py)."""
+    cross-entropy of the cell holding the box centre joins the loss (`CellGroundingHead`, model/grounding/head.py)."""
 
     cell_weight: float = 1.0  # weight of the cell cross-entropy
     # at inference: the centre and the size's context come from the (2w + 1) x (2w + 1) cells around the

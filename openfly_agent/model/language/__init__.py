@@ -1,1 +1,1 @@
-"""The Llama LLM, the text and action tokenizers, sequence layout, cached decoding and LoRA."""
+"""The Llama LLM, the text and action tokenizers, the LLM and prompt config, and LoRA."""

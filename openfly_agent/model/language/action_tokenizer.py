@@ -73,17 +73,12 @@ class ActionTokenizer:
         self.action_stats = _check_stats(action_stats) if action_stats is not None else None
         self.bins = np.linspace(-1.0, 1.0, NUM_ACTION_SLOTS)  # 256 edges
         self.bin_centers = (self.bins[:-1] + self.bins[1:]) / 2.0  # 255 centres
+        # the ids, fixed by vocab_end: resolved once here, read by every training and inference step
+        self.action_token_begin = self.vocab_end - NUM_ACTION_SLOTS  # first of the 256 action ids
+        # token id of each action 0..9 under the discrete head (logits are restricted to these)
+        self.discrete_token_ids = tuple(self.action_token_begin + a for a in MODEL_ACTION_IDS)
 
     # --- ids --------------------------------------------------------------------------------------------
-    @property
-    def action_token_begin(self) -> int:
-        """First of the 256 action ids."""
-        return self.vocab_end - NUM_ACTION_SLOTS
-
-    @property
-    def discrete_token_ids(self) -> list[int]:
-        """Token id of each action 0..9 under the discrete head (logits are restricted to these)."""
-        return [self.action_token_begin + a for a in MODEL_ACTION_IDS]
 
     @property
     def num_action_tokens(self) -> int:
@@ -178,7 +173,7 @@ class ActionTokenizer:
             "eos_token_id": self.eos_token_id,
             "decode_rule": self.decode_rule,
             "action_token_begin": self.action_token_begin,
-            "discrete_token_ids": self.discrete_token_ids,
+            "discrete_token_ids": list(self.discrete_token_ids),
         }
 
     def save(self, path: str | Path) -> None:

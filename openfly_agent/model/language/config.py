@@ -58,7 +58,7 @@ class LLMConfig(BuiltChoice, ChoiceRegistry):
     max_length: int = 2048
     attn_implementation: str = "sdpa"  # one of ATTN_IMPLEMENTATIONS (passed to transformers)
     # training forward: the decoder stack runs on up to this many groups of rows of similar length, each cut to
-    # its longest row (model/language/length_groups.py; same loss, fewer padded positions); 1 runs the padded batch in one
+    # its longest row (model/layout.py, `run_in_length_groups`; same loss, fewer padded positions); 1 runs the padded batch in one
     # call (the 7B presets)
     length_groups: int = 3
     # Special token ids (taken from the tokenizer when the model is built with one).

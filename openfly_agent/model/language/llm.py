@@ -42,12 +42,6 @@ def llama_causal_lm(cfg: LLMConfig, vocab_size: int) -> nn.Module:
     return LlamaForCausalLM(llama_config(cfg, vocab_size))
 
 
-def unwrap_causal_lm(language_model: nn.Module) -> nn.Module:
-    """The underlying `LlamaForCausalLM`, also when peft wrapped it for LoRA (layers are patched in place)."""
-    get_base = getattr(language_model, "get_base_model", None)
-    return get_base() if callable(get_base) else language_model
-
-
 @functools.cache
 def cache_keyword(decoder_class: type) -> str:
     """The decoder's keyword for the KV cache: `cache`, or `past_key_values` before transformers renamed it (read

@@ -12,9 +12,9 @@ from torch import nn
 
 from openfly_agent.model.config import HistoryEncodingConfig, ModelConfig
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
-from openfly_agent.model.memory.bank import grid_pool
 from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames, memory_frames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
+from openfly_agent.model.memory.merging import grid_pool
 
 
 @dataclass

@@ -1,8 +1,11 @@
 """The keyframe memory (`memory.encoding.type: keyframes`, the default): the last K keyframe sets, each merged into its largest-box frame,
-grid-pooled and projected to LLM tokens; online, the sets the keyframe selector picks from the episode so far."""
+grid-pooled and projected to LLM tokens; online, the sets the keyframe selector picks from the episode so far, kept in
+each episode's FIFO `MemoryBank`."""
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -12,11 +15,52 @@ from torch import nn
 from openfly_agent.constants import MEMORY_BOX_VISIBLE, MEMORY_BOXES
 from openfly_agent.model.config import KeyframeEncodingConfig, ModelConfig
 from openfly_agent.model.episode import EpisodeMemory, EpisodeState
-from openfly_agent.model.memory.bank import MemoryBank, grid_pool
 from openfly_agent.model.memory.encoding import MemoryEncoding, StepFrames, memory_frames
 from openfly_agent.model.memory.keyframes import KeyframeSelector
-from openfly_agent.model.memory.merging import choose_reference, merge_into_reference
+from openfly_agent.model.memory.merging import choose_reference, grid_pool, merge_into_reference
 from openfly_agent.model.vision.backbone import encode_frames
+
+
+class MemoryBank:
+    """FIFO of at most `capacity` entries (pooled keyframe-set tokens), keyed so a set is stored once.
+
+    Args:
+        capacity: K; pushing onto a full bank evicts the oldest entry.
+    """
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 0:
+            raise ValueError(f"MemoryBank capacity={capacity} must be >= 0")
+        self.capacity = capacity
+        self._entries: OrderedDict[Hashable, torch.Tensor] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self._entries
+
+    def push(self, key: Hashable, tokens: torch.Tensor) -> list[Hashable]:
+        """Append `tokens` under `key` (already stored: no change); returns the evicted keys, oldest first."""
+        if self.capacity == 0 or key in self._entries:
+            return []
+        self._entries[key] = tokens
+        evicted = []
+        while len(self._entries) > self.capacity:
+            evicted.append(self._entries.popitem(last=False)[0])
+        return evicted
+
+    def keys(self) -> list[Hashable]:
+        """Stored keys, oldest first."""
+        return list(self._entries)
+
+    def tokens(self) -> list[torch.Tensor]:
+        """Stored token tensors, oldest first."""
+        return list(self._entries.values())
+
+    def clear(self) -> None:
+        """Forget everything (episode reset)."""
+        self._entries.clear()
 
 
 @dataclass

@@ -1,12 +1,16 @@
-"""Visual token merging (VTM) of a keyframe set into its reference frame; pure, batched tensor functions.
+"""Visual token merging (VTM) of a keyframe set into its reference frame, and grid pooling of patch tokens: how a
+memory entry's tokens shrink; pure, batched tensor functions.
 
 Each token of a comparative frame finds its most similar reference token (cosine). It is merged into it
 when the similarity is >= threshold (and, with top_r, it is among the r best of its frame); a reference
 token becomes the plain average of itself and everything merged into it. Unmerged comparative tokens are
-dropped, so a set always leaves P tokens (the reference frame's layout), whatever its size.
+dropped, so a set always leaves P tokens (the reference frame's layout), whatever its size. `grid_pool` then
+averages g x g windows of those tokens (the keyframe memory; the OpenVLA-compatible history pools each frame).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -94,3 +98,19 @@ def _top_r_mask(scores: torch.Tensor, r: int) -> torch.Tensor:
     top = torch.topk(scores, r, dim=-1).indices  # (N, S, r)
     mask = torch.zeros_like(scores, dtype=torch.bool).scatter_(-1, top, True)
     return mask & torch.isfinite(scores)
+
+
+def grid_pool(tokens: torch.Tensor, grid: int) -> torch.Tensor:
+    """Average-pool square patch tokens in g x g windows: (N, P, D) -> (N, (sqrt(P) / g)^2, D).
+
+    g = sqrt(P) gives one token per frame (OpenFly's `grid_size=16` on 224 px); g = 1 is the identity.
+    """
+    n, p, d = tokens.shape
+    side = math.isqrt(p)
+    if side * side != p:
+        raise ValueError(f"grid_pool needs a square patch grid, got P={p} tokens")
+    if side % grid:
+        raise ValueError(f"grid_pool: grid {grid} must divide the patch grid side {side}")
+    maps = tokens.transpose(1, 2).reshape(n, d, side, side)  # (N, D, s, s)
+    pooled = F.avg_pool2d(maps, kernel_size=grid, stride=grid)  # (N, D, s/g, s/g)
+    return pooled.flatten(2).transpose(1, 2)  # (N, (s/g)^2, D)
