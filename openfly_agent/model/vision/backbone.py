@@ -77,7 +77,7 @@ class FusedVisionBackbone(nn.Module):
         if pixels.dtype != torch.uint8 or pixels.ndim != 4 or tuple(pixels.shape[1:]) != (3, size, size):
             raise ValueError(
                 f"vision backbone expects uint8 RGB pixels of shape (N, 3, {size}, {size}); got "
-                f"{pixels.dtype} {tuple(pixels.shape)} (resize with agent.image_transform)"
+                f"{pixels.dtype} {tuple(pixels.shape)} (agent.processor.image resizes a frame to it)"
             )
 
     def forward_with_cls(self, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
