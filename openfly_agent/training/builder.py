@@ -84,6 +84,7 @@ class Splits:
             keyframe_selector=agent.network.keyframe_selector,
             seed=cfg.seed,
             target_attributes=self.attributes,
+            leg_goals=cfg.model.leg_goal_weight > 0,
         )
 
 

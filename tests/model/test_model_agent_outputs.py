@@ -37,3 +37,40 @@ def test_token_box_feeds_the_box_token_and_box_stays_the_grounding_target(make_a
     assert not torch.allclose(other["action_logits"], base["action_logits"])
     # the grounding head reads the positions before the box token: its loss does not change
     assert torch.allclose(other["grounding_loss"], base["grounding_loss"])
+
+
+def test_the_leg_goal_head_adds_its_weighted_squared_error_and_learns_from_it(make_agent, make_batch):
+    """`action_head.leg_goal_weight`: a linear head on the hidden state each action is read from; by hand, its
+    loss is the squared error summed over (sin, cos, distance) and averaged over the rows."""
+    from openfly_agent.model.config import DiscreteActionHeadConfig
+
+    plain = make_agent(seed=3)
+    agent = make_agent(seed=3, action_head=DiscreteActionHeadConfig(leg_goal_weight=0.5))
+    assert plain.network.leg_goal_head is None and agent.network.leg_goal_head is not None
+    batch = make_batch(agent, batch_size=3)
+    target = torch.tensor([[1.0, 0.0, 0.5], [0.0, 1.0, 0.1], [0.0, -1.0, 2.0]])
+    outputs: dict = {}
+    loss, logs = agent({**batch, C.LEG_GOAL: target}, outputs=outputs)
+    base_loss, base_logs = agent(batch)  # no target in the batch: no leg-goal loss
+    assert "leg_goal_loss" not in base_logs
+    hidden: list = []
+    hook = agent.network.leg_goal_head.register_forward_hook(lambda m, args, out: hidden.append(args[0]))
+    agent({**batch, C.LEG_GOAL: target})
+    hook.remove()
+    predicted = agent.network.leg_goal_head(hidden[0])  # (3, 3)
+    by_hand = ((predicted - target) ** 2).sum(dim=1).mean()
+    assert torch.allclose(torch.tensor(logs["leg_goal_loss"]), by_hand, atol=1e-6)
+    assert torch.allclose(loss, base_loss + 0.5 * by_hand, atol=1e-5)
+    agent.train()
+    loss, _ = agent({**batch, C.LEG_GOAL: target})
+    loss.backward()
+    assert agent.network.leg_goal_head.weight.grad.abs().sum() > 0
+
+
+def test_a_negative_leg_goal_weight_is_refused():
+    import pytest
+
+    from openfly_agent.model.config import DiscreteActionHeadConfig
+
+    with pytest.raises(ValueError, match="leg_goal_weight"):
+        DiscreteActionHeadConfig(leg_goal_weight=-1.0)
