@@ -81,9 +81,6 @@ TOKEN_BOX = "token_box"  # (B, 4) float (cx, cy, w, h)
 TOKEN_BOX_VISIBLE = "token_box_visible"  # (B,) bool
 FRAME_INDEX = "frame_index"  # (B,) long: the frame of `pixel_values` each sequence reads (grounding batches)
 ACTION = "action"  # (B,) long, action id 0..9
-# optional (`action_head.leg_goal_weight`): where the current leg's goal lies, data/leg_goals.py
-LEG_GOAL = "leg_goal"  # (B, LEG_GOAL_DIM) float: sin, cos of its bearing off the heading, distance / 50 m
-LEG_GOAL_DIM = 3
 ACTION_VECTOR = "action_vector"  # (B, 8) float, openvla_bins head only
 EPISODE_ID = "episode_id"  # list[str]
 STEP_INDEX = "step_index"  # (B,) long

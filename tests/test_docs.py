@@ -115,6 +115,8 @@ RETIRED_OPTIONS = {
     "model.action_head.stop_loss_weight",
     # docs/experiments/2026-11-28-rl-stage-on-the-main-job.md (commit d431633)
     "rl.progress_at_stop",
+    # docs/experiments/2026-11-28-long-route-ablation.md (commit 1cb4fad)
+    "model.action_head.leg_goal_weight",
 }  # fmt: skip
 
 

@@ -18,8 +18,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from openfly_agent.data.leg_goals import LEG_GOAL_DISTANCE_SCALE_M as DISTANCE_SCALE_M
-from openfly_agent.data.leg_goals import distance_and_bearing, leg_goal_per_step
 from openfly_agent.data.schema import Episode
 
 logger = logging.getLogger(__name__)
@@ -28,6 +26,35 @@ BOX_FEATURES = ("visible", "cx", "cy", "w", "h", "area")
 GOAL_FEATURES = ("goal_distance", "goal_bearing", "altitude", "goal_altitude")
 LEG_FEATURES = ("leg_goal_distance", "leg_goal_bearing")
 FEATURE_NAMES = BOX_FEATURES + GOAL_FEATURES + ("step", "previous_action") + LEG_FEATURES
+DISTANCE_SCALE_M = 50.0  # features are divided by this to keep them near unit scale
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Radians wrapped to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def leg_goal_per_step(episode: Episode) -> np.ndarray:
+    """(T, 3) the goal of the leg each step belongs to: a leg ends at the step nearest its goal after the previous
+    leg's end (the A* path reaches each leg's goal within its tolerance there), and that step is the next leg's
+    first decision, as the toolchain's leg boxes count it. Without `leg_goals`: the last position at every step."""
+    positions = np.asarray(episode.positions, dtype=np.float64)[: len(episode.actions)]  # (T, 3)
+    if episode.leg_goals is None or len(episode.leg_goals) < 2:
+        return np.repeat(positions[-1:], len(positions), axis=0)
+    goals = np.asarray(episode.leg_goals, dtype=np.float64)  # (K, 3)
+    ends, start = [], 0
+    for goal in goals[:-1]:
+        start += int(np.argmin(np.linalg.norm(positions[start:] - goal, axis=1)))
+        ends.append(start)
+    legs = np.searchsorted(np.asarray(ends), np.arange(len(positions)), side="right")  # (T,) 0 .. K-1
+    return goals[legs]
+
+
+def _distance_and_bearing(positions: np.ndarray, yaws: np.ndarray, goals: np.ndarray):
+    """(T,) horizontal distance to each step's goal over DISTANCE_SCALE_M, and its bearing off the heading."""
+    delta = goals[:, :2] - positions[:, :2]  # (T, 2)
+    bearing = wrap_angle(np.arctan2(delta[:, 1], delta[:, 0]) - yaws)
+    return np.linalg.norm(delta, axis=1) / DISTANCE_SCALE_M, bearing
 
 
 def step_features(episode: Episode) -> np.ndarray:
@@ -44,8 +71,8 @@ def step_features(episode: Episode) -> np.ndarray:
     positions = np.asarray(episode.positions, dtype=np.float64)[:n]  # (T, 3)
     yaws = np.asarray(episode.yaws, dtype=np.float64)[:n]  # (T,)
     goal = positions[-1]
-    distance, bearing = distance_and_bearing(positions, yaws, np.repeat(goal[None], n, axis=0))
-    leg_distance, leg_bearing = distance_and_bearing(positions, yaws, leg_goal_per_step(episode))
+    distance, bearing = _distance_and_bearing(positions, yaws, np.repeat(goal[None], n, axis=0))
+    leg_distance, leg_bearing = _distance_and_bearing(positions, yaws, leg_goal_per_step(episode))
     if episode.boxes is not None and episode.box_visible is not None:
         visible = np.asarray(episode.box_visible, dtype=np.float64)[:n]
         boxes = np.asarray(episode.boxes, dtype=np.float64)[:n] * visible[:, None]  # (T, 4)

@@ -122,8 +122,6 @@ class NavigationCollator:
             batch[C.TARGET_ATTRIBUTES] = torch.as_tensor(
                 np.stack([s[C.TARGET_ATTRIBUTES] for s in samples]), dtype=torch.long
             )  # (B, 4)
-        if all(C.LEG_GOAL in s for s in samples):
-            batch[C.LEG_GOAL] = torch.as_tensor(np.stack([s[C.LEG_GOAL] for s in samples]))  # (B, 3) float
         if self.with_metadata:
             batch[C.EPISODE_ID] = [s[C.EPISODE_ID] for s in samples]
             batch[C.STEP_INDEX] = torch.tensor([int(s[C.STEP_INDEX]) for s in samples], dtype=torch.long)

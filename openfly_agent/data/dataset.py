@@ -16,7 +16,6 @@ import torch
 from openfly_agent import constants as C
 from openfly_agent.data.config import HISTORY_MODES, DataConfig
 from openfly_agent.data.frames import FrameStore
-from openfly_agent.data.leg_goals import leg_goal_targets
 from openfly_agent.data.openfly_reader import load_openfly_dataset
 from openfly_agent.data.schema import Episode
 
@@ -70,8 +69,6 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         set_size: S, frames per set (the model's keyframe set size, 2 x radius + 1).
         keyframe_selector: required for history "keyframes" (model/memory/keyframes.py).
         seed: seed of the "random" mode.
-        target_attributes: (scene id, landmark id) -> (4,) attribute ids of the target (`target_attributes`).
-        leg_goals: each sample also holds `leg_goal`, (3,) float32 (data/leg_goals.py `leg_goal_targets`).
     """
 
     def __init__(
@@ -84,7 +81,6 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         keyframe_selector: KeyframeSelector | None = None,
         seed: int = 0,
         target_attributes: Callable[[str, str], np.ndarray] | None = None,
-        leg_goals: bool = False,
     ):
         if history not in HISTORY_MODES:
             raise ValueError(f"history={history!r}: choose one of {HISTORY_MODES}")
@@ -103,8 +99,6 @@ class NavigationStepDataset(torch.utils.data.Dataset):
         self.keyframe_selector = keyframe_selector
         # (scene id, landmark id) -> (4,) attribute ids of the target (model.grounding.attribute_weight)
         self.target_attributes = target_attributes
-        # (T, 3) per episode: the auxiliary target of `action_head.leg_goal_weight` (data/leg_goals.py)
-        self._leg_goals = [leg_goal_targets(e) for e in self.episodes] if leg_goals else None
         self.seed, self.epoch = seed, 0
         index = [
             (e, t)
@@ -183,8 +177,6 @@ class NavigationStepDataset(torch.utils.data.Dataset):
             C.EPISODE_ID: episode.episode_id,
             C.STEP_INDEX: t,
         }
-        if self._leg_goals is not None:
-            sample[C.LEG_GOAL] = self._leg_goals[int(self._index[index][0])][t]
         if self.target_attributes is not None:
             target = episode.landmark_ids[-1] if episode.landmark_ids else ""
             sample[C.TARGET_ATTRIBUTES] = self.target_attributes(episode.scene_id, target)

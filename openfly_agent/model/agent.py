@@ -26,7 +26,6 @@ from openfly_agent.constants import (
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
-    LEG_GOAL,
     MEMORY_PROBE_NONE,
     MODEL_TYPE,
     TARGET_ATTRIBUTES,
@@ -231,10 +230,6 @@ class OpenFlyAgent(PreTrainedModel):
             action_loss, accuracy = self._action_loss(logits, layout.action_targets(), outputs)
             loss = loss + action_loss
             logs.update(action_loss=float(action_loss.detach()), action_accuracy=accuracy)
-            if network.leg_goal_head is not None and LEG_GOAL in batch:
-                leg_loss = self._leg_goal_loss(network.action_hidden(hidden, layout), batch[LEG_GOAL])
-                loss = loss + self.model_cfg.leg_goal_weight * leg_loss
-                logs["leg_goal_loss"] = float(leg_loss.detach())
         if grounds:
             targets = batch[BOX], batch[BOX_VISIBLE].bool()  # (B, 4), (B,)
             g_loss, g_logs = grounding_loss(
@@ -273,14 +268,6 @@ class OpenFlyAgent(PreTrainedModel):
                 float((predicted == target)[is_action].float().mean()) if bool(is_action.any()) else 0.0
             )
         return loss, accuracy
-
-    def _leg_goal_loss(self, read: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        """Squared error of the leg-goal head on the (B, D) hidden states the actions are read from against the
-        (B, 3) targets (data/leg_goals.py), summed over the 3 values and averaged over the rows."""
-        if read.shape[0] != target.shape[0]:
-            raise ValueError(f"{read.shape[0]} action reads for {target.shape[0]} leg-goal targets")
-        predicted = self.network.leg_goal_head(read).float()  # (B, 3)
-        return (predicted - target.to(predicted)).pow(2).sum(dim=-1).mean()
 
     def new_session(self, memory_probe: str = MEMORY_PROBE_NONE) -> AgentSession:
         """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`;

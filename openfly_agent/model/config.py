@@ -225,11 +225,6 @@ class ModelConfig:
             return False
         return self.grounding.has_head if head.box_token is None else head.box_token
 
-    @property
-    def leg_goal_weight(self) -> float:
-        """`action_head.leg_goal_weight` of the discrete head; 0 for the bins head (which has no such loss)."""
-        return getattr(self.action_head, "leg_goal_weight", 0.0)
-
     def visual_tokens_per_step(self, num_memory_sets: int | None = None) -> int:
         """P current-frame tokens + memory tokens (K full sets by default): 256 + 2 = 258 for 7B."""
         sets = self.memory.capacity if num_memory_sets is None else num_memory_sets

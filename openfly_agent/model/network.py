@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from openfly_agent.constants import FRAME_INDEX, LEG_GOAL_DIM, MEMORY_PIXEL_VALUES, PIXEL_VALUES
+from openfly_agent.constants import FRAME_INDEX, MEMORY_PIXEL_VALUES, PIXEL_VALUES
 from openfly_agent.model.config import HEAD_DISCRETE, ModelConfig
 from openfly_agent.model.episode import EpisodeState
 from openfly_agent.model.factory import make_memory_encoding
@@ -134,9 +134,6 @@ class OpenFlyNetwork(nn.Module):
             "grounding_head", make_grounding_head(llm_dim, cfg.grounding, cfg.vision.grid_side)
         )
         self.register_module("box_token_embed", BoxTokenEmbedding(llm_dim) if cfg.uses_box_token else None)
-        self.register_module(
-            "leg_goal_head", nn.Linear(llm_dim, LEG_GOAL_DIM) if cfg.leg_goal_weight > 0 else None
-        )  # training only: the auxiliary target of action_head.leg_goal_weight
         self.keyframe_selector = KeyframeSelector.from_config(cfg.keyframes, cfg.memory.capacity)
         self.memory = make_memory_encoding(cfg, self.keyframe_selector)
 
@@ -267,7 +264,8 @@ class OpenFlyNetwork(nn.Module):
         """
         logits = None
         if actions:
-            logits = self.lm_logits(self.action_hidden(hidden, layout))
+            read = hidden[:, -1] if layout.labels is None else hidden[:, :-1][layout.action_reads()]
+            logits = self.lm_logits(read)
         if not boxes or self.grounding_head is None:
             return logits, None
         readable = layout.readable
@@ -275,11 +273,6 @@ class OpenFlyNetwork(nn.Module):
             hidden, readable, layout.image_positions(), last_true_index(readable), layout.current
         )
         return logits, grounding
-
-    def action_hidden(self, hidden: torch.Tensor, layout: SequenceLayout) -> torch.Tensor:
-        """The hidden states the action is read from: (n, D) before the n targets of a training layout (row-major
-        order), (B, D) at the last position of an inference step."""
-        return hidden[:, -1] if layout.labels is None else hidden[:, :-1][layout.action_reads()]
 
     def lm_logits(self, hidden: torch.Tensor) -> torch.Tensor:
         """LM head on selected hidden states -> float32 logits."""

@@ -84,7 +84,6 @@ class Splits:
             keyframe_selector=agent.network.keyframe_selector,
             seed=cfg.seed,
             target_attributes=self.attributes,
-            leg_goals=cfg.model.leg_goal_weight > 0,
         )
 
 

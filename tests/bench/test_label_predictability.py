@@ -9,6 +9,7 @@ import pytest
 
 from bench.analysis.label_predictability import (
     FEATURE_NAMES,
+    leg_goal_per_step,
     majority_rate,
     run_probes,
     step_features,
@@ -89,16 +90,20 @@ def test_goal_probe_finds_a_planted_rule_the_box_probe_cannot(epochs):
 
 
 def test_leg_goal_features_follow_each_legs_goal_by_hand():
-    """Two legs: east to (6, 0), then north to (6, 6); leg 0 ends at step 2 (tests/data/test_data_leg_goals.py)."""
+    """Two legs: east to (6, 0), then north to (6, 6). Leg 0 ends at the step nearest its goal (step 2, which is
+    leg 1's first decision); without leg goals every step's leg goal is the last position."""
     positions = [(0, 0, 30), (3, 0, 30), (6, 0, 30), (6, 0, 30), (6, 3, 30), (6, 6, 30)]
     yaws = [0.0, 0.0, 0.0, math.pi / 2, math.pi / 2, math.pi / 2]
     episode = _episode("s/t/low_short/0", positions, yaws, [1, 1, 2, 1, 1, 0])
     episode.landmark_ids = ["b1", "b2"]
     episode.leg_goals = np.array([[6.0, 0.0, 30.0], [6.0, 6.0, 30.0]])
+    np.testing.assert_array_equal(leg_goal_per_step(episode), [[6, 0, 30]] * 2 + [[6, 6, 30]] * 4)
     col = {name: step_features(episode)[:, i] for i, name in enumerate(FEATURE_NAMES)}
     np.testing.assert_allclose(col["leg_goal_distance"], np.array([6, 3, 6, 6, 3, 0]) / 50, atol=1e-6)
     # leg 0's goal straight ahead; at step 2 leg 1's goal is 90 deg to the left, then straight ahead
     np.testing.assert_allclose(col["leg_goal_bearing"][:5], [0, 0, math.pi / 2, 0, 0], atol=1e-6)
+    episode.leg_goals = None
+    np.testing.assert_array_equal(leg_goal_per_step(episode), [[6, 6, 30]] * 6)
     np.testing.assert_allclose(
         col["goal_distance"][:2], np.array([math.sqrt(72), math.sqrt(45)]) / 50, atol=1e-6
     )

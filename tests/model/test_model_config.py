@@ -258,3 +258,18 @@ def test_the_deleted_stop_weight_loads_at_one_and_refuses_any_other():
         RetiredOptionError, match=r"action_head.stop_loss_weight was deleted .*commit 9046d6d"
     ):
         OpenFlyAgentConfig(agent=weighted)
+
+
+def test_the_deleted_leg_goal_weight_loads_at_zero_and_refuses_any_other():
+    """`action_head.leg_goal_weight` was deleted after its measured arm (no gain): a config.json written while it
+    existed (0.0 unless the arm set it) loads as today's model; the arm's own (1.0) names the commit that has it."""
+    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    head = {**BASE_TINY_AGENT["action_head"], "leg_goal_weight": 0.0}
+    assert (
+        "leg_goal_weight" not in upgraded_model_dict({**BASE_TINY_AGENT, "action_head": head})["action_head"]
+    )
+    trained = {**BASE_TINY_AGENT, "action_head": {**head, "leg_goal_weight": 1.0}}
+    with pytest.raises(RetiredOptionError, match=r"action_head.leg_goal_weight was deleted .*commit 1cb4fad"):
+        OpenFlyAgentConfig(agent=trained)

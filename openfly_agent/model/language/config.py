@@ -218,16 +218,11 @@ class DiscreteActionHeadConfig(ActionHeadConfig):
     # the action is read at an embedded-box token after the prompt (None: when the grounding head is enabled)
     box_token: bool | None = None
     box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
-    # weight of an auxiliary loss: a linear head on the hidden state the action is read from regresses where the
-    # current leg's goal lies (data/leg_goals.py; 0: no head)
-    leg_goal_weight: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.box_token_jitter < 0:
             raise ValueError(f"action_head.box_token_jitter={self.box_token_jitter} must be >= 0")
-        if self.leg_goal_weight < 0:
-            raise ValueError(f"action_head.leg_goal_weight={self.leg_goal_weight} must be >= 0")
 
 
 @ActionHeadConfig.register_subclass(HEAD_OPENVLA_BINS)

@@ -16,14 +16,7 @@ from transformers.conversion_mapping import register_checkpoint_conversion_mappi
 from transformers.core_model_loading import WeightRenaming
 
 NETWORK_PREFIX = "network."  # the agent's child module holding every parameter
-SAVED_PARTS = (
-    "vision_backbone",
-    "projector",
-    "language_model",
-    "grounding_head",
-    "box_token_embed",
-    "leg_goal_head",
-)
+SAVED_PARTS = ("vision_backbone", "projector", "language_model", "grounding_head", "box_token_embed")
 
 
 def saved_name(name: str) -> str:
