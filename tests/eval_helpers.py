@@ -235,14 +235,14 @@ PAIRED_IDENTITY = {
 }
 
 
-def policy_folder(root: Path, successes: dict[str, bool], **identity) -> Path:
-    """`root/agent`, an eval policy folder: run_identity.json (`identity` overrides) and one `success_record` per
-    episode id (True: a success under both profiles)."""
+def policy_folder(root: Path, successes: dict[str, bool], split: str = "test_seen", **identity) -> Path:
+    """`root/agent`, an eval policy folder: run_identity.json (`identity` overrides) and one `success_record` of
+    `split` per episode id (True: a success under both profiles)."""
     from openfly_agent.eval.run import RUN_IDENTITY_NAME
 
     folder = root / "agent"
     folder.mkdir(parents=True)
     (folder / RUN_IDENTITY_NAME).write_text(json.dumps({**PAIRED_IDENTITY, **identity}))
-    lines = [success_record(eid, ok).to_json() for eid, ok in successes.items()]
+    lines = [success_record(eid, ok, split).to_json() for eid, ok in successes.items()]
     (folder / "episodes.jsonl").write_text("\n".join(lines) + "\n")
     return folder

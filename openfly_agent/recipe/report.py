@@ -10,7 +10,8 @@ from the reference with a 95 % interval and an exact McNemar p. A folder without
 by hand into the run folder or a round trained by hand, is not the recipe's and is left out; a main evaluation
 without it is refused, as is an evaluation with failed episodes: a failure is never a result.
 After an RL stage the evaluated agent is its (`rl/`, with the offline figures of the agent it started from: the
-stage runs no offline test), and `rl_comparison` pairs it with that agent (`eval_before_rl/`) on the same episodes.
+stage runs no offline test), and `rl_comparison` pairs it with that agent (`eval_before_rl/`, `eval_before_rl-<cities>/`) on the same
+episodes.
 """
 
 from __future__ import annotations
@@ -22,12 +23,17 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.eval.compare import (
+    check_pairing,
     compare_folders,
+    compare_split,
     comparison_markdown,
     interval,
+    load_policy_folder,
+    only_splits,
     p_value,
     signed,
 )
+from openfly_agent.eval.config import PROFILE_NAMES
 from openfly_agent.eval.outputs import SUMMARY_JSON
 from openfly_agent.recipe.run import DONE_MARKER, EVAL_BEFORE_RL_DIR, RL_DIR, step_finished
 from openfly_agent.rollout.stats import format_interval, wilson_interval
@@ -37,6 +43,7 @@ from openfly_agent.training.trackers import METRICS_FILE_NAME, read_metrics
 AGENT = "agent"
 AGENT_BEFORE_RL = "agent_before_rl"  # the report's name of the agent the RL stage started from
 PROFILE_STANDARD, PROFILE_OPENFLY = "standard", "openfly"
+ALL_UNSEEN = "all unseen"  # rl_comparison's pooled split: test_unseen and the more cities' test_unseen
 
 
 @dataclass
@@ -189,19 +196,58 @@ def paired_with_reference(run_dir: str | Path, reference_dir: str | Path, refere
 
 def rl_comparison(run_dir: str | Path) -> dict | None:
     """The RL stage's agent (B, eval/agent) against the agent it started from (A, eval_before_rl/agent) on the
-    same episodes, every figure of `compare_folders`; None unless the recipe finished both evaluations."""
+    same episodes, every figure of `compare_folders`; None unless the recipe finished both evaluations.
+
+    Each more cities' evaluation both agents finished (eval-<cities>/ and eval_before_rl-<cities>/) adds the split
+    `test_unseen (<cities>)`, and with one or more of them the split `all unseen` pools their episodes with
+    test_unseen's (the recipe's 520 unseen episodes)."""
     run = Path(run_dir)
     before, after = run / EVAL_BEFORE_RL_DIR, run / "eval"
     if not (step_finished(before) and step_finished(after)):
         return None
-    return compare_folders(before / AGENT, after / AGENT)
+    comparison = compare_folders(before / AGENT, after / AGENT)
+    pooled_a, pooled_b = _paired_records(before / AGENT, after / AGENT, C.SPLIT_TEST_UNSEEN)
+    cities = 0
+    for folder in sorted(run.glob("eval-*")):
+        name = folder.name.removeprefix("eval-")
+        other = run / f"{EVAL_BEFORE_RL_DIR}-{name}"
+        if not (step_finished(folder) and step_finished(other)):
+            continue
+        records_a, records_b = _paired_records(other / AGENT, folder / AGENT, C.SPLIT_TEST_UNSEEN)
+        comparison["splits"][f"{C.SPLIT_TEST_UNSEEN} ({name})"] = _compare_profiles(records_a, records_b)
+        pooled_a, pooled_b, cities = pooled_a + records_a, pooled_b + records_b, cities + 1
+    if cities:
+        comparison["splits"][ALL_UNSEEN] = _compare_profiles(pooled_a, pooled_b)
+    return comparison
+
+
+def _paired_records(folder_a: Path, folder_b: Path, split: str) -> tuple[list, list]:
+    """The records of `split` in two policy folders, in pairs (the same episode at each index); none when A has
+    no such split; `PairingError` when they did not fly the same episodes."""
+    a, b = load_policy_folder(folder_a), load_policy_folder(folder_b)
+    if split not in {r.split for r in a.records}:
+        return [], []
+    a, b = only_splits(a, [split]), only_splits(b, [split])
+    check_pairing(a, b)
+    by_key = {r.key: r for r in b.records}
+    return a.records, [by_key[r.key] for r in a.records]
+
+
+def _compare_profiles(records_a: list, records_b: list) -> dict:
+    return {profile: compare_split(records_a, records_b, profile) for profile in PROFILE_NAMES}
 
 
 def rl_markdown(comparison: dict) -> str:
     """The paired table of `rl_comparison` under a line naming its two sides."""
+    cities = ""
+    if ALL_UNSEEN in comparison["splits"]:
+        cities = (
+            f" The rows `{C.SPLIT_TEST_UNSEEN} (<cities>)` pair {EVAL_BEFORE_RL_DIR}-<cities>/{AGENT} with "
+            f"eval-<cities>/{AGENT}; `{ALL_UNSEEN}` pools them with {C.SPLIT_TEST_UNSEEN}."
+        )
     return (
         f"{AGENT} - {AGENT_BEFORE_RL}: A is {AGENT_BEFORE_RL} (the agent the RL stage started from), B is "
-        f"{AGENT} (the RL stage's), flown on the same episodes.\n\n{comparison_markdown(comparison)}"
+        f"{AGENT} (the RL stage's), flown on the same episodes.{cities}\n\n{comparison_markdown(comparison)}"
     )
 
 

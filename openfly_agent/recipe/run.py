@@ -10,7 +10,8 @@ stopped on the next run. A stage is complete when its marker file exists (writte
         -> the RL stage when it has steps (init: the latest agent)
         -> closed-loop evaluation of the final agent with every baseline
         -> with the RL stage: the agent it started from on the same episodes (eval_before_rl/)
-        -> the same on the test_unseen split of each of `eval.more_cities` (generated with the datasets)
+        -> the same on the test_unseen split of each of `eval.more_cities` (generated with the datasets), and
+           with the RL stage the agent it started from there too (eval_before_rl-<cities>/)
 """
 
 from __future__ import annotations
@@ -35,8 +36,8 @@ DONE_MARKER = ".recipe_done"
 STATE_FILE = "recipe_state.json"
 KIND_DATA, KIND_TRAIN, KIND_EVAL = "data", "train", "eval"
 RL_DIR = "rl"  # the RL stage's training run
-# the agent the RL stage started from, evaluated on the main evaluation's episodes (its policy folder: agent/);
-# not `eval-*`, the folders of the more cities
+# the agent the RL stage started from, evaluated on the main evaluation's episodes (its policy folder: agent/),
+# and on each more cities' as `eval_before_rl-<cities>`; not `eval-*`, the RL agent's folders of the more cities
 EVAL_BEFORE_RL_DIR = "eval_before_rl"
 
 
@@ -190,6 +191,10 @@ def recipe_steps(cfg: RecipeConfig) -> list[RecipeStep]:
         steps.append(
             _eval_step(cfg, f"eval-{name}", latest, [C.SPLIT_TEST_UNSEEN], root, out / f"eval-{name}")
         )
+        if cfg.rl.steps:  # ... and the agent the RL stage started from, on the same episodes
+            folder = out / f"{EVAL_BEFORE_RL_DIR}-{name}"
+            split = [C.SPLIT_TEST_UNSEEN]
+            steps.append(_eval_step(cfg, f"eval-before-rl-{name}", before_rl, split, root, folder, []))
     return steps
 
 

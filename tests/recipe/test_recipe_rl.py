@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 from eval_helpers import policy_folder
 
+from openfly_agent.eval.compare import PairingError
 from openfly_agent.recipe import DaggerSettings, RecipeConfig, StageBudget, recipe_steps, run_recipe
 from openfly_agent.recipe import run as recipe_run
 from openfly_agent.recipe.__main__ import main as recipe_main
@@ -74,6 +75,29 @@ def test_the_rl_stage_starts_from_the_navigation_stage_in_one_process(tmp_path):
     assert all(_flag(before.command, f) == _flag(evaluation.command, f) for f in same)
 
 
+def test_the_agent_before_rl_flies_the_more_cities_too(tmp_path):
+    cities = RECIPES.parent / "toolchain" / "embedded-small-unseen-more.yaml"
+    cfg = _rl_recipe(tmp_path)
+    cfg.eval.more_cities = [str(cities)]
+    steps = recipe_steps(cfg)
+    by_name, out = {s.name: s for s in steps}, tmp_path / "r"
+    names = [s.name for s in steps]
+    assert names[-4:] == [
+        "eval", "eval-before-rl", "eval-embedded-small-unseen-more", "eval-before-rl-embedded-small-unseen-more",
+    ]  # fmt: skip
+    after, before = by_name[names[-2]], by_name[names[-1]]
+    assert before.kind == KIND_EVAL and before.folder == out / "eval_before_rl-embedded-small-unseen-more"
+    assert _flag(before.command, "checkpoint") == str(out / "navigation")
+    assert _flag(after.command, "checkpoint") == str(out / "rl")
+    assert _flag(before.command, "baselines") == "[]"
+    same = ("split", "dataset_root", "max_episodes", "max_steps", "batch_size", "torch_threads", "sim.type")
+    assert all(_flag(before.command, f) == _flag(after.command, f) for f in same)
+    assert _flag(before.command, "split") == "[test_unseen]"
+    # without an RL stage there is no agent before it to fly
+    cfg.rl = StageBudget(steps=0)
+    assert not [s for s in recipe_steps(cfg) if s.name.startswith("eval-before-rl")]
+
+
 def test_after_dagger_rounds_the_rl_stage_starts_from_the_last_round(tmp_path):
     cfg = _rl_recipe(tmp_path, rounds=2)
     by_name = {s.name: s for s in recipe_steps(cfg)}
@@ -88,9 +112,12 @@ def test_the_shipped_rl_recipe_is_the_tiny_recipe_plus_the_rl_stage():
     cfg = load_yaml_config(RecipeConfig, RECIPES / RL_RECIPE, [])
     assert cfg.rl.steps == 50
     resolved = stage_train_config(cfg, cfg.rl, "rl")
-    assert (resolved.rl.group_size, resolved.rl.episodes_per_update) == (4, 4)  # docs/TRAINING.md's example
-    assert (resolved.optim.lr, resolved.optim.schedule) == (1.0e-5, "constant")
+    # the main job's arm "temperature 0.5" (docs/experiments/2026-11-28-rl-stage-on-the-main-job.md)
+    assert (resolved.rl.group_size, resolved.rl.episodes_per_update, resolved.rl.temperature) == (4, 8, 0.5)
+    assert (resolved.optim.lr, resolved.optim.schedule) == (1.0e-4, "constant")
     assert resolved.optim.warmup_steps == 0  # the schedule steps once per update: no 50-update warmup
+    # its decision reads val; the evaluation is otherwise the tiny recipe's (the more cities included)
+    assert cfg.eval.splits == ["val", *tiny.eval.splits] and cfg.eval.more_cities == tiny.eval.more_cities
     # every step before the RL stage is the tiny recipe's, up to the output folder
     ours, theirs = recipe_steps(cfg), recipe_steps(tiny)
     first = [s.name for s in ours].index("rl")
@@ -164,3 +191,49 @@ def test_the_report_pairs_the_rl_agent_with_the_agent_it_started_from(tmp_path):
     )
     # the recipe without an RL stage reports no pairing, even with such folders around
     assert "## rl" not in recipe_report(RecipeConfig(output_dir=str(out)))
+
+
+def test_the_report_pairs_the_more_cities_and_pools_every_unseen_episode(tmp_path):
+    cfg = _rl_recipe(tmp_path)
+    out = tmp_path / "r"
+    unseen = "test_unseen"
+    # test_unseen: before RL u0 succeeds, after RL u0 and u1
+    policy_folder(out / "eval_before_rl", {"u0": True, "u1": False}, split=unseen)
+    policy_folder(out / "eval", {"u0": True, "u1": True}, split=unseen, checkpoint="rl")
+    # the more cities: before RL c0 and c1, after RL c1 and c2
+    policy_folder(out / "eval_before_rl-more", {"c0": True, "c1": True, "c2": False}, split=unseen)
+    policy_folder(out / "eval-more", {"c0": False, "c1": True, "c2": True}, split=unseen, checkpoint="rl")
+    for folder in ("eval", "eval_before_rl", "eval-more"):
+        (out / folder / DONE_MARKER).write_text("{}\n")
+    assert list(rl_comparison(out)["splits"]) == [unseen]  # the city's agent before RL is not finished
+    (out / "eval_before_rl-more" / DONE_MARKER).write_text("{}\n")
+    splits = rl_comparison(out)["splits"]
+    assert list(splits) == [unseen, "test_unseen (more)", "all unseen"]
+    city, pooled = splits["test_unseen (more)"]["standard"], splits["all unseen"]["standard"]
+    assert city["counts"] == {"both": 1, "only_a": 1, "only_b": 1, "neither": 0}
+    assert (city["episodes"], city["sr_a_pct"], city["sr_b_pct"], city["sr_diff_pp"]) == (
+        3,
+        200 / 3,
+        200 / 3,
+        0.0,
+    )
+    # pooled: A succeeds on u0, c0, c1 (3 of 5), B on u0, u1, c1, c2 (4 of 5)
+    assert pooled["counts"] == {"both": 2, "only_a": 1, "only_b": 2, "neither": 0}
+    assert (pooled["episodes"], pooled["sr_a_pct"], pooled["sr_b_pct"]) == (5, 60.0, 80.0)
+    assert pooled["sr_diff_pp"] == pytest.approx(20.0)
+    assert pooled["mcnemar_p"] == pytest.approx(1.0)  # 1 against 2 discordant: 2 x (1 + 3) / 8
+    section = recipe_report(cfg)[recipe_report(cfg).index("## rl") :]
+    assert "`all unseen` pools them with test_unseen" in section
+    assert "| all unseen / `standard` | 5 | 60.0 / 80.0 | +20.0 [" in section
+
+
+def test_a_city_flown_on_other_episodes_before_rl_is_refused(tmp_path):
+    out = tmp_path / "r"
+    policy_folder(out / "eval_before_rl", {"u0": True}, split="test_unseen")
+    policy_folder(out / "eval", {"u0": True}, split="test_unseen", checkpoint="rl")
+    policy_folder(out / "eval_before_rl-more", {"c0": True}, split="test_unseen")
+    policy_folder(out / "eval-more", {"c9": True}, split="test_unseen", checkpoint="rl")
+    for folder in ("eval", "eval_before_rl", "eval-more", "eval_before_rl-more"):
+        (out / folder / DONE_MARKER).write_text("{}\n")
+    with pytest.raises(PairingError, match="flew other episodes"):
+        rl_comparison(out)

@@ -95,5 +95,7 @@ def test_a_shipped_recipe_runs_every_stage(config, tmp_path):
     ):  # the RL agent evaluated, the agent it started from too, and the two paired in the report
         assert (tmp_path / "recipe" / "rl" / "checkpoints" / "last").resolve().name == "step-000001"
         assert (tmp_path / "recipe" / "eval_before_rl" / "agent" / "episodes.jsonl").is_file()
+        assert (tmp_path / "recipe" / "eval_before_rl-cities0" / "agent" / "episodes.jsonl").is_file()
         summary = (tmp_path / "recipe" / "summary.md").read_text()
         assert "## rl\n\nagent - agent_before_rl" in summary and "| test_unseen / `standard` | 2 |" in summary
+        assert "| all unseen / `standard` | 4 |" in summary  # test_unseen and the city's, 2 episodes each
