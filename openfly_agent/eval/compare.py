@@ -52,6 +52,7 @@ ALLOWED_TO_DIFFER = (
     "unnorm_key",
     "decode_rule",
     "memory_probe",
+    "stop_margin",
     "seed",
     "oracle_mode",
     "box_servo",
