@@ -117,6 +117,8 @@ RETIRED_OPTIONS = {
     "rl.progress_at_stop",
     # docs/experiments/2026-11-28-long-route-ablation.md (commit 1cb4fad)
     "model.action_head.leg_goal_weight",
+    # docs/experiments/2026-11-29-stop-margin.md (commit ec77d5b)
+    "agent.stop_margin",
 }  # fmt: skip
 
 

@@ -52,7 +52,6 @@ ALLOWED_TO_DIFFER = (
     "unnorm_key",
     "decode_rule",
     "memory_probe",
-    "stop_margin",
     "seed",
     "oracle_mode",
     "box_servo",

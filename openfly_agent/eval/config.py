@@ -169,15 +169,10 @@ class AgentSettings:
     # so a paired comparison with a `none` run (python -m openfly_agent.eval.compare) says whether the memory
     # changes what the agent does; `none` = the model as trained
     memory_probe: str = C.MEMORY_PROBE_NONE
-    # decoding (discrete head): the STOP logit lowered by this much before the action is chosen, so the agent
-    # stops only where STOP's probability exceeds the best other action's by e^stop_margin; 0 = as trained
-    stop_margin: float = 0.0
 
     def __post_init__(self) -> None:
         if self.memory_probe not in C.MEMORY_PROBES:
             raise ValueError(f"agent.memory_probe={self.memory_probe!r}: choose one of {C.MEMORY_PROBES}")
-        if self.stop_margin < 0:
-            raise ValueError(f"agent.stop_margin={self.stop_margin}: must be >= 0 (0: decoding as trained)")
         if self.decode_rule is not None and self.decode_rule not in DECODE_RULES:
             raise ValueError(
                 f"agent.decode_rule={self.decode_rule!r}: choose one of {DECODE_RULES} (or null)"
@@ -301,8 +296,6 @@ class EvalConfig:
             )
             if self.agent.memory_probe != C.MEMORY_PROBE_NONE:  # absent: the model as trained (older folders)
                 identity["memory_probe"] = self.agent.memory_probe
-            if self.agent.stop_margin:  # absent: 0 (older folders)
-                identity["stop_margin"] = self.agent.stop_margin
         # absent: the final target (older logs)
         if policy == AGENT_TRUE_BOX and self.true_box != TRUE_BOX_FINAL:
             identity["true_box"] = self.true_box

@@ -247,5 +247,5 @@ def make_policy(name: str, cfg: EvalConfig, episodes: list[Episode], info: Proce
         settings.unnorm_key,
         settings.model_config,
     )
-    session = agent.new_session(settings.memory_probe, settings.stop_margin)
+    session = agent.new_session(settings.memory_probe)
     return AgentPolicy(session, name, true_boxes=name == AGENT_TRUE_BOX)

@@ -54,7 +54,6 @@ def run_meta(cfg: EvalConfig, policy: str, split_sizes: dict[str, int] | None = 
         "seed": cfg.seed,
         "unnorm_key": cfg.agent.unnorm_key if policy in AGENT_POLICIES else None,
         "memory_probe": cfg.agent.memory_probe if policy in AGENT_POLICIES else None,
-        "stop_margin": cfg.agent.stop_margin if policy in AGENT_POLICIES else None,
         "max_episodes": cfg.max_episodes,
         "split_episodes": dict(split_sizes or {}),
     }

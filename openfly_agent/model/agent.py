@@ -269,11 +269,10 @@ class OpenFlyAgent(PreTrainedModel):
             )
         return loss, accuracy
 
-    def new_session(self, memory_probe: str = MEMORY_PROBE_NONE, stop_margin: float = 0.0) -> AgentSession:
+    def new_session(self, memory_probe: str = MEMORY_PROBE_NONE) -> AgentSession:
         """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`;
-        `memory_probe="empty"` reads no memory at any step (an evaluation diagnostic); `stop_margin` lowers the
-        STOP logit by that much before the action is chosen."""
-        return AgentSession(self, memory_probe, stop_margin=stop_margin)
+        `memory_probe="empty"` reads no memory at any step (an evaluation diagnostic)."""
+        return AgentSession(self, memory_probe)
 
     # --- persistence ------------------------------------------------------------------------------
     def save_pretrained(self, save_directory, *args, **kwargs) -> None:

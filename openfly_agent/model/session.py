@@ -12,7 +12,6 @@ from typing import Any, Protocol
 import torch
 
 from openfly_agent.constants import (
-    ACTION_STOP,
     EPISODE_ID,
     MEMORY_PROBE_EMPTY,
     MEMORY_PROBE_NONE,
@@ -47,9 +46,6 @@ class AgentSession:
         temperature: 0 picks the most likely action (greedy, the default); > 0 samples it from
             softmax(action logits / temperature) with `generator` (the RL stage's rollouts; `discrete` head only).
         generator: the random stream of the samples (None: torch's global one).
-        stop_margin: the STOP logit is lowered by this much before the action is chosen (greedy or sampled), so
-            the agent stops only where STOP's probability exceeds the best other action's by e^stop_margin;
-            0 = as trained (`discrete` head only; eval.py --agent.stop_margin).
     """
 
     def __init__(
@@ -58,7 +54,6 @@ class AgentSession:
         memory_probe: str = MEMORY_PROBE_NONE,
         temperature: float = 0.0,
         generator: torch.Generator | None = None,
-        stop_margin: float = 0.0,
     ) -> None:
         if memory_probe not in MEMORY_PROBES:
             raise ValueError(f"memory_probe={memory_probe!r}: choose one of {MEMORY_PROBES}")
@@ -66,11 +61,6 @@ class AgentSession:
             raise ValueError(f"temperature must be >= 0, got {temperature}")
         if temperature > 0 and agent.action_tokenizer.head != HEAD_DISCRETE:
             raise ValueError(f"sampling (temperature {temperature}) needs the {HEAD_DISCRETE} action head")
-        if stop_margin < 0:
-            raise ValueError(f"stop_margin must be >= 0, got {stop_margin}")
-        if stop_margin > 0 and agent.action_tokenizer.head != HEAD_DISCRETE:
-            raise ValueError(f"stop_margin needs the {HEAD_DISCRETE} action head")
-        self.stop_margin = float(stop_margin)
         self.agent = agent
         self.memory_probe = memory_probe
         self.temperature, self.generator = float(temperature), generator
@@ -135,12 +125,11 @@ class AgentSession:
             layout = layout.then(network.box_token(boxes.to(device), torch.tensor(visible, device=device)))
             logits, _ = network.heads(network(layout, cache), layout, boxes=False)  # (B, V)
         decoded = network.decode_actions(logits, layout, cache, tokenizer)  # (B, 10) or (B, 8)
-        chosen_from = with_stop_margin(decoded, self.stop_margin) if self.stop_margin else decoded  # (B, 10)
         if tokenizer.head == HEAD_DISCRETE and self.temperature > 0:
-            probs = torch.softmax(chosen_from.float() / self.temperature, dim=-1).cpu()  # (B, 10)
+            probs = torch.softmax(decoded.float() / self.temperature, dim=-1).cpu()  # (B, 10)
             actions = [int(a) for a in torch.multinomial(probs, 1, generator=self.generator)[:, 0]]
         elif tokenizer.head == HEAD_DISCRETE:
-            actions = [int(a) for a in chosen_from.argmax(dim=-1)]
+            actions = [int(a) for a in decoded.argmax(dim=-1)]
         else:
             actions = [processor.decode_action(row.tolist()) for row in decoded]
         boxes = boxes.float().cpu()
@@ -183,10 +172,3 @@ class AgentSession:
         state = EpisodeState(instruction, prompt_ids, self.agent.network.memory.new_episode())
         self.episodes[episode_id] = state
         return state
-
-
-def with_stop_margin(logits: torch.Tensor, margin: float) -> torch.Tensor:
-    """(B, 10) action logits with the STOP logit lowered by `margin` (the others unchanged)."""
-    lowered = logits.clone()
-    lowered[:, ACTION_STOP] -= margin  # column = action id (MODEL_ACTION_IDS)
-    return lowered

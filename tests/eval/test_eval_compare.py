@@ -167,13 +167,3 @@ def test_compare_splits_option_reads_only_the_named_splits(tmp_path):
     done = _compare(str(a), str(b), "--splits=[test_seen]")
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
     assert "holds no episode of split test_seen (it holds val)" in done.stderr
-
-
-def test_a_stop_margin_is_what_two_runs_may_differ_in(tmp_path):
-    from openfly_agent.eval.compare import compare_folders
-
-    a = policy_folder(tmp_path / "a", {"e0": True, "e1": False})
-    b = policy_folder(tmp_path / "b", {"e0": True, "e1": True}, stop_margin=2.0)
-    numbers = compare_folders(a, b, profiles=["standard"], resamples=100)
-    assert "stop_margin" not in numbers["a"] and numbers["b"]["stop_margin"] == 2.0
-    assert numbers["splits"]["test_seen"]["standard"]["counts"]["only_b"] == 1

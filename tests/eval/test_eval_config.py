@@ -232,29 +232,6 @@ def test_help_shows_the_chosen_sims_fields_only(capsys):
     assert "--sim.width" in text and "--sim.airsim." not in text and "--sim.occupancy_pcd" not in text
 
 
-def test_stop_margin_is_recorded_and_never_resumes_another_margin(tmp_path):
-    from openfly_agent.eval.distributed import ProcessInfo
-    from openfly_agent.eval.outputs import run_meta
-    from openfly_agent.eval.run import prepare_output
-
-    trained = parse_config(EvalConfig, ["--checkpoint=c"])
-    margin = parse_config(EvalConfig, ["--checkpoint=c", "--agent.stop_margin=2"])
-    assert trained.agent.stop_margin == 0.0 and margin.agent.stop_margin == 2.0
-    # older run_identity.json files have no such key: the default adds none, so they still resume
-    assert "stop_margin" not in trained.result_identity("agent")
-    assert margin.result_identity("agent")["stop_margin"] == 2.0
-    assert "stop_margin" not in margin.result_identity("box_servo")  # baselines do not decode logits
-    assert (
-        run_meta(margin, "agent")["stop_margin"] == 2.0 and run_meta(margin, "random")["stop_margin"] is None
-    )
-    folder = tmp_path / "agent"
-    prepare_output(folder, margin.result_identity("agent"), False, ProcessInfo())
-    with pytest.raises(ValueError, match="stop_margin: 2.0 -> None"):
-        prepare_output(folder, trained.result_identity("agent"), False, ProcessInfo())
-    with pytest.raises(ValueError, match="agent.stop_margin=-1.0: must be >= 0"):
-        EvalConfig(checkpoint="c", agent=AgentSettings(stop_margin=-1.0))
-
-
 def test_memory_probe_is_recorded_and_never_resumes_another_probe(tmp_path):
     from openfly_agent.eval.distributed import ProcessInfo
     from openfly_agent.eval.outputs import run_meta

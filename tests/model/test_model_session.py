@@ -293,36 +293,3 @@ def test_memory_probe_none_is_the_default_session(make_agent):
         for x, y in zip(a, b):
             assert x.action == y.action and x.memory_sets == y.memory_sets and x.box == y.box
             assert torch.equal(x.action_logits, y.action_logits)
-
-
-def test_with_stop_margin_lowers_the_stop_logit_only():
-    from openfly_agent.model.session import with_stop_margin
-
-    logits = torch.arange(20, dtype=torch.float32).reshape(2, 10)  # (B=2, 10), STOP is column 0
-    lowered = with_stop_margin(logits, 1.5)
-    assert lowered[:, 0].tolist() == [-1.5, 8.5]
-    assert torch.equal(lowered[:, 1:], logits[:, 1:])
-    assert logits[0, 0] == 0.0  # the input is left as it was
-
-
-def test_stop_margin_session_stops_only_with_that_lead(make_agent, monkeypatch):
-    """STOP leads the next action (forward) by 1.0 at each step: the plain session stops at once; with a margin
-    of 0.5 it still stops (1.0 > 0.5); with 2.0 it flies forward instead, and the logits it reports are the
-    network's."""
-    agent = make_agent()
-
-    def fake_decode(logits, layout, cache, tokenizer):
-        scores = torch.zeros(logits.shape[0], 10)
-        scores[:, 0], scores[:, 1] = 3.0, 2.0  # STOP 3.0, forward 2.0
-        return scores
-
-    monkeypatch.setattr(agent.network, "decode_actions", fake_decode)
-    frames = _frames(1, 1)
-    for margin, expected in ((0.0, 0), (0.5, 0), (2.0, 1)):
-        (result,) = agent.new_session(stop_margin=margin).predict_step([_obs(0, frames[0, 0])])
-        assert result.action == expected, margin
-        assert result.action_logits[0] == 3.0  # reported as the network gave it
-    with pytest.raises(ValueError, match="stop_margin must be >= 0"):
-        agent.new_session(stop_margin=-1.0)
-    with pytest.raises(ValueError, match="stop_margin needs the discrete action head"):
-        make_agent(action_head=BinsActionHeadConfig()).new_session(stop_margin=1.0)
