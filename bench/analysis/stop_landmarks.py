@@ -1,0 +1,92 @@
+"""Where an evaluated agent stops, and on what: each STOP of its flights classified against the simulator's boxes.
+
+A STOP far from the goal can be a hasty STOP near the target or a flight to another landmark. The flight's record
+holds the box the agent predicted at its STOP; the simulator, rendered again at the STOP's pose, holds every
+landmark's true box there. This module compares the two (pure functions; bench/stop_landmarks.py renders).
+
+Categories of one STOP (`stop_target`): the landmark whose true box best overlaps the agent's box, if any overlaps
+by `MIN_IOU`: the route's target, another landmark the route names, a landmark the route does not name, or none.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+MIN_IOU = 0.3  # the agent's box is "on" a landmark when their IoU reaches this
+ON_TARGET = "the target"
+ON_ROUTE_LANDMARK = "another landmark the route names"
+ON_OTHER_LANDMARK = "a landmark the route does not name"
+ON_NOTHING = f"no landmark (IoU < {MIN_IOU})"
+NO_BOX = "the agent saw no box"
+CATEGORIES = (ON_TARGET, ON_ROUTE_LANDMARK, ON_OTHER_LANDMARK, ON_NOTHING, NO_BOX)
+
+Box = Sequence[float]  # (cx, cy, w, h), fractions of the frame
+
+
+def box_iou(a: Box, b: Box) -> float:
+    """IoU of two (cx, cy, w, h) boxes."""
+    ax0, ay0, ax1, ay1 = a[0] - a[2] / 2, a[1] - a[3] / 2, a[0] + a[2] / 2, a[1] + a[3] / 2
+    bx0, by0, bx1, by1 = b[0] - b[2] / 2, b[1] - b[3] / 2, b[0] + b[2] / 2, b[1] + b[3] / 2
+    inter = max(0.0, min(ax1, bx1) - max(ax0, bx0)) * max(0.0, min(ay1, by1) - max(ay0, by0))
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return inter / union if union > 0 else 0.0
+
+
+def stop_target(predicted: Box | None, boxes: dict[str, Box], target: str, route: Sequence[str]) -> str:
+    """Which landmark the agent's box is on at a STOP (one of `CATEGORIES`).
+
+    Args:
+        predicted: the agent's box at the STOP, None when it saw none.
+        boxes: landmark id -> its true box in the frame at the STOP's pose (the visible ones).
+        target: the route's target landmark (its last).
+        route: every landmark the route names.
+    """
+    if predicted is None:
+        return NO_BOX
+    scored = [(box_iou(predicted, box), landmark) for landmark, box in boxes.items()]
+    best_iou, best = max(scored, default=(0.0, ""))
+    if best_iou < MIN_IOU:
+        return ON_NOTHING
+    if best == target:
+        return ON_TARGET
+    return ON_ROUTE_LANDMARK if best in route else ON_OTHER_LANDMARK
+
+
+@dataclass
+class StopRow:
+    """One flight that ended with a STOP."""
+
+    episode_id: str
+    success: bool  # the STOP is within the success radius
+    distance_m: float  # from the goal at the STOP
+    target_in_view: bool  # the target has a true box at the STOP's pose
+    on: str  # `stop_target`
+
+
+def stop_table(rows: Iterable[StopRow]) -> list[tuple[str, int, int, int]]:
+    """(category, STOPs at the goal, STOPs far from it, of those far ones: the target in view) per category."""
+    counts: Counter = Counter()
+    for row in rows:
+        counts[row.on, row.success] += 1
+        if not row.success and row.target_in_view:
+            counts[row.on, "far in view"] += 1
+    return [
+        (category, counts[category, True], counts[category, False], counts[category, "far in view"])
+        for category in CATEGORIES
+    ]
+
+
+def table_markdown(rows: list[StopRow]) -> str:
+    """The classified STOPs as a markdown table, totals last."""
+    lines = [
+        "| the agent's box at its STOP is on | STOPs at the goal | STOPs far from it | ... target in view |",
+        "|---|---:|---:|---:|",
+    ]
+    for category, near, far, in_view in stop_table(rows):
+        lines.append(f"| {category} | {near} | {far} | {in_view} |")
+    near = sum(r.success for r in rows)
+    in_view = sum(not r.success and r.target_in_view for r in rows)
+    lines.append(f"| all | {near} | {len(rows) - near} | {in_view} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,87 @@
+"""Where an evaluated agent stops, and on what landmark (embedded simulator datasets).
+
+Each flight of an eval.py policy folder that ended with a STOP is rendered again at the STOP's pose; the box the
+agent predicted there (its record's last box) is matched with every landmark's true box in that frame
+(bench/analysis/stop_landmarks.py): on the route's target, on another landmark the route names, on a landmark
+it does not name, or on none. STOPs at the goal (within the profile's success radius) and far from it are
+counted apart, with how often the target was in view at a far STOP. Read it to tell a hasty STOP near the target
+from a flight to the wrong landmark:
+
+    python bench/stop_landmarks.py --policy_dir outputs/main_job/eval/agent \
+        --dataset_root outputs/datasets/embedded-small --split test_unseen
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.analysis.stop_landmarks import StopRow, stop_target, table_markdown  # noqa: E402
+
+
+def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str) -> list[StopRow]:
+    """Every STOP of `split` in `policy_dir`, classified at its pose in the dataset's embedded cities."""
+    from openfly_agent.eval.compare import load_policy_folder
+    from openfly_agent.eval.config import EvalConfig
+    from openfly_agent.eval.factory import embedded_sim_config, load_full_splits
+    from openfly_agent.eval.report import episode_rows
+    from openfly_agent.rollout.episodes import target_landmark
+    from openfly_agent.sim.base import Pose
+    from openfly_agent.sim.embedded import EmbeddedSimulator
+
+    cfg = EvalConfig(checkpoint="unused", dataset_root=dataset_root, split=[split])
+    episodes = {e.episode_id: e for e in load_full_splits(cfg)[split]}
+    records = [r for r in load_policy_folder(policy_dir).records if r.split == split and r.stopped]
+    if not records:
+        raise SystemExit(f"{policy_dir}: no flight of split {split} ended with a STOP")
+    rows = []
+    with EmbeddedSimulator(embedded_sim_config(cfg, list(episodes.values()))) as sim:
+        for record, scored in zip(records, episode_rows(records, profile)):
+            episode = episodes.get(record.episode_id)
+            if episode is None:
+                raise SystemExit(
+                    f"{policy_dir}: episode {record.episode_id} is not in {dataset_root} ({split})"
+                )
+            target = target_landmark(episode)
+            boxes = sim.render(record.scene_id, Pose(*record.poses[-1])).boxes or {}
+            predicted = record.boxes[-1] if record.boxes else None
+            rows.append(
+                StopRow(
+                    episode_id=record.episode_id,
+                    success=bool(scored["success"]),
+                    distance_m=math.dist(record.poses[-1][:3], record.goal),
+                    target_in_view=target in boxes,
+                    on=stop_target(predicted, boxes, target, episode.landmark_ids),
+                )
+            )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--policy_dir", required=True, help="an eval.py policy folder, e.g. outputs/eval/agent"
+    )
+    parser.add_argument("--dataset_root", required=True, help="the generated dataset it flew")
+    parser.add_argument("--split", default="test_unseen")
+    parser.add_argument("--profile", default="standard", help="the metric profile whose radius is success")
+    parser.add_argument("--json", default=None, help="also write every STOP's row to this JSON file")
+    args = parser.parse_args()
+    rows = classify_stops(args.policy_dir, args.dataset_root, args.split, args.profile)
+    print(f"{args.policy_dir}, {args.split}, `{args.profile}`: {len(rows)} flights ended with a STOP\n")
+    print(table_markdown(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps([asdict(row) for row in rows], indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
