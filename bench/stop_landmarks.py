@@ -4,7 +4,8 @@ Each flight of an eval.py policy folder that ended with a STOP is rendered again
 agent predicted there (its record's last box) is matched with every landmark's true box in that frame
 (bench/analysis/stop_landmarks.py): on the route's target, on another landmark the route names, on a landmark
 it does not name, or on none. STOPs at the goal (within the profile's success radius) and far from it are
-counted apart, with how often the target was in view at a far STOP. Read it to tell a hasty STOP near the target
+counted apart, with how often the target was in view at a far STOP, and for a STOP on another landmark which of
+the target's attributes (type, colour, size, shape, feature) that landmark shares. Read it to tell a hasty STOP near the target
 from a flight to the wrong landmark:
 
     python bench/stop_landmarks.py --policy_dir outputs/main_job/eval/agent \
@@ -23,7 +24,15 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.analysis.stop_landmarks import StopRow, stop_target, table_markdown  # noqa: E402
+from bench.analysis.stop_landmarks import (  # noqa: E402
+    StopRow,
+    best_landmark,
+    shared_attributes,
+    shared_in_view,
+    shared_markdown,
+    stop_target,
+    table_markdown,
+)
 
 
 def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str) -> list[StopRow]:
@@ -52,6 +61,13 @@ def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str)
             target = target_landmark(episode)
             boxes = sim.render(record.scene_id, Pose(*record.poses[-1])).boxes or {}
             predicted = record.boxes[-1] if record.boxes else None
+            on = best_landmark(predicted, boxes)
+            landmarks = {b.landmark_id: b.landmark for b in sim.city(record.scene_id).buildings}
+            shared, chance = None, None
+            if on not in (None, target):
+                shared = shared_attributes(landmarks[on], landmarks[target])
+                others = [landmarks[i] for i in boxes if i != target and i in landmarks]
+                chance = shared_in_view(landmarks[target], others)
             rows.append(
                 StopRow(
                     episode_id=record.episode_id,
@@ -59,6 +75,8 @@ def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str)
                     distance_m=math.dist(record.poses[-1][:3], record.goal),
                     target_in_view=target in boxes,
                     on=stop_target(predicted, boxes, target, episode.landmark_ids),
+                    shared=shared,
+                    shared_in_view=chance,
                 )
             )
     return rows
@@ -79,6 +97,7 @@ def main() -> None:
     rows = classify_stops(args.policy_dir, args.dataset_root, args.split, args.profile)
     print(f"{args.policy_dir}, {args.split}, `{args.profile}`: {len(rows)} flights ended with a STOP\n")
     print(table_markdown(rows))
+    print(shared_markdown(rows))
     if args.json:
         Path(args.json).write_text(json.dumps([asdict(row) for row in rows], indent=1) + "\n")
 

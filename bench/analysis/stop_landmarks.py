@@ -21,6 +21,7 @@ ON_OTHER_LANDMARK = "a landmark the route does not name"
 ON_NOTHING = f"no landmark (IoU < {MIN_IOU})"
 NO_BOX = "the agent saw no box"
 CATEGORIES = (ON_TARGET, ON_ROUTE_LANDMARK, ON_OTHER_LANDMARK, ON_NOTHING, NO_BOX)
+ATTRIBUTES = ("type", "color", "size", "shape", "feature")  # what an instruction describes a landmark by
 
 Box = Sequence[float]  # (cx, cy, w, h), fractions of the frame
 
@@ -34,6 +35,16 @@ def box_iou(a: Box, b: Box) -> float:
     return inter / union if union > 0 else 0.0
 
 
+def best_landmark(predicted: Box | None, boxes: dict[str, Box]) -> str | None:
+    """The landmark whose true box overlaps the agent's box most, if by `MIN_IOU` at least (else None)."""
+    if predicted is None:
+        return None
+    best_iou, best = max(
+        ((box_iou(predicted, box), landmark) for landmark, box in boxes.items()), default=(0.0, "")
+    )
+    return best if best_iou >= MIN_IOU else None
+
+
 def stop_target(predicted: Box | None, boxes: dict[str, Box], target: str, route: Sequence[str]) -> str:
     """Which landmark the agent's box is on at a STOP (one of `CATEGORIES`).
 
@@ -45,13 +56,17 @@ def stop_target(predicted: Box | None, boxes: dict[str, Box], target: str, route
     """
     if predicted is None:
         return NO_BOX
-    scored = [(box_iou(predicted, box), landmark) for landmark, box in boxes.items()]
-    best_iou, best = max(scored, default=(0.0, ""))
-    if best_iou < MIN_IOU:
+    best = best_landmark(predicted, boxes)
+    if best is None:
         return ON_NOTHING
     if best == target:
         return ON_TARGET
     return ON_ROUTE_LANDMARK if best in route else ON_OTHER_LANDMARK
+
+
+def shared_attributes(a: object, b: object) -> list[str]:
+    """The `ATTRIBUTES` two landmarks (sim/scene.py `Landmark`) have in common."""
+    return [name for name in ATTRIBUTES if getattr(a, name) == getattr(b, name)]
 
 
 @dataclass
@@ -63,6 +78,10 @@ class StopRow:
     distance_m: float  # from the goal at the STOP
     target_in_view: bool  # the target has a true box at the STOP's pose
     on: str  # `stop_target`
+    # on another landmark: the target's `ATTRIBUTES` it shares (None: on the target, on none, or no box)
+    shared: list[str] | None = None
+    # ... and per attribute, the share of the other landmarks in view that have the target's (the chance level)
+    shared_in_view: dict[str, float] | None = None
 
 
 def stop_table(rows: Iterable[StopRow]) -> list[tuple[str, int, int, int]]:
@@ -90,3 +109,34 @@ def table_markdown(rows: list[StopRow]) -> str:
     in_view = sum(not r.success and r.target_in_view for r in rows)
     lines.append(f"| all | {near} | {len(rows) - near} | {in_view} |")
     return "\n".join(lines) + "\n"
+
+
+def shared_in_view(target: object, others: Sequence[object]) -> dict[str, float]:
+    """Per attribute, the share of `others` (the non-target landmarks in view) that have the target's value."""
+    if not others:
+        return dict.fromkeys(ATTRIBUTES, 0.0)
+    return {
+        name: sum(getattr(o, name) == getattr(target, name) for o in others) / len(others)
+        for name in ATTRIBUTES
+    }
+
+
+def shared_markdown(rows: list[StopRow]) -> str:
+    """Of the far STOPs on another landmark than the target: how many share each attribute with the target, next
+    to the share expected if the agent had picked one of the other landmarks in view at random."""
+    wrong = [r for r in rows if not r.success and r.shared is not None]
+    if not wrong:
+        return ""
+    n = len(wrong)
+
+    def pct(count: float) -> str:
+        return f"{100 * count / n:.0f} %"
+
+    picked = [pct(sum(name in r.shared for r in wrong)) for name in ATTRIBUTES]
+    chance = [pct(sum((r.shared_in_view or {}).get(name, 0.0) for r in wrong)) for name in ATTRIBUTES]
+    return (
+        f"Far STOPs on another landmark than the target ({n}): share of them on a landmark with the target's ...\n\n"
+        f"| | {' | '.join(ATTRIBUTES)} |\n|---|{'---:|' * len(ATTRIBUTES)}\n"
+        f"| the landmark stopped at | {' | '.join(picked)} |\n"
+        f"| a landmark in view at random (chance) | {' | '.join(chance)} |\n"
+    )

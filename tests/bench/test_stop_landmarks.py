@@ -18,6 +18,9 @@ from bench.analysis.stop_landmarks import (
     ON_TARGET,
     StopRow,
     box_iou,
+    shared_attributes,
+    shared_in_view,
+    shared_markdown,
     stop_table,
     stop_target,
     table_markdown,
@@ -65,6 +68,31 @@ def test_the_table_counts_stops_at_and_far_from_the_goal():
     assert table[ON_NOTHING] == [0, 0, 0]
     text = table_markdown(rows)
     assert f"| {ON_OTHER_LANDMARK} | 0 | 2 | 1 |" in text and "| all | 1 | 3 | 2 |" in text
+
+
+def test_shared_attributes_against_the_chance_of_the_landmarks_in_view():
+    from openfly_agent.sim.scene import Landmark
+
+    def landmark(name, type_, color, size, shape="rectangular", feature="none"):
+        return Landmark(name, type_, color, size, shape, feature, (0.0, 0.0, 0.0))
+
+    target = landmark("t", "tower", "red", "high-rise")
+    picked = landmark("p", "tower", "blue", "high-rise")
+    others = [picked, landmark("q", "house", "red", "low-rise"), landmark("r", "tower", "red", "low-rise")]
+    assert shared_attributes(picked, target) == ["type", "size", "shape", "feature"]
+    chance = shared_in_view(target, others)
+    assert chance == {"type": 2 / 3, "color": 2 / 3, "size": 1 / 3, "shape": 1.0, "feature": 1.0}
+    assert shared_in_view(target, []) == dict.fromkeys(chance, 0.0)
+    rows = [
+        StopRow("a", False, 60.0, True, ON_OTHER_LANDMARK, shared=["type", "size"], shared_in_view=chance),
+        StopRow("b", False, 60.0, True, ON_OTHER_LANDMARK, shared=[], shared_in_view=chance),
+        StopRow("c", True, 5.0, True, ON_TARGET),  # at the goal: not counted
+    ]
+    text = shared_markdown(rows)
+    assert "(2): share of them" in text
+    assert "| the landmark stopped at | 50 % | 0 % | 50 % | 0 % | 0 % |" in text
+    assert "| a landmark in view at random (chance) | 67 % | 67 % | 33 % | 100 % | 100 % |" in text
+    assert shared_markdown(rows[2:]) == ""
 
 
 def test_the_command_finds_oracle_flights_on_their_target(tmp_path):
