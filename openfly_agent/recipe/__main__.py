@@ -8,6 +8,7 @@ guard cut short says so) above the evaluation tables.
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 
@@ -33,6 +34,16 @@ EXAMPLES = (
     f"{PROG} --config_path configs/recipe/tiny-recipe.yaml --output_dir outputs/recipe",
 )
 logger = logging.getLogger("openfly_agent.recipe")
+EXIT_TERMINATED = 143  # 128 + SIGTERM, as a shell reports a process SIGTERM ended
+
+
+class Terminated(Exception):
+    """SIGTERM reached the recipe (a scheduler's preemption, `kill`): raised where the recipe waits on its stage,
+    so that the stage's processes are stopped with it (openfly_agent/recipe/run.py) instead of running on."""
+
+
+def _terminated(signum, _frame) -> None:
+    raise Terminated(signal.Signals(signum).name)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
         return 2
     setup_logging()
+    previous = signal.signal(
+        signal.SIGTERM, _terminated
+    )  # Python's default would exit, leaving the stage running
     try:
         run_recipe(cfg)
     except RuntimeError as err:
@@ -54,6 +68,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write(f"{PROG}: interrupted; run the same command again to resume\n")
         return 130
+    except Terminated:
+        sys.stderr.write(
+            f"{PROG}: terminated (SIGTERM), its stage stopped; run the same command again to resume\n"
+        )
+        return EXIT_TERMINATED
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     report = recipe_report(cfg)
     summary = Path(cfg.output_dir) / "summary.md"
     summary.write_text(report)

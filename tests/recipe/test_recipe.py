@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 
 import pytest
@@ -15,9 +17,11 @@ from openfly_agent.recipe import (
     run_recipe,
 )
 from openfly_agent.recipe import run as recipe_run
+from openfly_agent.recipe.__main__ import EXIT_TERMINATED
 from openfly_agent.recipe.__main__ import main as recipe_main
 from openfly_agent.recipe.run import DONE_MARKER, KIND_DATA, KIND_EVAL, KIND_TRAIN, RecipeStep
 from openfly_agent.utils.config import REPO_ROOT, load_yaml_config, resolve_config_path
+from openfly_agent.utils.processes import start_group
 
 
 def _flag(command: list[str], name: str) -> str | None:
@@ -277,3 +281,34 @@ def test_the_long_route_arms_differ_in_the_memory_only_and_evaluate_long_episode
     assert base.extra_toolchain_configs == [] and base.eval.more_cities == []
     main = next(s for s in recipe_steps(RecipeConfig()) if s.name == "eval")
     assert _flag(main.command, "max_steps") is None  # the default cap is eval.py's own
+
+
+def test_sigterm_stops_the_running_stage_with_the_recipe(tmp_path, monkeypatch, capsys):
+    """A scheduler's SIGTERM to `python -m openfly_agent.recipe` reaches its running stage: the stage's process
+    is stopped and reaped (not left running as an orphan), and the command says how to resume, exit code 143."""
+    started = []
+
+    def stage_that_runs_on(command, env):
+        proc = start_group([sys.executable, "-c", "import time; time.sleep(300)"], env=env)
+        started.append(proc)
+        wait = proc.wait
+
+        def wait_once_signalled(*args, **kwargs):  # the recipe waits on its stage: SIGTERM arrives then
+            if not getattr(wait_once_signalled, "sent", False):
+                wait_once_signalled.sent = True
+                os.kill(os.getpid(), signal.SIGTERM)
+            return wait(*args, **kwargs)
+
+        proc.wait = wait_once_signalled
+        return proc
+
+    monkeypatch.setattr(recipe_run, "start_group", stage_that_runs_on)
+    before = signal.getsignal(signal.SIGTERM)
+    assert recipe_main([f"--output_dir={tmp_path / 'r'}"]) == EXIT_TERMINATED
+    assert len(started) == 1 and started[0].poll() is not None  # stopped and reaped, not running on
+    assert started[0].returncode == -signal.SIGTERM
+    assert (
+        "terminated (SIGTERM), its stage stopped; run the same command again to resume"
+        in capsys.readouterr().err
+    )
+    assert signal.getsignal(signal.SIGTERM) == before  # the handler is the recipe's only while it runs
