@@ -6,6 +6,8 @@ landmark's true box there. This module compares the two (pure functions; bench/s
 
 Categories of one STOP (`stop_target`): the landmark whose true box best overlaps the agent's box, if any overlaps
 by `MIN_IOU`: the route's target, another landmark the route names, a landmark the route does not name, or none.
+A STOP on another landmark than the target also says which of the target's `ATTRIBUTES` that landmark shares,
+next to how many of the landmarks in view share each (`shared_in_view`: what a pick at random would give).
 """
 
 from __future__ import annotations
