@@ -33,18 +33,17 @@ from bench.analysis.stop_landmarks import (  # noqa: E402
     stop_target,
     table_markdown,
 )
+from openfly_agent.eval.compare import load_policy_folder  # noqa: E402
+from openfly_agent.eval.config import EvalConfig  # noqa: E402
+from openfly_agent.eval.factory import embedded_sim_config, load_full_splits  # noqa: E402
+from openfly_agent.eval.report import episode_rows  # noqa: E402
+from openfly_agent.rollout.episodes import target_landmark  # noqa: E402
+from openfly_agent.sim.base import Pose  # noqa: E402
+from openfly_agent.sim.embedded import EmbeddedSimulator  # noqa: E402
 
 
 def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str) -> list[StopRow]:
     """Every STOP of `split` in `policy_dir`, classified at its pose in the dataset's embedded cities."""
-    from openfly_agent.eval.compare import load_policy_folder
-    from openfly_agent.eval.config import EvalConfig
-    from openfly_agent.eval.factory import embedded_sim_config, load_full_splits
-    from openfly_agent.eval.report import episode_rows
-    from openfly_agent.rollout.episodes import target_landmark
-    from openfly_agent.sim.base import Pose
-    from openfly_agent.sim.embedded import EmbeddedSimulator
-
     cfg = EvalConfig(checkpoint="unused", dataset_root=dataset_root, split=[split])
     episodes = {e.episode_id: e for e in load_full_splits(cfg)[split]}
     records = [r for r in load_policy_folder(policy_dir).records if r.split == split and r.stopped]
