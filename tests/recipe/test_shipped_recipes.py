@@ -25,15 +25,18 @@ SHORT_RL = "{optim: {lr: 1.0e-5, schedule: constant}, rl: {group_size: 2, episod
 TINY_DATASET_YAML = REPO_ROOT / "tests" / "training" / "tiny_dataset.yaml"
 
 
-def _small_toolchain_config(folder: Path, name: str, cities: int = 0) -> Path:
+def _small_toolchain_config(folder: Path, name: str, cities: int = 0, val: bool = False) -> Path:
     """The training tests' small dataset YAML, writing into `folder / name`, its cities' seeds shifted by `cities`
-    (a recipe's extra datasets hold other cities than its dataset)."""
+    (a recipe's extra datasets hold other cities than its dataset); `val`: with a val split (2 routes per train
+    city), for a recipe that evaluates val."""
     settings = yaml.safe_load(TINY_DATASET_YAML.read_text())
     scenes = settings["scenes"]
     scenes.update(
         train_seeds=[seed + cities for seed in scenes["train_seeds"]],
         unseen_seeds=[seed + cities for seed in scenes["unseen_seeds"]],
     )
+    if val:
+        scenes["val_seen_per_scene"] = 2
     settings.update(output_dir=str(folder / name), workers=0)
     path = folder / f"{name}.yaml"
     path.write_text(yaml.safe_dump(settings))
@@ -52,7 +55,7 @@ def short_args(cfg: RecipeConfig, folder: Path) -> list[str]:
     return [
         f"--output_dir={folder / 'recipe'}",
         f"--dataset_root={folder / 'dataset'}",
-        f"--toolchain_config={_small_toolchain_config(folder, 'dataset')}",
+        f"--toolchain_config={_small_toolchain_config(folder, 'dataset', val='val' in cfg.eval.splits)}",
         f"--grounding_root={folder / 'grounding'}",
         f"--extra_toolchain_configs=[{','.join(map(str, extras))}]",
         f"--eval.more_cities=[{','.join(map(str, cities))}]",
