@@ -57,9 +57,8 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"{PROG}: {root_cause(err)}\n")
         return 2
     setup_logging()
-    previous = signal.signal(
-        signal.SIGTERM, _terminated
-    )  # Python's default would exit, leaving the stage running
+    # Python's default SIGTERM handler would exit here and leave the running stage going on
+    previous = signal.signal(signal.SIGTERM, _terminated)
     try:
         run_recipe(cfg)
     except RuntimeError as err:

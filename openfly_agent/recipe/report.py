@@ -10,8 +10,8 @@ from the reference with a 95 % interval and an exact McNemar p. A folder without
 by hand into the run folder or a round trained by hand, is not the recipe's and is left out; a main evaluation
 without it is refused, as is an evaluation with failed episodes: a failure is never a result.
 After an RL stage the evaluated agent is its (`rl/`, with the offline figures of the agent it started from: the
-stage runs no offline test), and `rl_comparison` pairs it with that agent (`eval_before_rl/`, `eval_before_rl-<cities>/`) on the same
-episodes.
+stage runs no offline test), and `rl_comparison` pairs it with that agent (`eval_before_rl/` and each
+`eval_before_rl-<cities>/`) on the same episodes.
 """
 
 from __future__ import annotations
