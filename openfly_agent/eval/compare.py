@@ -183,6 +183,18 @@ def check_pairing(a: EvaluatedPolicy, b: EvaluatedPolicy) -> None:
                 )
 
 
+def paired_records(folder_a: str | Path, folder_b: str | Path, split: str) -> tuple[list, list]:
+    """The records of `split` in two policy folders, in pairs (the same episode at each index); none when A has
+    no such split; `PairingError` when they did not fly the same episodes under the same settings."""
+    a, b = load_policy_folder(folder_a), load_policy_folder(folder_b)
+    if split not in {r.split for r in a.records}:
+        return [], []
+    a, b = only_splits(a, [split]), only_splits(b, [split])
+    check_pairing(a, b)
+    by_key = {r.key: r for r in b.records}
+    return a.records, [by_key[r.key] for r in a.records]
+
+
 def compare_split(
     records_a: Sequence[EpisodeRecord],
     records_b: Sequence[EpisodeRecord],

@@ -23,14 +23,12 @@ from pathlib import Path
 
 from openfly_agent import constants as C
 from openfly_agent.eval.compare import (
-    check_pairing,
     compare_folders,
     compare_split,
     comparison_markdown,
     interval,
-    load_policy_folder,
-    only_splits,
     p_value,
+    paired_records,
     signed,
 )
 from openfly_agent.eval.config import PROFILE_NAMES
@@ -206,31 +204,19 @@ def rl_comparison(run_dir: str | Path) -> dict | None:
     if not (step_finished(before) and step_finished(after)):
         return None
     comparison = compare_folders(before / AGENT, after / AGENT)
-    pooled_a, pooled_b = _paired_records(before / AGENT, after / AGENT, C.SPLIT_TEST_UNSEEN)
+    pooled_a, pooled_b = paired_records(before / AGENT, after / AGENT, C.SPLIT_TEST_UNSEEN)
     cities = 0
     for folder in sorted(run.glob("eval-*")):
         name = folder.name.removeprefix("eval-")
         other = run / f"{EVAL_BEFORE_RL_DIR}-{name}"
         if not (step_finished(folder) and step_finished(other)):
             continue
-        records_a, records_b = _paired_records(other / AGENT, folder / AGENT, C.SPLIT_TEST_UNSEEN)
+        records_a, records_b = paired_records(other / AGENT, folder / AGENT, C.SPLIT_TEST_UNSEEN)
         comparison["splits"][f"{C.SPLIT_TEST_UNSEEN} ({name})"] = _compare_profiles(records_a, records_b)
         pooled_a, pooled_b, cities = pooled_a + records_a, pooled_b + records_b, cities + 1
     if cities:
         comparison["splits"][ALL_UNSEEN] = _compare_profiles(pooled_a, pooled_b)
     return comparison
-
-
-def _paired_records(folder_a: Path, folder_b: Path, split: str) -> tuple[list, list]:
-    """The records of `split` in two policy folders, in pairs (the same episode at each index); none when A has
-    no such split; `PairingError` when they did not fly the same episodes."""
-    a, b = load_policy_folder(folder_a), load_policy_folder(folder_b)
-    if split not in {r.split for r in a.records}:
-        return [], []
-    a, b = only_splits(a, [split]), only_splits(b, [split])
-    check_pairing(a, b)
-    by_key = {r.key: r for r in b.records}
-    return a.records, [by_key[r.key] for r in a.records]
 
 
 def _compare_profiles(records_a: list, records_b: list) -> dict:
