@@ -14,12 +14,13 @@
 # VENV (default .venv, set up by scripts/setup.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/_child.sh  # stopping the script stops the running stage
 export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TRANSFORMERS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 VENV=${VENV:-.venv}
 ROOT=${ROOT:-outputs/ablations}
 ARMS=${ARMS:-"current_frame uniform_history uniform_history_merging no_grounding_pretraining no_grounding_loss with_dagger"}
 SHARE_GROUNDING="current_frame uniform_history uniform_history_merging with_dagger"
-recipe() { "$VENV/bin/python" -m openfly_agent.recipe "$@"; }
+recipe() { child "$VENV/bin/python" -m openfly_agent.recipe "$@"; }
 for arm in $ARMS; do  # every arm named exists, before hours of training
   [ -f "configs/recipe/ablations/$arm.yaml" ] || { echo "ablations.sh: no arm $arm (configs/recipe/ablations/$arm.yaml is missing)" >&2; exit 2; }
 done

@@ -18,6 +18,7 @@
 # arm, e.g. "--grounding.minutes=300 --navigation.minutes=300" so that a loaded machine cannot stop a stage early).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/_child.sh  # stopping the script stops the running stage
 export HF_HUB_OFFLINE=1 HF_DATASETS_OFFLINE=1 TRANSFORMERS_OFFLINE=1 TOKENIZERS_PARALLELISM=false
 VENV=${VENV:-.venv}
 ROOT=${ROOT:-outputs/long-ablations}
@@ -25,7 +26,7 @@ ARMS=${ARMS:-"current_frame uniform_history random_keyframes keyframes uniform_h
 RECIPE_ARGS=${RECIPE_ARGS:-}
 CONFIGS=configs/recipe/long-ablations
 # shellcheck disable=SC2086  # RECIPE_ARGS is a list of overrides
-recipe() { "$VENV/bin/python" -m openfly_agent.recipe "$@" $RECIPE_ARGS; }
+recipe() { child "$VENV/bin/python" -m openfly_agent.recipe "$@" $RECIPE_ARGS; }
 for arm in $ARMS; do  # every arm named exists, before hours of training
   [ -f "$CONFIGS/$arm.yaml" ] || { echo "long_ablations.sh: no arm $arm ($CONFIGS/$arm.yaml is missing)" >&2; exit 2; }
 done
