@@ -40,6 +40,12 @@ def _stand_in_venv(tmp_path):
     return tmp_path / "venv", log
 
 
+def _as_from_a_terminal() -> None:
+    """SIGINT as a shell started from a terminal has it: a test run started in the background (`pytest &`) ignores
+    SIGINT, and a non-interactive bash that starts with SIGINT ignored cannot trap it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(script: str, env: dict) -> subprocess.Popen:
     return subprocess.Popen(
         ["bash", str(REPO_ROOT / "scripts" / script)],
@@ -47,6 +53,7 @@ def _start(script: str, env: dict) -> subprocess.Popen:
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
+        preexec_fn=_as_from_a_terminal,
     )
 
 
@@ -62,6 +69,9 @@ def _stop_once_the_recipe_runs(script: subprocess.Popen, signum: int, log) -> tu
     finally:
         if _alive(recipe_pid):  # a script that died alone left its recipe running: end it, then fail
             os.kill(recipe_pid, signal.SIGKILL)
+        if script.poll() is None:  # a script that did not stop (the test fails): end it too
+            script.kill()
+            script.wait()
     assert not alive, "the script exited and left its recipe running"
     return log.read_text().splitlines(), script.stdout.read()
 
