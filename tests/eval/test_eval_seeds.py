@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from eval_helpers import policy_folder
+from eval_helpers import policy_folder, success_record
 
-from openfly_agent.eval.seeds import seeds_split
+from openfly_agent.eval.seeds import paired_over_seeds, seeds_split
 from openfly_agent.utils.processes import run_group
 
 REPO = Path(__file__).resolve().parents[2]
@@ -82,3 +82,59 @@ def test_seeds_command_refuses_unpaired_runs_and_one_run_in_one_line(tmp_path):
     done = _seeds(str(a))
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
     assert "at least two policy folders" in done.stderr
+
+
+def _records(successes: dict[str, bool]) -> list:
+    return [success_record(eid, ok, "test_seen") for eid, ok in successes.items()]
+
+
+def test_paired_over_seeds_by_hand():
+    # seed 7: the change wins e1 (+25 pp); seed 8: it loses e0 (-25 pp)
+    baselines = [
+        _records({"e0": True, "e1": False, "e2": False, "e3": False}),
+        _records({"e0": True, "e1": True, "e2": False, "e3": False}),
+    ]
+    runs = [
+        _records({"e0": True, "e1": True, "e2": False, "e3": False}),
+        _records({"e0": False, "e1": True, "e2": False, "e3": False}),
+    ]
+    paired = paired_over_seeds(baselines, runs, "standard", resamples=200)
+    assert [row["sr_diff_pp"] for row in paired["per_seed"]] == [25.0, -25.0]
+    assert paired["per_seed"][0]["counts"] == {"both": 1, "only_a": 0, "only_b": 1, "neither": 2}
+    assert paired["seeds_below_zero"] == 1
+    pooled = paired["pooled"]  # 8 pairs: both 2 (s7 e0, s8 e1), only A 1, only B 1, neither 4
+    assert pooled["episodes"] == 8
+    assert pooled["counts"] == {"both": 2, "only_a": 1, "only_b": 1, "neither": 4}
+    assert pooled["sr_a_pct"] == 37.5 and pooled["sr_b_pct"] == 37.5 and pooled["sr_diff_pp"] == 0.0
+    assert pooled["mcnemar_p"] == 1.0  # one discordant pair each way
+    low, high = pooled["sr_diff_ci_pp"]
+    assert low < 0.0 < high
+
+
+def test_seeds_command_paired_with_each_seeds_own_run(tmp_path):
+    runs = [
+        policy_folder(tmp_path / "s7", {"e0": True, "e1": True, "e2": False, "e3": False}, checkpoint="c7"),
+        policy_folder(tmp_path / "s8", {"e0": True, "e1": True, "e2": True, "e3": False}, checkpoint="c8"),
+    ]
+    own = [
+        policy_folder(tmp_path / "b7", {"e0": True, "e1": False, "e2": False, "e3": False}, checkpoint="b7"),
+        policy_folder(tmp_path / "b8", {"e0": True, "e1": True, "e2": False, "e3": False}, checkpoint="b8"),
+    ]
+    out = tmp_path / "paired.json"
+    done = _seeds(*map(str, runs), f"--paired_with=[{own[0]},{own[1]}]", f"--json={out}", "--resamples=200")
+    assert done.returncode == 0, done.stderr
+    paired = json.loads(out.read_text())["splits"]["test_seen"]["standard"]["vs_paired_with"]
+    # 8 pairs: A 3 of 8, B 5 of 8; only B 2 (s7 e1, s8 e2), only A 0: exact McNemar p = 2 * (1/2)^2 = 0.5
+    assert paired["pooled"]["counts"] == {"both": 3, "only_a": 0, "only_b": 2, "neither": 3}
+    assert paired["pooled"]["mcnemar_p"] == pytest.approx(0.5)
+    assert paired["seeds_below_zero"] == 0
+    assert "| test_seen / `standard` | 8 | 37.5 -> 62.5 | +25.0 [" in done.stdout
+    assert "| 0 / 2 | +25.0 [" in done.stdout and "| 0 of 2 |" in done.stdout
+
+
+def test_seeds_command_refuses_a_paired_with_list_of_another_length(tmp_path):
+    runs = [policy_folder(tmp_path / f"s{i}", {"e0": True}) for i in range(2)]
+    done = _seeds(*map(str, runs), f"--paired_with=[{runs[0]}]")
+    assert (
+        done.returncode == 2 and "one per run" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    )
