@@ -34,7 +34,9 @@ from openfly_agent.eval.compare import (
     EvaluatedPolicy,
     check_pairing,
     compare_split,
+    interval,
     load_policy_folder,
+    signed,
     write_report,
 )
 from openfly_agent.eval.config import PROFILE_NAMES
@@ -211,8 +213,9 @@ def summarize_seeds(
     }
 
 
-def _pp(value: float) -> str:
-    return f"{value:+.1f}"
+def _paired_diff(row: dict) -> str:
+    """A `compare.compare_split` row's SR difference, interval and McNemar p: `-25.0 [-60.2, +15.1], p 0.62`."""
+    return f"{signed(row['sr_diff_pp'])} {interval(row['sr_diff_ci_pp'])}, p {row['mcnemar_p']:.2g}"
 
 
 def seeds_markdown(summary: dict) -> str:
@@ -246,15 +249,10 @@ def seeds_markdown(summary: dict) -> str:
                 f"| {low:.1f}-{high:.1f} / {row['sr_std_pct']:.1f} |"
             )
             if reference is not None:
-                d_low, d_high = row["sr_mean_diff_ci_pp"]
-                each = "; ".join(
-                    f"{_pp(c['sr_diff_pp'])} [{_pp(c['sr_diff_ci_pp'][0])}, {_pp(c['sr_diff_ci_pp'][1])}], "
-                    f"p {c['mcnemar_p']:.2g}"
-                    for c in row["per_seed_vs_reference"]
-                )
+                each = "; ".join(_paired_diff(c) for c in row["per_seed_vs_reference"])
                 line += (
-                    f" {row['reference_sr_pct']:.1f} | {_pp(row['sr_mean_diff_pp'])} [{_pp(d_low)}, {_pp(d_high)}] "
-                    f"| {each} |"
+                    f" {row['reference_sr_pct']:.1f} | {signed(row['sr_mean_diff_pp'])} "
+                    f"{interval(row['sr_mean_diff_ci_pp'])} | {each} |"
                 )
             lines.append(line)
     lines += [
@@ -265,11 +263,6 @@ def seeds_markdown(summary: dict) -> str:
     if summary["paired_with"]:
         lines += ["", *paired_with_markdown(summary)]
     return "\n".join(lines) + "\n"
-
-
-def _diff(row: dict) -> str:
-    low, high = row["sr_diff_ci_pp"]
-    return f"{_pp(row['sr_diff_pp'])} [{_pp(low)}, {_pp(high)}], p {row['mcnemar_p']:.2g}"
 
 
 def paired_with_markdown(summary: dict) -> list[str]:
@@ -290,10 +283,10 @@ def paired_with_markdown(summary: dict) -> list[str]:
         for profile, row in by_profile.items():
             paired = row["vs_paired_with"]
             pooled = paired["pooled"]
-            each = "; ".join(_diff(seed_row) for seed_row in paired["per_seed"])
+            each = "; ".join(_paired_diff(seed_row) for seed_row in paired["per_seed"])
             lines.append(
                 f"| {split} / `{profile}` | {pooled['episodes']} | {pooled['sr_a_pct']:.1f} -> {pooled['sr_b_pct']:.1f} "
-                f"| {_diff(pooled)} | {pooled['counts']['only_a']} / {pooled['counts']['only_b']} | {each} "
+                f"| {_paired_diff(pooled)} | {pooled['counts']['only_a']} / {pooled['counts']['only_b']} | {each} "
                 f"| {paired['seeds_below_zero']} of {len(paired['per_seed'])} |"
             )
     lines += [
