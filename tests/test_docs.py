@@ -119,6 +119,8 @@ RETIRED_OPTIONS = {
     "model.action_head.leg_goal_weight",
     # docs/experiments/2026-11-29-stop-margin.md (commit ec77d5b)
     "agent.stop_margin",
+    # docs/experiments/2026-11-29-main-job-expression-frames-in-navigation.md (commit 00c660f)
+    "data.expression_fraction",
 }  # fmt: skip
 
 

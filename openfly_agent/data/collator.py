@@ -95,12 +95,9 @@ class NavigationCollator:
         }
 
     def __call__(self, samples: Sequence[dict]) -> dict[str, torch.Tensor]:
-        """Samples of NavigationStepDataset -> the batch dict (keys and shapes of docs/INTERFACES.md); with
-        expression frames among them (`data.expression_fraction`), a mixed batch (`_with_expressions`)."""
+        """Samples of NavigationStepDataset -> the batch dict (keys and shapes of docs/INTERFACES.md)."""
         if not samples:
             raise ValueError("cannot collate an empty list of samples")
-        if any(s.get(GROUNDING_KIND) == EXPRESSION_SAMPLE for s in samples):
-            return self._with_expressions(samples)
         inputs = self.processor(
             [self.processor.navigation_prompt(s[C.OBS_INSTRUCTION]) for s in samples],
             [s[C.OBS_RGB] for s in samples],
@@ -128,52 +125,6 @@ class NavigationCollator:
         if self.with_metadata:
             batch[C.EPISODE_ID] = [s[C.EPISODE_ID] for s in samples]
             batch[C.STEP_INDEX] = torch.tensor([int(s[C.STEP_INDEX]) for s in samples], dtype=torch.long)
-        return batch
-
-    def _with_expressions(self, samples: Sequence[dict]) -> dict[str, torch.Tensor]:
-        """Navigation steps and expression frames -> one batch: the steps' rows (as `__call__` makes them), then
-        one row per expression with its grounding prompt, its box, no action target (labels all IGNORE_INDEX,
-        `action` -1) and no memory. Each frame is encoded once: `pixel_values` (F, 3, H, W) holds the steps'
-        frames, then the expression frames, and `frame_index` (B,) says which one each row reads."""
-        if self.with_metadata:
-            raise ValueError("expression frames are training samples: they carry no episode metadata")
-        steps = [s for s in samples if s.get(GROUNDING_KIND) != EXPRESSION_SAMPLE]
-        frames = [s for s in samples if s.get(GROUNDING_KIND) == EXPRESSION_SAMPLE]
-        prompts = [self.processor.navigation_prompt(s[C.OBS_INSTRUCTION]) for s in steps]
-        actions: list[int | None] = [int(s[C.ACTION]) for s in steps]
-        boxes = [np.asarray(s[C.BOX], dtype=np.float32) for s in steps]
-        visible = [bool(s[C.BOX_VISIBLE]) for s in steps]
-        frame_index = list(range(len(steps)))
-        rows = list(steps)  # what `_memory` reads per row: the steps' memories, then none
-        for frame, sample in enumerate(frames, start=len(steps)):
-            for expression, box in zip(sample[EXPRESSIONS], sample[BOXES]):
-                prompts.append(self.processor.grounding_prompt(expression))
-                actions.append(None)
-                boxes.append(np.asarray(box, dtype=np.float32))
-                visible.append(True)
-                frame_index.append(frame)
-                rows.append({C.MEMORY: []})
-        text = self.processor(prompts, actions=actions)  # input_ids, attention_mask, labels (B, L)
-        pixels = torch.stack([self._image(s[C.OBS_RGB]) for s in (*steps, *frames)])  # (F, 3, H, W)
-        shown = torch.tensor(visible, dtype=torch.bool)  # (B,)
-        box = torch.from_numpy(np.stack(boxes))  # (B, 4)
-        batch = {
-            C.INPUT_IDS: text[C.INPUT_IDS],
-            C.ATTENTION_MASK: text[C.ATTENTION_MASK],
-            C.LABELS: text[C.LABELS],
-            C.PIXEL_VALUES: pixels,
-            C.FRAME_INDEX: torch.tensor(frame_index, dtype=torch.long),
-            **self._memory(rows, tuple(pixels.shape[1:])),
-            C.BOX: torch.where(shown[:, None], box, torch.zeros_like(box)),
-            C.BOX_VISIBLE: shown,
-            C.ACTION: torch.tensor([-1 if a is None else a for a in actions], dtype=torch.long),
-        }
-        if any(C.TARGET_ATTRIBUTES in s for s in samples):
-            unknown = np.full(4, -1, dtype=np.int64)  # rows without attributes: the attribute loss skips -1
-            attributes = [s.get(C.TARGET_ATTRIBUTES, unknown) for s in steps]
-            for sample in frames:
-                attributes.extend(sample.get(C.TARGET_ATTRIBUTES, [unknown] * len(sample[EXPRESSIONS])))
-            batch[C.TARGET_ATTRIBUTES] = torch.as_tensor(np.stack(attributes), dtype=torch.long)  # (B, 4)
         return batch
 
 

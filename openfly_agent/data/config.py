@@ -91,14 +91,10 @@ class DataConfig:
         cache_frames: decoded frames kept per process (LRU).
         extra_train_roots: more datasets (same layout) whose train split joins the training data, e.g. the
             DAgger rounds' rollouts (their frames are read from their own roots).
-        grounding_root: the grounding dataset (`toolchain grounding`) the grounding stage trains on (and the
-            navigation stage's expression frames come from).
+        grounding_root: the grounding dataset (`toolchain grounding`) the grounding stage trains on.
         instruction_fraction: grounding stage: share of its samples that are navigation steps (instruction and
             target box) rather than referring expressions.
-        expressions_per_frame: expressions per grounding frame in a batch (one encode each).
-        expression_fraction: navigation stage: share of its samples that are expression frames of
-            `grounding_root` (each frame gives `expressions_per_frame` sequences with a grounding target and no
-            action or memory); 0 trains on the navigation steps alone.
+        expressions_per_frame: grounding stage: expressions per grounding frame in a batch (one encode each).
     """
 
     # dataset root (relative to the working directory); the toolchain writes embedded-small there
@@ -114,13 +110,10 @@ class DataConfig:
     grounding_root: str | None = None
     instruction_fraction: float = 0.25
     expressions_per_frame: int = 4
-    expression_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.instruction_fraction < 1.0:
             raise ValueError(f"data.instruction_fraction={self.instruction_fraction} must be in [0, 1)")
-        if not 0.0 <= self.expression_fraction < 1.0:
-            raise ValueError(f"data.expression_fraction={self.expression_fraction} must be in [0, 1)")
         if self.expressions_per_frame < 1:
             raise ValueError(f"data.expressions_per_frame={self.expressions_per_frame} must be >= 1")
         for name in ("val_split", "test_split"):

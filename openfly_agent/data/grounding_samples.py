@@ -1,6 +1,5 @@
-"""Grounding samples: expression frames of the grounding dataset (data/grounding.py) and navigation steps seen
-as (instruction, target box) pairs, and the mixture that puts a second kind of sample into a stage's training
-data (training/stages.py)."""
+"""Grounding-stage training samples: expression frames of the grounding dataset (data/grounding.py) and
+navigation steps seen as (instruction, target box) pairs, mixed in one dataset (training/stages.py)."""
 
 from __future__ import annotations
 
@@ -72,61 +71,45 @@ class GroundingFrameDataset(torch.utils.data.Dataset):
         return sample
 
 
-class DatasetMixture(torch.utils.data.Dataset):
-    """Two datasets in one, for a stage that trains on a second kind of sample beside its own.
+class GroundingMixture(torch.utils.data.Dataset):
+    """Expression frames and navigation steps (instruction + target box) in one dataset for the grounding stage.
 
-    Indices `[0, M)` are `main`'s samples; `[M, M + N)` are `extra`'s, with N chosen so that a fraction
-    `extra_fraction` of the samples are extra ones. Extra indices cycle through `extra` with an epoch offset, so
-    every epoch sees other extra samples when N < its length. The grounding stage mixes navigation targets
-    (`InstructionTargets`) into its expression frames (`data.instruction_fraction`); the navigation stage mixes
-    expression frames into its steps (`data.expression_fraction`).
+    Indices `[0, E)` are the expression frames; `[E, E + N)` navigation samples, with N chosen so that a
+    fraction `instruction_fraction` of the samples are navigation ones. Navigation indices cycle through the
+    navigation dataset with an epoch offset, so every epoch sees other steps when N < its length.
 
     Args:
-        main: the stage's own samples.
-        extra: the other kind, or None (then the mixture is `main`).
-        extra_fraction: share of extra samples, in [0, 1).
+        expressions: the expression frames (`GroundingFrameDataset`).
+        instructions: navigation samples with `instruction`, `rgb`, `box`, `box_visible` (a
+            `NavigationStepDataset`), or None for expressions only.
+        instruction_fraction: share of navigation samples, in [0, 1).
     """
 
-    def __init__(self, main, extra=None, extra_fraction: float = 0.0):
-        if not 0.0 <= extra_fraction < 1.0:
-            raise ValueError(f"extra_fraction={extra_fraction} must be in [0, 1)")
-        self.main, self.extra = main, extra
-        size = len(main)
-        wanted = round(size * extra_fraction / (1.0 - extra_fraction))
-        self.num_extra = 0 if extra is None or not len(extra) else wanted
+    def __init__(
+        self, expressions: GroundingFrameDataset, instructions=None, instruction_fraction: float = 0.0
+    ):
+        if not 0.0 <= instruction_fraction < 1.0:
+            raise ValueError(f"instruction_fraction={instruction_fraction} must be in [0, 1)")
+        self.expressions, self.instructions = expressions, instructions
+        size = len(expressions)
+        wanted = round(size * instruction_fraction / (1.0 - instruction_fraction))
+        self.num_instructions = 0 if instructions is None or not len(instructions) else wanted
         self.epoch = 0
 
     def __len__(self) -> int:
-        return len(self.main) + self.num_extra
+        return len(self.expressions) + self.num_instructions
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
-        for part in (self.main, self.extra):
-            if part is not None and hasattr(part, "set_epoch"):
-                part.set_epoch(epoch)
+        self.expressions.set_epoch(epoch)
+        if self.instructions is not None and hasattr(self.instructions, "set_epoch"):
+            self.instructions.set_epoch(epoch)
 
     def __getitem__(self, index: int) -> dict:
-        if index < len(self.main):
-            return self.main[index]
-        offset = (index - len(self.main) + self.epoch * self.num_extra) % len(self.extra)
-        return self.extra[offset]
-
-
-class InstructionTargets(torch.utils.data.Dataset):
-    """A navigation split seen as grounding samples: each step's frame, instruction and target box."""
-
-    def __init__(self, steps) -> None:
-        self.steps = steps
-
-    def __len__(self) -> int:
-        return len(self.steps)
-
-    def set_epoch(self, epoch: int) -> None:
-        if hasattr(self.steps, "set_epoch"):
-            self.steps.set_epoch(epoch)
-
-    def __getitem__(self, index: int) -> dict:
-        return instruction_sample(self.steps[index])
+        if index < len(self.expressions):
+            return self.expressions[index]
+        offset = (index - len(self.expressions) + self.epoch * self.num_instructions) % len(self.instructions)
+        return instruction_sample(self.instructions[offset])
 
 
 def instruction_sample(step: dict) -> dict:

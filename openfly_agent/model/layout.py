@@ -114,14 +114,14 @@ class SequenceLayout:
             labels: (B, L) of the text, IGNORE_INDEX off the action; the action starts at a row's first label.
             memory: (B, M, D) memory tokens, oldest first; memory_mask: (B, M) bool, False on missing slots.
             current: (B, P, D) current-frame tokens.
-            box: (B, D) the BOX token's embedding, or None (no box token). It goes before each row's action;
-                a row without a labelled action (an expression row of a mixed navigation batch) gets none.
+            box: (B, D) the BOX token's embedding, or None (no box token); every row must then be labelled.
 
         Returns:
             The layout of (B, L + M + P (+1)) tokens.
         """
         labelled = labels != IGNORE_INDEX  # (B, L)
-        has_action = labelled.any(dim=1).tolist()  # (B,)
+        if box is not None and not bool(labelled.any(dim=1).all()):
+            raise ValueError("every row needs a labelled action token to put the box token before")
         starts = torch.where(labelled.any(dim=1), labelled.long().argmax(dim=1), labels.shape[1]).tolist()
         rows = []
         for row, start in enumerate(starts):
@@ -131,9 +131,7 @@ class SequenceLayout:
                     "memory": _piece(memory[row].to(text.dtype), memory_mask[row]),
                     "current": _piece(current[row].to(text.dtype)),
                     "prompt": _piece(text[row, 1:start], attention_mask[row, 1:start], labels[row, 1:start]),
-                    "box": _piece(box[row, None].to(text.dtype))
-                    if box is not None and has_action[row]
-                    else None,
+                    "box": None if box is None else _piece(box[row, None].to(text.dtype)),
                     "action": _piece(text[row, start:], attention_mask[row, start:], labels[row, start:]),
                 }
             )

@@ -7,7 +7,7 @@ decides which options `--help` leaves out.
 
 from __future__ import annotations
 
-from openfly_agent.constants import STAGE_GROUNDING, STAGE_NAVIGATION, STAGE_RL
+from openfly_agent.constants import STAGE_GROUNDING, STAGE_RL
 from openfly_agent.data.schema import SchemaError
 from openfly_agent.model.config import VISION_DINOSIGLIP_224, VISION_TINY_CNN
 from openfly_agent.training.checkpoint import CheckpointManager
@@ -75,17 +75,13 @@ def unlisted(cfg: TrainConfig) -> list[Unlisted]:
         groups.append(Unlisted(("rl",), "the RL stage's", "--stage=rl"))
     if not cfg.use_lora:
         groups.append(Unlisted(("lora",), "LoRA's", "--freeze_stage=lora"))
-    if cfg.stage != STAGE_NAVIGATION:
-        groups.append(Unlisted(("data.expression_fraction",), "the navigation stage's", "--stage=navigation"))
-    if cfg.stage != STAGE_GROUNDING and cfg.data.expression_fraction == 0:
+    if cfg.stage != STAGE_GROUNDING:
         grounding = ("data.grounding_root", "data.instruction_fraction", "data.expressions_per_frame")
         groups.append(
             Unlisted(
                 (*grounding, "model.prompt.grounding_template"), "the grounding stage's", "--stage=grounding"
             )
         )
-    elif cfg.stage != STAGE_GROUNDING:  # the navigation stage's expression frames read the grounding dataset
-        groups.append(Unlisted(("data.instruction_fraction",), "the grounding stage's", "--stage=grounding"))
     if not cfg.model.llm.trains_own_tokenizer:
         groups.append(Unlisted(("tokenizer",), "the tiny LLM's tokenizer", "--model.llm.type=tiny"))
     if cfg.steps is not None:

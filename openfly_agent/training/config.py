@@ -319,16 +319,6 @@ class TrainConfig:
             "stage=grounding trains the grounding head: model.grounding.type must name one, not none",
         )
         _require(
-            self.data.expression_fraction == 0
-            or (
-                self.stage == STAGE_NAVIGATION
-                and self.data.grounding_root is not None
-                and self.model.grounding.has_head
-            ),
-            "data.expression_fraction mixes referring expressions into the navigation stage: it needs "
-            "--stage=navigation, --data.grounding_root and a grounding head",
-        )
-        _require(
             self.stage != STAGE_RL or (self.init.checkpoint is not None and self.steps is not None),
             "stage=rl fine-tunes a navigation checkpoint: set --init.checkpoint and --steps (the updates)",
         )

@@ -88,9 +88,7 @@ def _final_evaluation(run: Run) -> dict[str, float] | None:
         )
         return None
     if run.cfg.stage == STAGE_NAVIGATION:
-        final["majority_class_rate"] = majority_class_rate(
-            run.data.train_steps, run.data.test, run.test_indices
-        )
+        final["majority_class_rate"] = majority_class_rate(run.data.train, run.data.test, run.test_indices)
     log_metrics(run.accelerator, "test", final, step)
     return final
 

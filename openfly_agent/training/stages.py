@@ -1,8 +1,6 @@
 """What each training stage reads: its train / validation / test datasets and the collator that batches them.
 
-- `navigation` (the default): per-step samples with history (data/dataset.py), action and grounding targets;
-  with `data.expression_fraction` that share of its samples are expression frames of the grounding dataset
-  (grounding targets only, no memory, no action), so the head keeps learning every landmark's name.
+- `navigation` (the default): per-step samples with history (data/dataset.py), action and grounding targets.
 - `grounding`: the alignment stage. Referring expressions of the grounding dataset (`data.grounding_root`) mixed
   with navigation steps seen as (instruction, target box) pairs; validation and test are the navigation splits'
   instruction targets, so its box IoU is the one the navigation stage starts from. No action loss.
@@ -19,7 +17,7 @@ from openfly_agent import constants as C
 from openfly_agent.data.collator import GroundingCollator, NavigationCollator
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.grounding import read_grounding_frames
-from openfly_agent.data.grounding_samples import DatasetMixture, GroundingFrameDataset, InstructionTargets
+from openfly_agent.data.grounding_samples import GroundingFrameDataset, GroundingMixture, instruction_sample
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.training.config import STAGE_GROUNDING, TrainConfig
 from openfly_agent.training.preflight import PreflightError
@@ -27,62 +25,49 @@ from openfly_agent.training.preflight import PreflightError
 
 @dataclass
 class StageData:
-    """The datasets and the collator of a stage (`train_steps`: the navigation stage's train-split steps, which
-    `train` mixes with expression frames under `data.expression_fraction`; None in the grounding stage)."""
+    """The datasets and the collator of a stage."""
 
     train: Dataset
     val: Dataset
     test: Dataset
     collate: Callable
-    train_steps: NavigationStepDataset | None = None
+
+
+class InstructionTargets(Dataset):
+    """A navigation split seen as grounding samples: each step's frame, instruction and target box."""
+
+    def __init__(self, steps: NavigationStepDataset) -> None:
+        self.steps = steps
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.steps.set_epoch(epoch)
+
+    def __getitem__(self, index: int) -> dict:
+        return instruction_sample(self.steps[index])
 
 
 def stage_data(cfg: TrainConfig, splits, agent: OpenFlyAgent) -> StageData:
     """The datasets of `cfg.stage` over the loaded `splits` (training/builder.py), batched by the agent's processor.
 
     Raises:
-        PreflightError: the grounding stage (or `data.expression_fraction`) without `data.grounding_root`, or a
-            root without train frames.
+        PreflightError: the grounding stage without `data.grounding_root`, or a root without train frames.
     """
     data = cfg.data
     if cfg.stage != STAGE_GROUNDING:
-        steps = train = splits.dataset(C.SPLIT_TRAIN, cfg, agent)
-        if data.expression_fraction > 0:
-            needs = f"data.expression_fraction={data.expression_fraction}"
-            train = DatasetMixture(steps, _expression_frames(cfg, splits, needs), data.expression_fraction)
         return StageData(
-            train=train,
+            train=splits.dataset(C.SPLIT_TRAIN, cfg, agent),
             val=splits.dataset(data.val_split, cfg, agent),
             test=splits.dataset(data.test_split, cfg, agent),
             collate=NavigationCollator(
                 agent.processor, cfg.model.memory.capacity, cfg.model.keyframes.set_size
             ),
-            train_steps=steps,
         )
-    expressions = _expression_frames(cfg, splits, "stage=grounding")
-    targets = {
-        split: InstructionTargets(splits.dataset(split, cfg, agent, history="none"))
-        for split in dict.fromkeys((C.SPLIT_TRAIN, data.val_split, data.test_split))
-    }
-    return StageData(
-        train=DatasetMixture(expressions, targets[C.SPLIT_TRAIN], data.instruction_fraction),
-        val=targets[data.val_split],
-        test=targets[data.test_split],
-        collate=GroundingCollator(agent.processor),
-    )
-
-
-def _expression_frames(cfg: TrainConfig, splits, needs: str) -> GroundingFrameDataset:
-    """The train frames of `data.grounding_root` with their referring expressions.
-
-    Raises:
-        PreflightError: no `data.grounding_root` (`needs` names the setting that asks for it), or a root
-            without train frames.
-    """
-    data = cfg.data
     if not data.grounding_root:
         raise PreflightError(
-            f"{needs} needs --data.grounding_root (python -m openfly_agent.toolchain grounding writes it)"
+            "stage=grounding needs --data.grounding_root (python -m openfly_agent.toolchain grounding writes it)"
         )
     try:
         frames = read_grounding_frames(data.grounding_root, (C.SPLIT_TRAIN,))
@@ -90,6 +75,19 @@ def _expression_frames(cfg: TrainConfig, splits, needs: str) -> GroundingFrameDa
         raise PreflightError(str(err)) from err
     if not frames:
         raise PreflightError(f"data.grounding_root {data.grounding_root} has no frames of the train split")
-    return GroundingFrameDataset(
-        frames, data.expressions_per_frame, seed=cfg.seed, target_attributes=splits.attributes
+    expressions = GroundingFrameDataset(
+        frames,
+        data.expressions_per_frame,
+        seed=cfg.seed,
+        target_attributes=splits.attributes,
+    )
+    targets = {
+        split: InstructionTargets(splits.dataset(split, cfg, agent, history="none"))
+        for split in dict.fromkeys((C.SPLIT_TRAIN, data.val_split, data.test_split))
+    }
+    return StageData(
+        train=GroundingMixture(expressions, targets[C.SPLIT_TRAIN], data.instruction_fraction),
+        val=targets[data.val_split],
+        test=targets[data.test_split],
+        collate=GroundingCollator(agent.processor),
     )

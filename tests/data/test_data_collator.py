@@ -13,7 +13,6 @@ from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
 from openfly_agent.data.dataset import NavigationStepDataset
 from openfly_agent.data.frames import FrameStore
-from openfly_agent.data.grounding_samples import BOXES, EXPRESSION_SAMPLE, EXPRESSIONS, GROUNDING_KIND
 from openfly_agent.data.writer import OpenFlyDatasetWriter
 from openfly_agent.model.language.action_tokenizer import CODEBOOK, ActionTokenizer
 from openfly_agent.model.processor import OpenFlyProcessor
@@ -176,41 +175,3 @@ def test_dataloader_with_workers_matches_in_process(tokenizer, dataset):
     assert len(got) == len(expected)
     for a, b in zip(got, expected):
         assert all(torch.equal(a[k], b[k]) for k in BATCH_KEYS)
-
-
-def _expression_frame(value: int, expressions: list[str], boxes: list[list[float]]) -> dict:
-    """An expression sample as GroundingFrameDataset gives it: a 16 px frame of one value, its expressions."""
-    return {
-        GROUNDING_KIND: EXPRESSION_SAMPLE,
-        C.OBS_RGB: np.full((16, 16, 3), value, dtype=np.uint8),
-        EXPRESSIONS: expressions,
-        BOXES: np.asarray(boxes, dtype=np.float32),
-    }
-
-
-def test_expression_frames_join_a_navigation_batch_as_rows_without_action_or_memory(tokenizer, dataset):
-    steps = [dataset[3], dataset[8]]  # a t=3, b t=2: both with memory frames
-    frame = _expression_frame(7, ["red tower", "the tower 2"], [[0.5, 0.4, 0.2, 0.3], [0.1, 0.2, 0.1, 0.1]])
-    collator = NavigationCollator(make_processor(tokenizer, grounding_template="{expression} ?"), 2, 3)
-    batch = collator([steps[0], frame, steps[1]])
-    plain = collator(steps)  # the same steps alone: the steps' rows must not change
-    assert set(batch) == BATCH_KEYS | {C.FRAME_INDEX}
-    assert batch[C.PIXEL_VALUES].shape == (3, 3, 8, 8)  # the two steps' frames, then the expression frame
-    assert torch.equal(batch[C.PIXEL_VALUES][:2], plain[C.PIXEL_VALUES])
-    assert (batch[C.PIXEL_VALUES][2] == 7).all()
-    assert batch[C.FRAME_INDEX].tolist() == [0, 1, 2, 2]  # both expressions read the one frame
-    rows, length = 4, 14  # the steps' prompts are the longest (13 and 10 tokens + the action)
-    assert batch[C.INPUT_IDS].shape == (rows, length)
-    assert torch.equal(batch[C.INPUT_IDS][:2], plain[C.INPUT_IDS])
-    assert torch.equal(batch[C.LABELS][:2], plain[C.LABELS])
-    red_tower = tokenizer("red tower ?")["input_ids"]  # BOS + 3 words, no action token
-    assert batch[C.INPUT_IDS][2].tolist() == red_tower + [tokenizer.pad_token_id] * (length - 4)
-    assert (batch[C.LABELS][2:] == -100).all() and batch[C.ATTENTION_MASK][2:].sum(dim=1).tolist() == [4, 5]
-    assert batch[C.ACTION].tolist() == [*plain[C.ACTION].tolist(), -1, -1]
-    assert torch.equal(batch[C.MEMORY_PIXEL_VALUES][:2], plain[C.MEMORY_PIXEL_VALUES])
-    assert batch[C.MEMORY_FRAME_MASK].shape == (rows, 2, 3) and not batch[C.MEMORY_FRAME_MASK][2:].any()
-    assert batch[C.BOX_VISIBLE].tolist() == [*plain[C.BOX_VISIBLE].tolist(), True, True]
-    torch.testing.assert_close(batch[C.BOX][2:], torch.tensor([[0.5, 0.4, 0.2, 0.3], [0.1, 0.2, 0.1, 0.1]]))
-    assert torch.equal(batch[C.BOX][:2], plain[C.BOX])
-    with pytest.raises(ValueError, match="metadata"):
-        NavigationCollator(make_processor(tokenizer), 2, 3, with_metadata=True)([steps[0], frame])

@@ -15,9 +15,8 @@ from openfly_agent.data.grounding_samples import (
     EXPRESSIONS,
     GROUNDING_KIND,
     INSTRUCTION_SAMPLE,
-    DatasetMixture,
     GroundingFrameDataset,
-    InstructionTargets,
+    GroundingMixture,
 )
 
 
@@ -74,36 +73,18 @@ def test_frame_dataset_draws_distinct_expressions_reproducibly_and_per_epoch():
     assert len(draws) > 1
 
 
-def _targets(n: int) -> InstructionTargets:
-    return InstructionTargets(_Steps(n))
-
-
 def test_mixture_holds_the_asked_share_of_instruction_targets_and_cycles_them():
-    targets = _targets(5)
-    mixture = DatasetMixture(GroundingFrameDataset([_frame(i, 3) for i in range(6)]), targets, 0.25)
+    steps = _Steps(5)
+    mixture = GroundingMixture(GroundingFrameDataset([_frame(i, 3) for i in range(6)]), steps, 0.25)
     assert len(mixture) == 8  # 6 expression frames + 2 instruction samples = 25 %
     assert mixture[0][GROUNDING_KIND] == EXPRESSION_SAMPLE
     first = [mixture[i][C.OBS_INSTRUCTION] for i in (6, 7)]
     assert mixture[6][GROUNDING_KIND] == INSTRUCTION_SAMPLE and first == ["fly to 0", "fly to 1"]
     mixture.set_epoch(1)
-    assert [mixture[i][C.OBS_INSTRUCTION] for i in (6, 7)] == ["fly to 2", "fly to 3"]
-    assert targets.steps.epochs == [1]
-    assert len(DatasetMixture(GroundingFrameDataset([_frame(0, 3)]), None, 0.5)) == 1
-    with pytest.raises(ValueError, match="extra_fraction"):
-        DatasetMixture(GroundingFrameDataset([_frame(0, 3)]), targets, 1.0)
-
-
-def test_navigation_steps_with_a_fifth_of_expression_frames():
-    # the navigation stage's mixture (data.expression_fraction 0.2): 12 steps + round(12 x 0.2 / 0.8) = 3 frames
-    steps, frames = _Steps(12), GroundingFrameDataset([_frame(i, 2) for i in range(5)])
-    mixture = DatasetMixture(steps, frames, 0.2)
-    assert len(mixture) == 15
-    assert mixture[11][C.OBS_INSTRUCTION] == "fly to 11" and GROUNDING_KIND not in mixture[11]
-    assert [int(mixture[i][C.OBS_RGB][0, 0, 0]) for i in (12, 13, 14)] == [0, 1, 2]  # frames 0-2
-    mixture.set_epoch(1)  # offset 1 x 3: frames 3, 4, then 0 again
-    assert [int(mixture[i][C.OBS_RGB][0, 0, 0]) for i in (12, 13, 14)] == [3, 4, 0]
-    assert steps.epochs == [1] and frames.epoch == 1
-    assert len(DatasetMixture(steps, frames, 0.0)) == 12
+    assert [mixture[i][C.OBS_INSTRUCTION] for i in (6, 7)] == ["fly to 2", "fly to 3"] and steps.epochs == [1]
+    assert len(GroundingMixture(GroundingFrameDataset([_frame(0, 3)]), None, 0.5)) == 1
+    with pytest.raises(ValueError, match="instruction_fraction"):
+        GroundingMixture(GroundingFrameDataset([_frame(0, 3)]), steps, 1.0)
 
 
 class _Processor:
@@ -131,7 +112,7 @@ class _Processor:
 
 def test_collator_encodes_each_frame_once_and_points_every_sequence_at_its_frame():
     expressions = GroundingFrameDataset([_frame(3, 2), _frame(4, 3)], expressions_per_frame=3)
-    samples = [expressions[0], expressions[1], DatasetMixture(expressions, _targets(2), 0.5)[3]]
+    samples = [expressions[0], expressions[1], GroundingMixture(expressions, _Steps(2), 0.5)[3]]
     batch = GroundingCollator(_Processor())(samples)
     assert batch[C.PIXEL_VALUES].shape == (3, 3, 8, 8)  # three frames
     assert batch[C.FRAME_INDEX].tolist() == [0, 0, 1, 1, 1, 2]
@@ -151,7 +132,7 @@ def test_attributes_follow_each_expression_and_unknown_rows_are_minus_one():
     expressions = GroundingFrameDataset([_frame(3, 2), _frame(4, 3)], 3, target_attributes=lookup)
     first = expressions[0]  # both expressions of a two-landmark frame, in order
     assert first[C.TARGET_ATTRIBUTES].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0]]
-    instruction = DatasetMixture(expressions, _targets(2), 0.5)[3]  # a navigation step without attributes
+    instruction = GroundingMixture(expressions, _Steps(2), 0.5)[3]  # a navigation step without attributes
     batch = GroundingCollator(_Processor())([first, instruction])
     assert batch[C.TARGET_ATTRIBUTES].tolist() == [[0, 1, 0, 0], [1, 2, 0, 0], [-1, -1, -1, -1]]
     plain = GroundingCollator(_Processor())([GroundingFrameDataset([_frame(3, 2)], 3)[0]])

@@ -83,20 +83,6 @@ def test_training_layout_without_box_token_or_labels():
     assert grounding.readable.long().tolist() == [[1, 1, 1, 0]]
 
 
-def test_a_row_without_an_action_gets_no_box_token():
-    """A mixed navigation batch (`data.expression_fraction`): row 0 a step acting 4, row 1 an expression row (no
-    label, no memory slot used): BOX goes before row 0's action only, and row 1 reads like a grounding row."""
-    layout = SequenceLayout.for_training(
-        _col([[1, 2, 3, 4], [1, 5, 0, 0]]), torch.tensor([[1, 1, 1, 1], [1, 1, 0, 0]]),
-        torch.tensor([[X, X, X, 4], [X, X, X, X]]), _col([[10], [0]]), torch.tensor([[True], [False]]),
-        _col([[20], [22]]), _col([30, 31]),
-    )  # fmt: skip
-    assert layout.embeds[..., 0].tolist() == [[1, 10, 20, 2, 3, 30, 4], [1, 0, 22, 5, 0, 0, 0]]
-    assert layout.readable.long().tolist() == [[1, 1, 1, 1, 1, 0, 0], [1, 0, 1, 1, 0, 0, 0]]
-    assert last_true_index(layout.readable).tolist() == [4, 3]  # each row's last prompt token
-    assert layout.action_targets().tolist() == [4]
-
-
 def test_inference_layout_left_padded_then_one_cached_step():
     prompts = [_col([1, 2, 3]), _col([1, 5])]  # [BOS] prompt of each episode
     memories = [_col([10]), _col([])]  # one memory token, none

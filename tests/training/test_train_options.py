@@ -17,14 +17,13 @@ MAX_OPTIONS = 89  # issue 46: under 90 options in `train.py --help`
 # listed only where it applies (the five `--<section>.type` options in the variants' titles included); 91 with
 # epochs listed only under `--steps=null` and vocab_end and suffix_token_id left to the LLM and the preset; 89
 # with projector.hidden_ratio and grounding.num_queries fixed at the one value every config gave them; 88 with
-# action_head.stop_loss_weight deleted after its measured arm; 89 with data.expression_fraction (the navigation
-# stage's expression frames)
-LISTED_OPTIONS = 89
+# action_head.stop_loss_weight deleted after its measured arm
+LISTED_OPTIONS = 88
 # the options outside `--model.*` (`--config_path` included): 65 before issue 46 took out stop_after_steps,
 # tokenizer.path, init.format, data.train_split and logging.run_name (60); the RL stage's section added 14 (74);
 # listed where they apply: rl (14), lora (6), the grounding stage's 3 data fields, init.matching, optim.horizon
-# and epochs left the default help (48); data.expression_fraction (49)
-MAX_TRAINING_OPTIONS = 49
+# and epochs left the default help (48)
+MAX_TRAINING_OPTIONS = 48
 RL_OPTIONS = {  # RLConfig's fields, by hand
     *("group_size", "episodes_per_update", "temperature", "clip_epsilon", "kl_coef", "grounding_weight"),
     *("epochs", "minibatches", "profile", "max_steps", "num_envs", "progress_weight", "collision_penalty"),
@@ -82,11 +81,6 @@ def test_a_stage_or_freeze_stage_lists_its_own_options():
     grounding = ("--data.grounding_root", "--data.instruction_fraction", "--data.expressions_per_frame")
     assert not set(grounding) & set(help_options())
     assert set(grounding) <= set(help_options(("--stage=grounding",)))
-    assert "--data.expression_fraction" in help_options()  # the navigation stage's, with the root it reads
-    assert "--data.expression_fraction" not in help_options(("--stage=grounding",))
-    mixed = help_options(("--data.expression_fraction=0.2", "--data.grounding_root=g"))
-    assert {"--data.grounding_root", "--data.expressions_per_frame"} <= set(mixed)
-    assert "--data.instruction_fraction" not in mixed
     lora = {"--lora.rank", "--lora.alpha", "--lora.dropout", "--lora.target_modules", "--lora.init"}
     assert not lora & set(help_options())
     assert lora | {"--lora.merge_at_end"} <= set(help_options(("--freeze_stage=lora",)))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -75,36 +74,6 @@ def test_grounding_stage_without_a_root_is_refused(generated_dataset, tmp_path):
     cfg = make_config(generated_dataset, tmp_path)
     with pytest.raises(ValueError, match="data.grounding_root"):
         TrainConfig(**{**vars(cfg), "stage": "grounding"})
-
-
-def test_navigation_stage_with_expression_frames_trains_both_kinds_of_row(
-    generated_dataset, grounding_root, grounding_run, tmp_path
-):
-    """`data.expression_fraction`: half the navigation stage's samples are expression frames; its steps still
-    train the action (the final test has the action figures) and every batch the grounding loss."""
-    grounding_dir, _ = grounding_run
-    cfg = make_config(
-        generated_dataset, tmp_path, init__checkpoint=str(grounding_dir), init__matching="true",
-        freeze_stage="full", data__expression_fraction="0.5", data__grounding_root=str(grounding_root),
-    )  # fmt: skip
-    result = train_in_process(cfg)
-    assert result.state.step == 4
-    final = result.final_metrics
-    assert 0.0 <= final["action_accuracy"] <= 1.0 and "majority_class_rate" in final
-    records = [json.loads(line) for line in (tmp_path / "logs" / "metrics.jsonl").read_text().splitlines()]
-    train = [r for r in records if "train/grounding_loss" in r]
-    assert len(train) == 4 and all(r["train/grounding_loss"] > 0 for r in train)
-
-
-def test_expression_frames_need_a_grounding_root_and_the_navigation_stage(generated_dataset, tmp_path):
-    from openfly_agent.training.config import TrainConfig
-
-    cfg = make_config(generated_dataset, tmp_path)
-    with pytest.raises(ValueError, match="data.expression_fraction"):
-        TrainConfig(**{**vars(cfg), "data": dataclasses.replace(cfg.data, expression_fraction=0.2)})
-    grounding = dataclasses.replace(cfg.data, expression_fraction=0.2, grounding_root="g")
-    with pytest.raises(ValueError, match="data.expression_fraction"):
-        TrainConfig(**{**vars(cfg), "data": grounding, "stage": "grounding"})
 
 
 def test_matching_loads_name_and_shape_matches_only(tmp_path):
