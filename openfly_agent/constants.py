@@ -87,9 +87,6 @@ STEP_INDEX = "step_index"  # (B,) long
 MEMORY = (
     "memory"  # dataset sample only: K keyframe sets, each a list of (rgb, box, box_visible), oldest first
 )
-# dataset sample only: the episode's model actions (0..9) before the sample's step, oldest first; the processor
-# names the last `prompt.action_history` of them after the instruction
-PREVIOUS_ACTIONS = "previous_actions"
 
 IGNORE_INDEX = -100
 

@@ -121,6 +121,8 @@ RETIRED_OPTIONS = {
     "agent.stop_margin",
     # docs/experiments/2026-11-29-main-job-expression-frames-in-navigation.md (commit 00c660f)
     "data.expression_fraction",
+    # docs/experiments/2026-11-29-main-job-action-history.md (commit 5925c14)
+    "model.prompt.action_history",
 }  # fmt: skip
 
 

@@ -23,8 +23,8 @@ logger = logging.getLogger(__name__)
 class InputProcessor(Protocol):
     """What the collator needs from model/processor.py's `OpenFlyProcessor`."""
 
-    def navigation_prompt(self, instruction: str, previous_actions: Sequence[int] = ()) -> str:
-        """The text after the visual tokens for an instruction and the episode's earlier actions."""
+    def navigation_prompt(self, instruction: str) -> str:
+        """The text after the visual tokens for an instruction."""
         ...
 
     def image(self, rgb: np.ndarray) -> torch.Tensor:
@@ -99,10 +99,7 @@ class NavigationCollator:
         if not samples:
             raise ValueError("cannot collate an empty list of samples")
         inputs = self.processor(
-            [
-                self.processor.navigation_prompt(s[C.OBS_INSTRUCTION], s.get(C.PREVIOUS_ACTIONS, ()))
-                for s in samples
-            ],
+            [self.processor.navigation_prompt(s[C.OBS_INSTRUCTION]) for s in samples],
             [s[C.OBS_RGB] for s in samples],
             [int(s[C.ACTION]) for s in samples],
         )  # input_ids, attention_mask, labels (B, L); pixel_values (B, 3, H, W)
@@ -163,11 +160,7 @@ class GroundingCollator:
                     frame_index.append(frame)
             else:
                 attributes.append(sample.get(C.TARGET_ATTRIBUTES, unknown))
-                prompts.append(
-                    self.processor.navigation_prompt(
-                        sample[C.OBS_INSTRUCTION], sample.get(C.PREVIOUS_ACTIONS, ())
-                    )
-                )
+                prompts.append(self.processor.navigation_prompt(sample[C.OBS_INSTRUCTION]))
                 shown = bool(sample[C.BOX_VISIBLE])
                 boxes.append(
                     np.asarray(sample[C.BOX], dtype=np.float32) if shown else np.zeros(4, np.float32)

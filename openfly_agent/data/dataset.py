@@ -48,8 +48,7 @@ class NavigationStepDataset(torch.utils.data.Dataset):
     A sample (`__getitem__`) is a dict of numpy / python values:
     `instruction` str, `rgb` (H, W, 3) uint8 (frame t), `memory` list of up to K sets, each a list of up
     to S `(rgb (H, W, 3) uint8, box (4,) float32, visible bool)` oldest first, `action` int,
-    `box` (4,) float32 (zeros when not visible), `box_visible` bool, `episode_id` str, `step_index` int,
-    `previous_actions` list of the model actions before t (`previous_actions`).
+    `box` (4,) float32 (zeros when not visible), `box_visible` bool, `episode_id` str, `step_index` int.
 
     History modes:
         "keyframes": `keyframe_selector.select(actions[:t], box_areas[:t], t)` (only the past is shown, so
@@ -177,20 +176,11 @@ class NavigationStepDataset(torch.utils.data.Dataset):
             C.BOX_VISIBLE: visible,
             C.EPISODE_ID: episode.episode_id,
             C.STEP_INDEX: t,
-            C.PREVIOUS_ACTIONS: previous_actions(episode.actions, t),
         }
         if self.target_attributes is not None:
             target = episode.landmark_ids[-1] if episode.landmark_ids else ""
             sample[C.TARGET_ATTRIBUTES] = self.target_attributes(episode.scene_id, target)
         return sample
-
-
-def previous_actions(actions: np.ndarray, t: int) -> list[int]:
-    """The model actions (0..9) of an episode before step `t`, oldest first: the takeoff / landing steps (-1 / -2)
-    the agent never takes are left out. (A relabelled DAgger episode stores the expert's labels, not the actions
-    flown, so its history is the expert's.)"""
-    before = np.asarray(actions[:t])
-    return [int(a) for a in before[(before >= 0) & (before < C.NUM_ACTIONS)]]
 
 
 def make_step_dataset(

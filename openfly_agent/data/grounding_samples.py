@@ -124,6 +124,4 @@ def instruction_sample(step: dict) -> dict:
     }
     if C.TARGET_ATTRIBUTES in step:
         sample[C.TARGET_ATTRIBUTES] = step[C.TARGET_ATTRIBUTES]
-    if C.PREVIOUS_ACTIONS in step:
-        sample[C.PREVIOUS_ACTIONS] = step[C.PREVIOUS_ACTIONS]
     return sample

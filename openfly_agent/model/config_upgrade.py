@@ -56,12 +56,16 @@ FIXED_SETTINGS = {"projector": {"hidden_ratio": 4}, "grounding": {"num_queries":
 DELETED_AFTER_MEASUREMENT = {"action_head": {"stop_loss_weight": 1.0}}
 # The auxiliary leg-goal target, deleted after its arm (same log; commit 1cb4fad still has it)
 DELETED_LEG_GOAL = {"action_head": {"leg_goal_weight": 0.0}}
+# The agent's last actions named in its prompt, deleted after its arm (docs/experiments/
+# 2026-11-29-main-job-action-history.md; commit 5925c14 still has it)
+DELETED_ACTION_HISTORY = {"prompt": {"action_history": 0}}
 # Each table of retired fields, why a field is gone ({value}: the one it may hold) and the commit that still has it
 NO_GAIN = "was deleted (no measured gain; docs/experiments/{log})"
 RETIRED_FIELDS = (
     (DELETED_SWITCHES, NO_GAIN.format(log="2026-11-27-deleted-research-switches.md"), "7544758"),
     (DELETED_AFTER_MEASUREMENT, NO_GAIN.format(log="2026-11-28-long-route-ablation.md"), "9046d6d"),
     (DELETED_LEG_GOAL, NO_GAIN.format(log="2026-11-28-long-route-ablation.md"), "1cb4fad"),
+    (DELETED_ACTION_HISTORY, NO_GAIN.format(log="2026-11-29-main-job-action-history.md"), "5925c14"),
     (FIXED_SETTINGS, "is fixed at {value} now (no config or experiment changed it)", "32e260f"),
 )
 # Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's

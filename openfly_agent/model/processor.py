@@ -15,7 +15,6 @@ tokens always fit. Saved as `processor_config.json` (+ the tokenizer files) in e
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,15 +22,7 @@ import torch
 from transformers import BatchFeature
 from transformers.processing_utils import ProcessorMixin
 
-from openfly_agent.constants import (
-    ACTION_NAMES,
-    ATTENTION_MASK,
-    IGNORE_INDEX,
-    INPUT_IDS,
-    LABELS,
-    NUM_ACTIONS,
-    PIXEL_VALUES,
-)
+from openfly_agent.constants import ATTENTION_MASK, IGNORE_INDEX, INPUT_IDS, LABELS, PIXEL_VALUES
 from openfly_agent.model.config import RESIZE_MODES, ModelConfig, PromptConfig
 from openfly_agent.model.factory import action_stats_of, make_action_tokenizer
 from openfly_agent.model.language.action_tokenizer import ActionTokenizer
@@ -91,7 +82,6 @@ class OpenFlyProcessor(ProcessorMixin):
         grounding_template: the text of a grounding sample, with an `{expression}` placeholder.
         lowercase: lowercase the instruction first.
         suffix_token_id: token appended after the prompt (None: none).
-        action_history: how many of the episode's last actions the navigation prompt names (0: none).
         max_length: the most text tokens (prompt + action targets) per sample; None: no limit.
         action_head: the action tokenizer's settings (`ActionTokenizer.to_dict()`).
         action_stats: the `action` norm stats the `openvla_bins` head un-normalises with (None: discrete).
@@ -107,7 +97,6 @@ class OpenFlyProcessor(ProcessorMixin):
         grounding_template: str = DEFAULT_GROUNDING_TEMPLATE,
         lowercase: bool = False,
         suffix_token_id: int | None = None,
-        action_history: int = 0,
         max_length: int | None = None,
         action_head: dict | None = None,
         action_stats: dict | None = None,
@@ -124,9 +113,6 @@ class OpenFlyProcessor(ProcessorMixin):
         self.prompt_template, self.lowercase = prompt_template, lowercase
         self.grounding_template = grounding_template
         self.suffix_token_id, self.max_length = suffix_token_id, max_length
-        if action_history < 0:
-            raise ValueError(f"action_history={action_history} must be >= 0")
-        self.action_history = int(action_history)
         self.action_head = dict(action_head or ActionTokenizer().to_dict())
         self.action_stats = action_stats
         # Derived objects (not saved: rebuilt from the settings above).
@@ -149,7 +135,6 @@ class OpenFlyProcessor(ProcessorMixin):
             grounding_template=cfg.prompt.grounding_template,
             lowercase=cfg.prompt.lowercase,
             suffix_token_id=cfg.prompt.suffix_token_id,
-            action_history=cfg.prompt.action_history,
             max_length=cfg.llm.max_length - cfg.visual_tokens_per_step(),
             action_head=make_action_tokenizer(cfg, norm_stats).to_dict(),
             action_stats=action_stats_of(cfg, norm_stats),
@@ -179,22 +164,12 @@ class OpenFlyProcessor(ProcessorMixin):
         """Id that right-pads text batches."""
         return int(self.tokenizer.pad_token_id)
 
-    def navigation_prompt(self, instruction: str, previous_actions: Sequence[int] = ()) -> str:
-        """The text after the visual tokens for a navigation `instruction` (the prompt template), then, with
-        `action_history` N > 0, the names of the last N of the episode's `previous_actions` (ids 0..9, oldest
-        first): "<prompt> Previous actions: forward 9, turn left." ("none" before the first action)."""
+    def navigation_prompt(self, instruction: str) -> str:
+        """The text after the visual tokens for a navigation `instruction` (the prompt template)."""
         text = instruction.strip()
         if self.lowercase:
             text = text.lower()
-        prompt = self.prompt_template.format(instruction=text)
-        if not self.action_history:
-            return prompt
-        recent = list(previous_actions)[-self.action_history :]
-        for action in recent:
-            if not 0 <= int(action) < NUM_ACTIONS:
-                raise ValueError(f"previous action {action} is not a model action id (0..{NUM_ACTIONS - 1})")
-        names = ", ".join(ACTION_NAMES[int(a)] for a in recent) or "none"
-        return f"{prompt} Previous actions: {names}."
+        return self.prompt_template.format(instruction=text)
 
     def grounding_prompt(self, expression: str) -> str:
         """The text after the visual tokens for a referring `expression` (grounding stage)."""

@@ -94,7 +94,7 @@ class AgentSession:
         read the `heads`: the landmark box, then (with the box token, one cached step later) the action at the
         last position (`discrete`) or 8 bin tokens decoded greedily (`openvla_bins`); then record the step in
         the episode's state and let the memory encoding remember it. Each frame is encoded once; the prompt once
-        per episode (at every step when it names the episode's last actions).
+        per episode.
         """
         if not observations:
             return []
@@ -109,9 +109,7 @@ class AgentSession:
         frames, memories = network.encode_step(pixels, states)  # (M_i, D) memory tokens per episode
         if self.memory_probe == MEMORY_PROBE_EMPTY:
             memories = [memory[:0] for memory in memories]  # (0, D) per episode
-        prompts = [
-            network.embed_text(torch.tensor(self._prompt_ids(state), device=device)) for state in states
-        ]
+        prompts = [network.embed_text(torch.tensor(state.prompt_ids, device=device)) for state in states]
         layout = SequenceLayout.for_inference(prompts, memories, frames.current)  # [pad] .. [prompt]
         # the cache is filled by the prefill and read by the steps after it (BOX, decoded bin tokens)
         box_token = network.box_token_embed is not None
@@ -155,14 +153,6 @@ class AgentSession:
             self.episodes.clear()
         for episode_id in episode_ids or []:
             self.episodes.pop(episode_id, None)
-
-    def _prompt_ids(self, state: EpisodeState) -> list[int]:
-        """The episode's prompt tokens at its next step: tokenised once, or, when the prompt names the episode's
-        last actions (`prompt.action_history`), again at every step with the actions taken so far."""
-        processor = self.agent.processor
-        if not processor.action_history:
-            return state.prompt_ids
-        return processor.encode(processor.navigation_prompt(state.instruction, state.actions))[0]
 
     def _episode_state(self, episode_id: str, instruction: str) -> EpisodeState:
         """The state of a running episode, or a new one with its prompt tokenised by the processor."""

@@ -160,5 +160,4 @@ def step_sample(record: EpisodeRecord, steps: list[RolloutStep], t: int) -> dict
         C.TOKEN_BOX_VISIBLE: token_visible,
         C.EPISODE_ID: record.episode_id,
         C.STEP_INDEX: t,
-        C.PREVIOUS_ACTIONS: [steps[j].action for j in range(t)],
     }

@@ -149,8 +149,8 @@ class _BadImages:
     def __call__(self, *args, **kwargs):
         return self.processor(*args, **kwargs)
 
-    def navigation_prompt(self, instruction, previous_actions=()):
-        return self.processor.navigation_prompt(instruction, previous_actions)
+    def navigation_prompt(self, instruction):
+        return self.processor.navigation_prompt(instruction)
 
     def image(self, rgb):
         return rgb

@@ -62,16 +62,6 @@ def test_one_sample_per_model_step(store):
         dataset[9]
 
 
-def test_previous_actions_leave_out_takeoff(store):
-    episodes, frames, _ = store
-    dataset = NavigationStepDataset(episodes, frames, "none", capacity=2, set_size=5)
-    # episode a is [-1, 9, 2, 9, 1, 9, 0, -2]: its first model step (t = 1) follows the takeoff only
-    assert [dataset[i][C.PREVIOUS_ACTIONS] for i in range(6)] == [
-        [], [9], [9, 2], [9, 2, 9], [9, 2, 9, 1], [9, 2, 9, 1, 9]
-    ]  # fmt: skip
-    assert [dataset[i][C.PREVIOUS_ACTIONS] for i in (6, 7, 8)] == [[], [9], [9, 3]]
-
-
 def test_uniform_history(store):
     episodes, frames, images = store
     dataset = NavigationStepDataset(episodes, frames, "uniform", capacity=2, set_size=5)

@@ -48,7 +48,7 @@ class _Steps:
     def __getitem__(self, i):
         return {
             C.OBS_RGB: np.zeros((8, 8, 3), np.uint8), C.OBS_INSTRUCTION: f"fly to {i}",
-            C.BOX: np.array([0.5, 0.5, 0.2, 0.2]), C.BOX_VISIBLE: i % 2 == 0, C.PREVIOUS_ACTIONS: [9] * i,
+            C.BOX: np.array([0.5, 0.5, 0.2, 0.2]), C.BOX_VISIBLE: i % 2 == 0,
         }  # fmt: skip
 
 
@@ -91,8 +91,8 @@ class _Processor:
     def grounding_prompt(self, text):
         return f"Where is {text}?"
 
-    def navigation_prompt(self, text, previous_actions=()):
-        return f"Go: {text}" + "".join(f" {a}" for a in previous_actions)
+    def navigation_prompt(self, text):
+        return f"Go: {text}"
 
     def image(self, rgb):
         import torch
@@ -119,9 +119,6 @@ def test_collator_encodes_each_frame_once_and_points_every_sequence_at_its_frame
     assert batch[C.INPUT_IDS].shape[0] == 6 and C.LABELS not in batch
     assert batch[C.BOX_VISIBLE].tolist() == [True] * 5 + [False]  # instruction 1: target not visible
     assert batch[C.BOX][5].tolist() == [0, 0, 0, 0]  # a masked box is never a fake one
-    # the instruction row's prompt names the step's earlier actions, as a navigation step's does
-    history = samples[2][C.PREVIOUS_ACTIONS]
-    assert history == [9] and batch[C.ATTENTION_MASK][5].sum() == len(["Go:", "fly", "to", "1", "9"]) + 1
     np.testing.assert_allclose(batch[C.BOX][:2].numpy(), samples[0][BOXES])
     with pytest.raises(ValueError, match="empty"):
         GroundingCollator(_Processor())([])

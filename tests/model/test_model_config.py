@@ -273,3 +273,18 @@ def test_the_deleted_leg_goal_weight_loads_at_zero_and_refuses_any_other():
     trained = {**BASE_TINY_AGENT, "action_head": {**head, "leg_goal_weight": 1.0}}
     with pytest.raises(RetiredOptionError, match=r"action_head.leg_goal_weight was deleted .*commit 1cb4fad"):
         OpenFlyAgentConfig(agent=trained)
+
+
+def test_the_deleted_action_history_loads_at_zero_and_refuses_any_other():
+    """`prompt.action_history` was deleted after its measured arms (val -16.7 points at seed 9): a config.json
+    written while it existed (0 unless an arm set it) loads as today's model; an arm's own names the commit."""
+    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
+    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
+
+    prompt = {**BASE_TINY_AGENT.get("prompt", {}), "action_history": 0}
+    assert "action_history" not in upgraded_model_dict({**BASE_TINY_AGENT, "prompt": prompt}).get(
+        "prompt", {}
+    )
+    trained = {**BASE_TINY_AGENT, "prompt": {**prompt, "action_history": 4}}
+    with pytest.raises(RetiredOptionError, match=r"prompt.action_history was deleted .*commit 5925c14"):
+        OpenFlyAgentConfig(agent=trained)

@@ -12,7 +12,7 @@ from test_model_session import memory_agent
 
 from openfly_agent import constants as C
 from openfly_agent.data.collator import NavigationCollator
-from openfly_agent.model.config import BinsActionHeadConfig, PromptConfig
+from openfly_agent.model.config import BinsActionHeadConfig
 from openfly_agent.model.language.action_tokenizer import CODEBOOK
 from openfly_agent.model.processor import OpenFlyProcessor
 
@@ -41,20 +41,6 @@ def test_text_rules(make_agent):
     processor.max_length = 1
     with pytest.raises(ValueError, match="no room"):
         processor.encode(prompt, 3)
-
-
-def test_action_history_names_the_last_actions(make_agent):
-    processor = make_agent(prompt=PromptConfig(template="{instruction}", action_history=2)).processor
-    assert processor.navigation_prompt("fly", []) == "fly Previous actions: none."
-    assert processor.navigation_prompt("fly", [C.ACTION_TURN_LEFT]) == "fly Previous actions: turn left."
-    three = [C.ACTION_FORWARD, C.ACTION_FORWARD_9, C.ACTION_TURN_RIGHT]
-    assert processor.navigation_prompt("fly", three) == "fly Previous actions: forward 9, turn right."
-    with pytest.raises(ValueError, match="not a model action"):
-        processor.navigation_prompt("fly", [C.ACTION_TAKEOFF])
-    plain = make_agent().processor  # the default names no action, whatever the episode did
-    assert plain.navigation_prompt(INSTRUCTION, three) == plain.navigation_prompt(INSTRUCTION)
-    with pytest.raises(ValueError, match="action_history"):
-        PromptConfig(action_history=-1)
 
 
 def _word_tokenizer(add_bos: bool):
@@ -112,22 +98,16 @@ def test_batch_call_pads_right(make_agent):
 def test_save_and_load_the_processor(make_agent, tmp_path):
     from transformers import AutoProcessor
 
-    agent = make_agent(
-        action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS, prompt=PromptConfig(action_history=2)
-    )
+    agent = make_agent(action_head=BinsActionHeadConfig(), norm_stats=NORM_STATS)
     agent.save_pretrained(tmp_path)
     saved = json.loads((tmp_path / C.PROCESSOR_CONFIG_NAME).read_text())
     assert saved["image_size"] == agent.model_cfg.vision.image_size and saved["action_stats"] is not None
-    assert saved["action_history"] == 2
     loaded = OpenFlyProcessor.from_pretrained(str(tmp_path))
     remote = AutoProcessor.from_pretrained(str(tmp_path), trust_remote_code=True)
     for other in (loaded, remote):
         assert type(other).__name__ == "OpenFlyProcessor"
         assert other.to_dict() == agent.processor.to_dict()
         assert other.encode("fly to the tower", 4) == agent.processor.encode("fly to the tower", 4)
-        assert other.navigation_prompt("fly", [1, 2, 3]) == agent.processor.navigation_prompt(
-            "fly", [1, 2, 3]
-        )
 
 
 class _Spy:
@@ -145,13 +125,10 @@ class _Spy:
         )[1]  # noqa: E501
 
 
-@pytest.mark.parametrize("action_history", [0, 3])
-def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_agent, action_history):
+def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_agent):
     """For the same frame, history and instruction, `forward(collated batch)` and `predict_step` give the model
-    the same token ids, masks, pixel values and, through them, the same decoder input (action included); with
-    `prompt.action_history` the training sample's earlier actions are the ones the session took."""
-    prompt_cfg = PromptConfig(template="{instruction}", action_history=action_history)
-    agent = memory_agent(make_agent, prompt=prompt_cfg)  # the memory fills during a short episode
+    the same token ids, masks, pixel values and, through them, the same decoder input (action included)."""
+    agent = memory_agent(make_agent)  # the memory fills during a short episode
     rng = np.random.default_rng(4)
     frames = rng.integers(0, 256, (12, 40, 40, 3), dtype=np.uint8)  # not the model's size: resized by both
     obs = lambda t: {"episode_id": "e", "instruction": INSTRUCTION, "rgb": frames[t], "pose": (0, 0, 9, 0)}  # noqa: E731
@@ -162,7 +139,6 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
         session.predict_step([obs(t)])
     state = session.episodes["e"]
     memory_sets, boxes = state.memory.sets(), list(state.boxes)  # what step `steps` reads (oldest set first)
-    taken = list(state.actions)  # the actions before step `steps`
     assert memory_sets, "the scripted episode should hold keyframe sets"
     pixels_at = {t: spy.pixels[t][0] for t in range(steps)}  # what the backbone saw when frame t was current
     (result,) = session.predict_step([obs(steps)])
@@ -183,15 +159,12 @@ def test_training_batch_and_inference_step_feed_the_model_the_same_inputs(make_a
         # the target box of the step: the one inference predicted, so the box tokens are the same
         C.BOX: np.asarray(result.box, np.float32),
         C.BOX_VISIBLE: result.box_visible,
-        C.PREVIOUS_ACTIONS: taken,
     }
     cfg = agent.model_cfg
     batch = NavigationCollator(agent.processor, cfg.memory.capacity, cfg.keyframes.set_size)([sample])
     spy.ids.clear(), spy.llm.clear()
     _, logs = agent(batch)
-    processor = agent.processor
-    prompt = processor.encode(processor.navigation_prompt(INSTRUCTION, taken))[0]
-    assert (prompt == state.prompt_ids) == (action_history == 0)  # the history changes the prompt
+    prompt = state.prompt_ids
     n = len(prompt)
     assert batch[C.INPUT_IDS][0, :n].tolist() == prompt and batch[C.ATTENTION_MASK][0, :n].all()
     assert spy.ids[0][0, :n].tolist() == prompt  # the ids the model embedded

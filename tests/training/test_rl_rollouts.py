@@ -75,7 +75,7 @@ def test_a_step_sample_replays_what_the_policy_saw():
     ]
     sample = step_sample(flight(20.0, stopped=False), steps, 2)
     assert sample[C.ACTION] == 1 and sample[C.STEP_INDEX] == 2 and sample[C.OBS_INSTRUCTION] == "fly east"
-    assert sample[C.OBS_RGB] is frames[2] and sample[C.PREVIOUS_ACTIONS] == [1, 2]  # the actions it flew
+    assert sample[C.OBS_RGB] is frames[2]
     # the grounding target is the simulator's box; the box token gets the policy's own prediction
     assert sample[C.BOX].tolist() == pytest.approx([0.3, 0.4, 0.1, 0.2]) and sample[C.BOX_VISIBLE]
     assert sample[C.TOKEN_BOX].tolist() == pytest.approx([0.3, 0.3, 0.1, 0.1]) and sample[C.TOKEN_BOX_VISIBLE]

@@ -166,13 +166,8 @@ class PromptConfig:
     lowercase: bool = False
     # Token appended after the prompt at inference (OpenVLA's predict_action appends 29871 '▁' for Llama-2).
     suffix_token_id: int | None = None
-    # name the episode's last N actions after the instruction ("... Previous actions: forward 9, turn left."; at
-    # the first step "none"); training reads the expert's earlier actions, inference the agent's own. 0: none
-    action_history: int = 0
 
     def __post_init__(self) -> None:
-        if self.action_history < 0:
-            raise ValueError(f"prompt.action_history={self.action_history} must be >= 0")
         if "{instruction}" not in self.template:
             raise ValueError(
                 f"prompt.template={self.template!r} must contain the placeholder {{instruction}}"
