@@ -281,10 +281,8 @@ def test_the_deleted_action_history_loads_at_zero_and_refuses_any_other():
     from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
-    prompt = {**BASE_TINY_AGENT.get("prompt", {}), "action_history": 0}
-    assert "action_history" not in upgraded_model_dict({**BASE_TINY_AGENT, "prompt": prompt}).get(
-        "prompt", {}
-    )
-    trained = {**BASE_TINY_AGENT, "prompt": {**prompt, "action_history": 4}}
+    upgraded = upgraded_model_dict({**BASE_TINY_AGENT, "prompt": {"action_history": 0}})
+    assert "action_history" not in upgraded.get("prompt", {})
+    trained = {**BASE_TINY_AGENT, "prompt": {"action_history": 4}}
     with pytest.raises(RetiredOptionError, match=r"prompt.action_history was deleted .*commit 5925c14"):
         OpenFlyAgentConfig(agent=trained)
