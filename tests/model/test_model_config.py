@@ -260,29 +260,27 @@ def test_the_deleted_stop_weight_loads_at_one_and_refuses_any_other():
         OpenFlyAgentConfig(agent=weighted)
 
 
-def test_the_deleted_leg_goal_weight_loads_at_zero_and_refuses_any_other():
-    """`action_head.leg_goal_weight` was deleted after its measured arm (no gain): a config.json written while it
-    existed (0.0 unless the arm set it) loads as today's model; the arm's own (1.0) names the commit that has it."""
+@pytest.mark.parametrize(
+    "section, name, kept, trained, commit",
+    [
+        # the auxiliary leg-goal target (docs/experiments/2026-11-28-long-route-ablation.md): the arm set 1.0
+        ("action_head", "leg_goal_weight", 0.0, 1.0, "1cb4fad"),
+        # the agent's last actions in its prompt (docs/experiments/2026-11-29-main-job-action-history.md, val
+        # -16.7 points at seed 9): the arms named 4 and 1
+        ("prompt", "action_history", 0, 4, "5925c14"),
+    ],
+)
+def test_a_field_deleted_after_its_arm_loads_at_its_default_and_refuses_any_other(
+    section, name, kept, trained, commit
+):
+    """A field deleted after its measured arm (no gain): a config.json written while it existed (its default
+    unless an arm set it) loads as today's model; the arm's own value names the commit that has the field."""
     from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
     from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
 
-    head = {**BASE_TINY_AGENT["action_head"], "leg_goal_weight": 0.0}
-    assert (
-        "leg_goal_weight" not in upgraded_model_dict({**BASE_TINY_AGENT, "action_head": head})["action_head"]
-    )
-    trained = {**BASE_TINY_AGENT, "action_head": {**head, "leg_goal_weight": 1.0}}
-    with pytest.raises(RetiredOptionError, match=r"action_head.leg_goal_weight was deleted .*commit 1cb4fad"):
-        OpenFlyAgentConfig(agent=trained)
+    def agent_with(value):
+        return {**BASE_TINY_AGENT, section: {**BASE_TINY_AGENT.get(section, {}), name: value}}
 
-
-def test_the_deleted_action_history_loads_at_zero_and_refuses_any_other():
-    """`prompt.action_history` was deleted after its measured arms (val -16.7 points at seed 9): a config.json
-    written while it existed (0 unless an arm set it) loads as today's model; an arm's own names the commit."""
-    from openfly_agent.model.config_upgrade import RetiredOptionError, upgraded_model_dict
-    from openfly_agent.model.pretrained_config import OpenFlyAgentConfig
-
-    upgraded = upgraded_model_dict({**BASE_TINY_AGENT, "prompt": {"action_history": 0}})
-    assert "action_history" not in upgraded.get("prompt", {})
-    trained = {**BASE_TINY_AGENT, "prompt": {"action_history": 4}}
-    with pytest.raises(RetiredOptionError, match=r"prompt.action_history was deleted .*commit 5925c14"):
-        OpenFlyAgentConfig(agent=trained)
+    assert name not in upgraded_model_dict(agent_with(kept)).get(section, {})
+    with pytest.raises(RetiredOptionError, match=rf"{section}.{name} was deleted .*commit {commit}"):
+        OpenFlyAgentConfig(agent=agent_with(trained))
