@@ -13,8 +13,9 @@ memory, the merged weights); `eval.py --checkpoint <the LoRA run folder>` for 4 
 fine-tune under `fsdp_offload.yaml` through its first optimizer step (or its one-line refusal on a host with too
 little memory for the offloaded states); `bench/step_latency.py` (`select_action`,
 keyframe vs uniform, batch 1 and 16) and `bench/train_throughput.py` (LoRA samples/s and MFU on synthetic
-batches). A check whose input failed is skipped. It prints one table and writes `<workdir>/gpu_check.json`
-(and each command's output to `<workdir>/logs/`). Without CUDA it exits at once with one line (exit 2); with a
+batches). A check whose input failed is skipped. It prints one table and writes `<workdir>/gpu_check.json`, rewritten
+after every check so that a run cut short keeps the rows it finished (each command's output goes to
+`<workdir>/logs/`, torch.profiler's tables of `select_action` and of the LoRA step to `<workdir>/profiles/`). Without CUDA it exits at once with one line (exit 2); with a
 failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
 (printed with the table; a missing one fails the `wheels` check).
 
@@ -347,7 +348,19 @@ def all_checks(workdir: Path) -> list[Check]:
         ),  # fmt: skip
         Check(
             "select_action latency",
-            [PY, "bench/step_latency.py", "--presets", "openfly-7b", "--batches", "1", "16", "--steps", "10"],
+            [
+                PY,
+                "bench/step_latency.py",
+                "--presets",
+                "openfly-7b",
+                "--batches",
+                "1",
+                "16",
+                "--steps",
+                "10",
+                "--profile",
+                f"{w}/profiles/select_action.txt",
+            ],  # fmt: skip
             150,
             figures=latency_figures,
         ),
@@ -359,7 +372,7 @@ def all_checks(workdir: Path) -> list[Check]:
         ),
         Check(
             "LoRA step, levers",
-            [*LORA_BENCH, "--levers", "none", "fused_adamw"],
+            [*LORA_BENCH, "--levers", "none", "fused_adamw", "--profile", f"{w}/profiles/lora-step.txt"],
             150,
             figures=lever_figures,
         ),  # fmt: skip
@@ -463,13 +476,23 @@ def render_table(results: list[CheckResult], device: str) -> str:
     return "\n".join(lines)
 
 
-def run_all(workdir: Path, skip: tuple[str, ...] = (), suite: str = "full") -> tuple[list[CheckResult], str]:
-    """Every check of the suite's `plan` in order but those named in `skip` (left out of the table)."""
-    import torch
+def record_path(workdir: Path) -> Path:
+    return workdir / "gpu_check.json"
 
-    device = f"{torch.cuda.get_device_name(0)} ({torch.cuda.mem_get_info(0)[1] / 2**30:.0f} GiB), torch {torch.__version__}"
+
+def write_record(workdir: Path, device: str, results: list[CheckResult], finished: bool) -> None:
+    """`<workdir>/gpu_check.json`, rewritten after every check: a run cut short (a lease that ends, a kill) keeps
+    the rows it finished, and `finished` says whether every check of the suite ran."""
+    record = {"device": device, "finished": finished, "results": [asdict(r) for r in results]}
+    record_path(workdir).write_text(json.dumps(record, indent=1))
+
+
+def run_all(workdir: Path, device: str, skip: tuple[str, ...] = (), suite: str = "full") -> list[CheckResult]:
+    """Every check of the suite's `plan` in order but those named in `skip` (left out of the table), the record
+    rewritten after each."""
     missing = missing_wheels()
     results = [CheckResult("wheels", not missing, note=f"missing: {', '.join(missing)}" if missing else "")]
+    write_record(workdir, device, results, finished=False)
     passed: dict[str, bool] = {}
     for check in plan(workdir, suite):
         if check.name in skip:
@@ -477,9 +500,11 @@ def run_all(workdir: Path, skip: tuple[str, ...] = (), suite: str = "full") -> t
         result = run_check(check, workdir, passed)
         passed[check.name] = bool(result.passed)
         results.append(result)
+        write_record(workdir, device, results, finished=False)
         print(f"{result.name}: {'pass' if result.passed else 'FAIL' if result.passed is False else 'skipped'} "
               f"({result.seconds:.0f} s)", file=sys.stderr, flush=True)  # fmt: skip
-    return results, device
+    write_record(workdir, device, results, finished=True)
+    return results
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -509,6 +534,8 @@ def main(argv: list[str] | None = None) -> int:
         record = json.loads(Path(args.table).read_text())
         results = [CheckResult(**r) for r in record["results"]]
         print(render_table(results, record["device"]))
+        if not record.get("finished", True):  # records before the field were written at the end only
+            print("the run stopped before its last check: the rows above are those it finished")
         return EXIT_OK if all(r.passed for r in results) else EXIT_FAILED
     import torch
 
@@ -517,9 +544,8 @@ def main(argv: list[str] | None = None) -> int:
               "CUDA GPU, or pass --plan to list its commands", file=sys.stderr)  # fmt: skip
         return EXIT_NO_CUDA
     workdir.mkdir(parents=True, exist_ok=True)
-    results, device = run_all(workdir, tuple(args.skip), args.suite)
-    record = {"device": device, "results": [asdict(r) for r in results]}
-    (workdir / "gpu_check.json").write_text(json.dumps(record, indent=1))
+    device = f"{torch.cuda.get_device_name(0)} ({torch.cuda.mem_get_info(0)[1] / 2**30:.0f} GiB), torch {torch.__version__}"
+    results = run_all(workdir, device, tuple(args.skip), args.suite)
     print(render_table(results, device))
     return EXIT_OK if all(r.passed for r in results) else EXIT_FAILED
 

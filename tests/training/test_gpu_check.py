@@ -279,3 +279,33 @@ def test_the_time_split_and_lever_rows_become_figures(tmp_path):
         "none peak GiB": 50.0,
         "compile_layers failed": "BackendCompilerFailed: x",
     }
+
+
+def test_the_record_is_rewritten_after_every_check(tmp_path, monkeypatch):
+    """A run cut short keeps the rows it finished: the second check's own command reads the record and passes only
+    if the first check's row is already in it, unfinished; at the end the record says `finished`."""
+    gpu_check = bench_module()
+    record = tmp_path / "gpu_check.json"
+    reads_the_record = (
+        "import json, sys; r = json.load(open(sys.argv[1])); "
+        "sys.exit(0 if [x['name'] for x in r['results']] == ['wheels', 'first'] and not r['finished'] else 3)"
+    )
+    checks = [
+        gpu_check.Check("first", [gpu_check.PY, "-c", "pass"], 60),
+        gpu_check.Check("second", [gpu_check.PY, "-c", reads_the_record, str(record)], 60, needs=("first",)),
+    ]
+    monkeypatch.setattr(gpu_check, "plan", lambda workdir, suite="full": checks)
+    results = gpu_check.run_all(tmp_path, "a test device")
+    assert [(r.name, r.passed) for r in results][1:] == [("first", True), ("second", True)]
+    written = json.loads(record.read_text())
+    assert written["finished"] and written["device"] == "a test device"
+    assert [r["name"] for r in written["results"]] == ["wheels", "first", "second"]
+
+
+def test_the_table_of_a_run_cut_short_says_so(tmp_path):
+    record = tmp_path / "gpu_check.json"
+    record.write_text(json.dumps({**RECORDED, "finished": False}))
+    done = run_gpu_check("--table", str(record), script=(sys.executable, str(GPU_CHECK)))
+    assert done.stdout.splitlines()[-1] == (
+        "the run stopped before its last check: the rows above are those it finished"
+    )
