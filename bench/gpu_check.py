@@ -15,7 +15,7 @@ little memory for the offloaded states); `bench/step_latency.py` (`select_action
 keyframe vs uniform, batch 1 and 16) and `bench/train_throughput.py` (LoRA samples/s and MFU on synthetic
 batches). A check whose input failed is skipped. It prints one table and writes `<workdir>/gpu_check.json`, rewritten
 after every check so that a run cut short keeps the rows it finished (each command's output goes to
-`<workdir>/logs/`, torch.profiler's tables of `select_action` and of the LoRA step to `<workdir>/profiles/`). Without CUDA it exits at once with one line (exit 2); with a
+`<workdir>/logs/`, torch.profiler's tables of `select_action` to `<workdir>/profiles/`). Without CUDA it exits at once with one line (exit 2); with a
 failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
 (printed with the table; a missing one fails the `wheels` check).
 
@@ -38,6 +38,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 from openfly_agent.utils.processes import GroupTimeout, run_group
@@ -68,7 +69,8 @@ SUITES = {
         "FSDP offload, 1st step", "select_action latency", "LoRA synthetic step",
     ),
     "levers": (
-        "openvla folder", "dataset", "LoRA 12 steps, time split", "select_action latency", "LoRA step, levers",
+        "openvla folder", "dataset", "LoRA 12 steps, time split", "LoRA 12 steps, compiled layers",
+        "select_action latency", "LoRA step, levers",
         "LoRA step, compiled layers",
     ),
 }  # fmt: skip
@@ -143,9 +145,29 @@ def lora_figures(workdir: Path, output: str) -> dict:
     }
 
 
-def time_split_figures(workdir: Path, output: str) -> dict:
-    """train.py's last logged interval: seconds per step and its split, tokens/s, MFU, peak memory."""
-    metrics = run_metrics(workdir / "lora-time", ("train/", "time/", "throughput/"))
+def time_split_command(w: str, init: list[str], run: str, *extra: str) -> list[str]:
+    """train.py, the 7B LoRA recipe for 12 steps at batch 8 from the synthetic folder, logged every 4 steps, no
+    merge, no evaluation (`extra`: the lever under test)."""
+    return [
+        *TRAIN, "configs/accelerate/single_gpu.yaml", "train.py", "--config_path", "configs/train/openfly-7b-lora.yaml",
+        *init, f"--output_dir={w}/{run}", "--steps=12", "--batch.global_batch_size=8",
+        "--batch.per_device_batch_size=8", "--validation.interval=0", "--validation.final_eval=false",
+        "--checkpoint.save_interval=0", "--lora.merge_at_end=false", "--logging.tracker=none",
+        "--logging.log_interval=4", "--data.num_workers=4", *extra,
+    ]  # fmt: skip
+
+
+def interval_step_seconds(run: Path) -> list[float]:
+    """`time/step_s` of every logged interval of a run, in order (the first holds the warm-up)."""
+    path = run / "logs" / "metrics.jsonl"
+    lines = path.read_text().splitlines() if path.is_file() else []
+    return [round(r["time/step_s"], 3) for r in map(json.loads, lines) if "time/step_s" in r]
+
+
+def time_split_figures(workdir: Path, output: str, run: str = "lora-time") -> dict:
+    """train.py's last logged interval: seconds per step and its split, tokens/s, MFU, peak memory; and the
+    seconds per step of every interval."""
+    metrics = run_metrics(workdir / run, ("train/", "time/", "throughput/"))
     figures = {"s/step": metrics.get("time/step_s")}
     figures.update({phase: metrics.get(f"time/{phase}_s") for phase in STEP_PHASES})
     figures.update(
@@ -154,6 +176,7 @@ def time_split_figures(workdir: Path, output: str) -> dict:
             "tokens/s": metrics.get("train/tokens_per_s"),
             "MFU": metrics.get("throughput/mfu"),
             "peak GiB": metrics.get("train/memory_allocated_gib"),
+            "s/step by interval": " / ".join(map(str, interval_step_seconds(workdir / run))) or None,
         }
     )
     return figures
@@ -269,29 +292,18 @@ def all_checks(workdir: Path) -> list[Check]:
         ),  # fmt: skip
         Check(
             "LoRA 12 steps, time split",
-            [
-                *TRAIN,
-                "configs/accelerate/single_gpu.yaml",
-                "train.py",
-                "--config_path",
-                "configs/train/openfly-7b-lora.yaml",
-                *init,
-                f"--output_dir={w}/lora-time",
-                "--steps=12",
-                "--batch.global_batch_size=8",
-                "--batch.per_device_batch_size=8",
-                "--validation.interval=0",
-                "--validation.final_eval=false",
-                "--checkpoint.save_interval=0",
-                "--lora.merge_at_end=false",
-                "--logging.tracker=none",
-                "--logging.log_interval=4",
-                "--data.num_workers=4",
-            ],
+            time_split_command(w, init, "lora-time"),
             240,
             needs=("openvla folder", "dataset"),
-            figures=time_split_figures,
-        ),  # fmt: skip
+            figures=partial(time_split_figures, run="lora-time"),
+        ),
+        Check(
+            "LoRA 12 steps, compiled layers",
+            time_split_command(w, init, "lora-time-compiled", "--compile_layers=true"),
+            300,
+            needs=("openvla folder", "dataset"),
+            figures=partial(time_split_figures, run="lora-time-compiled"),
+        ),
         Check(
             "eval 4 episodes",
             [
@@ -372,7 +384,7 @@ def all_checks(workdir: Path) -> list[Check]:
         ),
         Check(
             "LoRA step, levers",
-            [*LORA_BENCH, "--levers", "none", "fused_adamw", "--profile", f"{w}/profiles/lora-step.txt"],
+            [*LORA_BENCH, "--levers", "none", "fused_adamw"],
             150,
             figures=lever_figures,
         ),  # fmt: skip

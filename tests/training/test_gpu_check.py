@@ -229,20 +229,22 @@ def test_the_levers_suite_parses_against_its_scripts(tmp_path):
     done = run_gpu_check("--plan", "--suite", "levers", "--workdir", str(tmp_path))
     assert done.returncode == 0, done.stderr
     commands = [shlex.split(line) for line in done.stdout.splitlines()]
-    assert len(commands) == 6
-    levers = []
+    assert len(commands) == 7
+    levers, compiled = [], []
     for tokens in commands:
         if tokens[1:3] == ["-m", "accelerate.commands.launch"]:
             launch = launch_command_parser().parse_args(tokens[3:])
             cfg = parse_args(launch.training_script_args)
             assert cfg.use_lora and cfg.steps == 12 and not cfg.validation.final_eval
             assert not cfg.lora.merge_at_end and cfg.logging.log_interval == 4
+            compiled.append(cfg.compile_layers)
         elif tokens[1] in ("bench/train_throughput.py", "bench/step_latency.py"):
             sys.path.insert(0, str(REPO_ROOT / "bench"))
             module = importlib.import_module(Path(tokens[1]).stem)
             args = module.build_parser().parse_args(tokens[2:])  # exits 2 on an option it lacks
             levers += getattr(args, "levers", [])
     assert levers == ["none", "fused_adamw", "compile_layers"]
+    assert compiled == [False, True]  # train.py's time split, then the same run with its decoder layers compiled
 
 
 def test_the_time_split_and_lever_rows_become_figures(tmp_path):
@@ -259,6 +261,7 @@ def test_the_time_split_and_lever_rows_become_figures(tmp_path):
     )
     figures = gpu_check.time_split_figures(tmp_path, "")
     assert figures["s/step"] == 1.2 and figures["backward"] == 0.2 and figures["samples/s"] == 7.5
+    assert figures["s/step by interval"] == "9.0 / 1.2"
     assert figures["MFU"] is None  # not logged: the row says "-"
     output = "\n".join(
         json.dumps(row)
