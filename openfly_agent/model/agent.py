@@ -211,21 +211,9 @@ class OpenFlyAgent(PreTrainedModel):
         network = self.network
         memory, memory_mask, current = network.encode(batch)  # (B, M, D), (B, M), (B, P, D)
         text = network.embed_text(input_ids)  # (B, L, D)
-        box = None  # the BOX token: the true box, jittered in training
+        box = None  # the BOX token's (B, D) embedding
         if network.box_token_embed is not None and has_actions:
-            jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
-            # the true box; the RL stage's replay gives the box the policy predicted (`token_box`)
-            token_box = jitter_boxes(batch.get(TOKEN_BOX, batch[BOX]).float(), jitter)  # (B, 4)
-            visible = batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]).bool()  # (B,)
-            fraction = getattr(self.model_cfg.action_head, "box_token_predicted_fraction", 0.0)
-            if self.training and fraction > 0 and TOKEN_BOX not in batch and network.grounding_head is not None:
-                rows = torch.rand(len(token_box), device=token_box.device) < fraction  # (B,)
-                predicted, predicted_visible = self._own_boxes(
-                    text, batch[ATTENTION_MASK], labels, memory, memory_mask, current, token_box, visible
-                )
-                token_box = torch.where(rows[:, None], predicted, token_box)
-                visible = torch.where(rows, predicted_visible, visible)
-            box = network.box_token(token_box, visible)  # (B, D)
+            box = network.box_token(*self._token_boxes(batch, text, labels, memory, memory_mask, current))
         layout = SequenceLayout.for_training(
             text, batch[ATTENTION_MASK], labels, memory, memory_mask, current, box
         )  # [BOS] [memory] [current] [prompt] [BOX] [action]: (B, L', D)
@@ -254,6 +242,24 @@ class OpenFlyAgent(PreTrainedModel):
             raise ValueError("batch has no labelled action token and the agent has no grounding head")
         logs["loss"] = float(loss.detach())
         return loss, logs
+
+    def _token_boxes(
+        self, batch, text, labels, memory, memory_mask, current
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The (B, 4) boxes and (B,) visibility the BOX token embeds: the true box, jittered in training (the RL
+        stage's replay gives the box the policy predicted, `token_box`); with `box_token_predicted_fraction`,
+        that share of training rows takes the grounding head's own box instead."""
+        jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
+        boxes = jitter_boxes(batch.get(TOKEN_BOX, batch[BOX]).float(), jitter)  # (B, 4)
+        visible = batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]).bool()  # (B,)
+        fraction = getattr(self.model_cfg.action_head, "box_token_predicted_fraction", 0.0)
+        if not self.training or fraction == 0 or TOKEN_BOX in batch or self.network.grounding_head is None:
+            return boxes, visible
+        rows = torch.rand(len(boxes), device=boxes.device) < fraction  # (B,)
+        predicted, predicted_visible = self._own_boxes(
+            text, batch[ATTENTION_MASK], labels, memory, memory_mask, current, boxes, visible
+        )
+        return torch.where(rows[:, None], predicted, boxes), torch.where(rows, predicted_visible, visible)
 
     @torch.no_grad()
     def _own_boxes(
