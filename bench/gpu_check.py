@@ -3,7 +3,7 @@
     bash scripts/gpu_check.sh                          # the same as: python bench/gpu_check.py
     python bench/gpu_check.py --plan                   # the commands it would run; nothing runs, no CUDA needed
     python bench/gpu_check.py --table <workdir>/gpu_check.json   # the table of a recorded run
-    python bench/gpu_check.py --suite levers           # the speed levers, one at a time (issue 49)
+    python bench/gpu_check.py --suite levers           # the speed levers, one at a time
 
 In order, each as the command a user types, each with its own time limit (about 8.5 minutes in all on one H200, measured):
 the synthetic OpenVLA-layout 7B folder (random weights, real key names and shapes, tokenizer files); a small
@@ -19,11 +19,12 @@ after every check so that a run cut short keeps the rows it finished (each comma
 failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
 (printed with the table; a missing one fails the `wheels` check).
 
-`--suite levers` (planned for at most 8 minutes on one H100; not yet run) measures where the 7B LoRA step's
-time goes and each speed lever alone: the synthetic folder and the dataset, then `train.py` (the LoRA recipe, 12
-steps, no merge, no final evaluation) with its time split, TFLOP/s and MFU from metrics.jsonl,
+`--suite levers` (about 5.5 minutes on one H200, measured in two parts) measures where the 7B LoRA step's time
+goes and each speed lever alone: the synthetic folder and the dataset, then `train.py` (the LoRA recipe, 12 steps,
+no merge, no final evaluation) with its time split, TFLOP/s and MFU from metrics.jsonl, the same run with
+`--compile_layers=true`, `bench/step_latency.py` at batch 1 and 16 with its peak memory and profiles,
 `bench/train_throughput.py --levers none fused_adamw` and, in its own check, `--levers compile_layers`
-(samples/s, MFU and peak memory of each), and `bench/step_latency.py` at batch 1 and 16 with its peak memory.
+(samples/s, MFU and peak memory of each).
 """
 
 from __future__ import annotations

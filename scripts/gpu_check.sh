@@ -3,7 +3,7 @@
 # runs): the 7B chain at full size, the full fine-tune's first FSDP step, the benches; one table at the end.
 #   bash scripts/gpu_check.sh                      # results and logs in outputs/gpu_check
 #   python bench/gpu_check.py --plan               # the commands it would run (options: bench/gpu_check.py)
-#   bash scripts/gpu_check.sh --suite levers       # the time split and each speed lever alone (planned: 8 min, H100)
+#   bash scripts/gpu_check.sh --suite levers       # the time split and each speed lever alone (about 5.5 min on an H200)
 # Without CUDA it exits at once with one line (exit 2). PYTHON picks the interpreter (default: .venv's, else
 # python3 on PATH, e.g. a CUDA PyTorch image's with the wheels the table lists).
 set -euo pipefail
