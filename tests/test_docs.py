@@ -123,6 +123,8 @@ RETIRED_OPTIONS = {
     "data.expression_fraction",
     # docs/experiments/2026-11-29-main-job-action-history.md (commit 5925c14)
     "model.prompt.action_history",
+    # docs/experiments/2026-11-30-main-job-own-boxes.md (commit d6f1b4e)
+    "model.action_head.box_token_predicted_fraction",
 }  # fmt: skip
 
 

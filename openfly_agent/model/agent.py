@@ -43,7 +43,7 @@ from openfly_agent.model.grounding.head import grounding_loss
 from openfly_agent.model.grounding.layers import QueryReader
 from openfly_agent.model.language.tokenizer import load_tokenizer
 from openfly_agent.model.layout import SequenceLayout
-from openfly_agent.model.network import OpenFlyNetwork, jitter_boxes
+from openfly_agent.model.network import OpenFlyNetwork
 from openfly_agent.model.persistence.agent_io import (
     check_no_lora,
     loadable_checkpoint,
@@ -210,12 +210,16 @@ class OpenFlyAgent(PreTrainedModel):
         has_actions = bool((labels != IGNORE_INDEX).any())
         network = self.network
         memory, memory_mask, current = network.encode(batch)  # (B, M, D), (B, M), (B, P, D)
-        text = network.embed_text(input_ids)  # (B, L, D)
-        box = None  # the BOX token's (B, D) embedding
+        box = None  # the BOX token: the true box, jittered in training
         if network.box_token_embed is not None and has_actions:
-            box = network.box_token(*self._token_boxes(batch, text, labels, memory, memory_mask, current))
+            jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
+            # the true box; the RL stage's replay gives the box the policy predicted (`token_box`)
+            token_box = batch.get(TOKEN_BOX, batch[BOX])
+            box = network.box_token(
+                token_box, batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]), jitter
+            )  # (B, D)
         layout = SequenceLayout.for_training(
-            text, batch[ATTENTION_MASK], labels, memory, memory_mask, current, box
+            network.embed_text(input_ids), batch[ATTENTION_MASK], labels, memory, memory_mask, current, box
         )  # [BOS] [memory] [current] [prompt] [BOX] [action]: (B, L', D)
         hidden = network(layout)  # (B, L', D)
         grounds = network.grounding_head is not None and BOX in batch
@@ -242,39 +246,6 @@ class OpenFlyAgent(PreTrainedModel):
             raise ValueError("batch has no labelled action token and the agent has no grounding head")
         logs["loss"] = float(loss.detach())
         return loss, logs
-
-    def _token_boxes(
-        self, batch, text, labels, memory, memory_mask, current
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The (B, 4) boxes and (B,) visibility the BOX token embeds: the true box, jittered in training (the RL
-        stage's replay gives the box the policy predicted, `token_box`); with `box_token_predicted_fraction`,
-        that share of training rows takes the grounding head's own box instead."""
-        jitter = self.model_cfg.action_head.box_token_jitter if self.training else 0
-        boxes = jitter_boxes(batch.get(TOKEN_BOX, batch[BOX]).float(), jitter)  # (B, 4)
-        visible = batch.get(TOKEN_BOX_VISIBLE, batch[BOX_VISIBLE]).bool()  # (B,)
-        fraction = getattr(self.model_cfg.action_head, "box_token_predicted_fraction", 0.0)
-        if not self.training or fraction == 0 or TOKEN_BOX in batch or self.network.grounding_head is None:
-            return boxes, visible
-        rows = torch.rand(len(boxes), device=boxes.device) < fraction  # (B,)
-        predicted, predicted_visible = self._own_boxes(
-            text, batch[ATTENTION_MASK], labels, memory, memory_mask, current, boxes, visible
-        )
-        return torch.where(rows[:, None], predicted, boxes), torch.where(rows, predicted_visible, visible)
-
-    @torch.no_grad()
-    def _own_boxes(
-        self, text, attention_mask, labels, memory, memory_mask, current, boxes, visible
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The grounding head's (B, 4) boxes and (B,) visibility for a training batch, detached: one forward pass
-        of the same layout without gradients. The head reads no position at or after BOX, so its prediction is
-        the one the training pass makes, whatever box the BOX token carries."""
-        network = self.network
-        layout = SequenceLayout.for_training(
-            text, attention_mask, labels, memory, memory_mask, current, network.box_token(boxes, visible)
-        )
-        _, grounding = network.heads(network(layout), layout, actions=False, boxes=True)
-        predicted, predicted_visible = network.predicted_boxes(grounding, len(boxes))
-        return predicted.to(boxes.dtype), torch.tensor(predicted_visible, device=boxes.device)
 
     def _action_loss(
         self, logits: torch.Tensor, target: torch.Tensor, outputs: dict | None = None

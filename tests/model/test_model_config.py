@@ -268,6 +268,9 @@ def test_the_deleted_stop_weight_loads_at_one_and_refuses_any_other():
         # the agent's last actions in its prompt (docs/experiments/2026-11-29-main-job-action-history.md, val
         # -16.7 points at seed 9): the arms named 4 and 1
         ("prompt", "action_history", 0, 4, "5925c14"),
+        # the action trained on the head's own boxes (docs/experiments/2026-11-30-main-job-own-boxes.md, val -5.6
+        # points at seed 9): the arm set 0.5
+        ("action_head", "box_token_predicted_fraction", 0.0, 0.5, "d6f1b4e"),
     ],
 )
 def test_a_field_deleted_after_its_arm_loads_at_its_default_and_refuses_any_other(

@@ -212,25 +212,17 @@ class DiscreteActionHeadConfig(ActionHeadConfig):
     paper's layout): the grounding head's box of the target, embedded as one more input token after the prompt,
     is what the action is read at, so the action is conditioned on where the target is (a grounded chain of
     thought, as ECoT's bounding boxes before the action). Training embeds the ground-truth box jittered by
-    `box_token_jitter`; inference the predicted one (docs/ARCHITECTURE.md). `box_token_predicted_fraction`
-    is the share of training rows whose box token carries the grounding head's own box instead (detached, from
-    one more forward pass without gradients), so that the action also learns from the boxes it gets in flight.
+    `box_token_jitter`; inference the predicted one (docs/ARCHITECTURE.md).
     """
 
     # the action is read at an embedded-box token after the prompt (None: when the grounding head is enabled)
     box_token: bool | None = None
     box_token_jitter: float = 0.05  # std of the noise on the training box (centre; log size x 2)
-    # share of training rows whose box token is the grounding head's prediction, not the jittered true box
-    box_token_predicted_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.box_token_jitter < 0:
             raise ValueError(f"action_head.box_token_jitter={self.box_token_jitter} must be >= 0")
-        if not 0.0 <= self.box_token_predicted_fraction <= 1.0:
-            raise ValueError(
-                f"action_head.box_token_predicted_fraction={self.box_token_predicted_fraction} must be in [0, 1]"
-            )
 
 
 @ActionHeadConfig.register_subclass(HEAD_OPENVLA_BINS)
