@@ -13,10 +13,10 @@ memory, the merged weights); `eval.py --checkpoint <the LoRA run folder>` for 4 
 fine-tune under `fsdp_offload.yaml` through its first optimizer step (or its one-line refusal on a host with too
 little memory for the offloaded states); `bench/step_latency.py` (`select_action`,
 keyframe vs uniform, batch 1 and 16) and `bench/train_throughput.py` (LoRA samples/s and MFU on synthetic
-batches). A check whose input failed is skipped. It prints one table and writes `<workdir>/gpu_check.json`, rewritten
-after every check so that a run cut short keeps the rows it finished (each command's output goes to
-`<workdir>/logs/`, torch.profiler's tables of `select_action` to `<workdir>/profiles/`). Without CUDA it exits at once with one line (exit 2); with a
-failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
+batches). A check whose input failed is skipped. It prints one table and writes `<workdir>/gpu_check.json`,
+rewritten after every check so that a run cut short keeps the rows it finished (each command's output goes to
+`<workdir>/logs/`, torch.profiler's tables of `select_action` to `<workdir>/profiles/`). Without CUDA it exits at
+once with one line (exit 2); with a failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
 (printed with the table; a missing one fails the `wheels` check).
 
 `--suite levers` (about 5.5 minutes on one H200, measured in two parts) measures where the 7B LoRA step's time
