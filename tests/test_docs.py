@@ -206,6 +206,10 @@ def check_command(command: DocCommand) -> None:
         path = REPO / command.sub
         assert path.is_file(), f"{where}: no file {command.sub}"
         source = path.read_text()
+        # a wrapper that hands its arguments to a Python script (`exec "$PYTHON" bench/x.py "$@"`) has its options
+        passed_on = re.search(r'exec "\$PYTHON" (\S+\.py) "\$@"', source)
+        if passed_on:
+            source += (REPO / passed_on.group(1)).read_text()
         args, forwarded = command.args, []
         if "--" in args:  # a bench that builds a training run: what follows a bare -- are train.py's options
             from openfly_agent.training.config import TrainConfig
