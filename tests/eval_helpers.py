@@ -15,6 +15,8 @@ import numpy as np
 
 from openfly_agent import constants as C
 from openfly_agent.data.schema import Episode
+from openfly_agent.eval.config import EvalConfig
+from openfly_agent.eval.run import run
 from openfly_agent.model.config import BinsActionHeadConfig, CellGroundingConfig, TinyVitVisionConfig
 from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.sim.base import EpisodeSpec, Observation, StepInfo
@@ -113,6 +115,19 @@ def generate_tiny_dataset(root, seed: int = 0, chained: bool = False) -> None:
         render=RenderConfig(width=64, height=64, box_target="leg" if chained else "final"),
     )  # fmt: skip
     generate(cfg, progress=False)
+
+
+def oracle_flights(tmp_path: Path, split: str) -> tuple[Path, Path]:
+    """A tiny generated dataset (`tmp_path/dataset`) and the oracle's eval.py flights of `split` on it: the
+    dataset and the policy folder (`tmp_path/eval/oracle`)."""
+    dataset = tmp_path / "dataset"
+    generate_tiny_dataset(dataset)
+    run(
+        EvalConfig(
+            dataset_root=str(dataset), output_dir=str(tmp_path / "eval"), policy="oracle", split=[split]
+        )
+    )
+    return dataset, tmp_path / "eval" / "oracle"
 
 
 def small_agent_config():

@@ -5,13 +5,11 @@ from __future__ import annotations
 import json
 import sys
 
-from eval_helpers import generate_tiny_dataset
+from eval_helpers import oracle_flights
 
 from bench.analysis.flight_turns import TurnCounts
 from openfly_agent import constants as C
 from openfly_agent.constants import ACTION_FORWARD, ACTION_STOP, ACTION_TURN_LEFT, ACTION_TURN_RIGHT
-from openfly_agent.eval.config import EvalConfig
-from openfly_agent.eval.run import run
 from openfly_agent.utils.config import REPO_ROOT
 from openfly_agent.utils.processes import run_group
 
@@ -57,15 +55,8 @@ def test_no_flights_give_no_rates():
 
 def test_the_command_reads_a_policy_folder(tmp_path):
     """The oracle's flights (the expert's actions replayed) never undo a turn."""
-    dataset = tmp_path / "dataset"
-    generate_tiny_dataset(dataset)
     split = C.SPLIT_TEST_UNSEEN
-    run(
-        EvalConfig(
-            dataset_root=str(dataset), output_dir=str(tmp_path / "eval"), policy="oracle", split=[split]
-        )
-    )
-    folder = tmp_path / "eval" / "oracle"
+    _, folder = oracle_flights(tmp_path, split)
     command = [sys.executable, str(REPO_ROOT / "bench" / "flight_turns.py"), str(folder), f"--split={split}"]
     done = run_group(command, timeout=300, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]

@@ -8,7 +8,7 @@ import json
 import sys
 
 import pytest
-from eval_helpers import generate_tiny_dataset
+from eval_helpers import oracle_flights
 
 from bench.analysis.stop_landmarks import (
     NO_BOX,
@@ -27,9 +27,7 @@ from bench.analysis.stop_landmarks import (
 )
 from openfly_agent import constants as C
 from openfly_agent.data.openfly_reader import load_openfly_dataset
-from openfly_agent.eval.config import EvalConfig
 from openfly_agent.eval.distributed import read_all_logs
-from openfly_agent.eval.run import run
 from openfly_agent.utils.config import REPO_ROOT
 from openfly_agent.utils.processes import run_group
 
@@ -96,18 +94,11 @@ def test_shared_attributes_against_the_chance_of_the_landmarks_in_view():
 
 
 def test_the_command_finds_oracle_flights_on_their_target(tmp_path):
-    dataset = tmp_path / "dataset"
-    generate_tiny_dataset(dataset)
     split = C.SPLIT_TEST_UNSEEN
-    run(
-        EvalConfig(
-            dataset_root=str(dataset), output_dir=str(tmp_path / "eval"), policy="oracle", split=[split]
-        )
-    )
+    dataset, folder = oracle_flights(tmp_path, split)
     # the oracle replays each route to its end; give each flight the target's true box of the route's last frame
     # as the box it "predicted" there (none where the target is out of view)
     episodes = {e.episode_id: e for e in load_openfly_dataset(dataset, split)}
-    folder = tmp_path / "eval" / "oracle"
     records = read_all_logs(folder)
     last_boxes = {}
     for record in records:
