@@ -5,19 +5,20 @@
     python bench/gpu_check.py --table <workdir>/gpu_check.json   # the table of a recorded run
     python bench/gpu_check.py --suite levers           # the speed levers, one at a time
 
-In order, each as the command a user types, each with its own time limit (about 8.5 minutes in all on one H200, measured):
-the synthetic OpenVLA-layout 7B folder (random weights, real key names and shapes, tokenizer files); a small
-embedded dataset; the LoRA recipe for 12 steps from that folder (train.py's samples/s on real data, its peak
-memory, the merged weights); `eval.py --checkpoint <the LoRA run folder>` for 4 episodes (it loads the run's merged model); the full fine-tune under
-`fsdp.yaml` on one GPU, which the preflight must refuse in one line before reading a weight; the full
-fine-tune under `fsdp_offload.yaml` through its first optimizer step (or its one-line refusal on a host with too
-little memory for the offloaded states); `bench/step_latency.py` (`select_action`,
-keyframe vs uniform, batch 1 and 16) and `bench/train_throughput.py` (LoRA samples/s and MFU on synthetic
-batches). A check whose input failed is skipped. It prints one table and writes `<workdir>/gpu_check.json`,
-rewritten after every check so that a run cut short keeps the rows it finished (each command's output goes to
-`<workdir>/logs/`, torch.profiler's tables of `select_action` to `<workdir>/profiles/`). Without CUDA it exits at
-once with one line (exit 2); with a failed check, exit 1. The wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch
-(printed with the table; a missing one fails the `wheels` check).
+In order, each as the command a user types, each with its own time limit (about 8.5 minutes in all on one
+H200, measured): the synthetic OpenVLA-layout 7B folder (random weights, real key names and shapes, tokenizer
+files); a small embedded dataset; the LoRA recipe for 12 steps from that folder (train.py's samples/s on real
+data, its peak memory, the merged weights); `eval.py --checkpoint <the LoRA run folder>` for 4 episodes (it
+loads the run's merged model); the full fine-tune under `fsdp.yaml` on one GPU, which the preflight must
+refuse in one line before reading a weight; the full fine-tune under `fsdp_offload.yaml` through its first
+optimizer step (or its one-line refusal on a host with too little memory for the offloaded states);
+`bench/step_latency.py` (`select_action`, keyframe vs uniform, batch 1 and 16) and `bench/train_throughput.py`
+(LoRA samples/s and MFU on synthetic batches). A check whose input failed is skipped. It prints one table and
+writes `<workdir>/gpu_check.json`, rewritten after every check so that a run cut short keeps the rows it
+finished (each command's output goes to `<workdir>/logs/`, torch.profiler's tables of `select_action` to
+`<workdir>/profiles/`). Without CUDA it exits at once with one line (exit 2); with a failed check, exit 1. The
+wheels it needs beyond a CUDA PyTorch image are pyproject.toml's dependencies but torch (printed with the
+table; a missing one fails the `wheels` check).
 
 `--suite levers` (about 5.5 minutes on one H200, measured in two parts) measures where the 7B LoRA step's time
 goes and each speed lever alone: the synthetic folder and the dataset, then `train.py` (the LoRA recipe, 12 steps,

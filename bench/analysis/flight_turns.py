@@ -16,9 +16,8 @@ from dataclasses import dataclass
 from bench.analysis.stop_landmarks import box_iou
 from openfly_agent.constants import ACTION_TURN_LEFT, ACTION_TURN_RIGHT
 
-SWITCH_IOU = (
-    0.2  # consecutive boxes overlapping less than this, after a step that is not a turn, are a switch
-)
+# consecutive boxes overlapping less than this, after a step that is not a turn, are a switch
+SWITCH_IOU = 0.2
 TURNS = {ACTION_TURN_LEFT, ACTION_TURN_RIGHT}
 
 
