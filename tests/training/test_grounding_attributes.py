@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 from conftest import run_script
 
 from bench.analysis.grounding_attributes import (
@@ -19,6 +21,8 @@ from bench.analysis.grounding_attributes import (
     probe_accuracy,
     probe_table,
 )
+from openfly_agent.model.config import CellGroundingConfig
+from openfly_agent.model.grounding.head import CellGroundingHead
 from openfly_agent.sim.scene import Landmark
 
 BOXES = {
@@ -110,10 +114,25 @@ def test_bench_script_prints_and_writes_the_figures(reference_run, tmp_path):
     done = run_script(args, script=Path(__file__).resolve().parents[2] / "bench" / "grounding_attributes.py")
     assert done.returncode == 0, done.stderr[-2000:]
     figures = json.loads(report.read_text())
-    assert sum(figures["landings"].values()) > 0 and len(figures["probes"]) == 2 * len(READINGS)
+    readings = len(READINGS) - 2  # the reference run's head has no colour match
+    assert sum(figures["landings"].values()) > 0 and len(figures["probes"]) == 2 * readings
     assert "| landing | share |" in done.stdout and "| head query | color |" in done.stdout
 
 
 def test_probe_refuses_a_folder_that_is_not_a_run(tmp_path):
     with pytest.raises(FileNotFoundError):
         AttributeProbe(tmp_path)
+
+
+def test_a_colour_match_gives_its_histograms_and_asks_as_readings():
+    torch.manual_seed(0)
+    head = CellGroundingHead(16, CellGroundingConfig(dim=8, num_heads=2, colour_match=5), grid_side=2)
+    probe = AttributeProbe.__new__(AttributeProbe)  # the readings only: no run, no datasets
+    probe.agent = SimpleNamespace(network=SimpleNamespace(grounding_head=head))
+    pixels = torch.randint(0, 256, (3, 3, 8, 8), dtype=torch.uint8)
+    with torch.no_grad():
+        histograms, asks = probe._colour_match(pixels, torch.randn(3, 8))
+    assert histograms.shape == (3, 4, 5) and asks.shape == (3, 5)
+    torch.testing.assert_close(asks.sum(dim=-1), torch.ones(3))
+    head.colour_match = None
+    assert probe._colour_match(pixels, torch.randn(3, 8)) == (None, None)
