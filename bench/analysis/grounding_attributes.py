@@ -48,14 +48,11 @@ from openfly_agent.utils.geometry import Pose
 logger = logging.getLogger(__name__)
 
 LANDINGS = ("target", "earlier route landmark", "other landmark", "no landmark")
-READINGS = (
-    "cell pixels",
-    "backbone token",
-    "head cell feature",
-    "head query",
+COLOUR_MATCH_READINGS = (
     "colour match: cell histogram",
     "colour match: query's ask",
-)
+)  # with a colour match only
+READINGS = ("cell pixels", "backbone token", "head cell feature", "head query", *COLOUR_MATCH_READINGS)
 
 
 def centre_landing(
