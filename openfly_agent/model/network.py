@@ -286,8 +286,16 @@ class OpenFlyNetwork(nn.Module):
         if not boxes or self.grounding_head is None:
             return logits, None
         readable = layout.readable
+        # the colour match's ask reads the prompt's words: (B, D)
+        words = None if colours is None else layout.prompt_words()
         grounding = self.grounding_head(
-            hidden, readable, layout.image_positions(), last_true_index(readable), layout.current, colours
+            hidden,
+            readable,
+            layout.image_positions(),
+            last_true_index(readable),
+            layout.current,
+            colours,
+            words,
         )
         return logits, grounding
 

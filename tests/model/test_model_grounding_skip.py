@@ -1,6 +1,6 @@
 """The grounding head's cells beyond the LLM's hidden states (model/grounding/head.py): `grounding.visual_skip`
 (the cells get the frame's visual tokens) and `grounding.colour_match` (the cells' colour histograms against the
-query's colour)."""
+colours asked for by the query and the prompt's words)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def _red_blue_match() -> ColourMatch:
     """A 2-class match on a 2 x 2 grid whose pixel classifier is set by hand: hidden 0 = 10 (R - B), hidden 1 =
     10 (B - R) (R, B scaled to [-0.5, 0.5]), class k's logit = GELU(hidden k). A red pixel: logits (10, ~0),
     class 0; a blue one: class 1; a gray one: (0, 0), half and half."""
-    match = ColourMatch(dim=2, classes=2, grid_side=2)
+    match = ColourMatch(dim=2, llm_dim=3, classes=2, grid_side=2)
     with torch.no_grad():
         first, second = match.pixel_classes[0], match.pixel_classes[2]
         first.weight.zero_()
@@ -108,14 +108,31 @@ def test_the_match_is_the_weighted_log_of_the_share_in_the_asked_colour():
     with torch.no_grad():
         match.query_classes.weight.copy_(torch.eye(2))
         match.query_classes.bias.zero_()
+        match.word_classes.weight.zero_()  # the query alone asks
         match.weight.fill_(2.0)
     colours = torch.tensor([[[0.9, 0.1], [0.0, 1.0], [0.5, 0.5]]])  # (1, 3, 2)
     code = torch.tensor([[math.log(3.0), 0.0]])  # asks for class 0 with 3 / 4, class 1 with 1 / 4
     with torch.no_grad():
-        logits = match(colours, code)  # (1, 3)
+        logits = match(colours, code, torch.randn(1, 3))  # (1, 3)
     shares = [0.75 * 0.9 + 0.25 * 0.1, 0.25 * 1.0, 0.5]  # 0.7, 0.25, 0.5
     expected = torch.tensor([[2.0 * math.log(share + 1e-3) for share in shares]])
     torch.testing.assert_close(logits, expected)
+
+
+def test_the_prompts_words_join_the_ask():
+    match = _red_blue_match()
+    with torch.no_grad():
+        match.query_classes.weight.zero_()
+        match.query_classes.bias.zero_()
+        match.word_classes.weight.zero_()
+        match.word_classes.weight[1, 2] = (
+            1.0  # the third embedding dimension (a "blue" word) asks for class 1
+        )
+        words = torch.tensor([[0.0, 0.0, math.log(3.0)]])
+        torch.testing.assert_close(match.ask(torch.randn(1, 2), words), torch.tensor([[0.25, 0.75]]))
+        torch.testing.assert_close(
+            match.ask(torch.randn(1, 2), torch.zeros(1, 3)), torch.tensor([[0.5, 0.5]])
+        )
 
 
 def test_the_colour_match_moves_only_the_cells_whose_colours_changed():
@@ -126,10 +143,11 @@ def test_the_colour_match_moves_only_the_cells_whose_colours_changed():
     hidden = torch.randn(1, 7, 16)
     frame = _frame([[GRAY, GRAY], [GRAY, GRAY]])
     red = _frame([[GRAY, GRAY], [GRAY, GRAY]], red_pixels=3)  # 3 red pixels in the last cell
+    words = torch.randn(1, 16)
     with torch.no_grad():
         plain, with_red = (
             head(
-                hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT, colours=head.colour_match.histogram(f)
+                hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT, None, head.colour_match.histogram(f), words
             ).cell_logits
             for f in (frame, red)
         )

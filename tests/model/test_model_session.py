@@ -66,7 +66,11 @@ SKIP_HEAD = CellGroundingConfig(  # cells that get the frame's visual tokens
 COLOUR_HEAD = CellGroundingConfig(  # cells matched by their colour histograms
     dim=32, num_heads=2, visibility_weight=0.0, colour_match=4
 )
-HEADS = {"plain": {}, "skip_head": {"grounding": SKIP_HEAD}, "colour_head": {"grounding": COLOUR_HEAD}}
+HEADS = {
+    "plain": {},
+    "skip_head": {"grounding": SKIP_HEAD},
+    "colour_head": {"grounding": COLOUR_HEAD},
+}
 
 
 @pytest.mark.parametrize("variant", list(HEADS))

@@ -131,8 +131,8 @@ def test_a_colour_match_gives_its_histograms_and_asks_as_readings():
     probe.agent = SimpleNamespace(network=SimpleNamespace(grounding_head=head))
     pixels = torch.randint(0, 256, (3, 3, 8, 8), dtype=torch.uint8)
     with torch.no_grad():
-        histograms, asks = probe._colour_match(pixels, torch.randn(3, 8))
+        histograms, asks = probe._colour_match(pixels, torch.randn(3, 8), torch.randn(3, 16))
     assert histograms.shape == (3, 4, 5) and asks.shape == (3, 5)
     torch.testing.assert_close(asks.sum(dim=-1), torch.ones(3))
     head.colour_match = None
-    assert probe._colour_match(pixels, torch.randn(3, 8)) == (None, None)
+    assert probe._colour_match(pixels, torch.randn(3, 8), None) == (None, None)

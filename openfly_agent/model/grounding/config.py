@@ -106,9 +106,9 @@ class CellGroundingConfig(GroundingHeadConfig):
     # another (its colour); false: the cells are the LLM's hidden states only
     visual_skip: bool = False
     # learned colour classes of the colour match (0: none): each pixel of the current frame is softly assigned to
-    # one of these classes, each cell's histogram of them is compared with the colour class the query asks for,
-    # and w x log(match) joins the cell's score (`ColourMatch`), a path that keeps a landmark's colour when it
-    # covers a few pixels of a cell
+    # one of these classes, each cell's histogram of them is compared with the classes asked for (read from the
+    # head's query and from the prompt's words), and w x log(match) joins the cell's score (`ColourMatch`), a path
+    # that keeps a landmark's colour when it covers a few pixels of a cell
     colour_match: int = 0
 
     def __post_init__(self) -> None:
