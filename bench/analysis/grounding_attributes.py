@@ -159,7 +159,7 @@ class AttributeProbe:
         self._queries: list[torch.Tensor] = []
         self._words: list[
             torch.Tensor | None
-        ] = []  # the prompts' mean input embeddings (a colour match's ask)
+        ] = []  # the prompts' summed input embeddings (a colour match's ask)
         self._outputs: list = []
 
     @torch.no_grad()

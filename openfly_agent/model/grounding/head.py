@@ -97,7 +97,7 @@ class ColourMatch(nn.Module):
     A cell's match is the share of its pixels in the asked colour classes, sum_k q_k h_k; the cell's logit gets
     `weight` x log(match + MATCH_FLOOR). A landmark covering 3 % of a cell moves that share from near 0 to 0.03,
     which the log turns into a large score difference. The ask q is read from the head's query and from the
-    prompt's words as a bag (their mean input embedding): trained by the grounding loss alone, the query did not
+    prompt's words as a bag (their summed input embeddings): trained by the grounding loss alone, the query did not
     learn to carry the colour word within the main job's steps (docs/experiments/2026-11-30-main-job-colour-match.md),
     while the bag holds it from the first step.
 
@@ -141,13 +141,13 @@ class ColourMatch(nn.Module):
         return F.avg_pool2d(shares, cell).flatten(2).transpose(1, 2)  # (F, P, K)
 
     def ask(self, code: torch.Tensor, words: torch.Tensor) -> torch.Tensor:
-        """code (B, d) the query, words (B, D_llm) the prompt's mean input embedding -> (B, K) the asked classes."""
+        """code (B, d) the query, words (B, D_llm) the prompt's summed embeddings -> (B, K) the asked classes."""
         logits = self.query_classes(code) + self.word_classes(words.to(self.word_classes.weight.dtype))
         return logits.softmax(dim=-1)
 
     def forward(self, colours: torch.Tensor, code: torch.Tensor, words: torch.Tensor) -> torch.Tensor:
-        """colours (B, P, K) cell histograms, code (B, d) the query, words (B, D_llm) the prompt's mean input
-        embedding -> (B, P) logits to add to the cells'."""
+        """colours (B, P, K) cell histograms, code (B, d) the query, words (B, D_llm) the prompt's summed input
+        embeddings -> (B, P) logits to add to the cells'."""
         asked = self.ask(code, words)  # (B, K)
         match = (colours.to(asked.dtype) * asked[:, None]).sum(dim=-1)  # (B, P)
         return self.weight * torch.log(match + self.MATCH_FLOOR)
@@ -207,7 +207,7 @@ class CellGroundingHead(QueryReader):
                 (needed with `visual_skip`).
             colours: (B, P, K) the current frame's cell colour histograms (`ColourMatch.histogram`; needed with
                 `colour_match`).
-            prompt_words: (B, D_llm) the mean input embedding of each row's prompt (`SequenceLayout.prompt_words`;
+            prompt_words: (B, D_llm) the summed input embeddings of each row's prompt (`SequenceLayout.prompt_words`;
                 needed with `colour_match`).
         """
         rows = torch.arange(hidden.shape[0], device=hidden.device)
@@ -228,7 +228,7 @@ class CellGroundingHead(QueryReader):
             if colours is None or prompt_words is None:
                 raise ValueError(
                     "grounding.colour_match needs the current frame's cell colours (colours) and the prompt's"
-                    " mean input embedding (prompt_words)"
+                    " summed input embeddings (prompt_words)"
                 )
             cell_logits = cell_logits + self.colour_match(colours, pooled, prompt_words)  # (B, P)
         query_attributes = cell_attributes = None
