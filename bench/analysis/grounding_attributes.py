@@ -10,10 +10,7 @@ Two measurements on a navigation run's test split (bench/grounding_attributes.py
   test ones, from three readings of the cell under the target's centre: its raw pixel statistics
   (`cell_colour_stats`), the vision backbone's token and the head's cell feature (the LLM's hidden state there,
   through the head's input projection); and from the head's query (the code that modulates every cell: what the
-  head took from the instruction). With a colour match (`grounding.colour_match`), two readings more: the target
-  cell's histogram of the learned colour classes and the class distribution asked for (by the query and the prompt's
-  words). A probe at the
-  majority rate means the reading does not hold the attribute.
+  head took from the instruction). A probe at the majority rate means the reading does not hold the attribute.
 
 Embedded-simulator datasets only (the boxes and the cities come from it).
 """
@@ -49,11 +46,7 @@ from openfly_agent.utils.geometry import Pose
 logger = logging.getLogger(__name__)
 
 LANDINGS = ("target", "earlier route landmark", "other landmark", "no landmark")
-COLOUR_MATCH_READINGS = (
-    "colour match: cell histogram",
-    "colour match: ask",
-)  # with a colour match only
-READINGS = ("cell pixels", "backbone token", "head cell feature", "head query", *COLOUR_MATCH_READINGS)
+READINGS = ("cell pixels", "backbone token", "head cell feature", "head query")
 
 
 def centre_landing(
@@ -157,9 +150,6 @@ class AttributeProbe:
         self.cities = EmbeddedScenes(self.city_config)
         self._head_cells: list[torch.Tensor] = []
         self._queries: list[torch.Tensor] = []
-        self._words: list[
-            torch.Tensor | None
-        ] = []  # the prompts' summed input embeddings (a colour match's ask)
         self._outputs: list = []
 
     @torch.no_grad()
@@ -181,12 +171,9 @@ class AttributeProbe:
                 batch = self.data.collate([dataset[i] for i in chunk])
                 self.agent(batch)
                 output, head_cells = self._outputs.pop(), self._head_cells.pop()  # (B, P, d)
-                queries, words = self._queries.pop(), self._words.pop()  # (B, d), (B, D_llm) or None
+                queries = self._queries.pop()  # (B, d)
                 tokens = self._backbone_tokens(batch[C.PIXEL_VALUES])  # (B, P, C) or None
                 pixels = self._pixel_stats(batch[C.PIXEL_VALUES])  # (B, P, 18)
-                histograms, asks = self._colour_match(
-                    batch[C.PIXEL_VALUES], queries, words
-                )  # (B, P, K), (B, K)
                 for row, index in enumerate(chunk):
                     if bool(batch[C.BOX_VISIBLE][row]):
                         episode, t = dataset.locate(index)
@@ -197,10 +184,6 @@ class AttributeProbe:
                             "backbone token": None if tokens is None else tokens[row, cell],
                             "head cell feature": head_cells[row, cell],
                             "head query": queries[row],
-                            "colour match: cell histogram": None
-                            if histograms is None
-                            else histograms[row, cell],
-                            "colour match: ask": None if asks is None else asks[row],
                         }
                         self._add(readings, episode, cells)
                         if sim is not None:
@@ -223,23 +206,12 @@ class AttributeProbe:
         hidden = args[0] if args else kwargs["hidden"]
         positions = kwargs.get("image_positions", args[2] if len(args) > 2 else None)  # (B, P)
         memory = head.input_proj(hidden.to(head.input_proj.weight.dtype))  # (B, L, d)
-        self._words.append(kwargs.get("prompt_words", args[6] if len(args) > 6 else None))
         self._head_cells.append(
             torch.gather(memory, 1, positions[..., None].expand(-1, -1, memory.shape[-1]))
         )
 
     def _backbone_tokens(self, pixels: torch.Tensor) -> torch.Tensor | None:
         return self.agent.network.vision_backbone(pixels)  # (B, P, C)
-
-    def _colour_match(
-        self, pixels: torch.Tensor, queries: torch.Tensor, words: torch.Tensor | None
-    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """(B, P, K) cell histograms of the head's colour classes and the (B, K) classes asked for by its queries
-        and the (B, D_llm) prompts' words; (None, None) for a head without a colour match."""
-        match = self.agent.network.grounding_head.colour_match
-        if match is None:
-            return None, None
-        return match.histogram(pixels), match.ask(queries, words)
 
     def _pixel_stats(self, pixels: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) uint8 -> (B, P, 18) colour statistics of the token grid's cells."""

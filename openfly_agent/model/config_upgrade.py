@@ -62,6 +62,9 @@ DELETED_ACTION_HISTORY = {"prompt": {"action_history": 0}}
 # The action trained on the grounding head's own boxes, deleted after its arm (docs/experiments/
 # 2026-11-30-main-job-own-boxes.md; commit d6f1b4e still has it)
 DELETED_OWN_BOXES = {"action_head": {"box_token_predicted_fraction": 0.0}}
+# The colour match (per-pixel colour classes against the colours the grounding query and the prompt's words ask
+# for), deleted after its arms (docs/experiments/2026-11-30-main-job-colour-match.md; commit 7dc778f still has it)
+DELETED_COLOUR_MATCH = {"grounding": {"colour_match": 0}}
 # Each table of retired fields, why a field is gone ({value}: the one it may hold) and the commit that still has it
 NO_GAIN = "was deleted (no measured gain; docs/experiments/{log})"
 RETIRED_FIELDS = (
@@ -70,6 +73,7 @@ RETIRED_FIELDS = (
     (DELETED_LEG_GOAL, NO_GAIN.format(log="2026-11-28-long-route-ablation.md"), "1cb4fad"),
     (DELETED_ACTION_HISTORY, NO_GAIN.format(log="2026-11-29-main-job-action-history.md"), "5925c14"),
     (DELETED_OWN_BOXES, NO_GAIN.format(log="2026-11-30-main-job-own-boxes.md"), "d6f1b4e"),
+    (DELETED_COLOUR_MATCH, NO_GAIN.format(log="2026-11-30-main-job-colour-match.md"), "7dc778f"),
     (FIXED_SETTINGS, "is fixed at {value} now (no config or experiment changed it)", "32e260f"),
 )
 # Fields no code read, dropped whatever they hold (timm's plain ResNet stem ignores its width; the action head's

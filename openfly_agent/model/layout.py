@@ -217,15 +217,6 @@ class SequenceLayout:
         p = self.current.shape[1]
         return self.first_image[:, None] + torch.arange(p, device=self.first_image.device)[None]
 
-    def prompt_words(self) -> torch.Tensor:
-        """(B, D) the sum of the input embeddings of each row's readable tokens after its current frame (the
-        prompt as a bag of words: each word counts whole, however long the prompt; a layout of whole rows, not a
-        cached `then` step)."""
-        columns = torch.arange(self.mask.shape[1], device=self.mask.device)[None]  # (1, L)
-        after_frame = columns >= (self.first_image + self.current.shape[1])[:, None]  # (B, L)
-        prompt = (self.readable & after_frame).to(self.embeds.dtype)  # (B, L)
-        return (self.embeds * prompt[..., None]).sum(dim=1)  # (B, D)
-
     def action_reads(self) -> torch.Tensor:
         """(B, L - 1) bool, training: the positions whose next token is an action target."""
         if self.labels is None:

@@ -271,6 +271,9 @@ def test_the_deleted_stop_weight_loads_at_one_and_refuses_any_other():
         # the action trained on the head's own boxes (docs/experiments/2026-11-30-main-job-own-boxes.md, val -5.6
         # points at seed 9): the arm set 0.5
         ("action_head", "box_token_predicted_fraction", 0.0, 0.5, "d6f1b4e"),
+        # the colour match (docs/experiments/2026-11-30-main-job-colour-match.md, its ask colour-blind at the gate
+        # in four grounding stages): the arms set 16
+        ("grounding", "colour_match", 0, 16, "7dc778f"),
     ],
 )
 def test_a_field_deleted_after_its_arm_loads_at_its_default_and_refuses_any_other(

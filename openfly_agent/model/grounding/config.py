@@ -105,16 +105,9 @@ class CellGroundingConfig(GroundingHeadConfig):
     # enters the LLM), a skip past the LLM, whose layers mix the cells and lose what tells one landmark from
     # another (its colour); false: the cells are the LLM's hidden states only
     visual_skip: bool = False
-    # learned colour classes of the colour match (0: none): each pixel of the current frame is softly assigned to
-    # one of these classes, each cell's histogram of them is compared with the classes asked for (read from the
-    # head's query and from the prompt's words), and w x log(match) joins the cell's score (`ColourMatch`), a path
-    # that keeps a landmark's colour when it covers a few pixels of a cell
-    colour_match: int = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.colour_match < 0 or self.colour_match == 1:
-            raise ValueError(f"grounding.colour_match={self.colour_match}: 0 (off) or >= 2 colour classes")
         if self.centre_window is not None and self.centre_window < 0:
             raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
         for name in ("cell_weight", "attribute_weight"):

@@ -20,10 +20,7 @@ grounded no better). With `attribute_weight` the head also names the target's at
 every cell (`attribute_loss`). In a causal LLM the frame's tokens precede the prompt, so a cell's features never
 see the instruction: the query's FiLM code binds the two. With `visual_skip` each cell also gets a projection of
 the frame's visual token at its position (the LLM's input there), so what the LLM's layers mix away still reaches
-the scorer. With `colour_match` = K each pixel of the current frame is softly assigned to one of K learned colour
-classes, each cell's histogram of them is compared with the class distribution the query asks for, and
-w x log(match) joins the cell's score (`ColourMatch`): the ResNet's stride-16 features average away the colour of
-a landmark a few pixels wide, the histogram keeps it.
+the scorer.
 """
 
 from __future__ import annotations
@@ -31,7 +28,6 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
-from transformers import initialization as init
 
 from openfly_agent.model.grounding.config import (
     BoxGroundingConfig,
@@ -62,13 +58,10 @@ class BoxRegressionHead(QueryReader):
         image_positions: torch.Tensor | None = None,
         last_positions: torch.Tensor | None = None,
         visual_cells: torch.Tensor | None = None,
-        colours: torch.Tensor | None = None,
-        prompt_words: torch.Tensor | None = None,
     ) -> GroundingOutput:
         """Predict one box per sequence from hidden (B, L, D_llm) over key_mask (B, L) bool (the positions the head
-        may read: image + prompt, never padding or targets). The frame's positions, the last prompt token, the
-        visual cells, the cell colours and the prompt's words, which the cell head reads, are accepted and unused:
-        both heads take the agent's call."""
+        may read: image + prompt, never padding or targets). The frame's positions, the last prompt token and the
+        visual cells, which the cell head reads, are accepted and unused: both heads take the agent's call."""
         reading = self.read(hidden, key_mask)
         return GroundingOutput(torch.sigmoid(self.box_mlp(reading.pooled)), reading.visibility)
 
@@ -88,69 +81,6 @@ class CellScorer(nn.Module):
         """cells (B, g * g, d), code (B, d) -> (B, g * g) logits, row-major."""
         modulated = self.norm(cells) * (1 + self.scale(code)[:, None]) + self.shift(code)[:, None]
         return self.score(modulated).squeeze(-1)  # (B, g * g)
-
-
-class ColourMatch(nn.Module):
-    """A colour path from the pixels to the cell scores: per-pixel soft colour classes, pooled per cell, matched
-    with the colour class distribution asked for.
-
-    A cell's match is the share of its pixels in the asked colour classes, sum_k q_k h_k; the cell's logit gets
-    `weight` x log(match + MATCH_FLOOR). A landmark covering 3 % of a cell moves that share from near 0 to 0.03,
-    which the log turns into a large score difference. The ask q is read from the head's query and from the
-    prompt's words as a bag (their summed input embeddings): trained by the grounding loss alone, the query did not
-    learn to carry the colour word within the main job's steps (docs/experiments/2026-11-30-main-job-colour-match.md),
-    while the bag holds it from the first step.
-
-    Args:
-        dim: the query's width.
-        llm_dim: the width of the prompt's input embeddings.
-        classes: K learned colour classes.
-        grid_side: cells per side of the current frame's token grid.
-    """
-
-    MATCH_FLOOR = 1e-3  # keeps log(match) finite in a cell without the colour
-    PIXEL_HIDDEN = 16  # width of the per-pixel classifier
-
-    def __init__(self, dim: int, llm_dim: int, classes: int, grid_side: int) -> None:
-        super().__init__()
-        self.grid_side = grid_side
-        self.pixel_classes = nn.Sequential(
-            nn.Conv2d(3, self.PIXEL_HIDDEN, 1), nn.GELU(), nn.Conv2d(self.PIXEL_HIDDEN, classes, 1)
-        )
-        self.query_classes = nn.Linear(dim, classes)
-        self.word_classes = nn.Linear(llm_dim, classes, bias=False)  # the query's layer has the bias
-        self.weight = nn.Parameter(torch.ones(()))
-
-    def init_weights(self) -> None:
-        """Per-pixel classes that already differ between colours, and a query that asks for some more than others
-        (a uniform ask gives the pixel classifier no gradient: the histogram sums to 1)."""
-        for conv in (self.pixel_classes[0], self.pixel_classes[2]):
-            init.normal_(conv.weight, std=1.0)
-            init.zeros_(conv.bias)
-        init.normal_(self.query_classes.weight, std=0.1)
-        init.zeros_(self.query_classes.bias)
-        init.normal_(self.word_classes.weight, std=0.1)
-        init.ones_(self.weight)
-
-    def histogram(self, pixels: torch.Tensor) -> torch.Tensor:
-        """(F, 3, H, W) uint8 RGB -> (F, P, K) each cell's share of pixels in each colour class (rows sum to 1)."""
-        dtype = self.query_classes.weight.dtype
-        x = pixels.to(dtype) / 255.0 - 0.5  # (F, 3, H, W)
-        shares = self.pixel_classes(x).softmax(dim=1)  # (F, K, H, W)
-        cell = pixels.shape[-1] // self.grid_side
-        return F.avg_pool2d(shares, cell).flatten(2).transpose(1, 2)  # (F, P, K)
-
-    def ask(self, code: torch.Tensor, words: torch.Tensor) -> torch.Tensor:
-        """code (B, d) the query, words (B, D_llm) the prompt's summed embeddings -> (B, K) the asked classes."""
-        logits = self.query_classes(code) + self.word_classes(words.to(self.word_classes.weight.dtype))
-        return logits.softmax(dim=-1)
-
-    def forward(self, colours: torch.Tensor, code: torch.Tensor, words: torch.Tensor) -> torch.Tensor:
-        """colours (B, P, K) cell histograms, code (B, d) the query, words (B, D_llm) the prompt's summed input
-        embeddings -> (B, P) logits to add to the cells'."""
-        asked = self.ask(code, words)  # (B, K)
-        match = (colours.to(asked.dtype) * asked[:, None]).sum(dim=-1)  # (B, P)
-        return self.weight * torch.log(match + self.MATCH_FLOOR)
 
 
 class CellGroundingHead(QueryReader):
@@ -177,14 +107,6 @@ class CellGroundingHead(QueryReader):
         classes = sum(cfg.attribute_classes)
         self.query_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
         self.cell_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
-        self.colour_match = (
-            ColourMatch(cfg.dim, llm_dim, cfg.colour_match, grid_side) if cfg.colour_match else None
-        )
-
-    def init_weights(self) -> None:
-        super().init_weights()
-        if self.colour_match is not None:
-            self.colour_match.init_weights()
 
     def forward(
         self,
@@ -193,8 +115,6 @@ class CellGroundingHead(QueryReader):
         image_positions: torch.Tensor,
         last_positions: torch.Tensor,
         visual_cells: torch.Tensor | None = None,
-        colours: torch.Tensor | None = None,
-        prompt_words: torch.Tensor | None = None,
     ) -> GroundingOutput:
         """Predict one box per sequence.
 
@@ -205,10 +125,6 @@ class CellGroundingHead(QueryReader):
             last_positions: (B,) long, position of each row's last prompt token.
             visual_cells: (B, P, D_llm) the current frame's visual tokens, the LLM's inputs at `image_positions`
                 (needed with `visual_skip`).
-            colours: (B, P, K) the current frame's cell colour histograms (`ColourMatch.histogram`; needed with
-                `colour_match`).
-            prompt_words: (B, D_llm) the summed input embeddings of each row's prompt (`SequenceLayout.prompt_words`;
-                needed with `colour_match`).
         """
         rows = torch.arange(hidden.shape[0], device=hidden.device)
         last = hidden[rows, last_positions].to(self.text_query.weight.dtype)  # (B, D_llm)
@@ -224,13 +140,6 @@ class CellGroundingHead(QueryReader):
                 )
             cells = cells + self.visual_proj(visual_cells.to(self.visual_proj.weight.dtype))  # (B, P, d)
         cell_logits = self.cell_scorer(cells, pooled)  # (B, P)
-        if self.colour_match is not None:
-            if colours is None or prompt_words is None:
-                raise ValueError(
-                    "grounding.colour_match needs the current frame's cell colours (colours) and the prompt's"
-                    " summed input embeddings (prompt_words)"
-                )
-            cell_logits = cell_logits + self.colour_match(colours, pooled, prompt_words)  # (B, P)
         query_attributes = cell_attributes = None
         if self.query_attributes is not None:
             query_attributes, cell_attributes = self.query_attributes(pooled), self.cell_attributes(cells)
