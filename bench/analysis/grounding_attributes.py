@@ -10,7 +10,10 @@ Two measurements on a navigation run's test split (bench/grounding_attributes.py
   test ones, from three readings of the cell under the target's centre: its raw pixel statistics
   (`cell_colour_stats`), the vision backbone's token and the head's cell feature (the LLM's hidden state there,
   through the head's input projection); and from the head's query (the code that modulates every cell: what the
-  head took from the instruction). A probe at the majority rate means the reading does not hold the attribute.
+  head took from the instruction). With a colour vocabulary (`grounding.colour_vocabulary`), three readings more:
+  the target cell's histogram of the learned colour classes, the colour the prompt's words name (its logits) and
+  the class distribution that colour asks for. A probe at the majority rate means the reading does not hold the
+  attribute.
 
 Embedded-simulator datasets only (the boxes and the cities come from it).
 """
@@ -46,7 +49,13 @@ from openfly_agent.utils.geometry import Pose
 logger = logging.getLogger(__name__)
 
 LANDINGS = ("target", "earlier route landmark", "other landmark", "no landmark")
-READINGS = ("cell pixels", "backbone token", "head cell feature", "head query")
+# with a colour vocabulary only
+COLOUR_READINGS = (
+    "colour vocabulary: cell histogram",
+    "colour vocabulary: named colour",
+    "colour vocabulary: ask",
+)
+READINGS = ("cell pixels", "backbone token", "head cell feature", "head query", *COLOUR_READINGS)
 
 
 def centre_landing(
@@ -174,6 +183,7 @@ class AttributeProbe:
                 queries = self._queries.pop()  # (B, d)
                 tokens = self._backbone_tokens(batch[C.PIXEL_VALUES])  # (B, P, C) or None
                 pixels = self._pixel_stats(batch[C.PIXEL_VALUES])  # (B, P, 18)
+                histograms, asks = self._colour_vocabulary(batch[C.PIXEL_VALUES], output)  # (B, P, K), (B, K)
                 for row, index in enumerate(chunk):
                     if bool(batch[C.BOX_VISIBLE][row]):
                         episode, t = dataset.locate(index)
@@ -184,6 +194,13 @@ class AttributeProbe:
                             "backbone token": None if tokens is None else tokens[row, cell],
                             "head cell feature": head_cells[row, cell],
                             "head query": queries[row],
+                            "colour vocabulary: cell histogram": None
+                            if histograms is None
+                            else histograms[row, cell],
+                            "colour vocabulary: named colour": None
+                            if output.word_colours is None
+                            else output.word_colours[row],
+                            "colour vocabulary: ask": None if asks is None else asks[row],
                         }
                         self._add(readings, episode, cells)
                         if sim is not None:
@@ -212,6 +229,16 @@ class AttributeProbe:
 
     def _backbone_tokens(self, pixels: torch.Tensor) -> torch.Tensor | None:
         return self.agent.network.vision_backbone(pixels)  # (B, P, C)
+
+    def _colour_vocabulary(
+        self, pixels: torch.Tensor, output
+    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """(B, P, K) cell histograms of the head's colour classes and the (B, K) classes asked for by the colour
+        its output's words name; (None, None) for a head without a colour vocabulary."""
+        vocabulary = self.agent.network.grounding_head.colour_vocabulary
+        if vocabulary is None:
+            return None, None
+        return vocabulary.histogram(pixels), vocabulary.ask(output.word_colours)
 
     def _pixel_stats(self, pixels: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) uint8 -> (B, P, 18) colour statistics of the token grid's cells."""

@@ -23,11 +23,13 @@ from openfly_agent.constants import (
     ATTENTION_MASK,
     BOX,
     BOX_VISIBLE,
+    FRAME_INDEX,
     IGNORE_INDEX,
     INPUT_IDS,
     LABELS,
     MEMORY_PROBE_NONE,
     MODEL_TYPE,
+    PIXEL_VALUES,
     TARGET_ATTRIBUTES,
     TOKEN_BOX,
     TOKEN_BOX_VISIBLE,
@@ -223,7 +225,8 @@ class OpenFlyAgent(PreTrainedModel):
         )  # [BOS] [memory] [current] [prompt] [BOX] [action]: (B, L', D)
         hidden = network(layout)  # (B, L', D)
         grounds = network.grounding_head is not None and BOX in batch
-        logits, grounding = network.heads(hidden, layout, actions=has_actions, boxes=grounds)
+        colours = network.cell_colours(batch[PIXEL_VALUES], batch.get(FRAME_INDEX)) if grounds else None
+        logits, grounding = network.heads(hidden, layout, has_actions, grounds, colours)  # colours: (B, P, K)
         loss = hidden.new_zeros(())
         logs = {}
         if has_actions:

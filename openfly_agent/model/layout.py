@@ -217,6 +217,13 @@ class SequenceLayout:
         p = self.current.shape[1]
         return self.first_image[:, None] + torch.arange(p, device=self.first_image.device)[None]
 
+    def prompt_mask(self) -> torch.Tensor:
+        """(B, L) bool, each row's readable positions after its current frame: the prompt's words (a layout of
+        whole rows, not a cached `then` step)."""
+        columns = torch.arange(self.mask.shape[1], device=self.mask.device)[None]  # (1, L)
+        after_frame = columns >= (self.first_image + self.current.shape[1])[:, None]  # (B, L)
+        return self.readable & after_frame
+
     def action_reads(self) -> torch.Tensor:
         """(B, L - 1) bool, training: the positions whose next token is an action target."""
         if self.labels is None:

@@ -247,8 +247,24 @@ class OpenFlyNetwork(nn.Module):
         return self.causal_lm.get_input_embeddings()(input_ids)
 
     # --- heads: hidden states -> action logits, box ------------------------------------------------------
+    def cell_colours(
+        self, pixels: torch.Tensor, frame_index: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        """The grounding head's colour histogram of each cell, (B, P, K), of the (F, 3, H, W) uint8 current frames
+        (sequence i reads frame `frame_index[i]`, default i); None when the head has no colour vocabulary."""
+        vocabulary = getattr(self.grounding_head, "colour_vocabulary", None)
+        if vocabulary is None:
+            return None
+        colours = vocabulary.histogram(pixels)  # (F, P, K)
+        return colours if frame_index is None else colours[frame_index.to(colours.device)]
+
     def heads(
-        self, hidden: torch.Tensor, layout: SequenceLayout, actions: bool = True, boxes: bool = True
+        self,
+        hidden: torch.Tensor,
+        layout: SequenceLayout,
+        actions: bool = True,
+        boxes: bool = True,
+        colours: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor | None, GroundingOutput | None]:
         """The action logits and the grounding head's output, read where the layout says.
 
@@ -257,6 +273,7 @@ class OpenFlyNetwork(nn.Module):
             layout: training rows (the action is read before each target) or an inference step (at the last
                 position).
             actions / boxes: which heads to run (None for the others, and for an absent grounding head).
+            colours: (B, P, K) the current frames' cell colours (`cell_colours`), for a head with a colour vocabulary.
 
         Returns:
             Float32 logits, (n, V) at the n targets of a training layout or (B, V) at the last position, and
@@ -269,8 +286,17 @@ class OpenFlyNetwork(nn.Module):
         if not boxes or self.grounding_head is None:
             return logits, None
         readable = layout.readable
+        # the colour vocabulary reads the prompt's words: (B, L) bool
+        word_mask = None if colours is None else layout.prompt_mask()
         grounding = self.grounding_head(
-            hidden, readable, layout.image_positions(), last_true_index(readable), layout.current
+            hidden,
+            readable,
+            layout.image_positions(),
+            last_true_index(readable),
+            layout.current,
+            colours,
+            None if colours is None else layout.embeds,
+            word_mask,
         )
         return logits, grounding
 

@@ -116,7 +116,8 @@ class AgentSession:
         cache = network.new_cache() if tokenizer.head != HEAD_DISCRETE or box_token else None
         hidden = network(layout, cache)  # (B, L_max, D)
         # the head's prediction is not computed when the true boxes replace it
-        logits, grounding = network.heads(hidden, layout, actions=not box_token, boxes=true_boxes is None)
+        colours = network.cell_colours(pixels) if true_boxes is None else None  # (B, P, K) or None
+        logits, grounding = network.heads(hidden, layout, not box_token, true_boxes is None, colours)
         if true_boxes is None:
             boxes, visible = network.predicted_boxes(grounding, len(states))
         else:

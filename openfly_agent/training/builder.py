@@ -114,8 +114,11 @@ def load_splits(data: DataConfig, grounding: GroundingConfig) -> Splits:
 
 def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttributes | None:
     """The target attributes' lookup of the dataset at `data_root` when the grounding head learns them
-    (`model.grounding.attribute_weight`, the cells head's)."""
-    if not (isinstance(grounding, CellGroundingConfig) and grounding.attribute_weight):
+    (`model.grounding.attribute_weight` or `colour_vocabulary`, the cells head's)."""
+    if not isinstance(grounding, CellGroundingConfig):
+        return None
+    option = "attribute_weight" if grounding.attribute_weight else "colour_vocabulary"
+    if not getattr(grounding, option):
         return None
     if list(grounding.attribute_classes) != vocabulary_sizes():
         raise PreflightError(
@@ -126,7 +129,7 @@ def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttr
         return LandmarkAttributes.for_dataset(data_root)
     except FileNotFoundError as err:
         raise PreflightError(
-            f"model.grounding.attribute_weight needs an embedded-city dataset: {err}"
+            f"model.grounding.{option} needs an embedded-city dataset: {err}"
         ) from err
 
 

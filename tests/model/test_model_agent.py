@@ -44,12 +44,15 @@ ATTRIBUTES = {
 VISUAL_SKIP = {  # cells that get the frame's visual tokens
     "grounding": CellGroundingConfig(dim=32, num_heads=2, visual_skip=True)
 }
+COLOUR_VOCABULARY = {  # cells matched by their colour histograms
+    "grounding": CellGroundingConfig(dim=32, num_heads=2, colour_vocabulary=4)
+}
 
 
 @pytest.mark.parametrize(
     "overrides",
-    [{}, COLOUR_STATS, ATTRIBUTES, VISUAL_SKIP],
-    ids=["small", "colour_stats", "attributes", "visual_skip"],
+    [{}, COLOUR_STATS, ATTRIBUTES, VISUAL_SKIP, COLOUR_VOCABULARY],
+    ids=["small", "colour_stats", "attributes", "visual_skip", "colour_vocabulary"],
 )  # fmt: skip
 def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overrides):
     agent = make_agent(**overrides).train()
@@ -63,6 +66,18 @@ def test_forward_backward_reaches_every_parameter(make_agent, make_batch, overri
     loss.backward()
     no_grad = [name for name, p in agent.named_parameters() if p.grad is None]
     assert no_grad == []  # DDP-safe: nothing unused
+
+
+def test_the_colour_vocabulary_reads_the_frame_each_sequence_reads(make_agent, make_batch):
+    agent = make_agent(**COLOUR_VOCABULARY)
+    batch = make_batch(agent, batch_size=3)
+    pixels = batch["pixel_values"]  # (3, 3, H, W)
+    pixels[1] = pixels[0]  # rows 0 and 1 read the same frame
+    shared = dict(batch, pixel_values=pixels[[0, 2]], frame_index=torch.tensor([0, 0, 1]))
+    with torch.no_grad():
+        torch.testing.assert_close(agent(shared)[0], agent(batch)[0])
+        moved = dict(shared, frame_index=torch.tensor([1, 1, 0]))  # other frames: another loss
+        assert not torch.allclose(agent(moved)[0], agent(batch)[0])
 
 
 def test_visual_token_count_tiny(make_agent, make_batch):

@@ -1,13 +1,16 @@
 """The grounding head's cells beyond the LLM's hidden states (model/grounding/head.py): `grounding.visual_skip`
-(the cells get the frame's visual tokens)."""
+(the cells get the frame's visual tokens) and `grounding.colour_vocabulary` (the cells' colour histograms against
+the classes asked for by the colour the prompt's words name)."""
 
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
 
 from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
-from openfly_agent.model.grounding.head import CellGroundingHead
+from openfly_agent.model.grounding.head import CellGroundingHead, ColourVocabulary, word_colour_loss
 
 # a 2 x 2 grid at positions 1-4 of a 7-position sequence; position 5 is a prompt token, 6 padding (not readable)
 IMAGE_POSITIONS = torch.tensor([[1, 2, 3, 4]])
@@ -53,3 +56,146 @@ def test_without_the_skip_the_state_dict_is_that_of_earlier_checkpoints():
 def test_the_skip_is_a_field_of_the_cell_head_only():
     with pytest.raises(TypeError, match="visual_skip"):
         BoxGroundingConfig(visual_skip=True)
+
+
+# --- the colour vocabulary -------------------------------------------------------------------------------------
+RED, BLUE, GRAY = (255, 0, 0), (0, 0, 255), (128, 128, 128)
+
+
+def _red_blue_vocabulary() -> ColourVocabulary:
+    """2 pixel classes and 2 named colours on a 2 x 2 grid, the pixel classifier set by hand: hidden 0 = 10 (R - B),
+    hidden 1 = 10 (B - R) (R, B scaled to [-0.5, 0.5]), class k's logit = GELU(hidden k). A red pixel: logits
+    (10, ~0), class 0; a blue one: class 1; a gray one: (0, 0), half and half."""
+    vocabulary = ColourVocabulary(llm_dim=3, classes=2, colours=2, grid_side=2)
+    with torch.no_grad():
+        first, second = vocabulary.pixel_classes[0], vocabulary.pixel_classes[2]
+        first.weight.zero_()
+        first.bias.zero_()
+        first.weight[0, :, 0, 0] = torch.tensor([10.0, 0.0, -10.0])
+        first.weight[1, :, 0, 0] = torch.tensor([-10.0, 0.0, 10.0])
+        second.weight.zero_()
+        second.bias.zero_()
+        second.weight[0, 0, 0, 0] = second.weight[1, 1, 0, 0] = 1.0
+    return vocabulary
+
+
+def _frame(cells: list[list[tuple[int, int, int]]], red_pixels: int = 0) -> torch.Tensor:
+    """(1, 3, 8, 8) uint8: each 4 x 4 cell of the 2 x 2 grid in one colour; the first `red_pixels` pixels of the
+    last cell's top row made red."""
+    frame = torch.zeros(1, 3, 8, 8, dtype=torch.uint8)
+    for row in range(2):
+        for col in range(2):
+            frame[0, :, 4 * row : 4 * row + 4, 4 * col : 4 * col + 4] = torch.tensor(cells[row][col])[
+                :, None, None
+            ]
+    frame[0, :, 4, 4 : 4 + red_pixels] = torch.tensor(RED)[:, None]
+    return frame
+
+
+def test_the_colour_histogram_is_each_cells_share_of_pixels_per_class():
+    vocabulary = _red_blue_vocabulary()
+    frame = _frame([[RED, BLUE], [GRAY, GRAY]], red_pixels=4)  # the last cell: 4 red pixels of 16
+    with torch.no_grad():
+        shares = vocabulary.histogram(frame)  # (1, 4, 2)
+    # red: class 0 at softmax(10 - GELU(-10)) = 0.99995; gray: 0.5 / 0.5; the last cell 4 / 16 red
+    expected = torch.tensor([[[1.0, 0.0], [0.0, 1.0], [0.5, 0.5], [0.25 + 0.75 * 0.5, 0.75 * 0.5]]])
+    torch.testing.assert_close(shares, expected, atol=1e-3, rtol=0)
+    torch.testing.assert_close(shares.sum(dim=-1), torch.ones(1, 4))
+
+
+def test_the_match_is_the_weighted_log_of_the_share_in_the_classes_the_named_colour_asks_for():
+    vocabulary = _red_blue_vocabulary()
+    with torch.no_grad():
+        vocabulary.colour_classes.copy_(
+            torch.tensor([[math.log(3.0), 0.0], [0.0, 0.0]])
+        )  # colour 0: 3 / 4, 1 / 4
+        vocabulary.weight.fill_(2.0)
+    colours = torch.tensor([[[0.9, 0.1], [0.0, 1.0], [0.5, 0.5]]])  # (1, 3, 2)
+    named = torch.tensor([[30.0, 0.0]])  # colour 0 named
+    with torch.no_grad():
+        logits = vocabulary(colours, named)  # (1, 3)
+        half = vocabulary.ask(torch.zeros(1, 2))  # both colours named at 1 / 2: (3 / 4 + 1 / 2) / 2, ...
+    shares = [0.75 * 0.9 + 0.25 * 0.1, 0.25 * 1.0, 0.5]  # 0.7, 0.25, 0.5
+    expected = torch.tensor([[2.0 * math.log(share + 1e-3) for share in shares]])
+    torch.testing.assert_close(logits, expected)
+    torch.testing.assert_close(half, torch.tensor([[0.625, 0.375]]))
+
+
+def test_the_words_are_pooled_by_their_scores_and_the_last_word_wins_with_the_place_term():
+    vocabulary = ColourVocabulary(llm_dim=4, classes=2, colours=2, grid_side=2)
+    red_word, blue_word, other = (
+        torch.eye(4)[0],
+        torch.eye(4)[1],
+        torch.eye(4)[2],
+    )  # normalised: 2 x unit vectors
+    words = torch.stack([red_word, other, blue_word, other, other])[None]  # (1, 5, 4): "red ... blue ..."
+    mask = torch.tensor([[True, True, True, True, False]])  # the last position is not the prompt's
+    with torch.no_grad():
+        vocabulary.word_colours.weight.copy_(torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]))
+        vocabulary.word_colours.bias.zero_()
+        vocabulary.word_score.weight.zero_()
+        vocabulary.word_score.weight[0, :2] = (
+            10.0  # colour words score 20 (x 2, the normalised scale): content
+        )
+        plain = vocabulary.name_colour(words, mask)
+        vocabulary.word_score.weight[1, 1] = 10.0  # the blue word, the later one, gains 20 x its place 3 / 4
+        placed = vocabulary.name_colour(words, mask)
+        none = vocabulary.name_colour(words, torch.zeros(1, 5, dtype=torch.bool))
+    # content only: the two colour words share the pool (e^20 each against e^0), each logit about 2 / 2 = 1
+    torch.testing.assert_close(plain, torch.tensor([[1.0, 1.0]]), atol=1e-6, rtol=0)
+    # with the place term: blue's score 20 + 15, red's 20 + 0: the pool is blue's word (x 2)
+    torch.testing.assert_close(placed, torch.tensor([[0.0, 2.0]]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(none, torch.zeros(1, 2))  # no words: the bias
+
+
+def test_the_word_colour_loss_skips_unknown_colours_and_is_the_cross_entropy_of_the_rest():
+    logits = torch.tensor([[2.0, 0.0], [0.0, 0.0], [5.0, 0.0]], requires_grad=True)
+    attributes = torch.tensor([[0, 1, 0, 0], [1, 0, 0, 0], [-1, 2, 1, 0]])
+    term, logs = word_colour_loss(logits, attributes)
+    expected = (math.log(1 + math.exp(-2.0)) + math.log(2.0)) / 2  # rows 0 and 1
+    assert term.item() == pytest.approx(expected)
+    assert logs["word_color_accuracy"] == 0.5  # row 0 right, row 1 a tie read as colour 0
+    term, logs = word_colour_loss(logits, torch.full((3, 4), -1))
+    assert term.item() == 0.0 and "word_color_accuracy" not in logs
+    term.backward()  # in the graph with no known colour
+    assert logits.grad is not None
+
+
+def test_the_colour_vocabulary_moves_only_the_cells_whose_colours_changed_and_names_a_colour():
+    torch.manual_seed(0)
+    cfg = CellGroundingConfig(dim=8, num_heads=2, colour_vocabulary=4)
+    head = CellGroundingHead(16, cfg, grid_side=2).eval()
+    head.init_weights()
+    hidden, words = torch.randn(1, 7, 16), torch.randn(1, 7, 16)
+    word_mask = torch.tensor([[False, False, False, False, False, True, False]])  # position 5: the prompt
+    frame = _frame([[GRAY, GRAY], [GRAY, GRAY]])
+    red = _frame([[GRAY, GRAY], [GRAY, GRAY]], red_pixels=3)  # 3 red pixels in the last cell
+    with torch.no_grad():
+        plain, with_red = (
+            head(
+                hidden,
+                KEY_MASK,
+                IMAGE_POSITIONS,
+                LAST_PROMPT,
+                None,
+                head.colour_vocabulary.histogram(f),
+                words,
+                word_mask,
+            )
+            for f in (frame, red)
+        )
+    moved = (with_red.cell_logits - plain.cell_logits).abs()[0]  # (4,)
+    assert moved[3] > 1e-3 and moved[:3].tolist() == [0.0, 0.0, 0.0]
+    assert plain.word_colours.shape == (1, cfg.attribute_classes[0])
+    with pytest.raises(ValueError, match="colour_vocabulary needs the current frame's cell colours"):
+        head(hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT)
+
+
+def test_without_the_colour_vocabulary_the_state_dict_is_that_of_earlier_checkpoints():
+    assert not any(name.startswith("colour_vocabulary") for name in _head().state_dict())
+
+
+@pytest.mark.parametrize("classes", [-1, 1])
+def test_the_colour_vocabulary_needs_two_classes_or_none(classes):
+    with pytest.raises(ValueError, match="colour_vocabulary"):
+        CellGroundingConfig(colour_vocabulary=classes)

@@ -117,6 +117,15 @@ def test_training_and_inference_place_the_same_tokens_at_the_same_positions():
         assert int(first) == int(inference.first_image[row] - padding)  # the frame after the same tokens
 
 
+def test_the_prompt_mask_is_the_readable_positions_after_the_frame_in_training_and_inference():
+    train = _training()  # row 0's prompt: 2, 3 (its action 4 and BOX after it); row 1's: 5
+    assert train.embeds[..., 0][train.prompt_mask()].tolist() == [2.0, 3.0, 5.0]
+    inference = SequenceLayout.for_inference(
+        [_col([1, 2, 3]), _col([1, 5])], [_col([10]), _col([])], _col([[20, 21], [22, 23]])
+    )  # left padding, BOS and memory before the frame: none of them counted
+    assert inference.embeds[..., 0][inference.prompt_mask()].tolist() == [2.0, 3.0, 5.0]
+
+
 # --- length groups ----------------------------------------------------------------------------------------
 def cost(lengths: list[int], groups: list[list[int]]) -> int:
     return sum(len(rows) * max(lengths[row] for row in rows) for rows in groups)

@@ -63,9 +63,19 @@ SKIP_HEAD = CellGroundingConfig(  # cells that get the frame's visual tokens
 )
 
 
-@pytest.mark.parametrize("variant", ["plain", "skip_head"])
+COLOUR_HEAD = CellGroundingConfig(  # cells matched by their colour histograms
+    dim=32, num_heads=2, visibility_weight=0.0, colour_vocabulary=4
+)
+HEADS = {
+    "plain": {},
+    "skip_head": {"grounding": SKIP_HEAD},
+    "colour_head": {"grounding": COLOUR_HEAD},
+}
+
+
+@pytest.mark.parametrize("variant", list(HEADS))
 def test_batched_equals_one_episode_at_a_time(make_agent, variant):
-    agent = memory_agent(make_agent, **({"grounding": SKIP_HEAD} if variant == "skip_head" else {}))
+    agent = memory_agent(make_agent, **HEADS[variant])
     session = agent.new_session()
     episodes, steps = 3, 10
     frames = _frames(episodes, steps, size=agent.model_cfg.vision.image_size)

@@ -5,12 +5,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 from conftest import run_script
 
 from bench.analysis.grounding_attributes import (
+    COLOUR_READINGS,
     LANDINGS,
     READINGS,
     AttributeProbe,
@@ -19,6 +22,8 @@ from bench.analysis.grounding_attributes import (
     probe_accuracy,
     probe_table,
 )
+from openfly_agent.model.config import CellGroundingConfig
+from openfly_agent.model.grounding.head import CellGroundingHead
 from openfly_agent.sim.scene import Landmark
 
 BOXES = {
@@ -80,13 +85,12 @@ def test_probe_of_a_tiny_run_reads_every_visible_target(reference_run):
     visible = len(test.attributes["color"])
     assert visible > 0 and sum(test.landings.values()) == visible
     assert test.shared["misses"] == test.landings["other landmark"]
+    read = [reading for reading in READINGS if reading not in COLOUR_READINGS]  # no colour vocabulary here
     for reading in READINGS:
-        assert len(test.features[reading]) == visible
+        assert len(test.features[reading]) == (visible if reading in read else 0)
     assert test.features["cell pixels"][0].shape == (18,)
     rows = probe_table(train, test)
-    assert {(r["reading"], r["attribute"]) for r in rows} == {
-        (r, a) for r in READINGS for a in ("color", "type")
-    }
+    assert {(r["reading"], r["attribute"]) for r in rows} == {(r, a) for r in read for a in ("color", "type")}
     assert all(
         0.0 <= r["test"] <= 1.0 and 0.0 <= r["majority"] <= 1.0 for r in rows
     )  # train majority on test
@@ -110,10 +114,26 @@ def test_bench_script_prints_and_writes_the_figures(reference_run, tmp_path):
     done = run_script(args, script=Path(__file__).resolve().parents[2] / "bench" / "grounding_attributes.py")
     assert done.returncode == 0, done.stderr[-2000:]
     figures = json.loads(report.read_text())
-    assert sum(figures["landings"].values()) > 0 and len(figures["probes"]) == 2 * len(READINGS)
+    readings = len(READINGS) - len(COLOUR_READINGS)  # the reference run's head has no colour vocabulary
+    assert sum(figures["landings"].values()) > 0 and len(figures["probes"]) == 2 * readings
     assert "| landing | share |" in done.stdout and "| head query | color |" in done.stdout
 
 
 def test_probe_refuses_a_folder_that_is_not_a_run(tmp_path):
     with pytest.raises(FileNotFoundError):
         AttributeProbe(tmp_path)
+
+
+def test_a_colour_vocabulary_gives_its_histograms_and_asks_as_readings():
+    torch.manual_seed(0)
+    head = CellGroundingHead(16, CellGroundingConfig(dim=8, num_heads=2, colour_vocabulary=5), grid_side=2)
+    probe = AttributeProbe.__new__(AttributeProbe)  # the readings only: no run, no datasets
+    probe.agent = SimpleNamespace(network=SimpleNamespace(grounding_head=head))
+    pixels = torch.randint(0, 256, (3, 3, 8, 8), dtype=torch.uint8)
+    output = SimpleNamespace(word_colours=torch.randn(3, 12))
+    with torch.no_grad():
+        histograms, asks = probe._colour_vocabulary(pixels, output)
+    assert histograms.shape == (3, 4, 5) and asks.shape == (3, 5)
+    torch.testing.assert_close(asks.sum(dim=-1), torch.ones(3))
+    head.colour_vocabulary = None
+    assert probe._colour_vocabulary(pixels, SimpleNamespace(word_colours=None)) == (None, None)

@@ -17,8 +17,9 @@ MAX_OPTIONS = 89  # issue 46: under 90 options in `train.py --help`
 # listed only where it applies (the five `--<section>.type` options in the variants' titles included); 91 with
 # epochs listed only under `--steps=null` and vocab_end and suffix_token_id left to the LLM and the preset; 89
 # with projector.hidden_ratio and grounding.num_queries fixed at the one value every config gave them; 88 with
-# action_head.stop_loss_weight deleted after its measured arm (89 while prompt.action_history existed for its arms)
-LISTED_OPTIONS = 88
+# action_head.stop_loss_weight deleted after its measured arm (89 while prompt.action_history existed for its arms;
+# 89 while grounding.colour_vocabulary exists for its arms)
+LISTED_OPTIONS = 89
 # the options outside `--model.*` (`--config_path` included): 65 before issue 46 took out stop_after_steps,
 # tokenizer.path, init.format, data.train_split and logging.run_name (60); the RL stage's section added 14 (74);
 # listed where they apply: rl (14), lora (6), the grounding stage's 3 data fields, init.matching, optim.horizon

@@ -20,7 +20,10 @@ grounded no better). With `attribute_weight` the head also names the target's at
 every cell (`attribute_loss`). In a causal LLM the frame's tokens precede the prompt, so a cell's features never
 see the instruction: the query's FiLM code binds the two. With `visual_skip` each cell also gets a projection of
 the frame's visual token at its position (the LLM's input there), so what the LLM's layers mix away still reaches
-the scorer.
+the scorer. With `colour_vocabulary` = K each pixel of the current frame is softly assigned to one of K learned
+colour classes, a reader of the prompt's words names the target's colour (trained on its label), and w x log(match)
+of each cell's class histogram with the classes that colour asks for joins the cell's score (`ColourVocabulary`):
+the ResNet's stride-16 features average away the colour of a landmark a few pixels wide, the histogram keeps it.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+from transformers import initialization as init
 
 from openfly_agent.model.grounding.config import (
     BoxGroundingConfig,
@@ -58,10 +62,14 @@ class BoxRegressionHead(QueryReader):
         image_positions: torch.Tensor | None = None,
         last_positions: torch.Tensor | None = None,
         visual_cells: torch.Tensor | None = None,
+        colours: torch.Tensor | None = None,
+        words: torch.Tensor | None = None,
+        word_mask: torch.Tensor | None = None,
     ) -> GroundingOutput:
         """Predict one box per sequence from hidden (B, L, D_llm) over key_mask (B, L) bool (the positions the head
-        may read: image + prompt, never padding or targets). The frame's positions, the last prompt token and the
-        visual cells, which the cell head reads, are accepted and unused: both heads take the agent's call."""
+        may read: image + prompt, never padding or targets). The frame's positions, the last prompt token, the
+        visual cells, the cell colours and the prompt's words, which the cell head reads, are accepted and unused:
+        both heads take the agent's call."""
         reading = self.read(hidden, key_mask)
         return GroundingOutput(torch.sigmoid(self.box_mlp(reading.pooled)), reading.visibility)
 
@@ -81,6 +89,92 @@ class CellScorer(nn.Module):
         """cells (B, g * g, d), code (B, d) -> (B, g * g) logits, row-major."""
         modulated = self.norm(cells) * (1 + self.scale(code)[:, None]) + self.shift(code)[:, None]
         return self.score(modulated).squeeze(-1)  # (B, g * g)
+
+
+class ColourVocabulary(nn.Module):
+    """A colour path from the pixels to the cell scores, with the colour named by the prompt's words.
+
+    - Pixels: two 1 x 1 convolutions softly assign every pixel of the current frame to one of K learned colour
+      classes; each cell gets its histogram of them (its share of pixels per class).
+    - Words: a reader of the prompt's input embeddings names the target's colour, (B, C) logits over the C named
+      colours. Each word gets a score from its embedding and its relative place in the prompt (the target is named
+      last in an instruction), the scores' softmax pools the words, a linear layer names the colour. It is trained
+      by the cross-entropy against the target's colour (`TARGET_ATTRIBUTES`, in `grounding_loss`), not through the
+      cells: trained by the grounding loss alone, the LLM's query did not learn the colour word within the main
+      job's steps (docs/experiments/2026-11-30-main-job-colour-match.md).
+    - Ask: each named colour asks for a learned distribution over the K classes; the ask is the named colours'
+      probabilities (detached: the grounding loss does not move what is named) times those distributions.
+    - Match: a cell's logit gets `weight` x log(sum_k ask_k h_k + MATCH_FLOOR). A landmark covering 3 % of a cell
+      moves its share of the landmark's class from near 0 to 0.03, which the log turns into a large difference.
+
+    Args:
+        llm_dim: the width of the prompt's input embeddings.
+        classes: K learned pixel colour classes.
+        colours: C named colours (the colour vocabulary of `TARGET_ATTRIBUTES`).
+        grid_side: cells per side of the current frame's token grid.
+    """
+
+    MATCH_FLOOR = 1e-3  # keeps log(match) finite in a cell without the colour
+    PIXEL_HIDDEN = 16  # width of the per-pixel classifier
+
+    def __init__(self, llm_dim: int, classes: int, colours: int, grid_side: int) -> None:
+        super().__init__()
+        self.grid_side = grid_side
+        self.pixel_classes = nn.Sequential(
+            nn.Conv2d(3, self.PIXEL_HIDDEN, 1), nn.GELU(), nn.Conv2d(self.PIXEL_HIDDEN, classes, 1)
+        )
+        # a word's score: w_0 . e + (relative place) x w_1 . e, e its normalised input embedding
+        self.word_score = nn.Linear(llm_dim, 2, bias=False)
+        self.word_colours = nn.Linear(llm_dim, colours)
+        self.colour_classes = nn.Parameter(torch.empty(colours, classes))  # each named colour's ask (logits)
+        self.weight = nn.Parameter(torch.ones(()))
+
+    def init_weights(self) -> None:
+        """Per-pixel classes that already differ between colours, and named colours that ask for different classes
+        (a uniform ask gives the pixel classifier no gradient: the histogram sums to 1)."""
+        for conv in (self.pixel_classes[0], self.pixel_classes[2]):
+            init.normal_(conv.weight, std=1.0)
+            init.zeros_(conv.bias)
+        width = self.word_colours.in_features
+        init.normal_(self.word_score.weight, std=width**-0.5)
+        init.normal_(self.word_colours.weight, std=width**-0.5)
+        init.zeros_(self.word_colours.bias)
+        init.normal_(self.colour_classes, std=1.0)
+        init.ones_(self.weight)
+
+    def histogram(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(F, 3, H, W) uint8 RGB -> (F, P, K) each cell's share of pixels in each colour class (rows sum to 1)."""
+        dtype = self.word_colours.weight.dtype
+        x = pixels.to(dtype) / 255.0 - 0.5  # (F, 3, H, W)
+        shares = self.pixel_classes(x).softmax(dim=1)  # (F, K, H, W)
+        cell = pixels.shape[-1] // self.grid_side
+        return F.avg_pool2d(shares, cell).flatten(2).transpose(1, 2)  # (F, P, K)
+
+    def name_colour(self, words: torch.Tensor, word_mask: torch.Tensor) -> torch.Tensor:
+        """words (B, L, D_llm) input embeddings, word_mask (B, L) bool the prompt's positions -> (B, C) logits of
+        the colour the prompt names for the target."""
+        x = (
+            F.normalize(words.to(self.word_colours.weight.dtype), dim=-1) * words.shape[-1] ** 0.5
+        )  # (B, L, D)
+        mask = word_mask.to(x.device)
+        count = mask.sum(dim=1, keepdim=True).clamp(min=1)  # (B, 1)
+        place = mask.cumsum(dim=1).to(x.dtype) / count  # (B, L): (0, 1], 1 at the last word
+        parts = self.word_score(x)  # (B, L, 2)
+        score = (parts[..., 0] + place * parts[..., 1]).masked_fill(~mask, float("-inf"))  # (B, L)
+        pooled = (score.softmax(dim=1).nan_to_num(0.0)[..., None] * x).sum(dim=1)  # (B, D)
+        return self.word_colours(pooled)  # (B, C)
+
+    def ask(self, colour_logits: torch.Tensor) -> torch.Tensor:
+        """(B, C) named-colour logits -> (B, K) the class distribution asked for (rows sum to 1)."""
+        named = colour_logits.detach().softmax(dim=-1)  # (B, C)
+        return named @ self.colour_classes.softmax(dim=-1)  # (B, K)
+
+    def forward(self, colours: torch.Tensor, colour_logits: torch.Tensor) -> torch.Tensor:
+        """colours (B, P, K) cell histograms, colour_logits (B, C) the named colour -> (B, P) logits to add to the
+        cells'."""
+        asked = self.ask(colour_logits)  # (B, K)
+        match = (colours.to(asked.dtype) * asked[:, None]).sum(dim=-1)  # (B, P)
+        return self.weight * torch.log(match + self.MATCH_FLOOR)
 
 
 class CellGroundingHead(QueryReader):
@@ -107,6 +201,16 @@ class CellGroundingHead(QueryReader):
         classes = sum(cfg.attribute_classes)
         self.query_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
         self.cell_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
+        self.colour_vocabulary = (
+            ColourVocabulary(llm_dim, cfg.colour_vocabulary, cfg.attribute_classes[0], grid_side)
+            if cfg.colour_vocabulary
+            else None
+        )
+
+    def init_weights(self) -> None:
+        super().init_weights()
+        if self.colour_vocabulary is not None:
+            self.colour_vocabulary.init_weights()
 
     def forward(
         self,
@@ -115,6 +219,9 @@ class CellGroundingHead(QueryReader):
         image_positions: torch.Tensor,
         last_positions: torch.Tensor,
         visual_cells: torch.Tensor | None = None,
+        colours: torch.Tensor | None = None,
+        words: torch.Tensor | None = None,
+        word_mask: torch.Tensor | None = None,
     ) -> GroundingOutput:
         """Predict one box per sequence.
 
@@ -125,6 +232,10 @@ class CellGroundingHead(QueryReader):
             last_positions: (B,) long, position of each row's last prompt token.
             visual_cells: (B, P, D_llm) the current frame's visual tokens, the LLM's inputs at `image_positions`
                 (needed with `visual_skip`).
+            colours: (B, P, K) the current frame's cell colour histograms (`ColourVocabulary.histogram`; needed
+                with `colour_vocabulary`).
+            words: (B, L, D_llm) the LLM's input embeddings, with word_mask (B, L) bool the prompt's positions
+                (`SequenceLayout.prompt_mask`; needed with `colour_vocabulary`).
         """
         rows = torch.arange(hidden.shape[0], device=hidden.device)
         last = hidden[rows, last_positions].to(self.text_query.weight.dtype)  # (B, D_llm)
@@ -140,6 +251,15 @@ class CellGroundingHead(QueryReader):
                 )
             cells = cells + self.visual_proj(visual_cells.to(self.visual_proj.weight.dtype))  # (B, P, d)
         cell_logits = self.cell_scorer(cells, pooled)  # (B, P)
+        word_colours = None
+        if self.colour_vocabulary is not None:
+            if colours is None or words is None or word_mask is None:
+                raise ValueError(
+                    "grounding.colour_vocabulary needs the current frame's cell colours (colours) and the prompt's"
+                    " input embeddings (words, word_mask)"
+                )
+            word_colours = self.colour_vocabulary.name_colour(words, word_mask)  # (B, C)
+            cell_logits = cell_logits + self.colour_vocabulary(colours, word_colours)  # (B, P)
         query_attributes = cell_attributes = None
         if self.query_attributes is not None:
             query_attributes, cell_attributes = self.query_attributes(pooled), self.cell_attributes(cells)
@@ -150,7 +270,9 @@ class CellGroundingHead(QueryReader):
         centre = weights @ cell_centres(self.grid_side, weights.device, weights.dtype)  # (B, 2)
         cxcy = (centre + torch.tanh(raw[:, :2]) / self.grid_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
-        return GroundingOutput(boxes, reading.visibility, cell_logits, query_attributes, cell_attributes)
+        return GroundingOutput(
+            boxes, reading.visibility, cell_logits, query_attributes, cell_attributes, word_colours
+        )
 
 
 def windowed_softmax(logits: torch.Tensor, grid_side: int, window: int | None) -> torch.Tensor:
@@ -238,7 +360,8 @@ def grounding_loss(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """GIoU + l1_weight * L1 on visible boxes (mean), + visibility_weight * BCE on every sample, + cell_weight *
     cross-entropy of the cell holding the box centre (visible boxes, when the head scores cells), +
-    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them).
+    attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them), + the
+    cross-entropy of the colour the prompt's words name (`word_colour_loss`, weight 1, with a colour vocabulary).
 
     Args:
         output: the head's prediction (boxes (B, 4) cxcywh, visibility logits (B,), cell logits (B, P) or None).
@@ -250,7 +373,8 @@ def grounding_loss(
     Returns:
         The scalar loss and float logs: `box_iou` (mean IoU over visible boxes, 0 when none),
         `num_visible_boxes`, `giou_loss`, `l1_loss`, `visibility_loss`, `cell_loss` (and `attribute_loss`,
-        `query_color_accuracy`, `cell_color_accuracy` with the attribute term).
+        `query_color_accuracy`, `cell_color_accuracy` with the attribute term; `word_colour_loss`,
+        `word_color_accuracy` with a colour vocabulary).
     """
     pred_boxes, visibility_logits = output.boxes, output.visibility
     visible = visible.bool()
@@ -276,6 +400,10 @@ def grounding_loss(
     if output.query_attributes is not None and attributes is not None:
         attribute_term, attribute_logs = attribute_loss(output, target_boxes, visible, attributes, cfg)
         loss = loss + cfg.attribute_weight * attribute_term
+    if output.word_colours is not None:
+        word_term, word_logs = word_colour_loss(output.word_colours, attributes)
+        loss = loss + word_term
+        attribute_logs.update(word_logs)
     logs = {
         "box_iou": float(iou.detach().mean()) if count else 0.0,
         "num_visible_boxes": float(count),
@@ -286,6 +414,24 @@ def grounding_loss(
         **attribute_logs,
     }
     return loss, logs
+
+
+def word_colour_loss(
+    word_colours: torch.Tensor, attributes: torch.Tensor | None
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Cross-entropy of the target's colour (attributes[:, 0], -1 skipped; None: no labels) from (B, C)
+    `word_colours` logits, and its logs `word_colour_loss` and `word_color_accuracy` (absent when no row has a
+    known colour)."""
+    term = word_colours.sum() * 0.0  # in the graph when no row has a known colour (DDP needs every gradient)
+    logs = {}
+    labels = None if attributes is None else attributes[:, 0].to(word_colours.device).long()  # (B,)
+    if labels is not None and bool((labels >= 0).any()):
+        known = labels >= 0
+        logits = word_colours[known].float()  # (n, C)
+        term = term + F.cross_entropy(logits, labels[known])
+        logs["word_color_accuracy"] = float((logits.argmax(dim=-1) == labels[known]).float().mean())
+    logs["word_colour_loss"] = float(term.detach())
+    return term, logs
 
 
 def attribute_loss(

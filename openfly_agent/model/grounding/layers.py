@@ -62,6 +62,8 @@ class GroundingOutput:
     # every token cell, (B, P, A)
     query_attributes: torch.Tensor | None = None
     cell_attributes: torch.Tensor | None = None
+    # with `colour_vocabulary`: (B, C) logits of the target's colour as the prompt's words name it
+    word_colours: torch.Tensor | None = None
 
 
 @dataclass
