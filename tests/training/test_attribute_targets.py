@@ -86,3 +86,18 @@ def test_attribute_classes_must_match_the_city_vocabularies(generated_dataset, t
 def test_a_dataset_the_toolchain_did_not_make_has_no_attributes(tmp_path):
     with pytest.raises(FileNotFoundError, match="made by the toolchain"):
         LandmarkAttributes.for_dataset(tmp_path)
+
+
+def test_the_colour_vocabulary_alone_reads_the_attributes_and_trains_its_reader(generated_dataset, tmp_path):
+    cfg = make_config(
+        generated_dataset, tmp_path / "run", model__grounding__colour_vocabulary=4, freeze_stage="full"
+    )
+    assert cfg.model.grounding.attribute_weight == 0.0
+    assert _read_splits(cfg).attributes is not None  # the reader's labels
+    train_in_process(cfg)
+    records = [
+        json.loads(line) for line in (tmp_path / "run" / "logs" / "metrics.jsonl").read_text().splitlines()
+    ]
+    losses = [r["train/word_colour_loss"] for r in records if "train/word_colour_loss" in r]
+    assert losses and all(np.isfinite(losses)) and max(losses) > 0
+    assert not any("train/attribute_loss" in r for r in records)
