@@ -128,9 +128,7 @@ def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttr
     try:
         return LandmarkAttributes.for_dataset(data_root)
     except FileNotFoundError as err:
-        raise PreflightError(
-            f"model.grounding.{option} needs an embedded-city dataset: {err}"
-        ) from err
+        raise PreflightError(f"model.grounding.{option} needs an embedded-city dataset: {err}") from err
 
 
 def prepare_agent(

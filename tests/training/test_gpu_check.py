@@ -244,7 +244,8 @@ def test_the_levers_suite_parses_against_its_scripts(tmp_path):
             args = module.build_parser().parse_args(tokens[2:])  # exits 2 on an option it lacks
             levers += getattr(args, "levers", [])
     assert levers == ["none", "fused_adamw", "compile_layers"]
-    assert compiled == [False, True]  # train.py's time split, then the same run with its decoder layers compiled
+    # train.py's time split, then the same run with its decoder layers compiled
+    assert compiled == [False, True]
 
 
 def test_the_time_split_and_lever_rows_become_figures(tmp_path):
