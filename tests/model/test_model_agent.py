@@ -45,7 +45,7 @@ VISUAL_SKIP = {  # cells that get the frame's visual tokens
     "grounding": CellGroundingConfig(dim=32, num_heads=2, visual_skip=True)
 }
 COLOUR_VOCABULARY = {  # cells matched by their colour histograms
-    "grounding": CellGroundingConfig(dim=32, num_heads=2, colour_vocabulary=4)
+    "grounding": CellGroundingConfig(dim=32, num_heads=2, colour_vocabulary=True)
 }
 
 

@@ -10,7 +10,13 @@ import pytest
 import torch
 
 from openfly_agent.model.config import BoxGroundingConfig, CellGroundingConfig
-from openfly_agent.model.grounding.head import CellGroundingHead, ColourVocabulary, word_colour_loss
+from openfly_agent.model.grounding.head import (
+    CellGroundingHead,
+    ColourVocabulary,
+    grounding_loss,
+    word_colour_loss,
+)
+from openfly_agent.model.grounding.layers import GroundingOutput
 
 # a 2 x 2 grid at positions 1-4 of a 7-position sequence; position 5 is a prompt token, 6 padding (not readable)
 IMAGE_POSITIONS = torch.tensor([[1, 2, 3, 4]])
@@ -63,16 +69,17 @@ RED, BLUE, GRAY = (255, 0, 0), (0, 0, 255), (128, 128, 128)
 
 
 def _red_blue_vocabulary() -> ColourVocabulary:
-    """2 pixel classes and 2 named colours on a 2 x 2 grid, the pixel classifier set by hand: hidden 0 = 10 (R - B),
-    hidden 1 = 10 (B - R) (R, B scaled to [-0.5, 0.5]), class k's logit = GELU(hidden k). A red pixel: logits
-    (10, ~0), class 0; a blue one: class 1; a gray one: (0, 0), half and half."""
-    vocabulary = ColourVocabulary(llm_dim=3, classes=2, colours=2, grid_side=2)
+    """2 named colours (red, blue) and the no-colour class on a 2 x 2 grid, the pixel classifier set by hand:
+    hidden 0 = 0.1 (R - B), hidden 1 = 0.1 (B - R) (R, B scaled to [-5, 5], the GAIN of 10), class k's logit =
+    10 GELU(hidden k) for the two colours, 0 for none. A red pixel: hidden (1, -1), logits (8.4, -1.6, 0), red at
+    0.9998; a blue one: blue; a gray one: (0, 0, 0), a third each."""
+    vocabulary = ColourVocabulary(llm_dim=3, colours=2, grid_side=2)
     with torch.no_grad():
         first, second = vocabulary.pixel_classes[0], vocabulary.pixel_classes[2]
         first.weight.zero_()
         first.bias.zero_()
-        first.weight[0, :, 0, 0] = torch.tensor([10.0, 0.0, -10.0])
-        first.weight[1, :, 0, 0] = torch.tensor([-10.0, 0.0, 10.0])
+        first.weight[0, :, 0, 0] = torch.tensor([0.1, 0.0, -0.1])
+        first.weight[1, :, 0, 0] = torch.tensor([-0.1, 0.0, 0.1])
         second.weight.zero_()
         second.bias.zero_()
         second.weight[0, 0, 0, 0] = second.weight[1, 1, 0, 0] = 1.0
@@ -92,37 +99,35 @@ def _frame(cells: list[list[tuple[int, int, int]]], red_pixels: int = 0) -> torc
     return frame
 
 
-def test_the_colour_histogram_is_each_cells_share_of_pixels_per_class():
+def test_the_colour_histogram_is_each_cells_share_of_pixels_per_named_colour_and_none():
     vocabulary = _red_blue_vocabulary()
     frame = _frame([[RED, BLUE], [GRAY, GRAY]], red_pixels=4)  # the last cell: 4 red pixels of 16
     with torch.no_grad():
-        shares = vocabulary.histogram(frame)  # (1, 4, 2)
-    # red: class 0 at softmax(10 - GELU(-10)) = 0.99995; gray: 0.5 / 0.5; the last cell 4 / 16 red
-    expected = torch.tensor([[[1.0, 0.0], [0.0, 1.0], [0.5, 0.5], [0.25 + 0.75 * 0.5, 0.75 * 0.5]]])
+        shares = vocabulary.histogram(frame)  # (1, 4, 3)
+    # red: softmax(8.4, -1.6, 0) = 0.9998 red; gray: a third each; the last cell 4 / 16 red, 12 / 16 gray
+    third = 1.0 / 3.0
+    expected = torch.tensor(
+        [[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [third, third, third], [0.25 + 0.75 * third, 0.25, 0.25]]]
+    )
     torch.testing.assert_close(shares, expected, atol=1e-3, rtol=0)
     torch.testing.assert_close(shares.sum(dim=-1), torch.ones(1, 4))
 
 
-def test_the_match_is_the_weighted_log_of_the_share_in_the_classes_the_named_colour_asks_for():
+def test_the_match_is_the_weighted_log_of_the_share_in_the_named_colour():
     vocabulary = _red_blue_vocabulary()
     with torch.no_grad():
-        vocabulary.colour_classes.copy_(
-            torch.tensor([[math.log(3.0), 0.0], [0.0, 0.0]])
-        )  # colour 0: 3 / 4, 1 / 4
         vocabulary.weight.fill_(2.0)
-    colours = torch.tensor([[[0.9, 0.1], [0.0, 1.0], [0.5, 0.5]]])  # (1, 3, 2)
-    named = torch.tensor([[30.0, 0.0]])  # colour 0 named
+    colours = torch.tensor([[[0.7, 0.1, 0.2], [0.0, 1.0, 0.0], [0.25, 0.25, 0.5]]])  # (1, 3, 3)
     with torch.no_grad():
-        logits = vocabulary(colours, named)  # (1, 3)
-        half = vocabulary.ask(torch.zeros(1, 2))  # both colours named at 1 / 2: (3 / 4 + 1 / 2) / 2, ...
-    shares = [0.75 * 0.9 + 0.25 * 0.1, 0.25 * 1.0, 0.5]  # 0.7, 0.25, 0.5
-    expected = torch.tensor([[2.0 * math.log(share + 1e-3) for share in shares]])
-    torch.testing.assert_close(logits, expected)
-    torch.testing.assert_close(half, torch.tensor([[0.625, 0.375]]))
+        red = vocabulary(colours, torch.tensor([[30.0, 0.0]]))  # red named: the cells' red shares
+        both = vocabulary.ask(torch.zeros(1, 2))  # both at 1 / 2, none never asked
+    expected = torch.tensor([[2.0 * math.log(share + 1e-3) for share in (0.7, 0.0, 0.25)]])
+    torch.testing.assert_close(red, expected)
+    torch.testing.assert_close(both, torch.tensor([[0.5, 0.5, 0.0]]))
 
 
 def test_the_words_are_pooled_by_their_scores_and_the_last_word_wins_with_the_place_term():
-    vocabulary = ColourVocabulary(llm_dim=4, classes=2, colours=2, grid_side=2)
+    vocabulary = ColourVocabulary(llm_dim=4, colours=2, grid_side=2)
     red_word, blue_word, other = (
         torch.eye(4)[0],
         torch.eye(4)[1],
@@ -163,7 +168,7 @@ def test_the_word_colour_loss_skips_unknown_colours_and_is_the_cross_entropy_of_
 
 def test_the_colour_vocabulary_moves_only_the_cells_whose_colours_changed_and_names_a_colour():
     torch.manual_seed(0)
-    cfg = CellGroundingConfig(dim=8, num_heads=2, colour_vocabulary=4)
+    cfg = CellGroundingConfig(dim=8, num_heads=2, colour_vocabulary=True)
     head = CellGroundingHead(16, cfg, grid_side=2).eval()
     head.init_weights()
     hidden, words = torch.randn(1, 7, 16), torch.randn(1, 7, 16)
@@ -186,6 +191,9 @@ def test_the_colour_vocabulary_moves_only_the_cells_whose_colours_changed_and_na
         )
     moved = (with_red.cell_logits - plain.cell_logits).abs()[0]  # (4,)
     assert moved[3] > 1e-3 and moved[:3].tolist() == [0.0, 0.0, 0.0]
+    torch.testing.assert_close(
+        with_red.match_logits - plain.match_logits, with_red.cell_logits - plain.cell_logits
+    )
     assert plain.word_colours.shape == (1, cfg.attribute_classes[0])
     with pytest.raises(ValueError, match="colour_vocabulary needs the current frame's cell colours"):
         head(hidden, KEY_MASK, IMAGE_POSITIONS, LAST_PROMPT)
@@ -195,7 +203,16 @@ def test_without_the_colour_vocabulary_the_state_dict_is_that_of_earlier_checkpo
     assert not any(name.startswith("colour_vocabulary") for name in _head().state_dict())
 
 
-@pytest.mark.parametrize("classes", [-1, 1])
-def test_the_colour_vocabulary_needs_two_classes_or_none(classes):
-    with pytest.raises(ValueError, match="colour_vocabulary"):
-        CellGroundingConfig(colour_vocabulary=classes)
+def test_the_colour_cell_loss_is_the_cross_entropy_of_the_target_cell_from_the_match_alone():
+    match = torch.tensor([[0.0, 0.0, 0.0, math.log(3.0)], [5.0, 0.0, 0.0, 0.0]])  # (2, 4): row 1 not visible
+    output = GroundingOutput(
+        boxes=torch.full((2, 4), 0.5),
+        visibility=torch.zeros(2),
+        cell_logits=torch.zeros(2, 4),
+        match_logits=match,
+    )
+    target = torch.tensor([[0.75, 0.75, 0.2, 0.2], [0.25, 0.25, 0.2, 0.2]])  # row 0 in cell 3
+    _, logs = grounding_loss(output, target, torch.tensor([True, False]), CellGroundingConfig())
+    assert logs["colour_cell_loss"] == pytest.approx(math.log(2.0))  # -log(3 / (1 + 1 + 1 + 3))
+    _, logs = grounding_loss(output, target, torch.tensor([False, False]), CellGroundingConfig())
+    assert logs["colour_cell_loss"] == 0.0

@@ -64,7 +64,7 @@ SKIP_HEAD = CellGroundingConfig(  # cells that get the frame's visual tokens
 
 
 COLOUR_HEAD = CellGroundingConfig(  # cells matched by their colour histograms
-    dim=32, num_heads=2, visibility_weight=0.0, colour_vocabulary=4
+    dim=32, num_heads=2, visibility_weight=0.0, colour_vocabulary=True
 )
 HEADS = {
     "plain": {},

@@ -90,7 +90,7 @@ def test_a_dataset_the_toolchain_did_not_make_has_no_attributes(tmp_path):
 
 def test_the_colour_vocabulary_alone_reads_the_attributes_and_trains_its_reader(generated_dataset, tmp_path):
     cfg = make_config(
-        generated_dataset, tmp_path / "run", model__grounding__colour_vocabulary=4, freeze_stage="full"
+        generated_dataset, tmp_path / "run", model__grounding__colour_vocabulary="true", freeze_stage="full"
     )
     assert cfg.model.grounding.attribute_weight == 0.0
     assert _read_splits(cfg).attributes is not None  # the reader's labels

@@ -126,14 +126,14 @@ def test_probe_refuses_a_folder_that_is_not_a_run(tmp_path):
 
 def test_a_colour_vocabulary_gives_its_histograms_and_asks_as_readings():
     torch.manual_seed(0)
-    head = CellGroundingHead(16, CellGroundingConfig(dim=8, num_heads=2, colour_vocabulary=5), grid_side=2)
+    head = CellGroundingHead(16, CellGroundingConfig(dim=8, num_heads=2, colour_vocabulary=True), grid_side=2)
     probe = AttributeProbe.__new__(AttributeProbe)  # the readings only: no run, no datasets
     probe.agent = SimpleNamespace(network=SimpleNamespace(grounding_head=head))
     pixels = torch.randint(0, 256, (3, 3, 8, 8), dtype=torch.uint8)
     output = SimpleNamespace(word_colours=torch.randn(3, 12))
     with torch.no_grad():
         histograms, asks = probe._colour_vocabulary(pixels, output)
-    assert histograms.shape == (3, 4, 5) and asks.shape == (3, 5)
+    assert histograms.shape == (3, 4, 13) and asks.shape == (3, 13)  # 12 named colours and none
     torch.testing.assert_close(asks.sum(dim=-1), torch.ones(3))
     head.colour_vocabulary = None
     assert probe._colour_vocabulary(pixels, SimpleNamespace(word_colours=None)) == (None, None)

@@ -105,19 +105,14 @@ class CellGroundingConfig(GroundingHeadConfig):
     # enters the LLM), a skip past the LLM, whose layers mix the cells and lose what tells one landmark from
     # another (its colour); false: the cells are the LLM's hidden states only
     visual_skip: bool = False
-    # learned pixel colour classes of the colour vocabulary (0: none): each pixel of the current frame is softly
-    # assigned to one of these classes and each cell gets its histogram of them; a reader of the prompt's words
-    # names the target's colour (one of attribute_classes[0], trained on `TARGET_ATTRIBUTES`), each named colour
-    # asks for a learned mix of the classes, and w x log(match) joins the cell's score (`ColourVocabulary`): a path
-    # that keeps a landmark's colour when it covers a few pixels of a cell
-    colour_vocabulary: int = 0
+    # the colour vocabulary (`ColourVocabulary`): a reader of the prompt's words names the target's colour (one of
+    # attribute_classes[0], trained on `TARGET_ATTRIBUTES`), each pixel of the current frame is classed as one of
+    # those colours or none, and w x log(share of the cell's pixels in the named colour) joins the cell's score,
+    # with its own cross-entropy over the cells: a path that keeps a landmark's colour when it covers a few pixels
+    colour_vocabulary: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.colour_vocabulary < 0 or self.colour_vocabulary == 1:
-            raise ValueError(
-                f"grounding.colour_vocabulary={self.colour_vocabulary}: 0 (off) or >= 2 pixel colour classes"
-            )
         if self.centre_window is not None and self.centre_window < 0:
             raise ValueError(f"grounding.centre_window must be >= 0 or null, got {self.centre_window}")
         for name in ("cell_weight", "attribute_weight"):

@@ -92,63 +92,67 @@ class CellScorer(nn.Module):
 
 
 class ColourVocabulary(nn.Module):
-    """A colour path from the pixels to the cell scores, with the colour named by the prompt's words.
+    """A colour path from the pixels to the cell scores in the named colours' own vocabulary.
 
-    - Pixels: two 1 x 1 convolutions softly assign every pixel of the current frame to one of K learned colour
-      classes; each cell gets its histogram of them (its share of pixels per class).
     - Words: a reader of the prompt's input embeddings names the target's colour, (B, C) logits over the C named
       colours. Each word gets a score from its embedding and its relative place in the prompt (the target is named
       last in an instruction), the scores' softmax pools the words, a linear layer names the colour. It is trained
-      by the cross-entropy against the target's colour (`TARGET_ATTRIBUTES`, in `grounding_loss`), not through the
-      cells: trained by the grounding loss alone, the LLM's query did not learn the colour word within the main
-      job's steps (docs/experiments/2026-11-30-main-job-colour-match.md).
-    - Ask: each named colour asks for a learned distribution over the K classes; the ask is the named colours'
-      probabilities (detached: the grounding loss does not move what is named) times those distributions.
-    - Match: a cell's logit gets `weight` x log(sum_k ask_k h_k + MATCH_FLOOR). A landmark covering 3 % of a cell
-      moves its share of the landmark's class from near 0 to 0.03, which the log turns into a large difference.
+      by the cross-entropy against the target's colour (`TARGET_ATTRIBUTES`, `word_colour_loss`), not through the
+      cells: the LLM's query did not learn the colour word within the main job's steps
+      (docs/experiments/2026-11-30-main-job-colour-match.md).
+    - Pixels: two 1 x 1 convolutions softly assign every pixel of the current frame to one of the C named colours
+      or to a last class, no named colour (sky, ground, roads); each cell gets its histogram of them.
+    - Match: a cell's match logit is `weight` x log(sum_c named_c h_c + MATCH_FLOOR), the share of its pixels in
+      the colour named (its probabilities detached: the cells do not move what is named). It joins the cell's
+      score, and its own cross-entropy over the cells (`colour_cell_loss`) trains the pixel classifier to find the
+      named colour in the target's cell. A landmark covering 3 % of a cell moves that share from near 0 to 0.03,
+      which the log turns into a large difference.
 
     Args:
         llm_dim: the width of the prompt's input embeddings.
-        classes: K learned pixel colour classes.
         colours: C named colours (the colour vocabulary of `TARGET_ATTRIBUTES`).
         grid_side: cells per side of the current frame's token grid.
     """
 
     MATCH_FLOOR = 1e-3  # keeps log(match) finite in a cell without the colour
     PIXEL_HIDDEN = 16  # width of the per-pixel classifier
+    # the pixel classifier's input (RGB in [-GAIN / 2, GAIN / 2]) and its logits (GAIN x the last convolution) are
+    # scaled, its weights started GAIN times smaller: the same function at the start, but an optimizer step that
+    # moves each weight by about lr (Adam) moves it GAIN times faster, as the classifier must learn within the
+    # main job's steps
+    GAIN = 10.0
 
-    def __init__(self, llm_dim: int, classes: int, colours: int, grid_side: int) -> None:
+    def __init__(self, llm_dim: int, colours: int, grid_side: int) -> None:
         super().__init__()
         self.grid_side = grid_side
         self.pixel_classes = nn.Sequential(
-            nn.Conv2d(3, self.PIXEL_HIDDEN, 1), nn.GELU(), nn.Conv2d(self.PIXEL_HIDDEN, classes, 1)
+            nn.Conv2d(3, self.PIXEL_HIDDEN, 1), nn.GELU(), nn.Conv2d(self.PIXEL_HIDDEN, colours + 1, 1)
         )
         # a word's score: w_0 . e + (relative place) x w_1 . e, e its normalised input embedding
         self.word_score = nn.Linear(llm_dim, 2, bias=False)
         self.word_colours = nn.Linear(llm_dim, colours)
-        self.colour_classes = nn.Parameter(torch.empty(colours, classes))  # each named colour's ask (logits)
         self.weight = nn.Parameter(torch.ones(()))
 
     def init_weights(self) -> None:
-        """Per-pixel classes that already differ between colours, and named colours that ask for different classes
-        (a uniform ask gives the pixel classifier no gradient: the histogram sums to 1)."""
+        """Per-pixel classes that already differ between colours (a classifier that starts uniform gives every cell
+        the same match)."""
         for conv in (self.pixel_classes[0], self.pixel_classes[2]):
-            init.normal_(conv.weight, std=1.0)
+            init.normal_(conv.weight, std=1.0 / self.GAIN)
             init.zeros_(conv.bias)
         width = self.word_colours.in_features
         init.normal_(self.word_score.weight, std=width**-0.5)
         init.normal_(self.word_colours.weight, std=width**-0.5)
         init.zeros_(self.word_colours.bias)
-        init.normal_(self.colour_classes, std=1.0)
         init.ones_(self.weight)
 
     def histogram(self, pixels: torch.Tensor) -> torch.Tensor:
-        """(F, 3, H, W) uint8 RGB -> (F, P, K) each cell's share of pixels in each colour class (rows sum to 1)."""
+        """(F, 3, H, W) uint8 RGB -> (F, P, C + 1) each cell's share of pixels in each named colour and in none
+        (rows sum to 1)."""
         dtype = self.word_colours.weight.dtype
-        x = pixels.to(dtype) / 255.0 - 0.5  # (F, 3, H, W)
-        shares = self.pixel_classes(x).softmax(dim=1)  # (F, K, H, W)
+        x = (pixels.to(dtype) / 255.0 - 0.5) * self.GAIN  # (F, 3, H, W)
+        shares = (self.pixel_classes(x) * self.GAIN).softmax(dim=1)  # (F, C + 1, H, W)
         cell = pixels.shape[-1] // self.grid_side
-        return F.avg_pool2d(shares, cell).flatten(2).transpose(1, 2)  # (F, P, K)
+        return F.avg_pool2d(shares, cell).flatten(2).transpose(1, 2)  # (F, P, C + 1)
 
     def name_colour(self, words: torch.Tensor, word_mask: torch.Tensor) -> torch.Tensor:
         """words (B, L, D_llm) input embeddings, word_mask (B, L) bool the prompt's positions -> (B, C) logits of
@@ -165,14 +169,14 @@ class ColourVocabulary(nn.Module):
         return self.word_colours(pooled)  # (B, C)
 
     def ask(self, colour_logits: torch.Tensor) -> torch.Tensor:
-        """(B, C) named-colour logits -> (B, K) the class distribution asked for (rows sum to 1)."""
+        """(B, C) named-colour logits -> (B, C + 1) the classes asked for: the named colours' probabilities
+        (detached), never the last class (no named colour)."""
         named = colour_logits.detach().softmax(dim=-1)  # (B, C)
-        return named @ self.colour_classes.softmax(dim=-1)  # (B, K)
+        return F.pad(named, (0, 1))  # (B, C + 1)
 
     def forward(self, colours: torch.Tensor, colour_logits: torch.Tensor) -> torch.Tensor:
-        """colours (B, P, K) cell histograms, colour_logits (B, C) the named colour -> (B, P) logits to add to the
-        cells'."""
-        asked = self.ask(colour_logits)  # (B, K)
+        """colours (B, P, C + 1) cell histograms, colour_logits (B, C) the named colour -> (B, P) match logits."""
+        asked = self.ask(colour_logits)  # (B, C + 1)
         match = (colours.to(asked.dtype) * asked[:, None]).sum(dim=-1)  # (B, P)
         return self.weight * torch.log(match + self.MATCH_FLOOR)
 
@@ -202,9 +206,7 @@ class CellGroundingHead(QueryReader):
         self.query_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
         self.cell_attributes = nn.Linear(cfg.dim, classes) if cfg.attribute_weight else None
         self.colour_vocabulary = (
-            ColourVocabulary(llm_dim, cfg.colour_vocabulary, cfg.attribute_classes[0], grid_side)
-            if cfg.colour_vocabulary
-            else None
+            ColourVocabulary(llm_dim, cfg.attribute_classes[0], grid_side) if cfg.colour_vocabulary else None
         )
 
     def init_weights(self) -> None:
@@ -251,7 +253,7 @@ class CellGroundingHead(QueryReader):
                 )
             cells = cells + self.visual_proj(visual_cells.to(self.visual_proj.weight.dtype))  # (B, P, d)
         cell_logits = self.cell_scorer(cells, pooled)  # (B, P)
-        word_colours = None
+        word_colours = match_logits = None
         if self.colour_vocabulary is not None:
             if colours is None or words is None or word_mask is None:
                 raise ValueError(
@@ -259,7 +261,8 @@ class CellGroundingHead(QueryReader):
                     " input embeddings (words, word_mask)"
                 )
             word_colours = self.colour_vocabulary.name_colour(words, word_mask)  # (B, C)
-            cell_logits = cell_logits + self.colour_vocabulary(colours, word_colours)  # (B, P)
+            match_logits = self.colour_vocabulary(colours, word_colours)  # (B, P)
+            cell_logits = cell_logits + match_logits
         query_attributes = cell_attributes = None
         if self.query_attributes is not None:
             query_attributes, cell_attributes = self.query_attributes(pooled), self.cell_attributes(cells)
@@ -271,7 +274,13 @@ class CellGroundingHead(QueryReader):
         cxcy = (centre + torch.tanh(raw[:, :2]) / self.grid_side).clamp(0.0, 1.0)
         boxes = torch.cat([cxcy, torch.sigmoid(raw[:, 2:])], dim=-1)
         return GroundingOutput(
-            boxes, reading.visibility, cell_logits, query_attributes, cell_attributes, word_colours
+            boxes,
+            reading.visibility,
+            cell_logits,
+            query_attributes,
+            cell_attributes,
+            word_colours,
+            match_logits,
         )
 
 
@@ -361,7 +370,8 @@ def grounding_loss(
     """GIoU + l1_weight * L1 on visible boxes (mean), + visibility_weight * BCE on every sample, + cell_weight *
     cross-entropy of the cell holding the box centre (visible boxes, when the head scores cells), +
     attribute_weight * `attribute_loss` (when the head classifies attributes and the batch has them), + the
-    cross-entropy of the colour the prompt's words name (`word_colour_loss`, weight 1, with a colour vocabulary).
+    cross-entropy of the colour the prompt's words name (`word_colour_loss`) and that of the target's cell from the
+    colour match alone (`colour_cell_loss`), each weight 1, with a colour vocabulary.
 
     Args:
         output: the head's prediction (boxes (B, 4) cxcywh, visibility logits (B,), cell logits (B, P) or None).
@@ -374,7 +384,7 @@ def grounding_loss(
         The scalar loss and float logs: `box_iou` (mean IoU over visible boxes, 0 when none),
         `num_visible_boxes`, `giou_loss`, `l1_loss`, `visibility_loss`, `cell_loss` (and `attribute_loss`,
         `query_color_accuracy`, `cell_color_accuracy` with the attribute term; `word_colour_loss`,
-        `word_color_accuracy` with a colour vocabulary).
+        `word_color_accuracy`, `colour_cell_loss` with a colour vocabulary).
     """
     pred_boxes, visibility_logits = output.boxes, output.visibility
     visible = visible.bool()
@@ -404,6 +414,15 @@ def grounding_loss(
         word_term, word_logs = word_colour_loss(output.word_colours, attributes)
         loss = loss + word_term
         attribute_logs.update(word_logs)
+    if output.match_logits is not None:
+        colour_cell_term = output.match_logits.sum() * 0.0  # in the graph when no box is visible
+        if count:
+            side = int(round(output.match_logits.shape[-1] ** 0.5))
+            colour_cell_term = colour_cell_term + F.cross_entropy(
+                output.match_logits[visible].float(), box_cells(target, side)
+            )
+        loss = loss + colour_cell_term
+        attribute_logs["colour_cell_loss"] = float(colour_cell_term.detach())
     logs = {
         "box_iou": float(iou.detach().mean()) if count else 0.0,
         "num_visible_boxes": float(count),

@@ -62,8 +62,10 @@ class GroundingOutput:
     # every token cell, (B, P, A)
     query_attributes: torch.Tensor | None = None
     cell_attributes: torch.Tensor | None = None
-    # with `colour_vocabulary`: (B, C) logits of the target's colour as the prompt's words name it
+    # with `colour_vocabulary`: (B, C) logits of the target's colour as the prompt's words name it, and (B, P) the
+    # cells' colour match logits (a part of cell_logits)
     word_colours: torch.Tensor | None = None
+    match_logits: torch.Tensor | None = None
 
 
 @dataclass
