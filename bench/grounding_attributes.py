@@ -41,9 +41,11 @@ def main() -> None:
 
     from bench.analysis.grounding_attributes import (  # lazy: torch, the model and the simulator
         ATTRIBUTE_FIELDS,
+        CELL_SCORES,
         LANDINGS,
         AttributeProbe,
         probe_table,
+        rank_summary,
     )
 
     torch.set_num_threads(args.threads)
@@ -72,9 +74,19 @@ def main() -> None:
         print(
             f"| {row['reading']} | {row['attribute']} | {row['train']:.2f} | {row['test']:.2f} | {row['majority']:.2f} |"
         )
+    ranks = {name: rank_summary(test.cell_ranks[name]) for name in CELL_SCORES if test.cell_ranks[name]}
+    print("\n| the target's cell under | best cell | among the best 3 | median rank |\n|---|---:|---:|---:|")
+    for name, summary in ranks.items():
+        print(f"| {name} | {summary['best']:.1%} | {summary['top 3']:.1%} | {summary['median']:.0f} |")
     print(f"\n{time.perf_counter() - start:.1f} s")
     if args.json:
-        figures = {"landings": dict(test.landings), "misses": misses, "shared": shared, "probes": rows}
+        figures = {
+            "landings": dict(test.landings),
+            "misses": misses,
+            "shared": shared,
+            "probes": rows,
+            "target_cell_ranks": ranks,
+        }
         Path(args.json).write_text(json.dumps(figures, indent=2) + "\n")
 
 

@@ -56,6 +56,7 @@ COLOUR_READINGS = (
     "colour vocabulary: ask",
 )
 READINGS = ("cell pixels", "backbone token", "head cell feature", "head query", *COLOUR_READINGS)
+CELL_SCORES = ("cell score", "colour vocabulary: match term")  # the second with a colour vocabulary only
 
 
 def centre_landing(
@@ -124,6 +125,25 @@ class CellReadings:
     attributes: dict[str, list[str]] = field(default_factory=lambda: {name: [] for name in ATTRIBUTE_FIELDS})
     landings: Counter = field(default_factory=Counter)
     shared: Counter = field(default_factory=Counter)  # misses on another landmark: attributes shared, names
+    # the target's cell's rank (cells scoring above it) under each score: the head's cell logits, and with a colour
+    # vocabulary its match term alone
+    cell_ranks: dict[str, list[int]] = field(default_factory=lambda: {name: [] for name in CELL_SCORES})
+
+
+def cell_rank(logits: torch.Tensor, cell: int) -> int:
+    """(P,) cell scores -> how many cells score above `cell` (0: it is the best)."""
+    return int((logits > logits[cell]).sum())
+
+
+def rank_summary(ranks: list[int]) -> dict[str, float]:
+    """The share of frames whose target cell is the best cell and among the best 3, and the median rank (1 = the
+    best), of `cell_rank` values."""
+    values = np.asarray(ranks)
+    return {
+        "best": float(np.mean(values == 0)),
+        "top 3": float(np.mean(values < 3)),
+        "median": float(np.median(values)) + 1,
+    }
 
 
 class AttributeProbe:
@@ -203,6 +223,13 @@ class AttributeProbe:
                             "colour vocabulary: ask": None if asks is None else asks[row],
                         }
                         self._add(readings, episode, cells)
+                        scores = {
+                            "cell score": output.cell_logits,
+                            "colour vocabulary: match term": output.match_logits,
+                        }
+                        for name, logits in scores.items():
+                            if logits is not None:
+                                readings.cell_ranks[name].append(cell_rank(logits[row], cell))
                         if sim is not None:
                             self._land(readings, sim, episode, t, output.boxes[row, :2].tolist())
         finally:

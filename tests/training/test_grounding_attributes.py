@@ -17,10 +17,12 @@ from bench.analysis.grounding_attributes import (
     LANDINGS,
     READINGS,
     AttributeProbe,
+    cell_rank,
     centre_landing,
     named_in,
     probe_accuracy,
     probe_table,
+    rank_summary,
 )
 from openfly_agent.model.config import CellGroundingConfig
 from openfly_agent.model.grounding.head import CellGroundingHead
@@ -89,6 +91,10 @@ def test_probe_of_a_tiny_run_reads_every_visible_target(reference_run):
     for reading in READINGS:
         assert len(test.features[reading]) == (visible if reading in read else 0)
     assert test.features["cell pixels"][0].shape == (18,)
+    assert (
+        len(test.cell_ranks["cell score"]) == visible
+        and test.cell_ranks["colour vocabulary: match term"] == []
+    )
     rows = probe_table(train, test)
     assert {(r["reading"], r["attribute"]) for r in rows} == {(r, a) for r in read for a in ("color", "type")}
     assert all(
@@ -117,6 +123,14 @@ def test_bench_script_prints_and_writes_the_figures(reference_run, tmp_path):
     readings = len(READINGS) - len(COLOUR_READINGS)  # the reference run's head has no colour vocabulary
     assert sum(figures["landings"].values()) > 0 and len(figures["probes"]) == 2 * readings
     assert "| landing | share |" in done.stdout and "| head query | color |" in done.stdout
+    assert list(figures["target_cell_ranks"]) == ["cell score"] and "| cell score |" in done.stdout
+
+
+def test_the_target_cells_rank_counts_the_cells_above_it_and_sums_up_as_shares_and_a_median():
+    logits = torch.tensor([0.5, 2.0, 0.5, -1.0])
+    assert [cell_rank(logits, cell) for cell in range(4)] == [1, 0, 1, 3]  # a tie is not above
+    summary = rank_summary([0, 0, 1, 2, 5])  # best 2 of 5, top 3 4 of 5, median rank 1 + 1
+    assert summary == {"best": 0.4, "top 3": 0.8, "median": 2.0}
 
 
 def test_probe_refuses_a_folder_that_is_not_a_run(tmp_path):
