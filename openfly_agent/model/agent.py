@@ -226,7 +226,8 @@ class OpenFlyAgent(PreTrainedModel):
         hidden = network(layout)  # (B, L', D)
         grounds = network.grounding_head is not None and BOX in batch
         colours = network.cell_colours(batch[PIXEL_VALUES], batch.get(FRAME_INDEX)) if grounds else None
-        logits, grounding = network.heads(hidden, layout, has_actions, grounds, colours)  # colours: (B, P, K)
+        # colours: (B, P, C + 1) with a colour vocabulary, else None
+        logits, grounding = network.heads(hidden, layout, has_actions, grounds, colours)
         loss = hidden.new_zeros(())
         logs = {}
         if has_actions:

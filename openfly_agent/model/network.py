@@ -250,8 +250,9 @@ class OpenFlyNetwork(nn.Module):
     def cell_colours(
         self, pixels: torch.Tensor, frame_index: torch.Tensor | None = None
     ) -> torch.Tensor | None:
-        """The grounding head's colour histogram of each cell, (B, P, K), of the (F, 3, H, W) uint8 current frames
-        (sequence i reads frame `frame_index[i]`, default i); None when the head has no colour vocabulary."""
+        """The grounding head's colour histogram of each cell, (B, P, C + 1) (C named colours and none), of the
+        (F, 3, H, W) uint8 current frames (sequence i reads frame `frame_index[i]`, default i); None when the head
+        has no colour vocabulary."""
         vocabulary = getattr(self.grounding_head, "colour_vocabulary", None)
         if vocabulary is None:
             return None
@@ -273,7 +274,8 @@ class OpenFlyNetwork(nn.Module):
             layout: training rows (the action is read before each target) or an inference step (at the last
                 position).
             actions / boxes: which heads to run (None for the others, and for an absent grounding head).
-            colours: (B, P, K) the current frames' cell colours (`cell_colours`), for a head with a colour vocabulary.
+            colours: (B, P, C + 1) the current frames' cell colours (`cell_colours`), for a head with a colour
+                vocabulary.
 
         Returns:
             Float32 logits, (n, V) at the n targets of a training layout or (B, V) at the last position, and

@@ -116,7 +116,7 @@ class AgentSession:
         cache = network.new_cache() if tokenizer.head != HEAD_DISCRETE or box_token else None
         hidden = network(layout, cache)  # (B, L_max, D)
         # the head's prediction is not computed when the true boxes replace it
-        colours = network.cell_colours(pixels) if true_boxes is None else None  # (B, P, K) or None
+        colours = network.cell_colours(pixels) if true_boxes is None else None  # (B, P, C + 1) or None
         logits, grounding = network.heads(hidden, layout, not box_token, true_boxes is None, colours)
         if true_boxes is None:
             boxes, visible = network.predicted_boxes(grounding, len(states))

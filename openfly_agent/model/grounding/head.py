@@ -20,10 +20,10 @@ grounded no better). With `attribute_weight` the head also names the target's at
 every cell (`attribute_loss`). In a causal LLM the frame's tokens precede the prompt, so a cell's features never
 see the instruction: the query's FiLM code binds the two. With `visual_skip` each cell also gets a projection of
 the frame's visual token at its position (the LLM's input there), so what the LLM's layers mix away still reaches
-the scorer. With `colour_vocabulary` = K each pixel of the current frame is softly assigned to one of K learned
-colour classes, a reader of the prompt's words names the target's colour (trained on its label), and w x log(match)
-of each cell's class histogram with the classes that colour asks for joins the cell's score (`ColourVocabulary`):
-the ResNet's stride-16 features average away the colour of a landmark a few pixels wide, the histogram keeps it.
+the scorer. With `colour_vocabulary` a reader of the prompt's words names the target's colour (trained on its
+label), each pixel of the current frame is classed as one of the same named colours or none, and w x log(the
+cell's share of the named colour) joins the cell's score (`ColourVocabulary`): the ResNet's stride-16 features
+average away the colour of a landmark a few pixels wide, the share keeps it.
 """
 
 from __future__ import annotations
