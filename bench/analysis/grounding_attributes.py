@@ -11,7 +11,7 @@ Two measurements on a navigation run's test split (bench/grounding_attributes.py
   (`cell_colour_stats`), the vision backbone's token and the head's cell feature (the LLM's hidden state there,
   through the head's input projection); and from the head's query (the code that modulates every cell: what the
   head took from the instruction). With a colour vocabulary (`grounding.colour_vocabulary`), three readings more:
-  the target cell's histogram of the learned colour classes, the colour the prompt's words name (its logits) and
+  the target cell's histogram of the named colours (and none), the colour the prompt's words name (its logits) and
   the class distribution that colour asks for. A probe at the majority rate means the reading does not hold the
   attribute.
 
@@ -203,7 +203,8 @@ class AttributeProbe:
                 queries = self._queries.pop()  # (B, d)
                 tokens = self._backbone_tokens(batch[C.PIXEL_VALUES])  # (B, P, C) or None
                 pixels = self._pixel_stats(batch[C.PIXEL_VALUES])  # (B, P, 18)
-                histograms, asks = self._colour_vocabulary(batch[C.PIXEL_VALUES], output)  # (B, P, K), (B, K)
+                # (B, P, C + 1) cell histograms and (B, C + 1) asks, or None
+                histograms, asks = self._colour_vocabulary(batch[C.PIXEL_VALUES], output)
                 for row, index in enumerate(chunk):
                     if bool(batch[C.BOX_VISIBLE][row]):
                         episode, t = dataset.locate(index)
@@ -260,8 +261,8 @@ class AttributeProbe:
     def _colour_vocabulary(
         self, pixels: torch.Tensor, output
     ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """(B, P, K) cell histograms of the head's colour classes and the (B, K) classes asked for by the colour
-        its output's words name; (None, None) for a head without a colour vocabulary."""
+        """(B, P, C + 1) cell histograms of the named colours (and none) and the (B, C + 1) classes asked for by the
+        colour its output's words name; (None, None) for a head without a colour vocabulary."""
         vocabulary = self.agent.network.grounding_head.colour_vocabulary
         if vocabulary is None:
             return None, None

@@ -256,7 +256,7 @@ class OpenFlyNetwork(nn.Module):
         vocabulary = getattr(self.grounding_head, "colour_vocabulary", None)
         if vocabulary is None:
             return None
-        colours = vocabulary.histogram(pixels)  # (F, P, K)
+        colours = vocabulary.histogram(pixels)  # (F, P, C + 1)
         return colours if frame_index is None else colours[frame_index.to(colours.device)]
 
     def heads(

@@ -115,11 +115,12 @@ def load_splits(data: DataConfig, grounding: GroundingConfig) -> Splits:
 def attribute_lookup(grounding: GroundingConfig, data_root: str) -> LandmarkAttributes | None:
     """The target attributes' lookup of the dataset at `data_root` when the grounding head learns them
     (`model.grounding.attribute_weight` or `colour_vocabulary`, the cells head's)."""
-    if not isinstance(grounding, CellGroundingConfig):
+    if not (
+        isinstance(grounding, CellGroundingConfig)
+        and (grounding.attribute_weight or grounding.colour_vocabulary)
+    ):
         return None
-    option = "attribute_weight" if grounding.attribute_weight else "colour_vocabulary"
-    if not getattr(grounding, option):
-        return None
+    option = "attribute_weight" if grounding.attribute_weight else "colour_vocabulary"  # named in the errors
     if list(grounding.attribute_classes) != vocabulary_sizes():
         raise PreflightError(
             f"model.grounding.attribute_classes={grounding.attribute_classes} != the embedded city's vocabularies "

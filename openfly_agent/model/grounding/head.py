@@ -234,7 +234,7 @@ class CellGroundingHead(QueryReader):
             last_positions: (B,) long, position of each row's last prompt token.
             visual_cells: (B, P, D_llm) the current frame's visual tokens, the LLM's inputs at `image_positions`
                 (needed with `visual_skip`).
-            colours: (B, P, K) the current frame's cell colour histograms (`ColourVocabulary.histogram`; needed
+            colours: (B, P, C + 1) the current frame's cell colour histograms (`ColourVocabulary.histogram`; needed
                 with `colour_vocabulary`).
             words: (B, L, D_llm) the LLM's input embeddings, with word_mask (B, L) bool the prompt's positions
                 (`SequenceLayout.prompt_mask`; needed with `colour_vocabulary`).
@@ -390,7 +390,7 @@ def grounding_loss(
     visible = visible.bool()
     count = int(visible.sum())
     zero = pred_boxes.sum() * 0.0  # keeps the graph when no box is visible
-    cell_term = zero
+    cell_term = colour_cell_term = zero
     if count:
         target = target_boxes[visible].to(pred_boxes.device)
         iou, giou = iou_and_giou(pred_boxes[visible], target)
@@ -399,7 +399,10 @@ def grounding_loss(
         l1_term = l1_term.sum(-1).mean()
         if output.cell_logits is not None:
             side = int(round(output.cell_logits.shape[-1] ** 0.5))
-            cell_term = F.cross_entropy(output.cell_logits[visible].float(), box_cells(target, side))
+            target_cells = box_cells(target, side)  # (V,)
+            cell_term = F.cross_entropy(output.cell_logits[visible].float(), target_cells)
+            if output.match_logits is not None:  # the colour match alone, against the same cells
+                colour_cell_term = F.cross_entropy(output.match_logits[visible].float(), target_cells)
     else:
         iou, giou_term, l1_term = torch.zeros(1), zero, zero
     vis_term = F.binary_cross_entropy_with_logits(visibility_logits.float(), visible.float())
@@ -414,13 +417,7 @@ def grounding_loss(
         word_term, word_logs = word_colour_loss(output.word_colours, attributes)
         loss = loss + word_term
         attribute_logs.update(word_logs)
-    if output.match_logits is not None:
-        colour_cell_term = output.match_logits.sum() * 0.0  # in the graph when no box is visible
-        if count:
-            side = int(round(output.match_logits.shape[-1] ** 0.5))
-            colour_cell_term = colour_cell_term + F.cross_entropy(
-                output.match_logits[visible].float(), box_cells(target, side)
-            )
+    if output.match_logits is not None:  # in the graph through cell_logits when no box is visible
         loss = loss + colour_cell_term
         attribute_logs["colour_cell_loss"] = float(colour_cell_term.detach())
     logs = {
@@ -444,8 +441,8 @@ def word_colour_loss(
     term = word_colours.sum() * 0.0  # in the graph when no row has a known colour (DDP needs every gradient)
     logs = {}
     labels = None if attributes is None else attributes[:, 0].to(word_colours.device).long()  # (B,)
-    if labels is not None and bool((labels >= 0).any()):
-        known = labels >= 0
+    known = None if labels is None else labels >= 0  # (B,)
+    if known is not None and bool(known.any()):
         logits = word_colours[known].float()  # (n, C)
         term = term + F.cross_entropy(logits, labels[known])
         logs["word_color_accuracy"] = float((logits.argmax(dim=-1) == labels[known]).float().mean())
