@@ -24,6 +24,7 @@ from openfly_agent.data.frames import decode_image
 from openfly_agent.data.parquet_io import write_table_atomic
 from openfly_agent.data.records import check_box
 from openfly_agent.data.schema import SchemaError
+from openfly_agent.utils.files import write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -131,11 +132,9 @@ def write_scene(root: str | Path, scene_id: str, rows: list[dict], frames_per_pa
         write_table_atomic(grounding_table(rows[first : first + frames_per_part]), path)
         paths.append(path)
     marker = Path(root) / PARTS_DIR / f"{scene_id}.json"
-    marker.parent.mkdir(parents=True, exist_ok=True)
     counts = {"frames": len(rows), "expressions": int(sum(len(r["expressions"]) for r in rows))}
-    tmp = marker.with_name(f".{marker.name}.tmp")
-    tmp.write_text(json.dumps({"scene_id": scene_id, "parts": [p.name for p in paths], **counts}) + "\n")
-    tmp.replace(marker)
+    text = json.dumps({"scene_id": scene_id, "parts": [p.name for p in paths], **counts}) + "\n"
+    write_atomic(marker, lambda tmp: tmp.write_text(text))
     return paths
 
 

@@ -21,6 +21,7 @@ import pyarrow.parquet as pq
 from openfly_agent import constants as C
 from openfly_agent.data.records import check_box, parse_episode_id, pitch_for_category
 from openfly_agent.data.schema import Episode, SchemaError
+from openfly_agent.utils.files import write_atomic
 
 # action_type strings of the release -> ids; "go straight" is resolved by its value (3 / 6 / 9 m).
 ACTION_TYPE_IDS = {
@@ -252,7 +253,4 @@ def read_parquet_episode(path: str | Path, instruction: str | None = None) -> Ep
 
 def write_table_atomic(table: pa.Table, path: Path) -> None:
     """Write `table` to `path` through a temporary file and a rename (no half-written parquet)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    pq.write_table(table, tmp)
-    tmp.replace(path)
+    write_atomic(path, lambda tmp: pq.write_table(table, tmp))

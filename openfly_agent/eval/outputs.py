@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from openfly_agent.eval.scene_map import FootprintCache
 from openfly_agent.rollout.episodes import target_landmark
 from openfly_agent.rollout.metrics import episode_metrics, trajectory_of
 from openfly_agent.rollout.record import EpisodeRecord
+from openfly_agent.utils.files import write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -37,9 +37,7 @@ SUMMARY_MD = "summary.md"
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write `text` through a temporary file and a rename."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def run_meta(cfg: EvalConfig, policy: str, split_sizes: dict[str, int] | None = None) -> dict:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from openfly_agent.rollout.record import EpisodeRecord
 from openfly_agent.utils.errors import RecordError
+from openfly_agent.utils.files import write_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -87,11 +88,12 @@ def merge_records(groups: list[list[EpisodeRecord]]) -> list[EpisodeRecord]:
 
 def write_jsonl_atomic(path: str | Path, records: list[EpisodeRecord]) -> None:
     """Write `records` to `path` through a temporary file and a rename (a crash leaves the old file)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", encoding="utf-8") as handle:
-        for record in records:
-            handle.write(record.to_json() + "\n")
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+
+    def dump(tmp: Path) -> None:
+        with open(tmp, "w", encoding="utf-8") as handle:
+            for record in records:
+                handle.write(record.to_json() + "\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+
+    write_atomic(path, dump)

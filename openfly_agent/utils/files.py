@@ -4,7 +4,30 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
+from collections.abc import Callable
 from pathlib import Path
+
+
+def write_atomic(path: str | Path, write: Callable[[Path], object]) -> None:
+    """Have `write` fill a temporary file beside `path`, then rename it onto `path`: a reader sees the old file
+    or the new one, never half of one, and a crash leaves the old file.
+
+    The temporary name is private to this call (`.<name>.<pid>-<token>.tmp`), so two processes writing the same
+    file at once (two runs finalizing one shared dataset) each rename their own complete file into place and the
+    last rename wins. The temporary file is removed when `write` fails.
+
+        write_atomic(path, lambda tmp: tmp.write_text(text))
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
 
 
 def remove_empty_dirs(root: str | Path, children: tuple[str, ...]) -> None:
