@@ -8,6 +8,7 @@ import re
 from pathlib import Path
 
 import pytest
+import yaml
 
 from openfly_agent.recipe import RecipeConfig, StageBudget, recipe_steps
 from openfly_agent.recipe import run as recipe_run
@@ -15,7 +16,7 @@ from openfly_agent.recipe.__main__ import main as recipe_main
 from openfly_agent.recipe.config import stage_train_config
 from openfly_agent.recipe.run import KIND_TRAIN
 from openfly_agent.training.config import TrainConfig
-from openfly_agent.utils.config import REPO_ROOT, config_to_dict, load_yaml_config
+from openfly_agent.utils.config import REPO_ROOT, config_to_dict, load_yaml_config, resolve_config_path
 
 RECIPES = REPO_ROOT / "configs" / "recipe"
 ADOPTED = "configs/model/tiny-adopted.yaml"
@@ -154,9 +155,13 @@ def test_a_bad_stage_override_is_one_line_at_load_before_any_command_runs(args, 
     assert err.count("\n") == 1 and line in err, err
 
 
-def test_the_main_job_lays_no_model_file_or_override_over_its_train_config():
+def test_the_main_job_lays_its_one_model_file_over_both_stages_and_nothing_else():
     cfg = _recipe("main_job.yaml")
-    assert cfg.model is None
-    for step in recipe_steps(cfg):
-        if step.kind == KIND_TRAIN:
-            assert not any(arg.startswith("--model") for arg in step.command), step.command
+    assert cfg.model == "configs/model/tiny-main-job.yaml"
+    train_steps = [step for step in recipe_steps(cfg) if step.kind == KIND_TRAIN]
+    assert [step.name for step in train_steps] == ["grounding", "navigation"]
+    for step in train_steps:
+        model_args = [arg for arg in step.command if arg.startswith("--model")]
+        assert model_args == [f"--model={resolve_config_path(cfg.model)}"], step.command
+    section = yaml.safe_load(resolve_config_path(cfg.model).read_text())
+    assert section == {"grounding": {"colour_vocabulary": True}}
