@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,36 @@ def test_the_second_unseen_split_uses_cities_no_other_config_trains_or_tests_on(
         used = set(cfg.scenes.train_seeds) | set(cfg.scenes.unseen_seeds)
         assert not used & set(held_out.scenes.unseen_seeds), name
         assert (held_out.render, held_out.route, held_out.map) == (cfg.render, cfg.route, cfg.map), name
+
+
+def test_the_second_validation_set_holds_val_routes_only_in_cities_no_other_config_uses():
+    val_more = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small-val-more.yaml")
+    scenes = val_more.scenes
+    assert scenes.train_seeds == [] and scenes.unseen_seeds == [] and scenes.test_seen_fraction == 0.0
+    assert len(scenes.val_seeds) == 4 and scenes.val_unseen_per_scene == 65  # 260 routes
+    small = load_yaml_config(GenerateConfig, CONFIGS / "embedded-small.yaml")
+    assert (val_more.render, val_more.route, val_more.map) == (
+        small.render,
+        small.route,
+        small.map,
+    )  # same task
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        if path.name == "embedded-small-val-more.yaml":
+            continue
+        other = load_yaml_config(GenerateConfig, path).scenes
+        used = set(other.train_seeds) | set(other.unseen_seeds) | set(other.val_seeds)
+        assert not used & set(scenes.val_seeds), path.name
+
+
+def test_the_second_validation_set_generates_a_val_split_and_nothing_else(tmp_path, capsys):
+    """The shipped config, shortened to one city and 2 routes: its routes land in val.json, the other splits are
+    empty."""
+    config = str(CONFIGS / "embedded-small-val-more.yaml")
+    overrides = ["--scenes.val_seeds=[1006]", "--scenes.val_unseen_per_scene=2", "--workers=0"]
+    assert main(["generate", "--config_path", config, f"--output_dir={tmp_path}", *overrides]) == 0
+    counts = {name: len(json.loads((tmp_path / "Annotation" / name).read_text())) for name in
+              ("train.json", "seen.json", "unseen.json", "val.json")}  # fmt: skip
+    assert counts == {"train.json": 0, "seen.json": 0, "unseen.json": 0, "val.json": 2}
 
 
 def test_the_validation_city_is_a_city_of_no_other_split_of_any_shipped_dataset():
