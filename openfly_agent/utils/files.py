@@ -1,4 +1,5 @@
-"""File-system helpers of the entry points."""
+"""File-system helpers: atomic file writes (`write_atomic`) and the clean-up of the empty folders a failed command
+created."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""utils/files.py: the atomic write every writer of the package goes through."""
+"""utils/files.py: the atomic file write of the dataset, evaluation and metrics writers."""
 
 from __future__ import annotations
 
