@@ -24,7 +24,7 @@ from openfly_agent.data.frames import decode_image
 from openfly_agent.data.parquet_io import write_table_atomic
 from openfly_agent.data.records import check_box
 from openfly_agent.data.schema import SchemaError
-from openfly_agent.utils.files import write_atomic
+from openfly_agent.utils.files import write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -133,8 +133,9 @@ def write_scene(root: str | Path, scene_id: str, rows: list[dict], frames_per_pa
         paths.append(path)
     marker = Path(root) / PARTS_DIR / f"{scene_id}.json"
     counts = {"frames": len(rows), "expressions": int(sum(len(r["expressions"]) for r in rows))}
-    text = json.dumps({"scene_id": scene_id, "parts": [p.name for p in paths], **counts}) + "\n"
-    write_atomic(marker, lambda tmp: tmp.write_text(text))
+    write_text_atomic(
+        marker, json.dumps({"scene_id": scene_id, "parts": [p.name for p in paths], **counts}) + "\n"
+    )
     return paths
 
 

@@ -26,7 +26,7 @@ from openfly_agent.data.parquet_io import TRAJECTORY_SCHEMA, trajectory_table, w
 from openfly_agent.data.records import episode_from_record, parse_episode_id, record_from_episode
 from openfly_agent.data.schema import Episode, SchemaError
 from openfly_agent.data.stats import action_histogram, compute_action_statistics
-from openfly_agent.utils.files import write_atomic
+from openfly_agent.utils.files import write_text_atomic
 from openfly_agent.utils.progress import progress_bar
 
 logger = logging.getLogger(__name__)
@@ -38,13 +38,7 @@ PART_MAX_RECORDS = 256  # records per part file: a write rewrites at most this m
 
 def write_json_atomic(path: Path, data) -> None:
     """Write JSON through a temporary file and a rename, so a crash never leaves half a file."""
-
-    def dump(tmp: Path) -> None:
-        with tmp.open("w", encoding="utf-8") as f:
-            json.dump(data, f, ensure_ascii=False)
-            f.write("\n")
-
-    write_atomic(path, dump)
+    write_text_atomic(path, json.dumps(data, ensure_ascii=False) + "\n")
 
 
 def _read_records(path: Path) -> list[dict]:
@@ -169,8 +163,7 @@ class OpenFlyDatasetWriter:
         return self._part_text[part]
 
     def _write_part(self, part: Path) -> None:
-        text = "[" + ",\n".join(self._records_text(part).values()) + "]\n"
-        write_atomic(part, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+        write_text_atomic(part, "[" + ",\n".join(self._records_text(part).values()) + "]\n")
 
     def _put_record(self, record: dict, part: Path) -> None:
         """Add (or replace) `record` in `part`, rewriting the file atomically (tmp + rename)."""

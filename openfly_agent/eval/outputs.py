@@ -27,17 +27,12 @@ from openfly_agent.eval.scene_map import FootprintCache
 from openfly_agent.rollout.episodes import target_landmark
 from openfly_agent.rollout.metrics import episode_metrics, trajectory_of
 from openfly_agent.rollout.record import EpisodeRecord
-from openfly_agent.utils.files import write_atomic
+from openfly_agent.utils.files import write_text_atomic
 
 logger = logging.getLogger(__name__)
 
 SUMMARY_JSON = "summary.json"
 SUMMARY_MD = "summary.md"
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write `text` through a temporary file and a rename."""
-    write_atomic(path, lambda tmp: tmp.write_text(text))
 
 
 def run_meta(cfg: EvalConfig, policy: str, split_sizes: dict[str, int] | None = None) -> dict:

@@ -16,7 +16,7 @@ import yaml
 from accelerate import Accelerator
 from accelerate.tracking import GeneralTracker
 
-from openfly_agent.utils.files import write_atomic
+from openfly_agent.utils.files import write_text_atomic
 from openfly_agent.utils.imports import require_package
 
 METRICS_FILE_NAME = "metrics.jsonl"
@@ -53,7 +53,7 @@ class JsonlTracker(GeneralTracker):
         lines = self.path.read_text().splitlines(keepends=True)
         kept = [line for line in lines if not _logged_after(line, self.resumed_at)]
         if len(kept) < len(lines):
-            write_atomic(self.path, lambda tmp: tmp.write_text("".join(kept)))
+            write_text_atomic(self.path, "".join(kept))
 
     def store_init_configuration(self, values: dict) -> None:
         self._append({"event": "config", "run_name": self.run_name, "config": values})

@@ -31,6 +31,11 @@ def write_atomic(path: str | Path, write: Callable[[Path], object]) -> None:
             tmp.unlink()
 
 
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """Write `text` (UTF-8) to `path` through `write_atomic`."""
+    write_atomic(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
 def remove_empty_dirs(root: str | Path, children: tuple[str, ...]) -> None:
     """Delete the folders `root/<child>` that hold no file (with their empty subfolders), then `root` if it
     is empty now; a folder that holds a file stays, and nothing else under `root` is touched.
