@@ -331,12 +331,20 @@ def one_update(run: RLSetup, env: VectorSimulator) -> dict[str, float]:
     state.step += 1
     state.samples_seen += int(logs["rollout_steps"])
     run.accelerator.log({f"train/{k}": v for k, v in logs.items()}, step=state.step)
-    logger.info(
-        "update %d: reward %.3f, success %.3f, kl %.4f, entropy %.3f, clip %.3f",
-        state.step, logs["reward"], logs["success_rate"], logs.get("kl", float("nan")),
-        logs.get("entropy", float("nan")), logs.get("clip_fraction", float("nan")),
-    )  # fmt: skip
+    logger.info(update_line(state.step, logs))
     return logs
+
+
+def update_line(step: int, logs: dict[str, float]) -> str:
+    """The log line of one update. An update whose groups all had equal rewards trained on nothing; it says so
+    instead of printing KL, entropy and clip fraction it did not measure."""
+    head = (
+        f"update {step}: reward {logs['reward']:.3f}, success {logs['success_rate']:.3f}, "
+        f"groups with signal {logs['groups_with_signal']:.2f}"
+    )
+    if "kl" not in logs:
+        return f"{head}; no group with signal, the policy is unchanged"
+    return f"{head}, kl {logs['kl']:.4f}, entropy {logs['entropy']:.3f}, clip {logs['clip_fraction']:.3f}"
 
 
 def update_policy(
