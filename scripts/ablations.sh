@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The ablation table at the recipe budget (docs/experiments/2026-11-26-ablations-on-the-adopted-recipe.md, "The ablation table on the adopted recipe"):
 #   1. the recipe itself (configs/recipe/tiny-recipe.yaml: keyframes + token merging, the paper's OpenFly-Agent)
-#      into $ROOT/recipe, about 2 h 25 min on the 2 cores its steps were set on (about 3 h 25 min of training
-#      alone on the 2-core hosts of 2026-11-29 and -30);
+#      into $ROOT/recipe, about 3 h 31 min on the 2-core host of 2026-11-30 (about 2 h 25 min on the
+#      faster 2 cores its steps were set on);
 #   2. each arm of configs/recipe/ablations/ into $ROOT/<arm>, one change against the recipe. The arms that change
 #      only the navigation stage share the recipe's grounding stage (--grounding_from; about 1 h 23 min each),
 #      `with_dagger` also starts from the recipe's navigation stage (copied in, so its rounds are the one change),
