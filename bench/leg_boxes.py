@@ -52,7 +52,8 @@ def count_leg_boxes(policy_dir: str, dataset_root: str, split: str) -> LegBoxCou
             steps = len(record.actions) if record.collision_step is None else record.collision_step + 1
             poses = [Pose(*pose) for pose in record.poses[:steps]]
             route, leg = episode.landmark_ids, 0
-            for t, observation in enumerate(sim.render_many(record.scene_id, poses)):
+            # at the camera pitch the flight was flown with (eval renders each episode at its own)
+            for t, observation in enumerate(sim.render_many(record.scene_id, poses, episode.pitch_deg)):
                 leg = current_leg(leg, np.asarray(record.poses[t][:3]), episode.leg_goals, C.SUCCESS_RADIUS_M)
                 boxes = observation.boxes or {}
                 category = leg_box_category(record.boxes[t], boxes, route, leg)
@@ -64,7 +65,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--policy_dir", required=True, help="an eval.py policy folder, e.g. outputs/eval/agent")
+    parser.add_argument(
+        "--policy_dir", required=True, help="an eval.py policy folder, e.g. outputs/eval/agent"
+    )
     parser.add_argument("--dataset_root", required=True, help="the generated chained dataset it flew")
     parser.add_argument("--split", default="val")
     parser.add_argument("--json", default=None, help="also write the table's counts to this JSON file")

@@ -58,7 +58,8 @@ def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str)
                     f"{policy_dir}: episode {record.episode_id} is not in {dataset_root} ({split})"
                 )
             target = target_landmark(episode)
-            boxes = sim.render(record.scene_id, Pose(*record.poses[-1])).boxes or {}
+            # the camera pitch the flight was flown with (eval renders each episode at its own)
+            boxes = sim.render(record.scene_id, Pose(*record.poses[-1]), episode.pitch_deg).boxes or {}
             predicted = record.boxes[-1] if record.boxes else None
             on = best_landmark(predicted, boxes)
             landmarks = {b.landmark_id: b.landmark for b in sim.city(record.scene_id).buildings}

@@ -117,11 +117,11 @@ def generate_tiny_dataset(root, seed: int = 0, chained: bool = False) -> None:
     generate(cfg, progress=False)
 
 
-def oracle_flights(tmp_path: Path, split: str) -> tuple[Path, Path]:
-    """A tiny generated dataset (`tmp_path/dataset`) and the oracle's eval.py flights of `split` on it: the
-    dataset and the policy folder (`tmp_path/eval/oracle`)."""
+def oracle_flights(tmp_path: Path, split: str, chained: bool = False) -> tuple[Path, Path]:
+    """A tiny generated dataset (`tmp_path/dataset`; `chained`: every route past 2 landmarks) and the oracle's
+    eval.py flights of `split` on it: the dataset and the policy folder (`tmp_path/eval/oracle`)."""
     dataset = tmp_path / "dataset"
-    generate_tiny_dataset(dataset)
+    generate_tiny_dataset(dataset, chained=chained)
     run(
         EvalConfig(
             dataset_root=str(dataset), output_dir=str(tmp_path / "eval"), policy="oracle", split=[split]

@@ -94,8 +94,11 @@ def test_shared_attributes_against_the_chance_of_the_landmarks_in_view():
 
 
 def test_the_command_finds_oracle_flights_on_their_target(tmp_path):
+    """On chained routes (the last frame's box is the final target's), some flown with the camera pitched down:
+    each STOP is rendered again at the pitch its flight was flown with."""
     split = C.SPLIT_TEST_UNSEEN
-    dataset, folder = oracle_flights(tmp_path, split)
+    dataset, folder = oracle_flights(tmp_path, split, chained=True)
+    assert {e.pitch_deg for e in load_openfly_dataset(dataset, split)} == {0.0, -45.0}
     # the oracle replays each route to its end; give each flight the target's true box of the route's last frame
     # as the box it "predicted" there (none where the target is out of view)
     episodes = {e.episode_id: e for e in load_openfly_dataset(dataset, split)}
