@@ -12,14 +12,12 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Sequence
 
-from bench.analysis.stop_landmarks import Box, best_landmark
+from bench.analysis.stop_landmarks import NO_BOX, ON_NOTHING, Box, best_landmark
+from bench.analysis.stop_landmarks import ON_OTHER_LANDMARK as ON_OTHER
 
 ON_LEG = "the current leg's target"
 ON_EARLIER = "an earlier leg's target"
 ON_LATER = "a later leg's target"
-ON_OTHER = "a landmark the route does not name"
-ON_NOTHING = "no landmark (IoU < 0.3)"
-NO_BOX = "the agent saw no box"
 CATEGORIES = (ON_LEG, ON_EARLIER, ON_LATER, ON_OTHER, ON_NOTHING, NO_BOX)
 
 
