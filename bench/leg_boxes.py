@@ -24,36 +24,24 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bench.analysis.leg_boxes import LegBoxCounts, leg_box_category  # noqa: E402
+from bench.analysis.replay import render_at, replayed_flights  # noqa: E402
 from openfly_agent import constants as C  # noqa: E402
-from openfly_agent.eval.compare import load_policy_folder  # noqa: E402
-from openfly_agent.eval.config import EvalConfig  # noqa: E402
-from openfly_agent.eval.factory import embedded_sim_config, load_full_splits  # noqa: E402
 from openfly_agent.rollout.legs import current_leg  # noqa: E402
-from openfly_agent.sim.base import Pose  # noqa: E402
-from openfly_agent.sim.embedded import EmbeddedSimulator  # noqa: E402
 
 
 def count_leg_boxes(policy_dir: str, dataset_root: str, split: str) -> LegBoxCounts:
     """Every decision step of `split` in `policy_dir` up to its flight's first collision, classified."""
-    cfg = EvalConfig(checkpoint="unused", dataset_root=dataset_root, split=[split])
-    episodes = {e.episode_id: e for e in load_full_splits(cfg)[split]}
-    records = [r for r in load_policy_folder(policy_dir).records if r.split == split]
-    if not records:
-        raise SystemExit(f"{policy_dir}: no flight of split {split}")
     counts = LegBoxCounts()
-    with EmbeddedSimulator(embedded_sim_config(cfg, list(episodes.values()))) as sim:
-        for record in records:
-            episode = episodes.get(record.episode_id)
-            if episode is None or episode.leg_goals is None:
+    with replayed_flights(policy_dir, dataset_root, split) as (sim, flights):
+        for record, episode in flights:
+            if episode.leg_goals is None:
                 raise SystemExit(
-                    f"{policy_dir}: episode {record.episode_id} is not in {dataset_root} ({split}) with "
-                    "`leg_goals` (a chained dataset generated since the field exists)"
+                    f"{policy_dir}: episode {record.episode_id} of {dataset_root} ({split}) has no `leg_goals` "
+                    "(a chained dataset generated since the field exists)"
                 )
             steps = len(record.actions) if record.collision_step is None else record.collision_step + 1
-            poses = [Pose(*pose) for pose in record.poses[:steps]]
             route, leg = episode.landmark_ids, 0
-            # at the camera pitch the flight was flown with (eval renders each episode at its own)
-            for t, observation in enumerate(sim.render_many(record.scene_id, poses, episode.pitch_deg)):
+            for t, observation in enumerate(render_at(sim, record, episode, record.poses[:steps])):
                 leg = current_leg(leg, np.asarray(record.poses[t][:3]), episode.leg_goals, C.SUCCESS_RADIUS_M)
                 boxes = observation.boxes or {}
                 category = leg_box_category(record.boxes[t], boxes, route, leg)

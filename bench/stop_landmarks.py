@@ -19,11 +19,13 @@ import json
 import math
 import sys
 from dataclasses import asdict
+from operator import attrgetter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.analysis.replay import render_at, replayed_flights  # noqa: E402
 from bench.analysis.stop_landmarks import (  # noqa: E402
     StopRow,
     best_landmark,
@@ -33,33 +35,19 @@ from bench.analysis.stop_landmarks import (  # noqa: E402
     stop_target,
     table_markdown,
 )
-from openfly_agent.eval.compare import load_policy_folder  # noqa: E402
-from openfly_agent.eval.config import EvalConfig  # noqa: E402
-from openfly_agent.eval.factory import embedded_sim_config, load_full_splits  # noqa: E402
 from openfly_agent.eval.report import episode_rows  # noqa: E402
 from openfly_agent.rollout.episodes import target_landmark  # noqa: E402
-from openfly_agent.sim.base import Pose  # noqa: E402
-from openfly_agent.sim.embedded import EmbeddedSimulator  # noqa: E402
 
 
 def classify_stops(policy_dir: str, dataset_root: str, split: str, profile: str) -> list[StopRow]:
     """Every STOP of `split` in `policy_dir`, classified at its pose in the dataset's embedded cities."""
-    cfg = EvalConfig(checkpoint="unused", dataset_root=dataset_root, split=[split])
-    episodes = {e.episode_id: e for e in load_full_splits(cfg)[split]}
-    records = [r for r in load_policy_folder(policy_dir).records if r.split == split and r.stopped]
-    if not records:
-        raise SystemExit(f"{policy_dir}: no flight of split {split} ended with a STOP")
     rows = []
-    with EmbeddedSimulator(embedded_sim_config(cfg, list(episodes.values()))) as sim:
-        for record, scored in zip(records, episode_rows(records, profile)):
-            episode = episodes.get(record.episode_id)
-            if episode is None:
-                raise SystemExit(
-                    f"{policy_dir}: episode {record.episode_id} is not in {dataset_root} ({split})"
-                )
+    stopped = attrgetter("stopped")
+    with replayed_flights(policy_dir, dataset_root, split, stopped, "ended with a STOP") as (sim, flights):
+        scores = episode_rows([record for record, _ in flights], profile)
+        for (record, episode), scored in zip(flights, scores):
             target = target_landmark(episode)
-            # the camera pitch the flight was flown with (eval renders each episode at its own)
-            boxes = sim.render(record.scene_id, Pose(*record.poses[-1]), episode.pitch_deg).boxes or {}
+            boxes = render_at(sim, record, episode, record.poses[-1:])[0].boxes or {}
             predicted = record.boxes[-1] if record.boxes else None
             on = best_landmark(predicted, boxes)
             landmarks = {b.landmark_id: b.landmark for b in sim.city(record.scene_id).buildings}
