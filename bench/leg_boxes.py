@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,13 +26,14 @@ sys.path.insert(0, str(REPO))
 
 from bench.analysis.leg_boxes import LegBoxCounts, leg_box_category  # noqa: E402
 from bench.analysis.replay import render_at, replayed_flights  # noqa: E402
+from bench.analysis.stop_landmarks import Box  # noqa: E402
 from openfly_agent import constants as C  # noqa: E402
 from openfly_agent.rollout.legs import current_leg  # noqa: E402
 
 
-def count_leg_boxes(policy_dir: str, dataset_root: str, split: str) -> LegBoxCounts:
-    """Every decision step of `split` in `policy_dir` up to its flight's first collision, classified."""
-    counts = LegBoxCounts()
+def leg_box_steps(policy_dir: str, dataset_root: str, split: str) -> Iterator[tuple[str, Box | None]]:
+    """Every decision step of `split` in `policy_dir` up to its flight's first collision: the category of the
+    agent's box and the current leg's target box in the frame (None when out of view)."""
     with replayed_flights(policy_dir, dataset_root, split) as (sim, flights):
         for record, episode in flights:
             if episode.leg_goals is None:
@@ -44,8 +46,14 @@ def count_leg_boxes(policy_dir: str, dataset_root: str, split: str) -> LegBoxCou
             for t, observation in enumerate(render_at(sim, record, episode, record.poses[:steps])):
                 leg = current_leg(leg, np.asarray(record.poses[t][:3]), episode.leg_goals, C.SUCCESS_RADIUS_M)
                 boxes = observation.boxes or {}
-                category = leg_box_category(record.boxes[t], boxes, route, leg)
-                counts.add(category, route[leg] in boxes)
+                yield leg_box_category(record.boxes[t], boxes, route, leg), boxes.get(route[leg])
+
+
+def count_leg_boxes(policy_dir: str, dataset_root: str, split: str) -> LegBoxCounts:
+    """Every decision step of `split` in `policy_dir` up to its flight's first collision, classified."""
+    counts = LegBoxCounts()
+    for category, target_box in leg_box_steps(policy_dir, dataset_root, split):
+        counts.add(category, target_box is not None)
     return counts
 
 
