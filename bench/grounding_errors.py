@@ -1,7 +1,8 @@
 """Where a training run's target boxes go wrong (bench/analysis/grounding_errors.py), as markdown + JSON.
 
 Runs the run's agent (its last checkpoint unless --checkpoint) over evenly spaced samples of its test split (or
---split) and prints IoU by target size, centre hits, size error, argmax-cell hits and the IoU an exact centre or
+--split, of its dataset or --data_root's) and prints IoU by target size and by the target's offset from the frame's
+centre, centre hits, size error, argmax-cell hits and the IoU an exact centre or
 an exact size would give; --json writes the figures too:
 
     python bench/grounding_errors.py --run outputs/recipe/grounding --max_samples 1024 --json errors.json
@@ -39,6 +40,11 @@ def main() -> None:
     parser.add_argument("--run", required=True, help="a training run folder (holds train_config.json)")
     parser.add_argument("--checkpoint", default=None, help="a checkpoint of the run (default: its last)")
     parser.add_argument("--split", default=None, help="default: the run's data.test_split")
+    parser.add_argument(
+        "--data_root",
+        default=None,
+        help="read the split from this dataset root (default: the run's data.root)",
+    )
     parser.add_argument("--max_samples", type=int, default=1024, help="0: every sample of the split")
     parser.add_argument("--batch_size", type=int, default=32)
     parser.add_argument("--threads", type=int, default=2)
@@ -74,6 +80,7 @@ def main() -> None:
         args.batch_size,
         args.centre_window,
         args.live_weights,
+        args.data_root,
     )
     errors = grounding_errors(boxes.pred, boxes.target, boxes.cell_logits)
     errors.update(split=boxes.split, samples=boxes.samples, visibility_accuracy=boxes.visibility_accuracy)

@@ -1,7 +1,7 @@
 """Where a trained agent's target boxes go wrong, on a test split's visible target boxes.
 
 The offline `box_iou` of a run (training/evaluate.py) is one mean. This breaks it down: IoU by the target's share of
-the frame, how often the predicted centre falls inside the target box, the error of the predicted size, whether
+the frame and by how far its centre is from the frame's vertical midline, how often the predicted centre falls inside the target box, the error of the predicted size, whether
 the most likely cell of the head's grid is the one holding the target's centre, and the IoU that an exact centre
 (the predicted size kept) or an exact size (the predicted centre kept) would give. Read it to choose the next
 grounding lever: resolution for small far targets, the head's size branch, or the landmark choice itself.
@@ -32,6 +32,7 @@ from openfly_agent.utils.config import config_from_dict, replace
 logger = logging.getLogger(__name__)
 
 AREA_EDGES = (0.0, 0.02, 0.06, 0.15, 0.4, 1.0)  # target box area as a fraction of the frame
+OFFSET_EDGES = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)  # |cx - 0.5| of the target box, a fraction of the frame's width
 
 
 @dataclass
@@ -62,6 +63,7 @@ def grounding_errors(
     target: torch.Tensor,
     cell_logits: torch.Tensor | None = None,
     area_edges: tuple[float, ...] = AREA_EDGES,
+    offset_edges: tuple[float, ...] = OFFSET_EDGES,
 ) -> dict:
     """The breakdown of module docstring for (N, 4) cxcywh predictions of (N, 4) visible target boxes.
 
@@ -70,13 +72,16 @@ def grounding_errors(
         target: true boxes (all visible).
         cell_logits: (N, P) the head's per-cell logits on its square grid, if it scores cells.
         area_edges: edges of the target-area bins (fractions of the frame, increasing; the last bin is closed).
+        offset_edges: edges of the bins of the target centre's horizontal offset from the frame's centre,
+            |cx - 0.5| (increasing; the last bin is closed).
 
     Returns:
         A JSON-ready dict: `count`, `mean_iou`, `iou_at_least_0_5`, `iou_zero`, `centre_inside`,
         `iou_centre_inside` / `iou_centre_outside`, `log_area_ratio` (mean of log(pred area / target area)) and
         its absolute mean, `iou_true_centre`, `iou_true_size`, `cell_exact` / `cell_within_one` (argmax cell
-        against the target centre's cell, Chebyshev distance; with cell logits) and `by_area`, one entry per bin
-        (`area_min`, `area_max`, `count`, `mean_iou`, `centre_inside`). Means over an empty set are NaN.
+        against the target centre's cell, Chebyshev distance; with cell logits), `by_area`, one entry per bin
+        (`area_min`, `area_max`, `count`, `mean_iou`, `centre_inside`), and `by_offset`, the same per offset bin
+        (`offset_min`, `offset_max`, ...). Means over an empty set are NaN.
     """
     pred, target = pred.float(), target.float()
     iou, _ = iou_and_giou(pred, target)  # (N,)
@@ -105,25 +110,34 @@ def grounding_errors(
             (predicted // side - true // side).abs(), (predicted % side - true % side).abs()
         )  # (N,) Chebyshev distance in cells
         errors.update(cell_exact=_mean(distance == 0), cell_within_one=_mean(distance <= 1))
-    by_area = []
-    for k, (low, high) in enumerate(zip(area_edges[:-1], area_edges[1:])):
-        last = k == len(area_edges) - 2
-        in_bin = (area_target >= low) & ((area_target <= high) if last else (area_target < high))
-        by_area.append(
+    errors["by_area"] = _binned(area_target, area_edges, "area", iou, inside)
+    errors["by_offset"] = _binned((target[:, 0] - 0.5).abs(), offset_edges, "offset", iou, inside)
+    return errors
+
+
+def _binned(
+    values: torch.Tensor, edges: tuple[float, ...], name: str, iou: torch.Tensor, inside: torch.Tensor
+) -> list[dict]:
+    """Count, mean IoU and centre-inside share of the (N,) `values` in each bin of `edges` (the last one closed),
+    as `<name>_min`, `<name>_max`, `count`, `mean_iou`, `centre_inside`."""
+    bins = []
+    for k, (low, high) in enumerate(zip(edges[:-1], edges[1:])):
+        last = k == len(edges) - 2
+        in_bin = (values >= low) & ((values <= high) if last else (values < high))
+        bins.append(
             {
-                "area_min": low,
-                "area_max": high,
+                f"{name}_min": low,
+                f"{name}_max": high,
                 "count": int(in_bin.sum()),
                 "mean_iou": _mean(iou[in_bin]),
                 "centre_inside": _mean(inside[in_bin]),
             }
         )
-    errors["by_area"] = by_area
-    return errors
+    return bins
 
 
 def errors_markdown(errors: dict, title: str = "") -> str:
-    """The breakdown as two markdown tables (the figures, then IoU by target area)."""
+    """The breakdown as three markdown tables (the figures, then IoU by target area and by target offset)."""
     rows = [
         ("visible targets", f"{errors['count']}"),
         ("mean IoU", f"{errors['mean_iou']:.3f}"),
@@ -159,6 +173,16 @@ def errors_markdown(errors: dict, title: str = "") -> str:
             f"| {entry['area_min']:g}-{entry['area_max']:g} | {entry['count']} | {entry['mean_iou']:.3f} "
             f"| {entry['centre_inside']:.1%} |"
         )
+    lines += [
+        "",
+        "| target centre's offset from the frame's centre, abs(cx - 0.5) | targets | mean IoU | centre inside |",
+        "|---|---:|---:|---:|",
+    ]
+    for entry in errors["by_offset"]:
+        lines.append(
+            f"| {entry['offset_min']:g}-{entry['offset_max']:g} | {entry['count']} | {entry['mean_iou']:.3f} "
+            f"| {entry['centre_inside']:.1%} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -171,6 +195,7 @@ def collect_target_boxes(
     batch_size: int = 32,
     centre_window: int | None | str = "checkpoint",
     live_weights: bool = False,
+    data_root: str | Path | None = None,
 ) -> TargetBoxes:
     """Run a training run's agent over evenly spaced samples of a split and keep its target boxes.
 
@@ -185,6 +210,8 @@ def collect_target_boxes(
             "checkpoint" keeps the checkpoint's.
         live_weights: score the live weights of the checkpoint's training state instead of its model folder's (which
             hold the weight average in a run with `optim.ema_decay`).
+        data_root: read the split from this dataset (same layout) instead of the run's `data.root`, e.g. the same
+            routes rendered with the camera turned aside (the run's extra train roots are then not read).
 
     Raises:
         FileNotFoundError: no `train_config.json` in `run_dir`, or no checkpoint.
@@ -196,6 +223,8 @@ def collect_target_boxes(
     cfg = config_from_dict(TrainConfig, json.loads(config_path.read_text()))
     if split:
         cfg = replace(cfg, data=replace(cfg.data, test_split=split))
+    if data_root:
+        cfg = replace(cfg, data=replace(cfg.data, root=str(data_root), extra_train_roots=[]))
     folder = resolve_checkpoint_folder(checkpoint or run_dir)
     if folder is None:
         raise FileNotFoundError(f"no checkpoint at {checkpoint or run_dir}")

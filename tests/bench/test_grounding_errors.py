@@ -34,14 +34,22 @@ def test_hand_built_boxes_give_the_hand_computed_breakdown():
     assert bins[(0.02, 0.06)]["count"] == 1 and bins[(0.02, 0.06)]["mean_iou"] == pytest.approx(0.5)
     assert bins[(0.02, 0.06)]["centre_inside"] == 1.0
     assert all(b["count"] == 0 and math.isnan(b["mean_iou"]) for k, b in bins.items() if k[0] >= 0.06)
+    # offsets |cx - 0.5| of the targets: 0 (box 1) and 0.3 (box 2, on the bin's lower edge)
+    offsets = {(b["offset_min"], b["offset_max"]): b for b in errors["by_offset"]}
+    assert offsets[(0.0, 0.1)]["count"] == 1 and offsets[(0.0, 0.1)]["mean_iou"] == pytest.approx(0.5)
+    assert offsets[(0.3, 0.4)]["count"] == 1 and offsets[(0.3, 0.4)]["mean_iou"] == 0.0
+    assert offsets[(0.3, 0.4)]["centre_inside"] == 0.0
+    assert sum(b["count"] for b in errors["by_offset"]) == 2
 
 
-def test_exact_predictions_are_perfect_and_the_last_area_bin_is_closed():
+def test_exact_predictions_are_perfect_and_the_last_bins_are_closed():
     full = torch.tensor([[0.5, 0.5, 1.0, 1.0]])  # the whole frame: area 1, the last edge
     errors = grounding_errors(full, full)
     assert errors["mean_iou"] == pytest.approx(1.0) and errors["centre_inside"] == 1.0
     assert errors["log_area_ratio"] == 0.0 and "cell_exact" not in errors
     assert errors["by_area"][-1]["count"] == 1
+    at_the_edge = torch.tensor([[1.0, 0.5, 0.1, 0.1]])  # centred on the right edge: offset 0.5, the last edge
+    assert grounding_errors(at_the_edge, at_the_edge)["by_offset"][-1]["count"] == 1
 
 
 def test_no_visible_target_gives_nan_means_not_an_error():
@@ -62,3 +70,5 @@ def test_markdown_shows_the_figures_and_every_area_bin():
         "| mean IoU | 0.250 |" in text and "| argmax cell: exact / within one cell | 50.0% / 100.0% |" in text
     )
     assert "| 0-0.02 | 1 | 0.000 | 0.0% |" in text and "| 0.4-1 | 0 | nan | nan% |" in text
+    assert "| 0-0.1 | 1 | 0.500 | 100.0% |" in text and "| 0.3-0.4 | 1 | 0.000 | 0.0% |" in text
+    assert "| 0.4-0.5 | 0 | nan | nan% |" in text

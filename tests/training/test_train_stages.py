@@ -119,6 +119,7 @@ def test_grounding_errors_of_a_run_match_its_own_test_iou(grounding_run, tmp_pat
     # the same checkpoint on the same samples: the breakdown's mean is the run's own test IoU
     assert errors["mean_iou"] == pytest.approx(result.final_metrics["box_iou"], abs=1e-5)
     assert sum(entry["count"] for entry in errors["by_area"]) == errors["count"] > 0
+    assert sum(entry["count"] for entry in errors["by_offset"]) == errors["count"]
     assert "| mean IoU |" in done.stdout
 
 
@@ -131,6 +132,19 @@ def test_grounding_errors_decode_with_the_centre_window_asked_for(grounding_run)
     assert len(every.target) > 0
     assert torch.equal(every.cell_logits, best_cell.cell_logits)  # the same scores, decoded two ways
     assert not torch.equal(every.pred, best_cell.pred)
+
+
+def test_grounding_errors_read_the_split_of_another_dataset_root_when_asked(
+    grounding_run, generated_dataset, tmp_path
+):
+    from bench.analysis.grounding_errors import collect_target_boxes
+
+    out, _ = grounding_run
+    own = collect_target_boxes(out, max_samples=8, batch_size=4)
+    same = collect_target_boxes(out, max_samples=8, batch_size=4, data_root=generated_dataset)
+    assert torch.equal(own.pred, same.pred) and torch.equal(own.target, same.target)
+    with pytest.raises(PreflightError, match=str(tmp_path / "elsewhere")):
+        collect_target_boxes(out, max_samples=8, data_root=tmp_path / "elsewhere")
 
 
 def test_grounding_errors_refuse_a_folder_that_is_not_a_run(tmp_path):
