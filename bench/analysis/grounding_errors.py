@@ -1,10 +1,11 @@
 """Where a trained agent's target boxes go wrong, on a test split's visible target boxes.
 
 The offline `box_iou` of a run (training/evaluate.py) is one mean. This breaks it down: IoU by the target's share of
-the frame and by how far its centre is from the frame's vertical midline, how often the predicted centre falls inside the target box, the error of the predicted size, whether
-the most likely cell of the head's grid is the one holding the target's centre, and the IoU that an exact centre
-(the predicted size kept) or an exact size (the predicted centre kept) would give. Read it to choose the next
-grounding lever: resolution for small far targets, the head's size branch, or the landmark choice itself.
+the frame and by how far its centre is from the frame's vertical midline, how often the predicted centre falls
+inside the target box, the error of the predicted size, whether the most likely cell of the head's grid is the one
+holding the target's centre, and the IoU that an exact centre (the predicted size kept) or an exact size (the
+predicted centre kept) would give. Read it to choose the next grounding lever: resolution for small far targets,
+the head's size branch, views with the target off-centre, or the landmark choice itself.
 
     python bench/grounding_errors.py --run outputs/recipe/grounding
 """
@@ -163,27 +164,22 @@ def errors_markdown(errors: dict, title: str = "") -> str:
         )
     lines = [f"### {title}", ""] if title else []
     lines += ["| figure | value |", "|---|---:|"] + [f"| {name} | {value} |" for name, value in rows]
-    lines += [
-        "",
-        "| target area (share of the frame) | targets | mean IoU | centre inside |",
-        "|---|---:|---:|---:|",
-    ]
-    for entry in errors["by_area"]:
-        lines.append(
-            f"| {entry['area_min']:g}-{entry['area_max']:g} | {entry['count']} | {entry['mean_iou']:.3f} "
-            f"| {entry['centre_inside']:.1%} |"
-        )
-    lines += [
-        "",
-        "| target centre's offset from the frame's centre, abs(cx - 0.5) | targets | mean IoU | centre inside |",
-        "|---|---:|---:|---:|",
-    ]
-    for entry in errors["by_offset"]:
-        lines.append(
-            f"| {entry['offset_min']:g}-{entry['offset_max']:g} | {entry['count']} | {entry['mean_iou']:.3f} "
-            f"| {entry['centre_inside']:.1%} |"
-        )
+    lines += _bins_table(errors["by_area"], "area", "target area (share of the frame)")
+    lines += _bins_table(
+        errors["by_offset"], "offset", "target centre's offset from the frame's centre, abs(cx - 0.5)"
+    )
     return "\n".join(lines) + "\n"
+
+
+def _bins_table(bins: list[dict], name: str, header: str) -> list[str]:
+    """The markdown lines of one binned breakdown (`_binned`'s entries), after a blank line."""
+    lines = ["", f"| {header} | targets | mean IoU | centre inside |", "|---|---:|---:|---:|"]
+    for entry in bins:
+        lines.append(
+            f"| {entry[f'{name}_min']:g}-{entry[f'{name}_max']:g} | {entry['count']} | {entry['mean_iou']:.3f} "
+            f"| {entry['centre_inside']:.1%} |"
+        )
+    return lines
 
 
 @torch.no_grad()
