@@ -1,9 +1,9 @@
 """Where a training run's target boxes go wrong (bench/analysis/grounding_errors.py), as markdown + JSON.
 
 Runs the run's agent (its last checkpoint unless --checkpoint) over evenly spaced samples of its test split (or
---split, of its dataset or --data_root's) and prints IoU by target size and by the target's offset from the frame's
-centre, centre hits, size error, argmax-cell hits and the IoU an exact centre or
-an exact size would give; --json writes the figures too:
+--split, of its dataset or --data_root's) and prints IoU by target size and by the target's offset from the
+frame's centre, centre hits, size error, argmax-cell hits and the IoU an exact centre or an exact size would give;
+--json writes the figures too:
 
     python bench/grounding_errors.py --run outputs/recipe/grounding --max_samples 1024 --json errors.json
 
