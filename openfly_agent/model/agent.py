@@ -259,19 +259,24 @@ class OpenFlyAgent(PreTrainedModel):
         if outputs is not None:
             outputs.update(action_logits=logits, action_targets=target)
         loss = F.cross_entropy(logits, target)
-        with torch.no_grad():
-            if self.action_tokenizer.head == HEAD_DISCRETE:
-                ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=logits.device)
-                predicted = ids[logits[:, ids].argmax(dim=-1)]  # argmax over the 10 actions, as select_action
-            else:
-                predicted = logits.argmax(dim=-1)
-            is_action = (target >= self.action_tokenizer.action_token_begin) & (
-                target < self.action_tokenizer.vocab_end
-            )
-            accuracy = (
-                float((predicted == target)[is_action].float().mean()) if bool(is_action.any()) else 0.0
-            )
+        hits, is_action = self.action_hits(logits, target)
+        accuracy = float(hits[is_action].float().mean()) if bool(is_action.any()) else 0.0
         return loss, accuracy
+
+    @torch.no_grad()
+    def action_hits(self, logits: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Which of (n, V) logits predict their (n,) target token, and which targets are action tokens (the
+        accuracy counts those only): two (n,) bool tensors. The discrete head predicts the argmax over its 10
+        action tokens, as `select_action` does."""
+        if self.action_tokenizer.head == HEAD_DISCRETE:
+            ids = torch.tensor(self.action_tokenizer.discrete_token_ids, device=logits.device)
+            predicted = ids[logits[:, ids].argmax(dim=-1)]  # (n,)
+        else:
+            predicted = logits.argmax(dim=-1)  # (n,)
+        is_action = (target >= self.action_tokenizer.action_token_begin) & (
+            target < self.action_tokenizer.vocab_end
+        )
+        return predicted == target, is_action
 
     def new_session(self, memory_probe: str = MEMORY_PROBE_NONE) -> AgentSession:
         """A closed-loop session of this agent (model/session.py): running episodes, `select_action`, `reset`;
