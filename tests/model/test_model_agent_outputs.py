@@ -17,7 +17,7 @@ def test_outputs_hold_the_logits_behind_the_action_loss_and_the_grounding_loss(m
     logits, targets = outputs["action_logits"], outputs["action_targets"]
     assert logits.shape == (3, agent.model_cfg.llm.vocab_size) and targets.shape == (3,)  # one token per step
     assert torch.allclose(F.cross_entropy(logits, targets), torch.tensor(logs["action_loss"]), atol=1e-5)
-    assert float(outputs["grounding_loss"]) == logs["grounding_loss"]
+    assert float(outputs["grounding_loss"].detach()) == logs["grounding_loss"]
     assert torch.allclose(loss, F.cross_entropy(logits, targets) + outputs["grounding_loss"], atol=1e-5)
     plain_loss, _ = agent(batch)  # without outputs: the same loss
     assert torch.equal(plain_loss, loss)
