@@ -90,12 +90,9 @@ def collect_step_hits(
             batch = data.collate(samples)
             outputs: dict = {}
             agent(batch, outputs=outputs)
-            hit, is_action = agent.action_hits(
-                outputs["action_logits"], outputs["action_targets"]
-            )  # (n,), (n,)
-            rows = (batch[C.LABELS] != C.IGNORE_INDEX).nonzero()[
-                :, 0
-            ]  # (n,): the sample of each labelled token
+            # (n,) each: the n labelled tokens in row-major order, as the action loss reads them
+            hit, is_action = agent.action_hits(outputs["action_logits"], outputs["action_targets"])
+            rows = (batch[C.LABELS] != C.IGNORE_INDEX).nonzero()[:, 0]  # (n,): the sample of each token
             tokens = torch.bincount(rows[is_action], minlength=len(samples))  # (B,)
             if bool((tokens == 0).any()):
                 raise ValueError(f"{run_dir}: a sample of {cfg.data.test_split} has no action token")
