@@ -23,6 +23,7 @@ import torch
 from openfly_agent import constants as C
 from openfly_agent.model.agent import OpenFlyAgent
 from openfly_agent.model.persistence.checkpoint_path import resolve_checkpoint_folder
+from openfly_agent.rollout.stats import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED
 from openfly_agent.training.builder import load_splits
 from openfly_agent.training.config import TrainConfig
 from openfly_agent.training.evaluate import eval_indices
@@ -30,9 +31,6 @@ from openfly_agent.training.stages import stage_data
 from openfly_agent.utils.config import config_from_dict, replace
 
 logger = logging.getLogger(__name__)
-
-BOOTSTRAP_RESAMPLES = 10_000
-BOOTSTRAP_SEED = 0
 
 
 @dataclass
